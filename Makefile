@@ -1,0 +1,27 @@
+# Two commands set everything up: `make demo` (the main job) and `make test`.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+
+.PHONY: setup demo info test test-slow lint bench clean
+setup:
+	@bash scripts/bootstrap.sh
+
+info: setup
+	@$(VENV)/bin/usf-graph info
+
+demo: setup
+	@$(VENV)/bin/usf-graph info
+
+test: setup
+	@$(VENV)/bin/ruff check usf_graph tests examples benchmarks
+	@$(PY) -m pytest
+
+test-slow: setup
+	@$(PY) -m pytest -m slow
+
+bench: setup
+	@$(PY) benchmarks/conv.py
+	@$(PY) benchmarks/lift.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -1,0 +1,235 @@
+"""Camera models: round trips, OpenCV agreement, wide lenses, coverage."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from usf_graph import cameras as C
+from usf_graph.cameras.base import incidence
+
+CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+SETTINGS = dict(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def random_rays(rng, n, theta_max, theta_min=0.0):
+    """Rays with incidence uniform in [theta_min, theta_max] and random azimuth."""
+    th = rng.uniform(theta_min, theta_max, n)
+    ps = rng.uniform(-math.pi, math.pi, n)
+    return np.stack([np.sin(th) * np.cos(ps), np.sin(th) * np.sin(ps), np.cos(th)], -1)
+
+
+def angle(a, b):
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1))
+
+
+def check_round_trips(cam, rays):
+    rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    uv, ok = cam.project(rays)
+    assert ok.all(), f"{cam}: {np.sum(~ok)} rays inside the domain were marked invalid"
+    back, ok2 = cam.unproject(uv)
+    assert ok2.all(), f"{cam}: {np.sum(~ok2)} pixels failed to unproject"
+    assert angle(back, rays).max() < 1e-9
+    uv2, ok3 = cam.project(back)
+    assert ok3.all() and np.abs(uv2 - uv).max() < 1e-6
+    return uv
+
+
+intr = st.tuples(st.floats(150, 600), st.floats(0.9, 1.1), st.floats(-20, 20), st.floats(-20, 20))
+
+
+@settings(**SETTINGS)
+@given(intr, st.floats(-0.3, 0.3), st.floats(-0.1, 0.1), st.floats(-0.01, 0.01),
+       st.floats(-0.01, 0.01), st.floats(-0.05, 0.05), st.integers(0, 2**31))
+def test_pinhole_round_trip_and_opencv(i, k1, k2, p1, p2, k3, seed):
+    f, aspect, dx, dy = i
+    rng = np.random.default_rng(seed)
+    dist = np.array([k1, k2, p1, p2, k3, 0.2 * k1, 0.1 * k2, 0.02, 1e-3, -1e-3, 2e-3, -5e-4])
+    cam = C.Pinhole(f, f * aspect, 320 + dx, 240 + dy, 640, 480, dist=dist)
+    tmax = min(math.atan(cam.r_max * 0.9), math.radians(50))
+    rays = random_rays(rng, 300, tmax)
+    uv = check_round_trips(cam, rays)
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    ref, _ = cv2.projectPoints(rays[:, None], np.zeros(3), np.zeros(3), K, dist)
+    assert np.abs(ref[:, 0] - uv).max() < 1e-6
+    und = cv2.undistortPoints(uv[:, None], K, dist, criteria=CRIT)[:, 0]
+    # OpenCV's iteration is a fixed point, not Newton: compare only where it converged.
+    redist, _ = cv2.projectPoints(np.c_[und, np.ones(len(und))][:, None], np.zeros(3),
+                                  np.zeros(3), K, dist)
+    conv = np.abs(redist[:, 0] - uv).max(-1) < 1e-9
+    assert conv.mean() > 0.9
+    assert np.abs(und - rays[:, :2] / rays[:, 2:])[conv].max() * cam.fx < 1e-6
+
+
+@settings(**SETTINGS)
+@given(intr, st.floats(-0.05, 0.05), st.floats(-0.01, 0.01), st.floats(-0.002, 0.002),
+       st.floats(-2e-4, 2e-4), st.integers(0, 2**31))
+def test_kannala_brandt_matches_cv2_fisheye(i, k1, k2, k3, k4, seed):
+    f, aspect, dx, dy = i
+    rng = np.random.default_rng(seed)
+    k = np.array([k1, k2, k3, k4])
+    cam = C.KannalaBrandt(f, f * aspect, 640 + dx, 480 + dy, 1280, 960, k=k)
+    tmax = min(cam.theta_max, math.radians(85))
+    rays = random_rays(rng, 300, tmax)
+    td = cam._theta_d(incidence(rays))
+    rays = rays[td < math.pi / 2 * 0.999]  # OpenCV's own valid range
+    uv = check_round_trips(cam, rays)
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    ref, _ = cv2.fisheye.projectPoints(rays[:, None], np.zeros(3), np.zeros(3), K, k)
+    assert np.abs(ref[:, 0] - uv).max() < 1e-6
+    und = cv2.fisheye.undistortPoints(uv[:, None], K, k, criteria=CRIT)[:, 0]
+    assert np.abs(und - rays[:, :2] / rays[:, 2:]).max() * cam.fx < 1e-6
+
+
+@settings(**SETTINGS)
+@given(st.sampled_from(["equidistant", "equisolid", "stereographic", "orthographic"]),
+       st.floats(100, 500), st.integers(0, 2**31))
+def test_fisheye_round_trip(model, f, seed):
+    cam = C.Fisheye(f, 500, 400, 1000, 800, model=model)
+    lim = math.pi / 2 if model == "orthographic" else math.radians(175)
+    check_round_trips(cam, random_rays(np.random.default_rng(seed), 300, lim * 0.999))
+
+
+@settings(**SETTINGS)
+@given(intr, st.floats(0.0, 2.0), st.floats(-0.2, 0.2), st.floats(-0.05, 0.05),
+       st.floats(-0.005, 0.005), st.floats(-0.005, 0.005), st.integers(0, 2**31))
+def test_mei_round_trip(i, xi, k1, k2, p1, p2, seed):
+    f, aspect, dx, dy = i
+    cam = C.Mei(f, f * aspect, 640 + dx, 480 + dy, 1280, 960, xi=xi, dist=(k1, k2, p1, p2))
+    rng = np.random.default_rng(seed)
+    xi_l = xi if xi <= 1 else 1 / xi
+    rays = random_rays(rng, 2000, math.pi * 0.999)
+    m = np.hypot(rays[:, 0], rays[:, 1]) / (rays[:, 2] + xi)
+    keep = (rays[:, 2] > -xi_l + 1e-3) & (m < 0.9 * min(cam.r_max, 5.0))
+    check_round_trips(cam, rays[keep][:300])
+
+
+@settings(**SETTINGS)
+@given(intr, st.floats(-0.6, 0.9), st.floats(0.0, 1.0), st.integers(0, 2**31))
+def test_double_sphere_round_trip(i, xi, alpha, seed):
+    f, aspect, dx, dy = i
+    cam = C.DoubleSphere(f, f * aspect, 640 + dx, 480 + dy, 1280, 960, xi=xi, alpha=alpha)
+    rng = np.random.default_rng(seed)
+    rays = random_rays(rng, 3000, math.pi * 0.999)
+    k = xi + rays[:, 2]
+    den = alpha * np.sqrt(rays[:, 0] ** 2 + rays[:, 1] ** 2 + k * k) + (1 - alpha) * k
+    keep = (rays[:, 2] > -cam._w2 + 1e-3) & (den > 1e-2) & (incidence(rays) < cam.theta_max - 1e-3)
+    check_round_trips(cam, rays[keep][:300])
+
+
+def test_kb_200_degree_lens_past_90_degrees():
+    # equidistant-like KB lens whose 200 degree image circle fits in a 1280x1280 sensor
+    cam = C.KannalaBrandt(330, 330, 640, 640, 1280, 1280, k=(0.02, -0.003, 2e-4, -1e-5),
+                          fov_deg=200)
+    rng = np.random.default_rng(1)
+    rays = random_rays(rng, 2000, math.radians(100), math.radians(90))
+    uv = check_round_trips(cam, rays)
+    assert cam.in_image(uv).all()
+    assert cam.fov_deg == pytest.approx(200, abs=1.0)
+    # OpenCV clips here: its answer differs, ours round-trips.
+    K = np.array([[330, 0, 640], [0, 330, 640], [0, 0, 1.0]])
+    ocv = cv2.fisheye.undistortPoints(uv[:, None], K, cam.k)[:, 0]
+    assert np.all(np.isfinite(ocv))  # OpenCV returns *something* ...
+    back, _ = cam.unproject(uv)
+    assert np.all(back[:, 2] < 0)  # ... but only we put these rays behind the camera
+
+
+def test_double_sphere_220_degree_lens():
+    cam = C.DoubleSphere(250, 250, 640, 640, 1280, 1280, xi=-0.2, alpha=0.6)
+    rays = random_rays(np.random.default_rng(2), 2000, math.radians(110), math.radians(90))
+    uv = check_round_trips(cam, rays)
+    assert cam.in_image(uv).all()
+
+
+def test_invalid_domain_is_flagged_never_wrong():
+    cam = C.Pinhole(300, 300, 320, 240, 640, 480)
+    uv, ok = cam.project(np.array([[0, 0, -1.0], [0.1, 0, 1], [np.nan, 0, 1]]))
+    assert ok.tolist() == [False, True, False] and np.isnan(uv[0]).all()
+    cam = C.Fisheye(200, 320, 240, 640, 480, model="orthographic")
+    _, ok = cam.unproject(np.array([[320 + 250.0, 240]]))  # outside the image circle
+    assert not ok[0]
+    cam = C.KannalaBrandt(300, 300, 320, 240, 640, 480, k=(-0.3, 0, 0, 0))  # folds back
+    assert cam.theta_max < math.pi / 2
+    far = cam._theta_d(np.array(cam.theta_max)) * 300 + 320 + 5
+    rays, ok = cam.unproject(np.array([[far, 240.0]]))
+    assert not ok[0] and np.isnan(rays).all()
+
+
+def test_lens_normal_map_camera_round_trip():
+    ref = C.KannalaBrandt(60, 60, 50, 40, 100, 80, k=(0.03, -0.004, 0, 0), fov_deg=190)
+    rays = ref.unproject(ref.pixel_grid())[0]
+    cam = C.LensNormalMap(rays)
+    rng = np.random.default_rng(0)
+    uv = np.stack([rng.uniform(5, 94, 300), rng.uniform(5, 74, 300)], -1)
+    r, ok = cam.unproject(uv)
+    assert ok.all()
+    uv2, ok2 = cam.project(r)
+    assert ok2.all() and np.abs(uv2 - uv).max() < 1e-6
+    # at pixel centres the table reproduces the source camera exactly
+    np.testing.assert_allclose(cam.unproject(ref.pixel_grid())[0], rays, atol=1e-12)
+    # a ray the table does not cover is invalid
+    _, ok3 = cam.project(np.array([[0, 0, -1.0]]))
+    assert not ok3[0]
+
+
+def test_lens_normal_maps_cover_the_right_solid_angle():
+    half = C.Fisheye(150, 255.5, 255.5, 512, 512, model="equidistant", fov_deg=180)
+    assert half.solid_angle() == pytest.approx(2 * math.pi, rel=1e-2)
+    lnm, valid = half.lens_normal_map()
+    assert lnm.shape == (512, 512, 3) and valid.shape == (512, 512)
+    np.testing.assert_allclose(np.linalg.norm(lnm[valid], axis=-1), 1, atol=1e-12)
+    # optical axis -> +x in the sphere frame, image right -> -y, image down -> -z
+    c = half.unproject(np.array([[255.5, 255.5], [300, 255.5], [255.5, 300]]))[0] @ half.rotation.T
+    assert c[0] == pytest.approx([1, 0, 0]) and c[1, 1] < 0 and c[2, 2] < 0
+    eq = C.Equirectangular(400, 200)
+    assert eq.solid_angle() == pytest.approx(4 * math.pi, rel=1e-3)
+    assert eq.lens_normal_map()[1].all()
+    crop = C.Equirectangular(100, 50, lat_range=(0, math.pi / 2), lon_range=(0, math.pi / 2))
+    assert crop.solid_angle() == pytest.approx(math.pi / 2, rel=1e-3)
+
+
+def test_equirectangular_pixel_convention():
+    eq = C.Equirectangular(8, 4)
+    r, _ = eq.unproject(np.array([[-0.5, 1.5], [3.5, 1.5], [3.5, -0.5]]))
+    np.testing.assert_allclose(r, [[-1, 0, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    check_round_trips(eq, random_rays(np.random.default_rng(0), 300, math.pi * 0.99))
+
+
+def test_scaramuzza_round_trip():
+    cam = C.Scaramuzza(pol=[-250.0, 0.0, 1.2e-3, -2e-7, 3e-10], center=(480.2, 640.7),
+                       affine=(1.0003, 1.2e-4, -2e-4), width=1280, height=960)
+    rng = np.random.default_rng(0)
+    uv = np.stack([rng.uniform(100, 1180, 500), rng.uniform(50, 910, 500)], -1)
+    r, ok = cam.unproject(uv)
+    assert ok.all()
+    check_round_trips(cam, r)
+    # the centre pixel looks along the optical axis
+    c, _ = cam.unproject(np.array([[640.7, 480.2]]))
+    np.testing.assert_allclose(c[0], [0, 0, 1], atol=1e-12)
+    # row offsets move the ray along +y (down) in the OpenCV frame
+    d, _ = cam.unproject(np.array([[640.7, 600.0]]))
+    assert d[0, 1] > 0 and abs(d[0, 0]) < 1e-3
+
+
+@pytest.mark.parametrize("bad, match", [
+    (lambda: C.Pinhole(-1, 300, 320, 240, 640, 480), "fx"),
+    (lambda: C.Pinhole(300, 300, 320, 240, 0, 480), "width"),
+    (lambda: C.Pinhole(300, 300, float("nan"), 240, 640, 480), "cx"),
+    (lambda: C.Pinhole(300, 300, 320, 240, 640, 480, dist=[0.1, np.nan, 0, 0]), "dist"),
+    (lambda: C.Pinhole(300, 300, 320, 240, 640, 480, dist=[0.1, 0, 0]), "coefficients"),
+    (lambda: C.KannalaBrandt(300, 300, 320, 240, 640, 480, k=(-0.3, 0, 0, 0), fov_deg=200),
+     "not monotonic"),
+    (lambda: C.Mei(300, 300, 320, 240, 640, 480, xi=-0.5), "xi"),
+    (lambda: C.DoubleSphere(300, 300, 320, 240, 640, 480, xi=0.1, alpha=1.5), "alpha"),
+    (lambda: C.DoubleSphere(300, 300, 320, 240, 640, 480, xi=-1.5, alpha=0.5), "xi"),
+    (lambda: C.Fisheye(300, 320, 240, 640, 480, model="fancy"), "unknown fisheye model"),
+    (lambda: C.Fisheye(300, 320, 240, 640, 480, model="orthographic", fov_deg=200), "fov_deg"),
+    (lambda: C.Scaramuzza([250.0, 0, 1e-3], (240, 320), (1, 0, 0), 640, 480), "a0 < 0"),
+    (lambda: C.LensNormalMap(np.full((4, 4, 3), np.nan)), "no valid pixel"),
+])
+def test_bad_parameters_raise_clear_errors(bad, match):
+    with pytest.raises(ValueError, match=match):
+        bad()

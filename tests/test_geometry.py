@@ -1,0 +1,113 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import stats
+
+from usf_graph import geometry as G
+
+unit = st.tuples(*[st.floats(-1, 1) for _ in range(3)]).filter(
+    lambda v: 1e-3 < math.sqrt(sum(c * c for c in v))).map(lambda v: G.normalize(np.array(v)))
+
+
+@given(unit)
+def test_latlon_roundtrip_numpy(p):
+    lat, lon = G.to_latlon(p)
+    assert -math.pi / 2 <= lat <= math.pi / 2 and -math.pi <= lon < math.pi
+    np.testing.assert_allclose(G.from_latlon(lat, lon), p, atol=1e-12)
+
+
+def test_latlon_roundtrip_torch_and_convention():
+    lat = torch.tensor([0.0, 0.0, math.pi / 2, 0.3], dtype=torch.float64)
+    lon = torch.tensor([0.0, math.pi / 2, 0.0, -2.0], dtype=torch.float64)
+    p = G.from_latlon(lat, lon)
+    torch.testing.assert_close(p[0], torch.tensor([1.0, 0, 0], dtype=torch.float64))  # forward
+    torch.testing.assert_close(p[1], torch.tensor([0.0, 1, 0], dtype=torch.float64), atol=1e-15, rtol=0)
+    torch.testing.assert_close(p[2], torch.tensor([0.0, 0, 1], dtype=torch.float64), atol=1e-15, rtol=0)
+    lat2, lon2 = G.to_latlon(p)
+    torch.testing.assert_close(lat2[[0, 1, 3]], lat[[0, 1, 3]])
+    torch.testing.assert_close(lon2[[0, 1, 3]], lon[[0, 1, 3]])
+    # lon = pi maps to -pi (half-open range)
+    _, l = G.to_latlon(np.array([-1.0, 0.0, 0.0]))
+    assert l == -math.pi
+
+
+@given(unit, unit, unit)
+def test_distance_metric_axioms(p, q, r):
+    d = G.geodesic_distance
+    assert d(p, q) == pytest.approx(d(q, p), abs=1e-15)
+    assert d(p, r) <= d(p, q) + d(q, r) + 1e-12
+    assert d(p, -p) == pytest.approx(math.pi, abs=1e-12)
+    assert d(p, p) == pytest.approx(0.0, abs=1e-12)
+    assert 0 <= d(p, q) <= math.pi
+
+
+def test_distance_is_accurate_for_tiny_angles():
+    eps = 1e-9
+    p = np.array([1.0, 0, 0])
+    q = np.array([math.cos(eps), math.sin(eps), 0])
+    assert G.geodesic_distance(p, q) == pytest.approx(eps, rel=1e-9)
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_distance_gradient_finite_at_0_and_pi(sign):
+    p = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64)
+    p = p / p.norm()
+    q = (sign * p).clone().requires_grad_(True)
+    pp = p.clone().requires_grad_(True)
+    d = G.geodesic_distance(pp, q)
+    d.backward()
+    assert torch.isfinite(pp.grad).all() and torch.isfinite(q.grad).all()
+    assert d.item() == pytest.approx(0.0 if sign > 0 else math.pi, abs=1e-12)
+
+
+def test_random_rotations_are_proper_and_seeded():
+    R = G.random_rotation(1000, seed=3)
+    eye = torch.eye(3, dtype=torch.float64).expand(1000, 3, 3)
+    torch.testing.assert_close(R @ R.transpose(1, 2), eye, atol=1e-12, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(1000, dtype=torch.float64))
+    torch.testing.assert_close(R, G.random_rotation(1000, seed=3), rtol=0, atol=0)
+    g = torch.Generator().manual_seed(3)
+    torch.testing.assert_close(R, G.random_rotation(1000, generator=g), rtol=0, atol=0)
+    assert not torch.equal(R, G.random_rotation(1000, seed=4))
+
+
+def test_rotations_are_haar_uniform():
+    R = G.random_rotation(20000, seed=0)
+    # Haar: the rotation angle w has density (1 - cos w) / pi, CDF (w - sin w) / pi.
+    w = G.rotation_angle(R).numpy()
+    assert stats.kstest(w, lambda x: (x - np.sin(x)) / np.pi).pvalue > 1e-3
+    # ... and R z is uniform on S2: its z-component is uniform on [-1, 1].
+    assert stats.kstest(R[:, 2, 2].numpy(), "uniform", args=(-1, 2)).pvalue > 1e-3
+    # The check can fail: a biased sampler (uniform Euler angles) is rejected.
+    a = torch.rand(20000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    z = torch.tensor([0.0, 0, 1], dtype=torch.float64)
+    x = torch.tensor([1.0, 0, 0], dtype=torch.float64)
+    bad = (G.rotation_from_axis_angle(z.expand(20000, 3), a[:, 0] * 2 * math.pi)
+           @ G.rotation_from_axis_angle(x.expand(20000, 3), a[:, 1] * math.pi))
+    assert stats.kstest(bad[:, 2, 2].numpy(), "uniform", args=(-1, 2)).pvalue < 1e-6
+
+
+def test_axis_angle_and_quaternion_agree_and_rotate():
+    R = G.rotation_from_axis_angle(np.array([0, 0, 1.0]), math.pi / 2)
+    np.testing.assert_allclose(G.rotate(np.array([[1.0, 0, 0]]), R), [[0, 1, 0]], atol=1e-15)
+    q = np.array([math.cos(0.35), 0, math.sin(0.35), 0])  # 0.7 rad about y
+    np.testing.assert_allclose(G.rotation_from_quaternion(q),
+                               G.rotation_from_axis_angle([0, 2.0, 0], 0.7), atol=1e-15)
+    assert G.rotation_angle(R) == pytest.approx(math.pi / 2)
+    Rt = G.rotation_from_axis_angle(torch.tensor([1.0, 1, 0]), torch.tensor(2.5))
+    assert G.rotation_angle(Rt).item() == pytest.approx(2.5)
+    # rotation preserves geodesic distance
+    p, q = G.normalize(np.random.default_rng(0).normal(size=(2, 10, 3)))
+    np.testing.assert_allclose(G.geodesic_distance(G.rotate(p, R), G.rotate(q, R)),
+                               G.geodesic_distance(p, q), atol=1e-14)
+
+
+@settings(max_examples=50)
+@given(st.floats(0.0, 1.0))
+def test_chord_geodesic_roundtrip(t):
+    d = t * math.pi
+    assert G.chord_to_geodesic(G.geodesic_to_chord(d)) == pytest.approx(d, abs=1e-12)

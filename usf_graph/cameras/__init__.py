@@ -1,0 +1,12 @@
+"""Camera models: pixel <-> ray in both directions, lens normal maps, calibration files."""
+
+from .base import DEFAULT_ROTATION, Camera
+from .fisheye import Fisheye, KannalaBrandt
+from .io import load, save
+from .omni import DoubleSphere, Mei
+from .panorama import Equirectangular, LensNormalMap
+from .pinhole import Pinhole
+from .scaramuzza import Scaramuzza
+
+__all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Fisheye", "KannalaBrandt", "Mei",
+           "DoubleSphere", "Scaramuzza", "Equirectangular", "LensNormalMap", "load", "save"]

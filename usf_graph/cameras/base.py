@@ -1,0 +1,337 @@
+"""The camera interface and the numerics shared by the lens models.
+
+Conventions (see DESIGN.md): rays are in the OpenCV optical frame (x right, y down,
+z forward); ``rotation`` maps the optical frame to the sphere frame (x forward, y left,
+z up). Pixels follow OpenCV: the centre of pixel (row i, column j) is (u, v) = (j, i).
+All math is numpy float64. Invalid outputs are NaN and flagged False in ``valid``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# Optical axis -> +x, image right -> -y, image down -> -z (columns are the camera axes).
+DEFAULT_ROTATION = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def check_positive(name: str, value, fix: str = "") -> float:
+    v = float(value)
+    if not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}. {fix}".strip())
+    return v
+
+
+def check_finite(name: str, values) -> np.ndarray:
+    arr = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf: {arr.tolist()}. Check the calibration.")
+    return arr
+
+
+def check_rotation(R) -> np.ndarray:
+    R = check_finite("rotation", R if R is not None else DEFAULT_ROTATION)
+    if R.shape != (3, 3):
+        raise ValueError(f"rotation must be a 3x3 matrix, got shape {R.shape}")
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError("rotation must be a proper rotation matrix (orthonormal, det = +1)")
+    # Re-orthonormalize so tiny file round-off does not accumulate.
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt
+
+
+def incidence(rays: np.ndarray) -> np.ndarray:
+    """Angle between each ray and the optical axis +z, via atan2 (valid past 90 degrees)."""
+    return np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
+
+
+def from_incidence(theta: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
+    """Unit ray with incidence ``theta`` in the azimuth of the image vector (mx, my)."""
+    r = np.hypot(mx, my)
+    safe = np.where(r > 0, r, 1.0)
+    s = np.sin(theta)
+    return np.stack([np.where(r > 0, s * mx / safe, 0.0), np.where(r > 0, s * my / safe, 0.0),
+                     np.cos(theta)], -1)
+
+
+def monotone_limit(g, upper: float, n: int = 20001) -> float:
+    """Largest t in (0, upper] such that g is strictly increasing on [0, t]."""
+    t = np.linspace(0.0, upper, n)
+    dg = np.diff(g(t))
+    bad = np.nonzero(dg <= 0)[0]
+    return float(upper if bad.size == 0 else t[bad[0]])
+
+
+def solve_monotone(g, dg, target: np.ndarray, hi: float, iters: int = 100, tol: float = 1e-13):
+    """Solve g(t) = target for t in [0, hi], g increasing there (safeguarded Newton).
+
+    Returns (t, converged). A target outside [g(0), g(hi)] or a point that does not
+    converge comes back as not converged, never as a wrong answer.
+    """
+    target = np.asarray(target, np.float64)
+    lo_t = np.zeros_like(target)
+    hi_t = np.full_like(target, hi)
+    inside = (target >= g(lo_t) - tol) & (target <= g(hi_t) + tol * (1 + np.abs(target)))
+    t = np.clip(target, 0.0, hi) if hi > 0 else lo_t.copy()
+    for _ in range(iters):
+        f = g(t) - target
+        lo_t = np.where(f < 0, t, lo_t)
+        hi_t = np.where(f > 0, t, hi_t)
+        d = dg(t)
+        step = np.where(d > 0, t - f / np.where(d > 0, d, 1.0), np.nan)
+        bisect = 0.5 * (lo_t + hi_t)
+        t_new = np.where((step > lo_t) & (step < hi_t), step, bisect)
+        if np.all(np.abs(t_new - t) <= 1e-16 * (1 + np.abs(t))):
+            t = t_new
+            break
+        t = t_new
+    ok = inside & (np.abs(g(t) - target) <= tol * (1 + np.abs(target)))
+    return t, ok
+
+
+# --- OpenCV's pinhole distortion (radial rational, tangential, thin prism) -------------
+
+def _split_dist(dist) -> np.ndarray:
+    d = np.zeros(12)
+    if dist is not None:
+        dist = np.asarray(dist, np.float64).ravel()
+        if dist.size not in (0, 4, 5, 8, 12):
+            raise ValueError(f"dist must have 4, 5, 8 or 12 coefficients in OpenCV order "
+                             f"(k1,k2,p1,p2[,k3[,k4,k5,k6[,s1,s2,s3,s4]]]), got {dist.size}")
+        d[:dist.size] = dist
+    return d
+
+
+def distort(d: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = False):
+    """OpenCV distortion of normalized coordinates; optionally with its 2x2 Jacobian."""
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d
+    r2 = x * x + y * y
+    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    rad = a / b
+    xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r2 * r2
+    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + s3 * r2 + s4 * r2 * r2
+    if not jacobian:
+        return xd, yd
+    da = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    db = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    drad = (da * b - a * db) / (b * b)  # d rad / d r2
+    j11 = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x + 2 * s1 * x + 4 * s2 * r2 * x
+    j12 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y + 2 * s1 * y + 4 * s2 * r2 * y
+    j21 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y + 2 * s3 * x + 4 * s4 * r2 * x
+    j22 = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x + 2 * s3 * y + 4 * s4 * r2 * y
+    return xd, yd, (j11, j12, j21, j22)
+
+
+def distortion_radius_limit(d: np.ndarray, upper: float = 50.0) -> float:
+    """Normalized radius up to which the radial part r * rad(r^2) is increasing.
+
+    Past it the distortion folds back, so pixels there have two preimages: the model's
+    honest domain ends there.
+    """
+    if not np.any(d):
+        return math.inf
+    radial = d.copy()
+    radial[[2, 3, 8, 9, 10, 11]] = 0.0
+    lim = monotone_limit(lambda t: distort(radial, t, np.zeros_like(t))[0], upper, 200001)
+    return math.inf if lim >= upper else lim
+
+
+def undistort(d: np.ndarray, xd: np.ndarray, yd: np.ndarray, r_max: float,
+              iters: int = 60, tol: float = 1e-14):
+    """Invert :func:`distort` by damped Newton; returns (x, y, converged)."""
+    x, y = xd.copy(), yd.copy()
+    if not np.any(d):
+        return x, y, np.isfinite(x) & np.isfinite(y)
+    # Start from the exact inverse of the radial part (monotone up to r_max), then let
+    # 2-D Newton absorb the tangential and thin-prism terms.
+    radial = d.copy()
+    radial[[2, 3, 8, 9, 10, 11]] = 0.0
+    g = lambda t: distort(radial, t, np.zeros_like(t))[0]  # noqa: E731
+    dg = lambda t: distort(radial, t, np.zeros_like(t), jacobian=True)[2][0]  # noqa: E731
+    rd = np.hypot(xd, yd)
+    r0, _ = solve_monotone(g, dg, rd, min(r_max, 1e4) * (1 - 1e-9))
+    s0 = np.where(rd > 0, r0 / np.where(rd > 0, rd, 1), 1.0)
+    x, y = xd * s0, yd * s0
+    for _ in range(iters):
+        fx, fy, (a, b, c, e) = distort(d, x, y, jacobian=True)
+        rx, ry = fx - xd, fy - yd
+        det = a * e - b * c
+        det = np.where(np.abs(det) > 1e-300, det, np.nan)
+        dx = (e * rx - b * ry) / det
+        dy = (a * ry - c * rx) / det
+        # damp steps that would jump past the monotone radius
+        scale = np.where(np.hypot(x - dx, y - dy) > r_max, 0.5, 1.0)
+        x, y = x - scale * dx, y - scale * dy
+        if np.all(~np.isfinite(dx) | (np.hypot(dx, dy) < 1e-16 * (1 + np.hypot(x, y)))):
+            break
+    fx, fy = distort(d, x, y)
+    ok = (np.hypot(fx - xd, fy - yd) <= tol * (1 + np.hypot(xd, yd)) * 100) & (np.hypot(x, y) < r_max)
+    return x, y, ok
+
+
+class Camera:
+    """Base class: a calibrated camera that maps pixels to rays and back.
+
+    Subclasses implement ``_project(rays) -> (uv, valid)`` and ``_unproject(uv) ->
+    (rays, valid)`` on finite float64 arrays, and ``params()``.
+    """
+
+    model: str = "camera"
+    wraps_u: bool = False  # True when the image is periodic in u (full panoramas)
+
+    def __init__(self, width: int, height: int, rotation=None):
+        for name, v in (("width", width), ("height", height)):
+            if int(v) != v or v <= 0:
+                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+        self.width, self.height = int(width), int(height)
+        self.rotation = check_rotation(rotation)
+
+    # -- to implement ------------------------------------------------------------
+    def _project(self, rays: np.ndarray):
+        raise NotImplementedError
+
+    def _unproject(self, uv: np.ndarray):
+        raise NotImplementedError
+
+    def params(self) -> dict:
+        raise NotImplementedError
+
+    optical_axis = np.array([0.0, 0.0, 1.0])
+
+    # -- public ------------------------------------------------------------------
+    def project(self, rays):
+        """Rays ``[..., 3]`` (optical frame, any norm) -> pixels ``[..., 2]`` and ``valid``.
+
+        ``valid`` is False outside the lens model's domain; image bounds are separate
+        (see :meth:`in_image`).
+        """
+        rays = _as_last(rays, 3, "rays")
+        finite = np.all(np.isfinite(rays), -1) & (np.linalg.norm(rays, axis=-1) > 0)
+        rays = np.where(finite[..., None], rays, np.array([0.0, 0.0, 1.0]))
+        uv, valid = self._project(rays)
+        valid = valid & finite & np.all(np.isfinite(uv), -1)
+        return np.where(valid[..., None], uv, np.nan), valid
+
+    def unproject(self, uv):
+        """Pixels ``[..., 2]`` -> unit rays ``[..., 3]`` in the optical frame, and ``valid``."""
+        uv = _as_last(uv, 2, "uv")
+        finite = np.all(np.isfinite(uv), -1)
+        uv = np.where(finite[..., None], uv, 0.0)
+        rays, valid = self._unproject(uv)
+        valid = valid & finite & np.all(np.isfinite(rays), -1)
+        return np.where(valid[..., None], rays, np.nan), valid
+
+    def in_image(self, uv) -> np.ndarray:
+        """True where a pixel coordinate lies on the sensor (pixel centres at integers)."""
+        uv = np.asarray(uv, np.float64)
+        u, v = uv[..., 0], uv[..., 1]
+        ok_v = (v >= -0.5) & (v <= self.height - 0.5)
+        ok_u = np.isfinite(u) if self.wraps_u else (u >= -0.5) & (u <= self.width - 0.5)
+        return ok_u & ok_v
+
+    def pixel_grid(self) -> np.ndarray:
+        """Pixel centres ``[H, W, 2]`` as (u, v)."""
+        v, u = np.meshgrid(np.arange(self.height, dtype=np.float64),
+                           np.arange(self.width, dtype=np.float64), indexing="ij")
+        return np.stack([u, v], -1)
+
+    def lens_normal_map(self):
+        """Per-pixel unit rays in the sphere frame ``[H, W, 3]`` and ``valid [H, W]``."""
+        rays, valid = self.unproject(self.pixel_grid())
+        return rays @ self.rotation.T, valid
+
+    def sees(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """Sphere-frame points ``[..., 3]`` -> (pixels, seen): the camera's field-of-view test."""
+        uv, valid = self.project(np.asarray(points, np.float64) @ self.rotation)
+        seen = valid & self.in_image(np.where(valid[..., None], uv, -1e9))
+        return uv, seen
+
+    @property
+    def max_incidence(self) -> float:
+        """Largest angle (radians) between a visible ray and the optical axis."""
+        rays, valid = self.unproject(self.pixel_grid())
+        if not valid.any():
+            return 0.0
+        r = rays[valid]
+        a = self.optical_axis
+        return float(np.max(np.arctan2(np.linalg.norm(np.cross(r, a), axis=-1), r @ a)))
+
+    @property
+    def fov_deg(self) -> float:
+        """Field of view in degrees: twice the maximum incidence angle."""
+        return math.degrees(2 * self.max_incidence)
+
+    def pixel_solid_angles(self) -> np.ndarray:
+        """Solid angle (sr) each pixel covers ``[H, W]``; 0 where a pixel corner is invalid.
+
+        Each pixel is split into two spherical triangles between its corner rays.
+        """
+        v, u = np.meshgrid(np.arange(self.height + 1) - 0.5, np.arange(self.width + 1) - 0.5,
+                           indexing="ij")
+        c, ok = self.unproject(np.stack([u, v], -1))
+        a, b, cc, d = c[:-1, :-1], c[:-1, 1:], c[1:, 1:], c[1:, :-1]
+        okp = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, 1:] & ok[1:, :-1]
+        om = _triangle_solid_angle(a, b, cc) + _triangle_solid_angle(a, cc, d)
+        return np.where(okp, om, 0.0)
+
+    def solid_angle(self) -> float:
+        """Total solid angle (sr) the image covers; 4*pi for a full panorama."""
+        return float(self.pixel_solid_angles().sum())
+
+    def with_rotation(self, rotation) -> Camera:
+        """A copy of this camera mounted with another ``rotation`` (sphere <- camera)."""
+        return type(self)(**self.params(), rotation=rotation)
+
+    def key(self) -> dict:
+        """Everything that determines this camera's geometry (for cache keys and files)."""
+        return {"model": self.model, "params": _jsonable(self.params()),
+                "rotation": np.round(self.rotation, 15).tolist()}
+
+    def save(self, path) -> None:
+        """Write this camera to ``path`` in usf-graph's YAML form (see ``cameras.load``)."""
+        from .io import save
+
+        save(self, path)
+
+    def __repr__(self) -> str:
+        p = ", ".join(f"{k}={_short(v)}" for k, v in self.params().items())
+        return f"{type(self).__name__}({p})"
+
+
+def _triangle_solid_angle(a, b, c):
+    # Van Oosterom & Strackee: tan(omega/2) = |a.(b x c)| / (1 + a.b + b.c + c.a) for unit vectors
+    num = np.abs(np.einsum("...i,...i->...", a, np.cross(b, c)))
+    den = 1 + (a * b).sum(-1) + (b * c).sum(-1) + (c * a).sum(-1)
+    return 2 * np.arctan2(num, den)
+
+
+def _as_last(x, n: int, name: str) -> np.ndarray:
+    try:
+        import torch
+
+        if isinstance(x, torch.Tensor):
+            x = x.detach().cpu().numpy()
+    except ImportError:  # pragma: no cover
+        pass
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape[-1:] != (n,):
+        raise ValueError(f"{name} must have shape [..., {n}], got {x.shape}")
+    return x
+
+
+def _jsonable(v):
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (np.ndarray, np.generic, list, tuple)):
+        return np.asarray(v).tolist()
+    return v
+
+
+def _short(v):
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, (list, tuple, np.ndarray)) and np.size(v) > 8:
+        return f"<{np.shape(v)}>"
+    return repr(_jsonable(v))

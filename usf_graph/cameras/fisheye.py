@@ -1,0 +1,128 @@
+"""Fisheye lenses: the four classic projections and Kannala-Brandt (``cv2.fisheye``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .base import Camera, check_finite, check_positive, from_incidence, incidence, \
+    monotone_limit, solve_monotone
+
+# r / f as a function of the incidence angle theta, its inverse, and the largest theta.
+_PROJECTIONS = {
+    "equidistant": (lambda t: t, lambda r: r, math.pi),
+    "equisolid": (lambda t: 2 * np.sin(t / 2), lambda r: 2 * np.arcsin(np.clip(r / 2, 0, 1)), math.pi),
+    "stereographic": (lambda t: 2 * np.tan(t / 2), lambda r: 2 * np.arctan(r / 2), math.pi),
+    "orthographic": (lambda t: np.sin(t), lambda r: np.arcsin(np.clip(r, 0, 1)), math.pi / 2),
+}
+
+
+def _fov_limit(fov_deg, model_limit: float) -> float:
+    if fov_deg is None:
+        return model_limit
+    fov = check_positive("fov_deg", fov_deg, "It is the full field of view in degrees.")
+    if math.radians(fov) / 2 > model_limit + 1e-12:
+        raise ValueError(f"fov_deg={fov} exceeds what this model can image "
+                         f"({math.degrees(2 * model_limit):.1f} degrees); lower fov_deg.")
+    return math.radians(fov) / 2
+
+
+class Fisheye(Camera):
+    """Ideal fisheye with radius ``r = f * g(theta)`` about the centre (cx, cy).
+
+    ``model`` is equidistant (f theta), equisolid (2 f sin(theta/2)), stereographic
+    (2 f tan(theta/2)) or orthographic (f sin theta, at most 90 degrees). ``fov_deg``
+    optionally limits the lens to a field of view (the image circle).
+    """
+
+    def __init__(self, f, cx, cy, width, height, model="equidistant", fov_deg=None,
+                 rotation=None):
+        super().__init__(width, height, rotation)
+        if model not in _PROJECTIONS:
+            raise ValueError(f"unknown fisheye model {model!r}; use one of {sorted(_PROJECTIONS)}")
+        self.f = check_positive("f", f, "The focal length is in pixels.")
+        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        self.projection, self.fov = model, fov_deg
+        self._g, self._ginv, limit = _PROJECTIONS[model]
+        self.theta_max = _fov_limit(fov_deg, limit)
+        self.model = f"fisheye-{model}"
+
+    def params(self) -> dict:
+        return dict(f=self.f, cx=self.cx, cy=self.cy, width=self.width, height=self.height,
+                    model=self.projection, fov_deg=self.fov)
+
+    def _project(self, rays):
+        theta = incidence(rays)
+        r = self.f * self._g(theta)
+        n = np.hypot(rays[..., 0], rays[..., 1])
+        n = np.where(n > 0, n, 1.0)
+        uv = np.stack([self.cx + r * rays[..., 0] / n, self.cy + r * rays[..., 1] / n], -1)
+        return uv, theta <= self.theta_max * (1 + 1e-12)
+
+    def _unproject(self, uv):
+        mx, my = uv[..., 0] - self.cx, uv[..., 1] - self.cy
+        rn = np.hypot(mx, my) / self.f
+        theta = self._ginv(rn)
+        ok = (theta <= self.theta_max * (1 + 1e-12)) & (np.abs(self._g(theta) - rn) <= 1e-12 * (1 + rn))
+        return from_incidence(theta, mx, my), ok
+
+
+class KannalaBrandt(Camera):
+    """Kannala-Brandt / OpenCV fisheye: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8).
+
+    Identical to ``cv2.fisheye`` for rays in front of the camera, but theta is computed
+    with atan2, so lenses past 180 degrees work (OpenCV mirrors z <= 0 and clips at
+    theta_d = pi/2). The valid domain is where theta_d(theta) is increasing, up to
+    ``fov_deg / 2`` when given; a polynomial that folds back before that is rejected.
+    """
+
+    model = "kannala-brandt"
+
+    def __init__(self, fx, fy, cx, cy, width, height, k=(0.0, 0.0, 0.0, 0.0), fov_deg=None,
+                 rotation=None):
+        super().__init__(width, height, rotation)
+        fix = "Focal lengths are in pixels and must be > 0."
+        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
+        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        self.k = check_finite("k", k)
+        if self.k.shape != (4,):
+            raise ValueError(f"k must hold the 4 coefficients k1..k4, got {self.k.tolist()}")
+        self.fov = fov_deg
+        mono = monotone_limit(self._theta_d, math.pi)
+        claimed = _fov_limit(fov_deg, math.pi)
+        if fov_deg is not None and mono < claimed - 1e-9:
+            raise ValueError(
+                f"KannalaBrandt k={self.k.tolist()} is not monotonic over the claimed "
+                f"fov_deg={fov_deg}: theta_d stops increasing at {math.degrees(2 * mono):.1f} "
+                "degrees of field of view. Check the coefficients or lower fov_deg.")
+        self.theta_max = min(mono, claimed)
+
+    def _theta_d(self, t):
+        t2 = t * t
+        k1, k2, k3, k4 = self.k
+        return t * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+
+    def _dtheta_d(self, t):
+        t2 = t * t
+        k1, k2, k3, k4 = self.k
+        return 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+
+    def params(self) -> dict:
+        return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, k=self.k.tolist(), fov_deg=self.fov)
+
+    def _project(self, rays):
+        theta = incidence(rays)
+        td = self._theta_d(theta)
+        n = np.hypot(rays[..., 0], rays[..., 1])
+        n = np.where(n > 0, n, 1.0)
+        uv = np.stack([self.fx * td * rays[..., 0] / n + self.cx,
+                       self.fy * td * rays[..., 1] / n + self.cy], -1)
+        return uv, theta <= self.theta_max * (1 + 1e-12)
+
+    def _unproject(self, uv):
+        mx = (uv[..., 0] - self.cx) / self.fx
+        my = (uv[..., 1] - self.cy) / self.fy
+        theta, ok = solve_monotone(self._theta_d, self._dtheta_d, np.hypot(mx, my), self.theta_max)
+        return from_incidence(theta, mx, my), ok

@@ -1,0 +1,125 @@
+"""Central catadioptric / wide-angle models: Mei (unified) and Double Sphere."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Camera, _split_dist, check_finite, check_positive, distort, \
+    distortion_radius_limit, incidence, monotone_limit, undistort
+
+
+def _intrinsics(cam, fx, fy, cx, cy):
+    fix = "Focal lengths are in pixels and must be > 0."
+    cam.fx, cam.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
+    cam.cx, cam.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+
+
+class Mei(Camera):
+    """Unified omnidirectional model (Mei & Rives 2007), as ``cv2.omnidir``.
+
+    The ray is put on the unit sphere, projected from the point (0, 0, -xi), distorted
+    with radtan ``dist = (k1, k2, p1, p2)`` and mapped by K (with optional ``skew``).
+    Valid rays satisfy s_z > -xi' (xi' = xi, or 1/xi when xi > 1).
+    """
+
+    model = "mei"
+
+    def __init__(self, fx, fy, cx, cy, width, height, xi, dist=(0.0, 0.0, 0.0, 0.0), skew=0.0,
+                 rotation=None):
+        super().__init__(width, height, rotation)
+        _intrinsics(self, fx, fy, cx, cy)
+        self.xi = check_finite("xi", xi).item()
+        if self.xi < 0:
+            raise ValueError(f"Mei xi must be >= 0 (the mirror parameter), got {self.xi}")
+        d = check_finite("dist", dist)
+        if d.size != 4:
+            raise ValueError(f"Mei dist must be radtan (k1, k2, p1, p2), got {d.tolist()}")
+        self.dist = _split_dist(d)
+        self.skew = check_finite("skew", skew).item()
+        self.r_max = distortion_radius_limit(self.dist)
+        self._xi_lim = self.xi if self.xi <= 1 else 1 / self.xi
+
+    def params(self) -> dict:
+        return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, xi=self.xi, dist=self.dist[:4].tolist(), skew=self.skew)
+
+    def _project(self, rays):
+        s = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        den = s[..., 2] + self.xi
+        ok = (s[..., 2] > -self._xi_lim) & (den > 0)
+        den = np.where(ok, den, 1.0)
+        mx, my = s[..., 0] / den, s[..., 1] / den
+        ok &= np.hypot(mx, my) < self.r_max
+        xd, yd = distort(self.dist, mx, my)
+        return np.stack([self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy], -1), ok
+
+    def _unproject(self, uv):
+        yd = (uv[..., 1] - self.cy) / self.fy
+        xd = (uv[..., 0] - self.cx - self.skew * yd) / self.fx
+        mx, my, ok = undistort(self.dist, xd, yd, self.r_max)
+        r2 = mx * mx + my * my
+        disc = 1 + (1 - self.xi ** 2) * r2
+        ok &= disc >= 0
+        f = (self.xi + np.sqrt(np.maximum(disc, 0))) / (1 + r2)
+        rays = np.stack([f * mx, f * my, f - self.xi], -1)
+        ok &= rays[..., 2] > -self._xi_lim  # the other root belongs to the hidden sheet
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True), ok
+
+
+class DoubleSphere(Camera):
+    """Double Sphere model (Usenko, Demmel & Cremers 2018), closed form both ways.
+
+    Parameters as basalt orders them: fx, fy, cx, cy, xi in (-1, 1], alpha in [0, 1].
+    """
+
+    model = "double-sphere"
+
+    def __init__(self, fx, fy, cx, cy, width, height, xi, alpha, rotation=None):
+        super().__init__(width, height, rotation)
+        _intrinsics(self, fx, fy, cx, cy)
+        self.xi, self.alpha = check_finite("xi", xi).item(), check_finite("alpha", alpha).item()
+        if not -1 < self.xi <= 1:
+            raise ValueError(f"DoubleSphere xi must lie in (-1, 1], got {self.xi}")
+        if not 0 <= self.alpha <= 1:
+            raise ValueError(f"DoubleSphere alpha must lie in [0, 1], got {self.alpha}")
+        a = self.alpha
+        w1 = a / (1 - a) if a <= 0.5 else (1 - a) / a
+        self._w2 = (w1 + self.xi) / np.sqrt(2 * w1 * self.xi + self.xi ** 2 + 1)
+        # The paper's condition z > -w2 |X| does not exclude every fold (e.g. xi < 0 with
+        # alpha near 1), so the honest domain also stops where the image radius stops
+        # growing with the incidence angle.
+        w2 = float(np.clip(self._w2, -1, 1))
+        t_w2 = float(np.arctan2(np.sqrt(1 - w2 * w2), -w2))
+        radius = lambda t: self._project(np.stack([np.sin(t), 0 * t, np.cos(t)], -1))[0][..., 0]  # noqa: E731
+        self.theta_max = monotone_limit(lambda t: radius(t) - self.cx, t_w2)
+
+    def params(self) -> dict:
+        return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, xi=self.xi, alpha=self.alpha)
+
+    def _project(self, rays):
+        x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]
+        d1 = np.linalg.norm(rays, axis=-1)
+        k = self.xi * d1 + z
+        d2 = np.sqrt(x * x + y * y + k * k)
+        den = self.alpha * d2 + (1 - self.alpha) * k
+        ok = (z > -self._w2 * d1) & (den > 0)
+        if hasattr(self, "theta_max"):
+            ok &= incidence(rays) < self.theta_max
+        den = np.where(ok, den, 1.0)
+        return np.stack([self.fx * x / den + self.cx, self.fy * y / den + self.cy], -1), ok
+
+    def _unproject(self, uv):
+        a, xi = self.alpha, self.xi
+        mx = (uv[..., 0] - self.cx) / self.fx
+        my = (uv[..., 1] - self.cy) / self.fy
+        r2 = mx * mx + my * my
+        ok = np.ones(r2.shape, bool) if a <= 0.5 else r2 < 1 / (2 * a - 1)
+        mz = (1 - a * a * r2) / (a * np.sqrt(np.maximum(1 - (2 * a - 1) * r2, 0)) + 1 - a)
+        disc = mz * mz + (1 - xi * xi) * r2
+        ok &= disc >= 0
+        s = (mz * xi + np.sqrt(np.maximum(disc, 0))) / (mz * mz + r2)
+        rays = np.stack([s * mx, s * my, s * mz - xi], -1)
+        rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        ok &= (rays[..., 2] > -self._w2) & (incidence(rays) < self.theta_max)
+        return rays, ok

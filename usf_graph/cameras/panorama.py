@@ -1,0 +1,170 @@
+"""Cameras defined by tables rather than lens formulas: panoramas and measured ray maps."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry import from_latlon, normalize, to_latlon
+from .base import Camera, check_finite
+
+
+class Equirectangular(Camera):
+    """Equirectangular panorama, full sphere or a latitude/longitude crop.
+
+    Its camera frame is the sphere frame (x forward, y left, z up), so the default
+    ``rotation`` is the identity. Pixel centres: lon = lon0 + (lon1 - lon0)(u + 0.5)/W and
+    lat = lat1 - (lat1 - lat0)(v + 0.5)/H, which for the full sphere is DESIGN.md's
+    lon = 2 pi (u + 0.5)/W - pi, lat = pi/2 - pi (v + 0.5)/H.
+    """
+
+    model = "equirectangular"
+    optical_axis = np.array([1.0, 0.0, 0.0])
+
+    def __init__(self, width, height, lat_range=(-math.pi / 2, math.pi / 2),
+                 lon_range=(-math.pi, math.pi), rotation=None):
+        super().__init__(width, height, np.eye(3) if rotation is None else rotation)
+        self.lat_range = tuple(check_finite("lat_range", lat_range).tolist())
+        self.lon_range = tuple(check_finite("lon_range", lon_range).tolist())
+        (a, b), (c, d) = self.lat_range, self.lon_range
+        if not -math.pi / 2 <= a < b <= math.pi / 2:
+            raise ValueError(f"lat_range must be increasing within [-pi/2, pi/2], got {self.lat_range}")
+        if not (c < d and d - c <= 2 * math.pi + 1e-12):
+            raise ValueError(f"lon_range must be increasing and span at most 2 pi, got {self.lon_range}")
+        self.wraps_u = abs((d - c) - 2 * math.pi) < 1e-12
+        mid = from_latlon(0.5 * (a + b), 0.5 * (c + d))
+        self.optical_axis = mid
+
+    def params(self) -> dict:
+        return dict(width=self.width, height=self.height, lat_range=list(self.lat_range),
+                    lon_range=list(self.lon_range))
+
+    def _unproject(self, uv):
+        (a, b), (c, d) = self.lat_range, self.lon_range
+        lon = c + (d - c) * (uv[..., 0] + 0.5) / self.width
+        lat = b - (b - a) * (uv[..., 1] + 0.5) / self.height
+        ok = (lat >= a - 1e-12) & (lat <= b + 1e-12) & (self.wraps_u | ((lon >= c - 1e-12) & (lon <= d + 1e-12)))
+        return from_latlon(np.clip(lat, -math.pi / 2, math.pi / 2), lon), ok
+
+    def _project(self, rays):
+        (a, b), (c, d) = self.lat_range, self.lon_range
+        lat, lon = to_latlon(normalize(rays))
+        lon = c + np.mod(lon - c, 2 * math.pi)  # into [c, c + 2 pi)
+        u = (lon - c) / (d - c) * self.width - 0.5
+        v = (b - lat) / (b - a) * self.height - 0.5
+        ok = (lat >= a - 1e-12) & (lat <= b + 1e-12) & (self.wraps_u | (lon <= d + 1e-12))
+        return np.stack([u, v], -1), ok
+
+
+class LensNormalMap(Camera):
+    """A measured per-pixel ray table, for lenses no formula describes.
+
+    ``rays [H, W, 3]`` are directions in the optical frame (any norm; NaN or zero rows
+    and ``valid`` False mark pixels without a ray). ``unproject`` interpolates the table
+    bilinearly; ``project`` finds the sub-pixel position whose interpolated ray matches,
+    by Gauss-Newton from the nearest table entry, and marks points that do not converge
+    (rays the table does not cover) invalid.
+    """
+
+    model = "lens-normal-map"
+
+    def __init__(self, rays, valid=None, rotation=None, source=None):
+        rays = np.asarray(rays, np.float64)
+        if rays.ndim != 3 or rays.shape[-1] != 3 or min(rays.shape[:2]) < 2:
+            raise ValueError(f"a lens normal map must have shape [H, W, 3] with H, W >= 2, got {rays.shape}")
+        super().__init__(rays.shape[1], rays.shape[0], rotation)
+        n = np.linalg.norm(rays, axis=-1)
+        ok = np.isfinite(n) & (n > 0)
+        if valid is not None:
+            valid = np.asarray(valid, bool)
+            if valid.shape != rays.shape[:2]:
+                raise ValueError(f"valid must have shape {rays.shape[:2]}, got {valid.shape}")
+            ok &= valid
+        if not ok.any():
+            raise ValueError("the lens normal map has no valid pixel (all rays NaN, zero or masked)")
+        self.rays = np.where(ok[..., None], rays / np.where(ok, n, 1)[..., None], 0.0)
+        self.valid_table = ok
+        self.source = None if source is None else str(source)
+        idx = np.flatnonzero(ok)
+        self._tree = cKDTree(self.rays.reshape(-1, 3)[idx])
+        self._tree_idx = idx
+
+    @classmethod
+    def from_file(cls, path, rotation=None) -> LensNormalMap:
+        """Load ``.npy`` ([H, W, 3]) or ``.npz`` (keys ``rays`` and optional ``valid``)."""
+        path = Path(path)
+        try:
+            data = np.load(path, allow_pickle=False)
+        except Exception as e:  # noqa: BLE001 - numpy raises many kinds here
+            raise ValueError(f"cannot read lens normal map {path}: {e}") from e
+        if isinstance(data, np.lib.npyio.NpzFile):
+            if "rays" not in data:
+                raise ValueError(f"{path} has no 'rays' array (found {list(data.keys())})")
+            return cls(data["rays"], data["valid"] if "valid" in data else None, rotation, path)
+        return cls(data, None, rotation, path)
+
+    def params(self) -> dict:
+        # The table itself is the parameter set; the key holds a digest of it.
+        import hashlib
+
+        h = hashlib.sha256(self.rays.tobytes() + self.valid_table.tobytes()).hexdigest()[:16]
+        return dict(width=self.width, height=self.height, digest=h, source=self.source)
+
+    def with_rotation(self, rotation) -> LensNormalMap:
+        return LensNormalMap(self.rays, self.valid_table, rotation, self.source)
+
+    def _cell(self, uv):
+        u = np.clip(uv[..., 0], 0, self.width - 1)
+        v = np.clip(uv[..., 1], 0, self.height - 1)
+        j = np.minimum(np.floor(u).astype(np.int64), self.width - 2)
+        i = np.minimum(np.floor(v).astype(np.int64), self.height - 2)
+        T, V = self.rays, self.valid_table
+        c = [T[i, j], T[i, j + 1], T[i + 1, j], T[i + 1, j + 1]]
+        ok = V[i, j] & V[i, j + 1] & V[i + 1, j] & V[i + 1, j + 1]
+        return (u - j)[..., None], (v - i)[..., None], c, ok
+
+    def _interp(self, uv, jacobian=False):
+        fu, fv, (a, b, c, d), ok = self._cell(uv)
+        r = (1 - fv) * ((1 - fu) * a + fu * b) + fv * ((1 - fu) * c + fu * d)
+        if not jacobian:
+            return r, ok
+        return r, ok, (1 - fv) * (b - a) + fv * (d - c), (1 - fu) * (c - a) + fu * (d - b)
+
+    def _unproject(self, uv):
+        inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= self.width - 0.5) & \
+                 (uv[..., 1] >= -0.5) & (uv[..., 1] <= self.height - 0.5)
+        r, ok = self._interp(uv)
+        n = np.linalg.norm(r, axis=-1, keepdims=True)
+        return r / np.where(n > 0, n, 1), ok & inside & (n[..., 0] > 0)
+
+    def _project(self, rays):
+        target = normalize(rays)
+        shape = target.shape[:-1]
+        t = target.reshape(-1, 3)
+        _, k = self._tree.query(t)
+        flat = self._tree_idx[k]
+        uv = np.stack([flat % self.width, flat // self.width], -1).astype(np.float64)
+        for _ in range(30):
+            r, _, du, dv = self._interp(uv, jacobian=True)
+            n = np.linalg.norm(r, axis=-1, keepdims=True)
+            p = r / n
+            # derivative of the normalized ray, projected off its radial component
+            du = (du - p * (p * du).sum(-1, keepdims=True)) / n
+            dv = (dv - p * (p * dv).sum(-1, keepdims=True)) / n
+            res = p - t
+            a, b, c = (du * du).sum(-1), (du * dv).sum(-1), (dv * dv).sum(-1)
+            gu, gv = (du * res).sum(-1), (dv * res).sum(-1)
+            det = a * c - b * b
+            det = np.where(np.abs(det) > 1e-300, det, np.nan)
+            step = np.stack([(c * gu - b * gv) / det, (a * gv - b * gu) / det], -1)
+            uv = uv - step
+            uv[..., 0] = np.clip(uv[..., 0], -0.5, self.width - 0.5)
+            uv[..., 1] = np.clip(uv[..., 1], -0.5, self.height - 0.5)
+            if np.all(~np.isfinite(step) | (np.abs(step) < 1e-13)):
+                break
+        back, ok = self._unproject(uv)
+        ok &= np.linalg.norm(back - t, axis=-1) < 1e-11
+        return uv.reshape(*shape, 2), ok.reshape(shape)

@@ -1,0 +1,49 @@
+"""Pinhole camera with OpenCV's full distortion model."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Camera, _split_dist, check_finite, check_positive, distort, \
+    distortion_radius_limit, undistort
+
+
+class Pinhole(Camera):
+    """Perspective camera, ``cv2.projectPoints`` compatible.
+
+    ``dist`` follows OpenCV's order ``k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4]]]``
+    (rational radial, tangential, thin prism; OpenCV's tilt terms are not supported).
+    Valid rays have z > 0 and a normalized radius inside the region where the radial
+    distortion is still monotonic, so every valid pixel has exactly one ray.
+    """
+
+    model = "pinhole"
+
+    def __init__(self, fx, fy, cx, cy, width, height, dist=None, rotation=None):
+        super().__init__(width, height, rotation)
+        fix = "Focal lengths are in pixels and must be > 0."
+        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
+        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        self.dist = _split_dist(check_finite("dist", dist if dist is not None else []))
+        self._ncoef = 0 if dist is None else int(np.asarray(dist).size)
+        self.r_max = distortion_radius_limit(self.dist)
+
+    def params(self) -> dict:
+        return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, dist=self.dist[:self._ncoef].tolist() or None)
+
+    def _project(self, rays):
+        z = rays[..., 2]
+        ok = z > 0
+        zs = np.where(ok, z, 1.0)
+        x, y = rays[..., 0] / zs, rays[..., 1] / zs
+        ok &= np.hypot(x, y) < self.r_max
+        xd, yd = distort(self.dist, x, y)
+        return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], -1), ok
+
+    def _unproject(self, uv):
+        xd = (uv[..., 0] - self.cx) / self.fx
+        yd = (uv[..., 1] - self.cy) / self.fy
+        x, y, ok = undistort(self.dist, xd, yd, self.r_max)
+        rays = np.stack([x, y, np.ones_like(x)], -1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True), ok
