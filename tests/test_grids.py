@@ -1,0 +1,122 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph import grids
+from usf_graph.geometry import geodesic_distance, random_rotation, rotate
+
+
+@pytest.mark.parametrize("g, n", [(lambda: grids.icosahedral(3), 642),
+                                  (lambda: grids.healpix(8), 768),
+                                  (lambda: grids.healpix(8, nest=False), 768),
+                                  (lambda: grids.fibonacci(1000), 1000),
+                                  (lambda: grids.equiangular(20, 40), 800)])
+def test_counts_areas_and_coarsening(g, n):
+    g = g()
+    assert len(g) == n and g.pos.dtype == torch.float64
+    torch.testing.assert_close(g.pos.norm(dim=1), torch.ones(n, dtype=torch.float64))
+    assert abs(float(g.area.sum()) - 4 * math.pi) < 1e-9
+    coarse, cl = g.coarsen()
+    assert cl.shape == (n,) and cl.dtype == torch.long
+    assert int(cl.min()) == 0 and int(cl.max()) == len(coarse) - 1
+    assert torch.unique(cl).numel() == len(coarse)  # every cluster is used
+    # each fine point's cluster is (one of) its nearest coarse point(s)
+    d_all = geodesic_distance(g.pos[:, None], coarse.pos[None])
+    d_own = d_all[torch.arange(n), cl]
+    assert (d_own <= d_all.min(1).values + 1e-12).all()
+
+
+def test_icosahedral_is_nested():
+    for level in range(1, 5):
+        fine, coarse = grids.icosahedral(level), grids.icosahedral(level - 1)
+        assert len(fine) == 10 * 4 ** level + 2
+        torch.testing.assert_close(fine.pos[:len(coarse)], coarse.pos, rtol=0, atol=0)
+
+
+def _ring_scheme(nside):
+    """HEALPix RING centres from Gorski et al. (2005), eqs. 4-9, written independently."""
+    z, phi = [], []
+    for i in range(1, 4 * nside):
+        if i < nside:
+            for j in range(1, 4 * i + 1):
+                z.append(1 - i * i / (3 * nside * nside))
+                phi.append(math.pi / (2 * i) * (j - 0.5))
+        elif i <= 3 * nside:
+            shift = 1.0 if (i + nside) % 2 else 0.5  # rings alternate their phase
+            for j in range(1, 4 * nside + 1):
+                z.append(4 / 3 - 2 * i / (3 * nside))
+                phi.append(math.pi / (2 * nside) * (j - shift))
+        else:
+            k = 4 * nside - i
+            for j in range(1, 4 * k + 1):
+                z.append(-(1 - k * k / (3 * nside * nside)))
+                phi.append(math.pi / (2 * k) * (j - 0.5))
+    z, phi = np.array(z), np.array(phi)
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+
+
+def _nest_scheme(nside):
+    """NESTED centres from the (face, x, y) bit-interleaved index, written independently."""
+    jrll = [2, 2, 2, 2, 3, 3, 3, 3, 4, 4, 4, 4]
+    jpll = [1, 3, 5, 7, 0, 2, 4, 6, 1, 3, 5, 7]
+    out = []
+    for p in range(12 * nside * nside):
+        face, ipf = divmod(p, nside * nside)
+        ix = sum(((ipf >> (2 * b)) & 1) << b for b in range(16))
+        iy = sum(((ipf >> (2 * b + 1)) & 1) << b for b in range(16))
+        jr = jrll[face] * nside - ix - iy - 1
+        if jr < nside:
+            nr, z, ks = jr, 1 - jr * jr / (3 * nside * nside), 0
+        elif jr > 3 * nside:
+            nr = 4 * nside - jr
+            z, ks = nr * nr / (3 * nside * nside) - 1, 0
+        else:
+            nr, z, ks = nside, (2 * nside - jr) * 2 / (3 * nside), (jr - nside) & 1
+        jp = (jpll[face] * nr + ix - iy + 1 + ks) / 2
+        jp = jp - 4 * nside if jp > 4 * nside else (jp + 4 * nside if jp < 1 else jp)
+        phi = (jp - (ks + 1) * 0.5) * (math.pi / 2 / nr)
+        r = math.sqrt(1 - z * z)
+        out.append([r * math.cos(phi), r * math.sin(phi), z])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("nside", [1, 2, 4, 8])
+def test_healpix_matches_the_published_scheme(nside):
+    np.testing.assert_allclose(grids.healpix(nside, nest=False).pos.numpy(), _ring_scheme(nside),
+                               atol=1e-12)
+    np.testing.assert_allclose(grids.healpix(nside, nest=True).pos.numpy(), _nest_scheme(nside),
+                               atol=1e-12)
+    if nside > 1:
+        _, cl = grids.healpix(nside).coarsen()
+        assert torch.equal(cl, torch.arange(12 * nside * nside) // 4)
+
+
+def test_grid_quality_ordering():
+    ico, hp = grids.icosahedral(4), grids.healpix(16)
+    fib, eq = grids.fibonacci(2562), grids.equiangular(36, 72)
+    q = {g.name: g.quality() for g in (ico, hp, fib, eq)}
+    assert q["healpix"]["area_cv"] < 1e-12  # equal-area by construction
+    assert q["icosahedral"]["nbr6_dist_cv"] < min(q[k]["nbr6_dist_cv"] for k in ("healpix", "fibonacci", "equiangular"))
+    assert q["equiangular"]["area_cv"] > 0.3
+
+
+def test_spec_round_trip_and_errors():
+    assert len(grids.from_spec("icosahedral:2")) == 162
+    assert grids.from_spec("healpix:4,ring").params == {"nside": 4, "nest": False}
+    assert len(grids.from_spec("equiangular:8,16")) == 128
+    with pytest.raises(ValueError, match="unknown grid"):
+        grids.from_spec("cube:3")
+    with pytest.raises(ValueError, match="power of two"):
+        grids.healpix(3)
+    with pytest.raises(ValueError, match="cannot be coarsened"):
+        grids.icosahedral(0).coarsen()
+
+
+def test_rotation_preserves_spacing():
+    g = grids.icosahedral(3)
+    R = random_rotation(seed=1)
+    d = geodesic_distance(rotate(g.pos[:5], R), rotate(g.pos[5:10], R))
+    torch.testing.assert_close(d, geodesic_distance(g.pos[:5], g.pos[5:10]))

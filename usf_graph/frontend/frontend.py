@@ -1,0 +1,262 @@
+"""SphericalFrontend: camera + grid -> SphericalImage, with all geometry cached."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import sys
+
+import cv2
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from ..cameras import Camera
+from ..data import SphericalImage
+from ..grids import Grid
+from ..nn.graph import geodesic_radius_graph
+from .cache import GeometryCache, default_cache
+from .interpolation import bilinear_entries, build_table, nearest_entries
+
+_REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32)
+_ROW = 1024  # cv2.remap maps must be narrower than SHRT_MAX, so fold N points into rows
+
+
+def default_radius(grid: Grid) -> float:
+    """About 1.6 grid spacings: the centre and its ~6 nearest neighbours."""
+    return 1.6 * grid.spacing
+
+
+class _Table:
+    """A row-normalized sparse interpolation matrix, applied as a gather when rows are
+    regular (bilinear/nearest) and as a sparse matmul otherwise."""
+
+    def __init__(self, crow, col, val, n_cols):
+        self.n_rows, self.n_cols = len(crow) - 1, n_cols
+        counts = torch.diff(torch.as_tensor(crow))
+        self.regular = bool(counts.numel()) and bool((counts == counts[0]).all())
+        if self.regular:
+            p = int(counts[0])
+            self.idx = torch.as_tensor(col).reshape(-1, p)
+            self.w = torch.as_tensor(val).reshape(-1, p)
+        else:
+            self.csr = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(col),
+                                               torch.as_tensor(val), (self.n_rows, n_cols))
+
+    def apply(self, flat: torch.Tensor) -> torch.Tensor:
+        """``flat [..., n_cols, C]`` -> ``[..., n_rows, C]``."""
+        if self.regular:
+            w = self.w.to(flat.dtype)
+            g = flat[..., self.idx, :]  # [..., n_rows, P, C]
+            return (g * w[..., None]).sum(-2)
+        lead, c = flat.shape[:-2], flat.shape[-1]
+        x = flat.movedim(-2, 0).reshape(self.n_cols, -1)
+        out = (self.csr.to(flat.dtype) @ x).reshape(self.n_rows, *lead, c)
+        return out.movedim(0, -2)
+
+
+def _as_image(image, cam: Camera, batched: bool = False):
+    is_np = not isinstance(image, torch.Tensor)
+    arr = np.asarray(image) if is_np else image
+    nd = 3 if batched else 2
+    if arr.ndim == nd:
+        arr = arr[..., None]
+    hw = tuple(arr.shape[-3:-1])
+    if arr.ndim != nd + 1 or hw != (cam.height, cam.width):
+        want = "[B, H, W, C]" if batched else "[H, W] or [H, W, C]"
+        raise ValueError(f"image has shape {tuple(np.shape(image))} but the camera expects "
+                         f"{want} with H x W = {cam.height} x {cam.width}. Resize the image or "
+                         "use the camera calibrated for this resolution.")
+    return arr, is_np
+
+
+def _digest(a) -> str | None:
+    if a is None:
+        return None
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(a, bool)).tobytes()).hexdigest()[:16]
+
+
+class SphericalFrontend:
+    r"""Lifts images from one camera onto one grid on S2.
+
+    Args:
+        camera: any :mod:`usf_graph.cameras` model.
+        grid: a :class:`~usf_graph.grids.Grid`.
+        interpolation: ``bilinear`` | ``nearest`` | ``area`` (anti-aliased, for grids
+            coarser than the image) | ``rbf`` (Gaussian weights of the lifted pixels).
+        radius: geodesic radius (rad) of the graph edges; default about 1.6 spacings.
+        image_mask: optional ``[H, W]`` bool, False on pixels to ignore (vignetting,
+            the robot's body).
+        cache: a :class:`GeometryCache`; defaults to the process-wide one.
+
+    The interpolation table, field-of-view mask and radius graph depend only on the
+    camera and the grid: they are built once and cached in memory and on disk. Lifting a
+    sample is then one ``cv2.remap`` (numpy uint8/uint16/float32 images, bilinear or
+    nearest) or one gather / sparse matmul in float64-exact weights (everything else).
+    """
+
+    def __init__(self, camera: Camera, grid: Grid, interpolation: str = "bilinear",
+                 radius: float | None = None, image_mask=None,
+                 cache: GeometryCache | None = None, rbf_sigma: float | None = None):
+        self.camera, self.grid, self.interpolation = camera, grid, interpolation
+        self.cache = cache if cache is not None else default_cache()
+        if image_mask is not None and np.shape(image_mask) != (camera.height, camera.width):
+            raise ValueError(f"image_mask must have shape {(camera.height, camera.width)}, "
+                             f"got {np.shape(image_mask)}")
+        key = {"camera": camera.key(), "grid": grid.key(), "interpolation": interpolation,
+               "image_mask": _digest(image_mask), "rbf_sigma": rbf_sigma}
+
+        def build():
+            _say(f"building lift table {interpolation}: {camera.model} "
+                 f"{camera.width}x{camera.height} -> {grid.spec} ({len(grid)} points)")
+            return build_table(camera, grid.pos.numpy(), interpolation, image_mask, rbf_sigma,
+                               grid.spacing if interpolation == "rbf" else None)
+
+        t = self.cache.get("lift", key, build)
+        self.mask = t["mask"].bool()
+        self._table = _Table(t["crow"], t["col"], t["val"], camera.width * camera.height)
+        self._uv = t["uv"].numpy()
+        self.radius = float(radius) if radius is not None else default_radius(grid)
+        g = self.cache.get("graph", {"grid": grid.key(), "radius": self.radius},
+                           lambda: dict(zip(("edge_index", "edge_weight"),
+                                            geodesic_radius_graph(grid.pos, self.radius))))
+        self.edge_index, self.edge_weight = g["edge_index"], g["edge_weight"]
+        self._maps = None
+        self._render = {}
+
+    @property
+    def num_points(self) -> int:
+        return len(self.grid)
+
+    def __repr__(self) -> str:
+        return (f"SphericalFrontend({self.camera!r}, {self.grid!r}, interpolation="
+                f"'{self.interpolation}', radius={self.radius:.4g}, visible={int(self.mask.sum())})")
+
+    # -- lifting -----------------------------------------------------------------------
+    def _remap_maps(self):
+        if self._maps is None:
+            from .interpolation import _wrap_or_clamp
+
+            n = len(self._uv)
+            rows = math.ceil(n / _ROW)
+            seen = self.mask.numpy()
+            u, v = _wrap_or_clamp(self.camera, self._uv[:, 0].astype(np.float64), self._uv[:, 1])
+            mx = np.full(rows * _ROW, -1, np.float32)
+            my = np.full(rows * _ROW, -1, np.float32)
+            mx[:n], my[:n] = np.where(seen, u, -1), np.where(seen, v, -1)
+            self._maps = (mx.reshape(rows, _ROW), my.reshape(rows, _ROW))
+        return self._maps
+
+    def _can_remap(self, arr) -> bool:
+        return (self.interpolation in ("bilinear", "nearest") and isinstance(arr, np.ndarray)
+                and arr.dtype.type in _REMAP_DTYPES and arr.shape[-1] <= 4)
+
+    def lift(self, image) -> torch.Tensor:
+        """One image ``[H, W]`` or ``[H, W, C]`` (numpy or torch) -> ``[N, C]`` float32
+        (float64 stays float64). Points outside the field of view are 0."""
+        arr, is_np = _as_image(image, self.camera)
+        if is_np and self._can_remap(arr):
+            mx, my = self._remap_maps()
+            inter = cv2.INTER_LINEAR if self.interpolation == "bilinear" else cv2.INTER_NEAREST
+            border = cv2.BORDER_WRAP if self.camera.wraps_u else cv2.BORDER_REPLICATE
+            out = cv2.remap(arr, mx, my, inter, borderMode=border)
+            out = out.reshape(-1, arr.shape[-1])[:self.num_points]
+            x = torch.from_numpy(out.astype(np.float32, copy=False))
+            x = x * self.mask[:, None]
+        else:
+            t = torch.as_tensor(arr)
+            if not t.is_floating_point():
+                t = t.float()
+            x = self._table.apply(t.reshape(-1, t.shape[-1]))
+        _check_finite(x, self.mask)
+        return x
+
+    def lift_batch(self, images) -> torch.Tensor:
+        """``[B, H, W, C]`` (or ``[B, H, W]``) -> ``[B, N, C]``, the static-graph fast path."""
+        arr, _ = _as_image(images, self.camera, batched=True)
+        t = torch.as_tensor(arr)
+        if not t.is_floating_point():
+            t = t.float()
+        x = self._table.apply(t.reshape(t.shape[0], -1, t.shape[-1]))
+        _check_finite(x, self.mask)
+        return x
+
+    def __call__(self, image) -> SphericalImage:
+        x = self.lift(image)
+        return SphericalImage(x=x, pos=self.grid.pos.to(x.dtype), mask=self.mask.clone(),
+                              area=self.grid.area.to(x.dtype), edge_index=self.edge_index,
+                              edge_weight=self.edge_weight.to(x.dtype))
+
+    # -- back to pixels ------------------------------------------------------------------
+    def to_image(self, values, mode: str = "bilinear"):
+        """Per-point values ``[N]`` or ``[N, C]`` -> the camera's image ``[H, W(, C)]``.
+
+        ``bilinear`` blends the three nearest visible grid points by inverse distance;
+        ``nearest`` copies the nearest one (use it for labels). Pixels without a ray are 0.
+        """
+        if mode not in ("bilinear", "nearest"):
+            raise ValueError(f"mode must be 'bilinear' or 'nearest', got {mode!r}")
+        is_np = not isinstance(values, torch.Tensor)
+        v = torch.as_tensor(np.asarray(values) if is_np else values)
+        squeeze = v.ndim == 1
+        v = v[:, None] if squeeze else v
+        if v.shape[0] != self.num_points:
+            raise ValueError(f"values have {v.shape[0]} points, the grid has {self.num_points}")
+        if mode not in self._render:
+            key = {"camera": self.camera.key(), "grid": self.grid.key(), "mode": mode,
+                   "mask": _digest(self.mask.numpy())}
+            t = self.cache.get("render", key, lambda: _render_table(self, mode))
+            self._render[mode] = _Table(t["crow"], t["col"], t["val"], self.num_points)
+        if not v.is_floating_point():
+            out = self._render[mode].apply(v.double()).round().to(v.dtype)
+        else:
+            out = self._render[mode].apply(v)
+        out = out.reshape(self.camera.height, self.camera.width, -1)
+        out = out[..., 0] if squeeze else out
+        return out.numpy() if is_np else out
+
+
+def _render_table(fe: SphericalFrontend, mode: str) -> dict:
+    cam = fe.camera
+    rays, valid = cam.lens_normal_map()
+    rays, valid = rays.reshape(-1, 3), valid.ravel()
+    vis = np.flatnonzero(fe.mask.numpy())
+    k = 1 if mode == "nearest" else 3
+    d, j = cKDTree(fe.grid.pos.numpy()[vis]).query(np.where(valid[:, None], rays, 1.0), k=k)
+    d, j = d.reshape(len(rays), k), j.reshape(len(rays), k)
+    w = 1.0 / np.maximum(d, 1e-12) ** 2
+    w = np.where(valid[:, None], w / w.sum(1, keepdims=True), 0.0)
+    crow = np.arange(0, len(rays) * k + 1, k)
+    return {"crow": crow, "col": vis[j].ravel(), "val": w.ravel()}
+
+
+def _check_finite(x: torch.Tensor, mask: torch.Tensor) -> None:
+    if x.is_floating_point() and not torch.isfinite(x[..., mask, :]).all():
+        raise ValueError("the image has NaN or inf in pixels the camera sees; clean or mask "
+                         "them (image_mask=) before lifting")
+
+
+def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear"):
+    """Re-image ``image`` taken by ``cam_src`` as ``cam_dst`` would see it, through the
+    sphere: each destination pixel's ray is projected into the source camera. Pixels the
+    source does not see are 0. Returns numpy (or torch, for torch input) ``[H', W'(, C)]``."""
+    arr, is_np = _as_image(image, cam_src)
+    rays, valid = cam_dst.lens_normal_map()
+    pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
+    uv, seen = cam_src.sees(pos)
+    seen &= valid.ravel()
+    entries = bilinear_entries if interpolation == "bilinear" else nearest_entries
+    idx, w = entries(cam_src, np.nan_to_num(uv, nan=-1.0), seen)
+    t = torch.as_tensor(arr)
+    flat = (t if t.is_floating_point() else t.double()).reshape(-1, t.shape[-1])
+    out = (flat[torch.as_tensor(idx)] * torch.as_tensor(w, dtype=flat.dtype)[..., None]).sum(1)
+    out = out.reshape(cam_dst.height, cam_dst.width, -1)
+    if not t.is_floating_point():
+        out = out.round().clamp(0, torch.iinfo(t.dtype).max).to(t.dtype)
+    if np.ndim(image) == 2:
+        out = out[..., 0]
+    return out.numpy() if is_np else out
+
+
+def _say(msg: str) -> None:
+    print(f"[usf-graph] {msg}", file=sys.stderr, flush=True)
