@@ -1,0 +1,90 @@
+"""Classifiers: a spherical CNN on the icosahedral hierarchy and a planar baseline."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .. import grids as G
+from ..frontend.cache import default_cache
+from ..nn import GridPool, MaskedBatchNorm, SphericalConv, geodesic_radius_graph
+from ..nn.pool import global_max_pool_masked, global_mean_pool_area
+
+
+def grid_graph(grid: G.Grid, radius: float):
+    """Cached radius graph of a grid: (edge_index, edge_weight)."""
+    g = default_cache().get("graph", {"grid": grid.key(), "radius": float(radius)},
+                            lambda: dict(zip(("edge_index", "edge_weight"),
+                                             geodesic_radius_graph(grid.pos, float(radius)))))
+    return g["edge_index"], g["edge_weight"]
+
+
+class SphericalClassifier(nn.Module):
+    r"""SphericalConv blocks down the icosahedral levels, then global pooling and an MLP.
+
+    Level ``level`` -> ``level - len(channels) + 1``: each stage is
+    conv -> masked BatchNorm -> ReLU, followed by max :class:`GridPool` onto the next
+    level. The head sees the area-weighted mean and the max of the last features, both
+    rotation invariant, so the logits are invariant up to the grid's discretization.
+
+    Shapes: ``x [B, N, C_in]`` (static graph on ``icosahedral(level)``) -> ``[B, classes]``.
+    """
+
+    def __init__(self, in_channels: int = 1, num_classes: int = 10, level: int = 4,
+                 channels=(16, 32, 64), num_basis: int = 4, radius_spacings: float = 2.0,
+                 basis: str = "hat"):
+        super().__init__()
+        if level - len(channels) + 1 < 0:
+            raise ValueError(f"{len(channels)} stages need level >= {len(channels) - 1}")
+        self.level, self.config = level, dict(in_channels=in_channels, num_classes=num_classes,
+                                              level=level, channels=list(channels),
+                                              num_basis=num_basis,
+                                              radius_spacings=radius_spacings, basis=basis)
+        self.convs, self.norms, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        g, c_in = G.icosahedral(level), in_channels
+        for s, c in enumerate(channels):
+            r = radius_spacings * g.spacing
+            ei, ew = grid_graph(g, r)
+            self.register_buffer(f"ei{s}", ei, persistent=False)
+            self.register_buffer(f"ew{s}", ew.float(), persistent=False)
+            self.register_buffer(f"area{s}", g.area.float(), persistent=False)
+            self.convs.append(SphericalConv(c_in, c, r, num_basis=num_basis, basis=basis))
+            self.norms.append(MaskedBatchNorm(c))
+            if s < len(channels) - 1:
+                coarse, cl = g.coarsen()
+                self.pools.append(GridPool(cl, len(coarse), "max"))
+                g = coarse
+            c_in = c
+        self.head = nn.Sequential(nn.Linear(2 * c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        for s, conv in enumerate(self.convs):
+            ei, ew, a = getattr(self, f"ei{s}"), getattr(self, f"ew{s}"), getattr(self, f"area{s}")
+            x = torch.relu(self.norms[s](conv(x, ei, ew.to(x.dtype), node_weight=a.to(x.dtype)),
+                                         node_weight=a.to(x.dtype)))
+            if s < len(self.pools):
+                x, _ = self.pools[s](x)
+        a = getattr(self, f"area{len(self.convs) - 1}").to(x.dtype)
+        return torch.cat([global_mean_pool_area(x, a), global_max_pool_masked(x)], -1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x))
+
+
+class PlanarCNN(nn.Module):
+    """A plain Conv2d classifier, for equirectangular images ``[B, C, H, W]``."""
+
+    def __init__(self, in_channels: int = 1, num_classes: int = 10, channels=(16, 32, 64)):
+        super().__init__()
+        self.config = dict(in_channels=in_channels, num_classes=num_classes,
+                           channels=list(channels))
+        layers, c_in = [], in_channels
+        for c in channels:
+            layers += [nn.Conv2d(c_in, c, 3, padding=1), nn.BatchNorm2d(c), nn.ReLU(),
+                       nn.MaxPool2d(2)]
+            c_in = c
+        self.body = nn.Sequential(*layers)
+        self.head = nn.Sequential(nn.Linear(c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.body(x).amax((-2, -1)))

@@ -1,0 +1,121 @@
+"""Pooling on grids: coarsening clusters, unpooling, global pooling; all mask-aware."""
+
+from __future__ import annotations
+
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+
+
+def _node_first(x: torch.Tensor):
+    """[N, C] or [B, N, C] -> ([N, B*C], restore)."""
+    if x.dim() == 2:
+        return x, lambda y: y
+    B, N, C = x.shape
+    return x.transpose(0, 1).reshape(N, B * C), lambda y: y.reshape(-1, B, C).transpose(0, 1)
+
+
+class GridPool(nn.Module):
+    r"""Pools a fine grid onto its coarsening (``cluster`` from ``grid.coarsen()``).
+
+    ``mode="mean"``: :math:`y_c = \sum_{j \in c} a_j m_j x_j / \sum_{j \in c} a_j m_j`
+    (area-weighted, visible points only); ``mode="max"``: maximum over visible points.
+    A coarse point with no visible fine point gets 0 and is masked out.
+    Uses torch-scatter's ``segment_csr`` on the clusters, sorted once at construction.
+
+    Shapes:
+        - x: ``[N, C]`` or ``[B, N, C]``, mask: ``[N]`` (optional)
+        - output: ``([M, C] or [B, M, C], coarse mask [M])``
+    """
+
+    def __init__(self, cluster: torch.Tensor, num_coarse: int | None = None, mode: str = "max",
+                 area: torch.Tensor | None = None):
+        super().__init__()
+        if mode not in ("max", "mean"):
+            raise ValueError(f"mode must be 'max' or 'mean', got {mode!r}")
+        cluster = torch.as_tensor(cluster, dtype=torch.long)
+        self.mode = mode
+        self.num_coarse = int(num_coarse if num_coarse is not None else cluster.max() + 1)
+        perm = torch.argsort(cluster, stable=True)
+        counts = torch.bincount(cluster, minlength=self.num_coarse)
+        self.register_buffer("cluster", cluster, persistent=False)
+        self.register_buffer("perm", perm, persistent=False)
+        self.register_buffer("indptr", torch.cat([counts.new_zeros(1), counts.cumsum(0)]),
+                             persistent=False)
+        self.register_buffer("area", None if area is None else torch.as_tensor(area),
+                             persistent=False)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None):
+        from torch_scatter import segment_csr
+
+        xf, restore = _node_first(x)
+        m = torch.ones(xf.shape[0], dtype=xf.dtype, device=xf.device) if mask is None \
+            else mask.to(xf.dtype)
+        m_c = segment_csr(m[self.perm], self.indptr, reduce="max") > 0
+        if self.mode == "mean":
+            w = m * (self.area.to(xf.dtype) if self.area is not None else 1.0)
+            num = segment_csr((xf * w[:, None])[self.perm], self.indptr, reduce="sum")
+            den = segment_csr(w[self.perm], self.indptr, reduce="sum")
+            out = num / den.clamp_min(1e-30)[:, None]
+        else:
+            src = xf if mask is None else xf.masked_fill(~mask.bool()[:, None], float("-inf"))
+            out = segment_csr(src[self.perm], self.indptr, reduce="max")
+            out = out.masked_fill(~m_c[:, None], 0.0)
+        return restore(out), m_c
+
+    def extra_repr(self) -> str:
+        return f"{len(self.cluster)} -> {self.num_coarse}, mode='{self.mode}'"
+
+
+class GridUnpool(nn.Module):
+    """Coarse -> fine: ``nearest`` copies the point's cluster value; ``linear`` blends the
+    three nearest coarse points by inverse squared distance (needs the positions).
+
+    Shapes: ``[M, C]`` or ``[B, M, C]`` -> ``[N, C]`` or ``[B, N, C]``.
+    """
+
+    def __init__(self, cluster: torch.Tensor, mode: str = "nearest", fine_pos=None,
+                 coarse_pos=None):
+        super().__init__()
+        if mode not in ("nearest", "linear"):
+            raise ValueError(f"mode must be 'nearest' or 'linear', got {mode!r}")
+        self.mode = mode
+        if mode == "nearest":
+            idx = torch.as_tensor(cluster, dtype=torch.long)[:, None]
+            w = torch.ones(idx.shape, dtype=torch.float64)
+        else:
+            if fine_pos is None or coarse_pos is None:
+                raise ValueError("mode='linear' needs fine_pos and coarse_pos")
+            d, j = cKDTree(torch.as_tensor(coarse_pos).numpy()).query(
+                torch.as_tensor(fine_pos).numpy(), k=3)
+            w = 1.0 / torch.as_tensor(d).clamp_min(1e-12) ** 2
+            w = w / w.sum(1, keepdim=True)
+            # a fine point on a coarse point takes its value exactly
+            exact = torch.as_tensor(d[:, 0] < 1e-12)
+            w[exact] = torch.tensor([1.0, 0.0, 0.0], dtype=w.dtype)
+            idx = torch.as_tensor(j, dtype=torch.long)
+        self.register_buffer("idx", idx, persistent=False)
+        self.register_buffer("w", w, persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        g = x[..., self.idx, :]  # [..., N, P, C]
+        return (g * self.w.to(x.dtype)[..., None]).sum(-2)
+
+    def extra_repr(self) -> str:
+        return f"{self.idx.shape[0]} points, mode='{self.mode}'"
+
+
+def global_mean_pool_area(x: torch.Tensor, area: torch.Tensor | None = None,
+                          mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Area-weighted mean over visible points: ``[(B,) N, C] -> [(B,) C]``."""
+    w = torch.ones(x.shape[-2], dtype=x.dtype, device=x.device) if area is None else area.to(x.dtype)
+    if mask is not None:
+        w = w * mask.to(x.dtype)
+    return (x * w[:, None]).sum(-2) / w.sum().clamp_min(1e-30)
+
+
+def global_max_pool_masked(x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Maximum over visible points: ``[(B,) N, C] -> [(B,) C]``."""
+    if mask is not None:
+        x = x.masked_fill(~mask.bool()[:, None], float("-inf"))
+    return x.amax(-2)

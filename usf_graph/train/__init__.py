@@ -1,0 +1,5 @@
+"""Training and evaluation loops shared by all tasks."""
+
+from .engine import evaluate, fit, load_checkpoint, save_checkpoint, seed_everything
+
+__all__ = ["fit", "evaluate", "save_checkpoint", "load_checkpoint", "seed_everything"]

@@ -1,0 +1,104 @@
+"""Plots: spherical signals (Mollweide, 3-D), lens normal maps, task results."""
+
+from __future__ import annotations
+
+import math
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from .geometry import to_latlon  # noqa: E402
+
+
+def _np(a):
+    return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
+
+
+def mollweide(ax, pos, values, mask=None, s=4, cmap="viridis", title=None):
+    """Scatter a spherical signal on a Mollweide axis; hidden points in light grey."""
+    lat, lon = to_latlon(_np(pos).astype(np.float64))
+    v = _np(values).reshape(len(lat), -1)[:, 0]
+    m = np.ones(len(v), bool) if mask is None else _np(mask).astype(bool)
+    ax.scatter(lon[~m], lat[~m], c="0.85", s=s, linewidths=0)
+    sc = ax.scatter(lon[m], lat[m], c=v[m], s=s, cmap=cmap, linewidths=0)
+    ax.grid(True, alpha=0.3)
+    ax.set_xticklabels([])
+    if title:
+        ax.set_title(title, fontsize=9)
+    return sc
+
+
+def plot_sphere(pos, values, mask=None, path=None, title=None):
+    """Mollweide map and 3-D scatter of a signal side by side; saved to ``path``."""
+    fig = plt.figure(figsize=(10, 4))
+    ax = fig.add_subplot(1, 2, 1, projection="mollweide")
+    sc = mollweide(ax, pos, values, mask, title=title)
+    fig.colorbar(sc, ax=ax, shrink=0.6)
+    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+    p = _np(pos)
+    v = _np(values).reshape(len(p), -1)[:, 0]
+    ax3.scatter(p[:, 0], p[:, 1], p[:, 2], c=v, s=2)
+    ax3.set_box_aspect((1, 1, 1))
+    ax3.set_xlabel("x (forward)")
+    ax3.set_ylabel("y (left)")
+    ax3.set_zlabel("z (up)")
+    return _finish(fig, path)
+
+
+def plot_lens_normal_map(cam, path=None, n_cover: int = 20000):
+    """Rays as RGB ((r + 1) / 2) and the covered part of the sphere."""
+    lnm, valid = cam.lens_normal_map()
+    rgb = np.where(valid[..., None], (lnm + 1) / 2, 0.0)
+    fig = plt.figure(figsize=(10, 4))
+    ax = fig.add_subplot(1, 2, 1)
+    ax.imshow(np.clip(rgb, 0, 1))
+    ax.set_title(f"{type(cam).__name__}: lens normal map (x, y, z -> R, G, B)", fontsize=9)
+    ax.axis("off")
+    from .grids import fibonacci
+
+    pts = fibonacci(n_cover).pos.numpy()
+    _, seen = cam.sees(pts)
+    ax2 = fig.add_subplot(1, 2, 2, projection="mollweide")
+    mollweide(ax2, pts, seen.astype(float), seen, s=1, cmap="autumn",
+              title=f"coverage: {cam.solid_angle() / (4 * math.pi):.1%} of the sphere, "
+                    f"FOV {cam.fov_deg:.0f} deg")
+    return _finish(fig, path)
+
+
+def plot_mnist_results(results: dict, model, test_r, path, n: int = 6):
+    """Accuracy bars (NR/NR vs NR/R) and a few rotated digits with predictions."""
+    fig = plt.figure(figsize=(12, 5))
+    ax = fig.add_subplot(1, n // 2 + 1, 1)
+    names = [k for k in ("spherical", "planar") if k in results]
+    w = 0.35
+    for i, proto in enumerate(("NR", "R")):
+        vals = [100 * results[k][proto] for k in names]
+        bars = ax.bar(np.arange(len(names)) + (i - 0.5) * w, vals, w, label=f"NR/{proto}")
+        ax.bar_label(bars, fmt="%.1f", fontsize=7)
+    ax.set_xticks(range(len(names)), names)
+    ax.set_ylim(0, 105)
+    ax.set_ylabel("test accuracy (%)")
+    ax.legend(fontsize=8)
+    ax.set_title("trained unrotated", fontsize=9)
+    model.eval()
+    with torch.no_grad():
+        pred = model(test_r.x[:n]).argmax(-1)
+    for i in range(n):
+        a = fig.add_subplot(2, n // 2 + 1, (i // (n // 2)) * (n // 2 + 1) + i % (n // 2) + 2,
+                            projection="mollweide")
+        mollweide(a, test_r.grid.pos, test_r.x[i], s=2, cmap="gray",
+                  title=f"label {int(test_r.y[i])}, pred {int(pred[i])}")
+        a.set_yticklabels([])
+    return _finish(fig, path)
+
+
+def _finish(fig, path):
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+    return fig
