@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import nn
 from torch_geometric.nn import MessagePassing
@@ -135,10 +137,12 @@ class DistanceConv(MessagePassing):
         k = torch.arange(K, device=coef.device)
         rows = (i[:, None] * K + k).reshape(-1)
         cols = j[:, None].expand(E, K).reshape(-1)
-        A = torch.sparse_coo_tensor(torch.stack([rows, cols]), coef.reshape(-1),
-                                    (num_nodes * K, num_nodes)).coalesce()
-        At = A.t().coalesce().to_sparse_csr()
-        A = A.to_sparse_csr()
+        with warnings.catch_warnings():  # torch flags sparse CSR as beta on every use
+            warnings.simplefilter("ignore", UserWarning)
+            A = torch.sparse_coo_tensor(torch.stack([rows, cols]), coef.reshape(-1),
+                                        (num_nodes * K, num_nodes)).coalesce()
+            At = A.t().coalesce().to_sparse_csr()
+            A = A.to_sparse_csr()
         self._plan = (key, A, At)
         return A, At
 

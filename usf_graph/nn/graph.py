@@ -48,6 +48,7 @@ def geodesic_radius_graph(pos: torch.Tensor, radius: float, batch=None, loop: bo
     chord = 2 * math.sin(radius / 2) * (1 + 1e-12)
     ei = _radius_edges(pos.detach(), chord, batch, loop)
     w = geodesic_distance(pos[ei[0]], pos[ei[1]])
+    w = torch.where(ei[0] == ei[1], torch.zeros_like(w), w)  # exact 0 on self-loops
     keep = w <= radius
     return ei[:, keep], w[keep]
 
