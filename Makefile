@@ -10,7 +10,7 @@ info: setup
 	@$(VENV)/bin/usf-graph info
 
 demo: setup
-	@$(VENV)/bin/usf-graph info
+	@$(VENV)/bin/usf-graph train mnist --out runs/mnist
 
 test: setup
 	@$(VENV)/bin/ruff check usf_graph tests examples benchmarks

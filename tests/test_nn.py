@@ -10,8 +10,15 @@ from torch_geometric.nn import Sequential
 from usf_graph import grids
 from usf_graph.geometry import normalize, random_rotation, rotate, rotation_from_axis_angle
 from usf_graph.grids import voronoi_areas
-from usf_graph.nn import (DistanceKernel, GridPool, GridUnpool, MaskedBatchNorm, SphericalConv,
-                          geodesic_radius_graph, global_mean_pool_area)
+from usf_graph.nn import (
+    DistanceKernel,
+    GridPool,
+    GridUnpool,
+    MaskedBatchNorm,
+    SphericalConv,
+    geodesic_radius_graph,
+    global_mean_pool_area,
+)
 
 torch.set_default_dtype(torch.float64)
 
@@ -123,7 +130,7 @@ def test_conv_pool_conv_stack_is_equivariant_on_healpix():
     for mode in ("max", "mean"):
         pool = GridPool(cl, len(coarse), mode=mode, area=g.area)
 
-        def net(x):
+        def net(x, pool=pool):
             h, m = pool(torch.relu(c1(x, ei1, ew1, node_weight=g.area)))
             return c2(h, ei2, ew2, node_weight=coarse.area)
 

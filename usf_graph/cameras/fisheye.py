@@ -6,8 +6,15 @@ import math
 
 import numpy as np
 
-from .base import Camera, check_finite, check_positive, from_incidence, incidence, \
-    monotone_limit, solve_monotone
+from .base import (
+    Camera,
+    check_finite,
+    check_positive,
+    from_incidence,
+    incidence,
+    monotone_limit,
+    solve_monotone,
+)
 
 # r / f as a function of the incidence angle theta, its inverse, and the largest theta.
 _PROJECTIONS = {

@@ -4,8 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Camera, _split_dist, check_finite, check_positive, distort, \
-    distortion_radius_limit, incidence, monotone_limit, undistort
+from .base import (
+    Camera,
+    _split_dist,
+    check_finite,
+    check_positive,
+    distort,
+    distortion_radius_limit,
+    incidence,
+    monotone_limit,
+    undistort,
+)
 
 
 def _intrinsics(cam, fx, fy, cx, cy):

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Camera, _split_dist, check_finite, check_positive, distort, \
-    distortion_radius_limit, undistort
+from .base import (
+    Camera,
+    _split_dist,
+    check_finite,
+    check_positive,
+    distort,
+    distortion_radius_limit,
+    undistort,
+)
 
 
 class Pinhole(Camera):

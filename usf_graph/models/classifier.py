@@ -32,14 +32,15 @@ class SphericalClassifier(nn.Module):
 
     def __init__(self, in_channels: int = 1, num_classes: int = 10, level: int = 4,
                  channels=(16, 32, 64), num_basis: int = 4, radius_spacings: float = 2.0,
-                 basis: str = "hat"):
+                 basis: str = "hat", pool: str = "mean"):
         super().__init__()
         if level - len(channels) + 1 < 0:
             raise ValueError(f"{len(channels)} stages need level >= {len(channels) - 1}")
         self.level, self.config = level, dict(in_channels=in_channels, num_classes=num_classes,
                                               level=level, channels=list(channels),
                                               num_basis=num_basis,
-                                              radius_spacings=radius_spacings, basis=basis)
+                                              radius_spacings=radius_spacings, basis=basis,
+                                              pool=pool)
         self.convs, self.norms, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
         g, c_in = G.icosahedral(level), in_channels
         for s, c in enumerate(channels):
@@ -52,7 +53,7 @@ class SphericalClassifier(nn.Module):
             self.norms.append(MaskedBatchNorm(c))
             if s < len(channels) - 1:
                 coarse, cl = g.coarsen()
-                self.pools.append(GridPool(cl, len(coarse), "max"))
+                self.pools.append(GridPool(cl, len(coarse), pool, area=g.area.float()))
                 g = coarse
             c_in = c
         self.head = nn.Sequential(nn.Linear(2 * c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))

@@ -1,0 +1,91 @@
+"""SphericalConv vs Conv2d (same pixel count), the naive per-edge PyG path, per-edge MLP
+weights and, when installed, torch-harmonics DISCO. Times in one run; reports ratios.
+
+    python benchmarks/conv.py [--level 6] [--batch 8] [--channels 64] [--threads 2]
+
+torch-harmonics is optional and benchmark-only: `pip install --no-deps torch-harmonics==0.9.3`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import torch
+
+from usf_graph import grids
+from usf_graph.nn import SphericalConv, geodesic_radius_graph
+
+
+def timeit(fn, reps: int) -> float:
+    fn()
+    best = math.inf
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def fwd_bwd(f, x):
+    def run():
+        x.grad = None
+        f(x).sum().backward()
+    return run
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--level", type=int, default=6)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--channels", type=int, default=64)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--reps", type=int, default=3)
+    p.add_argument("--skip-slow", action="store_true", help="skip naive and mlp variants")
+    a = p.parse_args()
+    torch.set_num_threads(a.threads)
+    g = grids.icosahedral(a.level)
+    N, B, C = len(g), a.batch, a.channels
+    r = 1.6 * g.spacing
+    ei, ew = geodesic_radius_graph(g.pos, r)
+    ew, area = ew.float(), g.area.float()
+    print(f"N={N} points, {ei.shape[1] / N:.1f} neighbours/point, B={B}, {C}->{C} ch, "
+          f"K=4, {a.threads} threads")
+    x = torch.randn(B, N, C, requires_grad=True)
+    conv = SphericalConv(C, C, r, num_basis=4)
+    side = int(math.sqrt(N))
+    img = torch.randn(B, C, side, N // side + 1, requires_grad=True)
+    c2d = torch.nn.Conv2d(C, C, 3, padding=1)
+    rows = {}
+    rows["Conv2d 3x3"] = (timeit(lambda: c2d(img), a.reps), timeit(fwd_bwd(c2d, img), a.reps))
+    f = lambda x: conv(x, ei, ew, node_weight=area)  # noqa: E731
+    rows["SphericalConv (fast)"] = (timeit(lambda: f(x), a.reps), timeit(fwd_bwd(f, x), a.reps))
+    try:
+        from torch_harmonics import DiscreteContinuousConvS2
+
+        nlat, nlon = 143, 286
+        disco = DiscreteContinuousConvS2(C, C, (nlat, nlon), (nlat, nlon), kernel_shape=(4,),
+                                         basis_type="piecewise linear", grid_in="equiangular",
+                                         grid_out="equiangular")
+        xi = torch.randn(B, C, nlat, nlon, requires_grad=True)
+        rows["DISCO (torch-harmonics, 143x286)"] = (timeit(lambda: disco(xi), a.reps),
+                                                    timeit(fwd_bwd(disco, xi), a.reps))
+    except Exception as e:  # noqa: BLE001 - optional competitor
+        print(f"(torch-harmonics DISCO skipped: {type(e).__name__}: {e})")
+    if not a.skip_slow:
+        naive = lambda x: conv(x, ei, ew, node_weight=area, fast=False)  # noqa: E731
+        rows["naive PyG per-edge"] = (timeit(lambda: naive(x), 1), timeit(fwd_bwd(naive, x), 1))
+        mlp = SphericalConv(C, C, r, kernel="mlp", hidden=8)
+        fm = lambda x: mlp(x[:1], ei, ew, node_weight=area)  # noqa: E731
+        t = (timeit(lambda: fm(x), 1) * B, timeit(fwd_bwd(fm, x), 1) * B)
+        rows["per-edge MLP weights (B=1 x B)"] = t
+    base = rows["Conv2d 3x3"]
+    print("\n| variant | fwd (ms) | fwd+bwd (ms) | fwd / Conv2d | fwd+bwd / Conv2d |")
+    print("|---|---|---|---|---|")
+    for k, (t1, t2) in rows.items():
+        print(f"| {k} | {1e3 * t1:.0f} | {1e3 * t2:.0f} | {t1 / base[0]:.2f} | {t2 / base[1]:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
