@@ -1,0 +1,146 @@
+import math
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from torch_geometric.loader import DataLoader
+
+from usf_graph import SphericalFrontend, cameras, grids
+from usf_graph.frontend import GeometryCache, render
+from usf_graph.geometry import to_latlon
+
+
+def smooth(p):
+    lat, lon = to_latlon(p)
+    return np.cos(lat) ** 2 * np.cos(2 * lon) + 0.5 * np.sin(lat)
+
+
+def equirect_image(W):
+    cam = cameras.Equirectangular(W, W // 2)
+    lnm, _ = cam.lens_normal_map()
+    return cam, smooth(lnm)
+
+
+def test_bilinear_converges_at_second_order():
+    g = grids.fibonacci(2000)
+    errs = []
+    for W in (32, 64, 128, 256):
+        cam, img = equirect_image(W)
+        fe = SphericalFrontend(cam, g, cache=GeometryCache(None))
+        x = fe.lift(img)[:, 0].numpy()
+        errs.append(np.abs(x - smooth(g.pos.numpy())).max())
+    slope = -np.polyfit(np.log([32, 64, 128, 256]), np.log(errs), 1)[0]
+    assert 1.8 < slope < 2.3, (errs, slope)
+
+
+@pytest.mark.parametrize("cam, expect", [
+    (cameras.Pinhole(200, 200, 199.5, 149.5, 400, 300), None),
+    (cameras.Fisheye(100, 255.5, 255.5, 512, 512, fov_deg=180), 2 * math.pi),
+    (cameras.KannalaBrandt(120, 120, 299.5, 299.5, 600, 600, k=(0.01, 0, 0, 0), fov_deg=200), None),
+    (cameras.Equirectangular(128, 64), 4 * math.pi),
+])
+def test_field_of_view_coverage_matches_solid_angle(cam, expect):
+    g = grids.fibonacci(20000)
+    fe = SphericalFrontend(cam, g, cache=GeometryCache(None))
+    frac = float(fe.mask.double().mean())
+    om = cam.solid_angle() if expect is None else expect
+    if isinstance(cam, cameras.KannalaBrandt):  # analytic: a cap of 100 degrees
+        om = 2 * math.pi * (1 - math.cos(math.radians(100)))
+    if isinstance(cam, cameras.Pinhole):  # analytic: a rectangular pyramid
+        a, b = 200 / 200, 150 / 200
+        om = 4 * math.asin(a * b / math.sqrt((1 + a * a) * (1 + b * b)))
+    assert frac == pytest.approx(om / (4 * math.pi), abs=0.01)
+
+
+def test_cache_hit_corrupt_file_and_counts(tmp_path):
+    cam, img = equirect_image(64)
+    g = grids.icosahedral(3)
+    c = GeometryCache(tmp_path)
+    fe = SphericalFrontend(cam, g, cache=c)
+    assert c.builds == 2  # lift table + graph
+    fe2 = SphericalFrontend(cam, g, cache=c)
+    assert c.builds == 2 and torch.equal(fe2.lift(img), fe.lift(img))
+    c2 = GeometryCache(tmp_path)  # a new process: served from disk
+    fe3 = SphericalFrontend(cam, g, cache=c2)
+    assert c2.builds == 0 and torch.equal(fe3.lift(img), fe.lift(img))
+    for f in tmp_path.glob("lift-*.npz"):
+        f.write_bytes(b"garbage")
+    c3 = GeometryCache(tmp_path)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        fe4 = SphericalFrontend(cam, g, cache=c3)
+    assert c3.builds == 1 and any("corrupt" in str(x.message) for x in w)
+    assert torch.equal(fe4.lift(img), fe.lift(img))
+
+
+def test_two_processes_fill_one_key(tmp_path):
+    code = ("import sys; from usf_graph import SphericalFrontend, cameras, grids; "
+            "from usf_graph.frontend import GeometryCache; "
+            "fe = SphericalFrontend(cameras.Equirectangular(256, 128), grids.icosahedral(4), "
+            "interpolation='area', cache=GeometryCache(sys.argv[1])); print(int(fe.mask.sum()))")
+    ps = [subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE) for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in ps]
+    assert all(p.returncode == 0 for p in ps), outs
+    assert [o[0].strip() for o in outs] == [b"2562", b"2562"]
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_interpolations_fov_mask_and_errors():
+    cam = cameras.Fisheye(40, 63.5, 63.5, 128, 128, fov_deg=180)
+    g = grids.icosahedral(3)
+    img = np.full((128, 128), 0.7)
+    for method in ("bilinear", "nearest", "area", "rbf"):
+        fe = SphericalFrontend(cam, g, interpolation=method, cache=GeometryCache(None))
+        x = fe.lift(img)
+        assert torch.allclose(x[fe.mask], torch.full_like(x[fe.mask], 0.7))  # rows sum to 1
+        assert (x[~fe.mask] == 0).all()
+        assert 0.4 < fe.mask.double().mean() < 0.6
+    vign = np.zeros((128, 128), bool)
+    vign[:, :64] = True
+    fe = SphericalFrontend(cam, g, image_mask=vign, cache=GeometryCache(None))
+    assert 0.15 < fe.mask.double().mean() < 0.35
+    with pytest.raises(ValueError, match="expects"):
+        fe(np.zeros((100, 128)))
+    bad = img.copy()
+    bad[40:90, 20:60] = np.nan  # pixels the masked camera still sees
+    with pytest.raises(ValueError, match="NaN"):
+        fe(bad)
+    away = cam.with_rotation(np.array([[0, 0, -1.0], [1, 0, 0], [0, -1, 0]]))
+    with pytest.raises(ValueError, match="empty field of view"):
+        SphericalFrontend(cameras.Pinhole(10, 10, 1.5, 1.5, 4, 4, rotation=away.rotation),
+                          grids.icosahedral(0), cache=GeometryCache(None))
+
+
+def test_remap_fast_path_equals_gather_and_batches():
+    cam, img = equirect_image(128)
+    g = grids.icosahedral(4)
+    fe = SphericalFrontend(cam, g, cache=GeometryCache(None))
+    exact = fe.lift(img)  # float64: exact gather
+    fast = fe.lift(img.astype(np.float32))  # cv2.remap, weights quantized to 1/32 pixel
+    assert (fast - exact.float()).abs().max() < 0.02
+    b = fe.lift_batch(np.stack([img, 2 * img])[..., None])
+    torch.testing.assert_close(b[1], 2 * exact)
+
+
+def test_data_loader_offsets_and_to_image_and_render():
+    cam, img = equirect_image(64)
+    g = grids.icosahedral(2)
+    fe = SphericalFrontend(cam, g, cache=GeometryCache(None))
+    data = [fe(img), fe(2 * img)]
+    batch = next(iter(DataLoader(data, batch_size=2)))
+    E, N = data[0].edge_index.shape[1], len(g)
+    assert batch.x.shape == (2 * N, 1) and batch.mask.shape == (2 * N,)
+    assert torch.equal(batch.edge_index[:, E:], data[1].edge_index + N)
+    assert batch.lat.shape == (2 * N,)
+    back = fe.to_image(fe.lift(img)[:, 0].numpy())
+    assert np.abs(back - img).mean() < 0.05
+    labels = fe.to_image(torch.arange(N), mode="nearest")
+    assert labels.dtype == torch.int64 and set(labels.unique().tolist()) <= set(range(N))
+    fish = cameras.Fisheye(40, 63.5, 63.5, 128, 128, fov_deg=190)
+    out = render(img, cam, fish)
+    lnm, valid = fish.lens_normal_map()
+    assert np.abs(out[valid] - smooth(lnm[valid])).max() < 0.05
