@@ -35,7 +35,7 @@ if [ ${#missing[@]} -gt 0 ]; then
   say "First time on a machine this takes about 25 minutes on 2 cores; pip caches the wheels,"
   say "so later set-ups take seconds. Progress: pip's build log follows."
   MAX_JOBS=${MAX_JOBS:-$(nproc)} "${pip[@]}" install --no-build-isolation -v "${missing[@]}" 2>&1 \
-    | grep --line-buffered -E "^(Building|Created wheel|Successfully|Using cached|\[[0-9]+/[0-9]+\]|ERROR|error)" || true
+    | grep --line-buffered -E "(building '|Building wheel|Created wheel|Successfully|Using cached|ERROR|error:)" || true
   "$VENV/bin/python" -c "import torch_scatter, torch_cluster" \
     || { echo "torch-scatter/torch-cluster failed to build; see the log above" >&2; exit 1; }
 fi
