@@ -68,7 +68,7 @@ def from_latlon(lat, lon):
 def geodesic_distance(p, q):
     """Great-circle distance ``atan2(|p x q|, p . q)`` in radians.
 
-    Inputs need not be unit length. Unlike ``arccos(p . q)`` this is accurate for tiny
+    Inputs need not be unit length. Unlike the inverse cosine of p . q, it is accurate for tiny
     and near-antipodal distances, and its gradient stays finite at d = 0 and d = pi.
     """
     if _is_torch(p) or _is_torch(q):
