@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 from scipy import sparse
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 from ..cameras import Camera
 from ..geometry import chord_to_geodesic, geodesic_to_chord
@@ -86,6 +86,27 @@ def rbf_matrix(cam: Camera, pos: np.ndarray, seen: np.ndarray, sigma: float):
     A = sparse.csr_matrix((np.exp(-0.5 * (d / sigma) ** 2), (rows, flat[D.col])),
                           shape=(len(pos), cam.width * cam.height))
     return A
+
+
+def barycentric_entries(pos: np.ndarray, queries: np.ndarray, candidates: int = 8):
+    """Interpolate from scattered unit vectors ``pos [N, 3]`` to ``queries [M, 3]``.
+
+    The convex hull of ``pos`` triangulates the sphere; a query takes the barycentric
+    weights of the hull face its ray exits through (gnomonic barycentric interpolation,
+    exact for functions linear on the face). Returns ``(idx [M, 3], w [M, 3])``, rows of
+    ``w`` summing to 1.
+    """
+    hull = ConvexHull(pos)
+    tri, eq = hull.simplices, hull.equations  # outward normals n, offsets b (n.x + b = 0)
+    cen = pos[tri].mean(1)
+    _, cand = cKDTree(cen / np.linalg.norm(cen, axis=1, keepdims=True)).query(
+        queries, k=min(candidates, len(tri)))
+    # the ray t * q leaves the polytope through the face with the largest n.q / -b
+    score = np.einsum("mkc,mc->mk", eq[cand, :3], queries) / -eq[cand, 3]
+    face = cand[np.arange(len(queries)), score.argmax(1)]
+    idx = tri[face]
+    w = np.linalg.solve(pos[idx].transpose(0, 2, 1), queries[..., None])[..., 0]
+    return idx, w / w.sum(1, keepdims=True)
 
 
 def build_table(cam: Camera, pos: np.ndarray, method: str, image_mask=None,

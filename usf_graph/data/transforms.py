@@ -1,0 +1,100 @@
+"""PyG transforms for spherical samples: random rotations and radius graphs."""
+
+from __future__ import annotations
+
+import torch
+from torch_geometric.data import Data
+from torch_geometric.transforms import BaseTransform
+
+from ..frontend.cache import GeometryCache
+from ..frontend.interpolation import barycentric_entries
+from ..geometry import random_rotation
+from ..nn.graph import geodesic_radius_graph
+
+
+class RandomRotation(BaseTransform):
+    r"""Rotates a spherical sample by a Haar-uniform random rotation :math:`R \in SO(3)`.
+
+    The rotated signal is :math:`x'(p) = x(R^\top p)`: the scene turns by :math:`R`.
+
+    * With ``frontend`` given and the source picture stored on the sample as
+      ``data.image``, the picture is re-lifted through the camera mounted with
+      :math:`R` (``camera.with_rotation(R @ camera.rotation)``). This is exact: the
+      grid samples the rotated continuous signal directly.
+    * Otherwise the signal is resampled grid to grid with barycentric weights on the
+      grid's triangulation; a point stays visible only if its whole triangle is.
+
+    The rotation used is stored in ``data.rotation [3, 3]``.
+
+    Args:
+        seed: seed of a private ``torch.Generator``; the sequence of rotations is then
+            reproducible. ``generator`` may be passed instead.
+        frontend: the :class:`~usf_graph.frontend.SphericalFrontend` that lifted the
+            samples, for the exact path.
+    """
+
+    def __init__(self, seed: int | None = None, generator: torch.Generator | None = None,
+                 frontend=None):
+        if generator is None:
+            generator = torch.Generator()
+            generator.manual_seed(int(seed)) if seed is not None else generator.seed()
+        self.generator, self.frontend = generator, frontend
+
+    def forward(self, data: Data) -> Data:
+        R = random_rotation(generator=self.generator)
+        data = rotate_sample(data, R, self.frontend)
+        data.rotation = R.to(data.pos.dtype)
+        return data
+
+    def __repr__(self) -> str:
+        exact = "re-lift" if self.frontend is not None else "grid-to-grid"
+        return f"{type(self).__name__}({exact})"
+
+
+def rotate_sample(data: Data, R: torch.Tensor, frontend=None) -> Data:
+    """``data`` with its signal turned by the rotation ``R`` (see :class:`RandomRotation`)."""
+    R64 = torch.as_tensor(R, dtype=torch.float64)
+    image = getattr(data, "image", None)
+    if frontend is not None and image is not None:
+        from ..frontend import SphericalFrontend
+
+        cam = frontend.camera
+        fe = SphericalFrontend(cam.with_rotation(R64.numpy() @ cam.rotation), frontend.grid,
+                               frontend.interpolation, frontend.radius,
+                               cache=GeometryCache(None, max_items=1))
+        x = fe.lift(image.numpy() if isinstance(image, torch.Tensor) else image)
+        data.x, data.mask = x.to(data.x.dtype), fe.mask.clone()
+        return data
+    pos = data.pos.detach().to(torch.float64).numpy()
+    idx, w = barycentric_entries(pos, pos @ R64.numpy())  # row p: R^T p
+    idx, w = torch.from_numpy(idx), torch.from_numpy(w).to(data.x.dtype)
+    x = data.x if data.x.ndim == 2 else data.x[:, None]
+    xr = (x[idx] * w[..., None]).sum(1)
+    data.x = xr if data.x.ndim == 2 else xr[:, 0]
+    if getattr(data, "mask", None) is not None:
+        data.mask = data.mask[idx].all(1)
+        data.x = data.x * data.mask.reshape(-1, *([1] * (data.x.ndim - 1)))
+    return data
+
+
+class GeodesicRadiusGraph(BaseTransform):
+    r"""Connects points of S2 within geodesic distance ``r`` (radians).
+
+    Sets ``edge_index [2, E]`` (row 0 neighbour, row 1 centre) and ``edge_weight [E]``, the
+    geodesic distance :math:`\operatorname{atan2}(|p \times q|, p \cdot q)`. Self-loops are
+    included unless ``loop=False``; neighbourhoods are never truncated. Respects
+    ``data.batch`` for batched samples.
+    """
+
+    def __init__(self, r: float, loop: bool = True):
+        if not r > 0:
+            raise ValueError(f"radius must be positive (radians), got {r}")
+        self.r, self.loop = float(r), loop
+
+    def forward(self, data: Data) -> Data:
+        ei, ew = geodesic_radius_graph(data.pos.double(), self.r, getattr(data, "batch", None), self.loop)
+        data.edge_index, data.edge_weight = ei, ew.to(data.pos.dtype)
+        return data
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(r={self.r:g}, loop={self.loop})"
