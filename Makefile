@@ -21,7 +21,7 @@ test-slow: setup
 
 bench: setup
 	@$(PY) benchmarks/conv.py
-	@test -f benchmarks/lift.py && $(PY) benchmarks/lift.py || true
+	@$(PY) benchmarks/lift.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -121,6 +121,7 @@ class SphericalFrontend:
                            lambda: dict(zip(("edge_index", "edge_weight"),
                                             geodesic_radius_graph(grid.pos, self.radius))))
         self.edge_index, self.edge_weight = g["edge_index"], g["edge_weight"]
+        self._all_seen = bool(self.mask.all())
         self._maps = None
         self._render = {}
 
@@ -141,9 +142,10 @@ class SphericalFrontend:
             rows = math.ceil(n / _ROW)
             seen = self.mask.numpy()
             u, v = _wrap_or_clamp(self.camera, self._uv[:, 0].astype(np.float64), self._uv[:, 1])
-            mx = np.full(rows * _ROW, -1, np.float32)
-            my = np.full(rows * _ROW, -1, np.float32)
-            mx[:n], my[:n] = np.where(seen, u, -1), np.where(seen, v, -1)
+            # unseen points sample far outside the image: 0 under BORDER_CONSTANT
+            mx = np.full(rows * _ROW, -16, np.float32)
+            my = np.full(rows * _ROW, -16, np.float32)
+            mx[:n], my[:n] = np.where(seen, u, -16), np.where(seen, v, -16)
             self._maps = (mx.reshape(rows, _ROW), my.reshape(rows, _ROW))
         return self._maps
 
@@ -158,11 +160,16 @@ class SphericalFrontend:
         if is_np and self._can_remap(arr):
             mx, my = self._remap_maps()
             inter = cv2.INTER_LINEAR if self.interpolation == "bilinear" else cv2.INTER_NEAREST
-            border = cv2.BORDER_WRAP if self.camera.wraps_u else cv2.BORDER_REPLICATE
+            # seen points are clamped inside the image, so the border only matters for
+            # unseen ones (constant 0), except in u for panoramas that wrap around
+            border = cv2.BORDER_WRAP if self.camera.wraps_u else cv2.BORDER_CONSTANT
             out = cv2.remap(arr, mx, my, inter, borderMode=border)
             out = out.reshape(-1, arr.shape[-1])[:self.num_points]
             x = torch.from_numpy(out.astype(np.float32, copy=False))
-            x = x * self.mask[:, None]
+            if self.camera.wraps_u and not self._all_seen:
+                x.mul_(self.mask[:, None])
+            if arr.dtype.kind != "f":
+                return x  # integer pixels cannot be NaN
         else:
             t = torch.as_tensor(arr)
             if not t.is_floating_point():
@@ -231,7 +238,9 @@ def _render_table(fe: SphericalFrontend, mode: str) -> dict:
 
 
 def _check_finite(x: torch.Tensor, mask: torch.Tensor) -> None:
-    if x.is_floating_point() and not torch.isfinite(x[..., mask, :]).all():
+    if not x.is_floating_point() or bool(torch.isfinite(x).all()):
+        return  # one cheap pass in the common case; the masked check only on failure
+    if not torch.isfinite(x[..., mask, :]).all():
         raise ValueError("the image has NaN or inf in pixels the camera sees; clean or mask "
                          "them (image_mask=) before lifting")
 
