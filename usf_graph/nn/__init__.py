@@ -1,11 +1,24 @@
 """Neural-network layers on S2 and R3 built on one distance kernel."""
 
 from .conv import DistanceConv, PointConv, SphericalConv
-from .graph import euclidean_radius_graph, geodesic_radius_graph, knn_graph, radius_for_neighbors
+from .graph import (
+           euclidean_radius,
+           euclidean_radius_graph,
+           geodesic_radius_graph,
+           knn_graph,
+           radius_for_neighbors,
+)
 from .kernel import DistanceKernel
 from .norm import MaskedBatchNorm
-from .pool import GridPool, GridUnpool, global_max_pool_masked, global_mean_pool_area
+from .pool import (
+           FPSPool,
+           GridPool,
+           GridUnpool,
+           farthest_point_sampling,
+           global_max_pool_masked,
+           global_mean_pool_area,
+)
 
 __all__ = ["DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool",
-           "GridUnpool", "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
+           "GridUnpool", "FPSPool", "farthest_point_sampling", "euclidean_radius", "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
            "geodesic_radius_graph", "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]

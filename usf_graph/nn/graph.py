@@ -17,17 +17,27 @@ def radius_for_neighbors(num_points: int, k: float) -> float:
     return 2 * math.asin(math.sqrt(k / num_points))
 
 
-def _radius_edges(pos: torch.Tensor, r: float, batch, loop: bool) -> torch.Tensor:
-    """torch_cluster radius graph with a neighbour cap that provably truncated nothing."""
+def _radius_edges(pos: torch.Tensor, r: float, batch, loop: bool, centres=None,
+                  batch_centres=None) -> torch.Tensor:
+    """torch_cluster radius search with a neighbour cap that provably truncated nothing.
+
+    Without ``centres``: the graph on ``pos``. With ``centres``: bipartite edges from
+    ``pos`` (row 0) to ``centres`` (row 1). Sorted by centre, then neighbour.
+    """
     import torch_cluster
 
     if not torch.isfinite(pos).all():
         raise ValueError("positions contain NaN or inf; cannot build a graph")
+    num_centres = pos.shape[0] if centres is None else centres.shape[0]
     cap = 64
     while True:
-        ei = torch_cluster.radius_graph(pos, r, batch=batch, loop=loop, max_num_neighbors=cap)
-        deg = torch.bincount(ei[1], minlength=pos.shape[0])
-        # radius_graph asks for cap (+1 without self-loops) candidates per node; a node
+        if centres is None:
+            ei = torch_cluster.radius_graph(pos, r, batch=batch, loop=loop, max_num_neighbors=cap)
+        else:
+            ei = torch_cluster.radius(pos, centres, r, batch, batch_centres,
+                                      max_num_neighbors=cap).flip(0)
+        deg = torch.bincount(ei[1], minlength=num_centres)
+        # the search asks for cap (+1 without self-loops) candidates per node; a node
         # that reached it may have lost neighbours, so retry with a larger cap.
         if deg.numel() == 0 or int(deg.max()) < cap:
             break
@@ -60,6 +70,16 @@ def euclidean_radius_graph(pos: torch.Tensor, radius: float, batch=None, loop: b
     ei = _radius_edges(pos.detach(), radius, batch, loop)
     w = (pos[ei[0]] - pos[ei[1]]).norm(dim=-1)
     return ei, w
+
+
+def euclidean_radius(pos: torch.Tensor, centres: torch.Tensor, radius: float, batch=None,
+                     batch_centres=None):
+    """Bipartite edges from points ``pos`` (row 0) to ``centres`` (row 1) within euclidean
+    ``radius``, never truncated; ``edge_weight`` = distance."""
+    if not radius > 0:
+        raise ValueError(f"radius must be > 0, got {radius}")
+    ei = _radius_edges(pos.detach(), radius, batch, True, centres.detach(), batch_centres)
+    return ei, (pos[ei[0]] - centres[ei[1]]).norm(dim=-1)
 
 
 def knn_graph(pos: torch.Tensor, k: int, batch=None, loop: bool = True):

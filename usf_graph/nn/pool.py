@@ -119,3 +119,57 @@ def global_max_pool_masked(x: torch.Tensor, mask: torch.Tensor | None = None) ->
     if mask is not None:
         x = x.masked_fill(~mask.bool()[:, None], float("-inf"))
     return x.amax(-2)
+
+
+def farthest_point_sampling(pos: torch.Tensor, batch: torch.Tensor | None = None,
+                            ratio: float = 0.25) -> torch.Tensor:
+    """Indices of ``ratio`` of the points of each cloud, by ``torch_cluster.fps``.
+
+    The start is canonical: the point farthest from its cloud's centroid. The samples are
+    then the same set under any rigid motion and any permutation of the points, which a
+    fixed or random start index would not give. ``batch`` must be sorted.
+    """
+    import torch_cluster
+    from torch_scatter import scatter_max, scatter_mean
+
+    if not 0 < ratio <= 1:
+        raise ValueError(f"ratio must be in (0, 1], got {ratio}")
+    batch = torch.zeros(len(pos), dtype=torch.long, device=pos.device) if batch is None else batch
+    cen = scatter_mean(pos, batch, dim=0)
+    far = scatter_max((pos - cen[batch]).norm(dim=-1), batch)[1]  # canonical start per cloud
+    first = torch.searchsorted(batch, torch.arange(len(far), device=pos.device))
+    perm = torch.arange(len(pos), device=pos.device)
+    perm[first], perm[far] = far, first
+    idx = torch_cluster.fps(pos[perm], batch, ratio=ratio, random_start=False)
+    return perm[idx]
+
+
+class FPSPool(nn.Module):
+    r"""Farthest point sampling plus radius assignment, for point clouds in R3.
+
+    Each sampled centre :math:`c` takes the maximum of the features of all points within
+    ``radius`` of it, :math:`y_c = \max_{|p_j - p_c| \le r} x_j`. Both the sampling
+    (:func:`farthest_point_sampling`) and the assignment depend only on distances, so the
+    pooled features are invariant to rigid motions (a voxel grid would not be).
+
+    Shapes: ``x [N, C]``, ``pos [N, 3]``, ``batch [N]`` ->
+    ``(x [M, C], pos [M, 3], batch [M], idx [M])``.
+    """
+
+    def __init__(self, ratio: float = 0.25, radius: float = 0.5):
+        super().__init__()
+        self.ratio, self.radius = float(ratio), float(radius)
+
+    def forward(self, x, pos, batch=None):
+        from torch_scatter import scatter_max
+
+        from .graph import euclidean_radius
+
+        batch = torch.zeros(len(pos), dtype=torch.long, device=pos.device) if batch is None else batch
+        idx = farthest_point_sampling(pos, batch, self.ratio)
+        ei, _ = euclidean_radius(pos, pos[idx], self.radius, batch, batch[idx])
+        out = scatter_max(x[ei[0]], ei[1], dim=0, dim_size=len(idx))[0]
+        return out, pos[idx], batch[idx], idx
+
+    def extra_repr(self) -> str:
+        return f"ratio={self.ratio:g}, radius={self.radius:g}"
