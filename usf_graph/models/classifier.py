@@ -32,15 +32,18 @@ class SphericalClassifier(nn.Module):
 
     def __init__(self, in_channels: int = 1, num_classes: int = 10, level: int = 4,
                  channels=(16, 32, 64), num_basis: int = 4, radius_spacings: float = 2.0,
-                 basis: str = "hat", pool: str = "mean"):
+                 basis: str = "hat", pool: str = "mean", readout: str = "meanmax"):
         super().__init__()
+        if readout not in ("mean", "meanmax"):
+            raise ValueError(f"readout must be 'mean' or 'meanmax', got {readout!r}")
+        self.readout = readout
         if level - len(channels) + 1 < 0:
             raise ValueError(f"{len(channels)} stages need level >= {len(channels) - 1}")
         self.level, self.config = level, dict(in_channels=in_channels, num_classes=num_classes,
                                               level=level, channels=list(channels),
                                               num_basis=num_basis,
                                               radius_spacings=radius_spacings, basis=basis,
-                                              pool=pool)
+                                              pool=pool, readout=readout)
         self.convs, self.norms, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
         g, c_in = G.icosahedral(level), in_channels
         for s, c in enumerate(channels):
@@ -56,7 +59,8 @@ class SphericalClassifier(nn.Module):
                 self.pools.append(GridPool(cl, len(coarse), pool, area=g.area.float()))
                 g = coarse
             c_in = c
-        self.head = nn.Sequential(nn.Linear(2 * c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))
+        n_read = 2 if readout == "meanmax" else 1
+        self.head = nn.Sequential(nn.Linear(n_read * c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         for s, conv in enumerate(self.convs):
@@ -66,7 +70,10 @@ class SphericalClassifier(nn.Module):
             if s < len(self.pools):
                 x, _ = self.pools[s](x)
         a = getattr(self, f"area{len(self.convs) - 1}").to(x.dtype)
-        return torch.cat([global_mean_pool_area(x, a), global_max_pool_masked(x)], -1)
+        mean = global_mean_pool_area(x, a)
+        if self.readout == "mean":
+            return mean
+        return torch.cat([mean, global_max_pool_masked(x)], -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(x))
