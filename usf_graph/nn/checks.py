@@ -1,0 +1,83 @@
+"""Measured equivariance on real grids: how much a network adds to interpolation error."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..cameras import Equirectangular
+from ..frontend.interpolation import barycentric_entries
+
+
+def _rel(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> float:
+    """Weighted relative L2 error ||a - b|| / ||b||; ``w`` per point (areas)."""
+    w = w.reshape(-1, *([1] * (a.dim() - 1)))
+    return float(((w * (a - b) ** 2).sum() / (w * b ** 2).sum()).sqrt())
+
+
+def grid_equivariance_error(net: Callable[[torch.Tensor], torch.Tensor], grid,
+                            signal: Callable[[np.ndarray], np.ndarray], R: torch.Tensor,
+                            image_width: int = 1024) -> dict:
+    r"""Lift ``signal`` and ``signal`` rotated by ``R`` onto ``grid`` through an
+    equirectangular camera and compare ``net(lift(f o R^T))`` with ``net(lift(f))`` turned
+    by ``R`` (barycentric grid-to-grid resampling).
+
+    Returns ``{"interpolation": e0, "network": e1, "ratio": e1 / e0}``: ``e0`` is the same
+    comparison for the identity network, the error the sampling alone makes, so ``ratio``
+    says how much the network adds. ``net`` maps ``[N, C]`` float64 to ``[N, C']``.
+    """
+    from ..frontend import GeometryCache, SphericalFrontend
+
+    cam = Equirectangular(image_width, image_width // 2)
+    rays, _ = cam.lens_normal_map()
+    img = signal(rays)
+    if img.ndim == 2:
+        img = img[..., None]
+    R = torch.as_tensor(R, dtype=torch.float64)
+    cache = GeometryCache(None)
+    x = SphericalFrontend(cam, grid, cache=cache).lift(img.astype(np.float64))
+    rot_cam = cam.with_rotation(R.numpy() @ cam.rotation)
+    x_r = SphericalFrontend(rot_cam, grid, cache=cache).lift(img.astype(np.float64))
+    pos = grid.pos.numpy()
+    idx, w = barycentric_entries(pos, pos @ R.numpy())  # value at p from R^T p
+
+    def turn(y):
+        return (y[torch.from_numpy(idx)] * torch.from_numpy(w)[..., None]).sum(1)
+
+    area = grid.area.double()
+    with torch.no_grad():
+        e0 = _rel(x_r, turn(x), area)
+        e1 = _rel(net(x_r), turn(net(x)), area)
+    return {"interpolation": e0, "network": e1, "ratio": e1 / e0}
+
+
+def equirect_equivariance_error(net: Callable[[torch.Tensor], torch.Tensor],
+                                signal: Callable[[np.ndarray], np.ndarray], R: torch.Tensor,
+                                width: int = 128) -> dict:
+    """The same protocol for a planar network on the equirectangular image ``[1, C, H, W]``:
+    the rotated image is re-rendered from the signal, and the output is turned by
+    re-rendering it through the rotated camera. Errors weighted by cos(latitude)."""
+    from ..frontend import render
+
+    cam = Equirectangular(width, width // 2)
+    rays, _ = cam.lens_normal_map()
+    R = torch.as_tensor(R, dtype=torch.float64)
+    rot_cam = cam.with_rotation(R.numpy() @ cam.rotation)
+    img = np.atleast_3d(signal(rays)).astype(np.float64)
+    img_r = np.atleast_3d(signal(rays @ R.numpy()))  # f(R^T p)
+
+    def turn(a):  # [H, W, C] numpy: the picture seen by the rotated camera
+        return np.atleast_3d(render(a, rot_cam, cam))
+
+    def run(a):
+        t = torch.from_numpy(np.ascontiguousarray(a)).permute(2, 0, 1)[None]
+        with torch.no_grad():
+            return net(t)[0].permute(1, 2, 0).numpy()
+
+    wlat = torch.from_numpy(np.hypot(rays[..., 0], rays[..., 1])).reshape(-1)  # cos(lat)
+    flat = lambda a: torch.from_numpy(np.ascontiguousarray(a)).reshape(len(wlat), -1)  # noqa: E731
+    e0 = _rel(flat(img_r), flat(turn(img)), wlat)
+    e1 = _rel(flat(run(img_r)), flat(turn(run(img))), wlat)
+    return {"interpolation": e0, "network": e1, "ratio": e1 / e0}
