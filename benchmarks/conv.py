@@ -43,8 +43,12 @@ def main():
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--skip-slow", action="store_true", help="skip naive and mlp variants")
+    p.add_argument("--scaling", action="store_true",
+                   help="only the scaling run: icosahedral levels 4..8 (2.5k..655k points)")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
+    if a.scaling:
+        return scaling(a)
     g = grids.icosahedral(a.level)
     N, B, C = len(g), a.batch, a.channels
     r = 1.6 * g.spacing
@@ -85,6 +89,27 @@ def main():
     print("|---|---|---|---|---|")
     for k, (t1, t2) in rows.items():
         print(f"| {k} | {1e3 * t1:.0f} | {1e3 * t2:.0f} | {t1 / base[0]:.2f} | {t2 / base[1]:.2f} |")
+
+
+def scaling(a, B: int = 2, C: int = 32):
+    """Time per point of the fast SphericalConv from 2.5k to 655k points."""
+    print(f"scaling: B={B}, {C}->{C} channels, K=4, radius 1.6 spacings, {a.threads} threads")
+    print("| level | points | fwd (ms) | fwd+bwd (ms) | fwd (ns/point/ch) | fwd+bwd (ns/point/ch) |")
+    print("|---|---|---|---|---|---|")
+    for level in range(4, 9):
+        g = grids.icosahedral(level)
+        r = 1.6 * g.spacing
+        ei, ew = geodesic_radius_graph(g.pos, r)
+        conv = SphericalConv(C, C, r, num_basis=4)
+        area = g.area.float()
+        x = torch.randn(B, len(g), C, requires_grad=True)
+        ew = ew.float()
+        f = lambda x, c=conv, ei=ei, ew=ew, w=area: c(x, ei, ew, node_weight=w)  # noqa: E731
+        reps = a.reps if level < 8 else 1
+        t1, t2 = timeit(lambda f=f, x=x: f(x), reps), timeit(fwd_bwd(f, x), reps)
+        n = B * len(g) * C
+        print(f"| {level} | {len(g)} | {1e3 * t1:.1f} | {1e3 * t2:.1f} | {1e9 * t1 / n:.1f} "
+              f"| {1e9 * t2 / n:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -49,8 +49,8 @@ def main():
             400.0, 400.0, 639.5, 479.5, 1280, 960, k=(0.01, -0.002, 0.0005, -0.0001), fov_deg=190),
     }
     print(f"grid icosahedral:{a.level} ({len(g)} points), {a.threads} threads, best of {a.reps}")
-    print(f"| camera | image | cold build (ms) | warm lift (ms) | cv2.remap floor (ms) "
-          f"| cold / warm | warm / floor |")
+    print("| camera | image | cold build (ms) | warm lift (ms) | cv2.remap floor (ms) "
+          "| cold / warm | warm / floor |")
     print("|---|---|---|---|---|---|---|")
     for name, cam in cams.items():
         for dtype, C in ((np.uint8, 3), (np.float32, 1)):
@@ -59,10 +59,11 @@ def main():
             fe = SphericalFrontend(cam, g, cache=GeometryCache(None))
             fe.lift(img)
             cold = time.perf_counter() - t
-            warm = best_of(lambda: fe.lift(img), a.reps)
+            warm = best_of(lambda fe=fe, img=img: fe.lift(img), a.reps)
             mx, my = fe._remap_maps()
             border = cv2.BORDER_WRAP if cam.wraps_u else cv2.BORDER_CONSTANT
-            floor = best_of(lambda: cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=border),
+            floor = best_of(lambda img=img, mx=mx, my=my, b=border:
+                            cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=b),
                             a.reps)
             print(f"| {name} | {np.dtype(dtype).name} x{C} | {1e3 * cold:.0f} | {1e3 * warm:.2f} "
                   f"| {1e3 * floor:.2f} | {cold / warm:.0f}x | {warm / floor:.2f}x |", flush=True)
