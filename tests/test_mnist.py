@@ -122,8 +122,10 @@ def test_checkpoint_round_trip(tmp_path):
     m.eval(), m2.eval()
     assert torch.equal(m(x), m2(x))
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(Exception):
+    with pytest.raises(ValueError, match="not a readable usf-graph checkpoint"):
         load_checkpoint(tmp_path / "bad.pt")
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(tmp_path / "missing.pt")
 
 
 def _free_port():
