@@ -110,4 +110,6 @@ def test_axis_angle_and_quaternion_agree_and_rotate():
 @given(st.floats(0.0, 1.0))
 def test_chord_geodesic_roundtrip(t):
     d = t * math.pi
-    assert G.chord_to_geodesic(G.geodesic_to_chord(d)) == pytest.approx(d, abs=1e-12)
+    # the chord 2 sin(d/2) flattens at d = pi, so d is only determined to eps / cos(d/2)
+    tol = 1e-12 + 1e-15 / max(math.cos(d / 2), 1e-8)
+    assert G.chord_to_geodesic(G.geodesic_to_chord(d)) == pytest.approx(d, abs=tol)
