@@ -15,8 +15,11 @@ import torch
 
 from usf_graph import grids
 from usf_graph.geometry import random_rotation
-from usf_graph.nn import SphericalConv, geodesic_radius_graph
-from usf_graph.nn.checks import equirect_equivariance_error, grid_equivariance_error
+from usf_graph.nn.checks import (
+    equirect_equivariance_error,
+    grid_equivariance_error,
+    random_spherical_net,
+)
 
 A = np.array([0.3, -0.8, 0.5])
 
@@ -25,14 +28,7 @@ def signal(p):
     return np.stack([np.exp(p @ A), np.cos(3 * p[..., 0]) * p[..., 1], p[..., 2] ** 2], -1)
 
 
-def spherical_net(g, radius_spacings, num_basis, basis):
-    torch.manual_seed(0)
-    r = radius_spacings * g.spacing
-    ei, ew = geodesic_radius_graph(g.pos, r)
-    c1 = SphericalConv(3, 16, r, num_basis=num_basis, basis=basis).double()
-    c2 = SphericalConv(16, 8, r, num_basis=num_basis, basis=basis).double()
-    a = g.area.double()
-    return lambda x: c2(torch.tanh(c1(x, ei, ew, node_weight=a)), ei, ew, node_weight=a)
+spherical_net = random_spherical_net
 
 
 def main():

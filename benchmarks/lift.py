@@ -11,25 +11,15 @@ already in memory: the least any lifting can do.
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 import cv2
 import numpy as np
 import torch
+from conv import timeit as best_of  # noqa: E402  (benchmarks/ is the script's folder)
 
 from usf_graph import SphericalFrontend, cameras, grids
 from usf_graph.frontend import GeometryCache
-
-
-def best_of(fn, reps: int) -> float:
-    fn()
-    best = math.inf
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
 
 
 def main():

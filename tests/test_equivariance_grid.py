@@ -7,8 +7,11 @@ import torch
 
 from usf_graph import grids
 from usf_graph.geometry import random_rotation
-from usf_graph.nn import SphericalConv, geodesic_radius_graph
-from usf_graph.nn.checks import equirect_equivariance_error, grid_equivariance_error
+from usf_graph.nn.checks import (
+    equirect_equivariance_error,
+    grid_equivariance_error,
+    random_spherical_net,
+)
 
 A = np.array([0.3, -0.8, 0.5])
 
@@ -17,14 +20,7 @@ def f(p):
     return np.stack([np.exp(p @ A), np.cos(3 * p[..., 0]) * p[..., 1], p[..., 2] ** 2], -1)
 
 
-def spherical_net(g, radius_spacings=4.0, num_basis=3, basis="gaussian"):
-    torch.manual_seed(0)
-    r = radius_spacings * g.spacing
-    ei, ew = geodesic_radius_graph(g.pos, r)
-    c1 = SphericalConv(3, 16, r, num_basis=num_basis, basis=basis).double()
-    c2 = SphericalConv(16, 8, r, num_basis=num_basis, basis=basis).double()
-    a = g.area.double()
-    return lambda x: c2(torch.tanh(c1(x, ei, ew, node_weight=a)), ei, ew, node_weight=a)
+spherical_net = random_spherical_net
 
 
 @pytest.mark.parametrize("spec", ["icosahedral:4", "healpix:16", "fibonacci:2562"])

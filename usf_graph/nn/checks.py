@@ -81,3 +81,19 @@ def equirect_equivariance_error(net: Callable[[torch.Tensor], torch.Tensor],
     e0 = _rel(flat(img_r), flat(turn(img)), wlat)
     e1 = _rel(flat(run(img_r)), flat(turn(run(img))), wlat)
     return {"interpolation": e0, "network": e1, "ratio": e1 / e0}
+
+
+def random_spherical_net(grid, radius_spacings: float = 4.0, num_basis: int = 3,
+                         basis: str = "gaussian", channels=(3, 16, 8), seed: int = 0):
+    """A 2-layer SphericalConv network (tanh between) with seeded random float64 weights on
+    ``grid``, as a function ``[N, C] -> [N, C']``: the probe of the equivariance checks."""
+    from .conv import SphericalConv
+    from .graph import geodesic_radius_graph
+
+    torch.manual_seed(seed)
+    r = radius_spacings * grid.spacing
+    ei, ew = geodesic_radius_graph(grid.pos, r)
+    c1 = SphericalConv(channels[0], channels[1], r, num_basis=num_basis, basis=basis).double()
+    c2 = SphericalConv(channels[1], channels[2], r, num_basis=num_basis, basis=basis).double()
+    a = grid.area.double()
+    return lambda x: c2(torch.tanh(c1(x, ei, ew, node_weight=a)), ei, ew, node_weight=a)
