@@ -3,13 +3,12 @@ and usf-graph's own YAML form."""
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from ..fileio import atomic_write
 from .base import Camera
 from .fisheye import Fisheye, KannalaBrandt
 from .omni import DoubleSphere, Mei
@@ -75,16 +74,7 @@ def save(cam: Camera, path) -> None:
 
 
 def atomic_write_text(path, text: str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda f: f.write(text), "w")
 
 
 def _load_own(path, data) -> Camera:

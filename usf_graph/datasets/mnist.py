@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import gzip
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +14,7 @@ from tqdm.auto import tqdm
 from .. import grids as G
 from ..cameras import DEFAULT_ROTATION, Fisheye
 from ..data import SphericalImage
+from ..fileio import atomic_torch_save
 from ..frontend.interpolation import bilinear_entries
 from ..geometry import random_rotation
 
@@ -193,12 +192,8 @@ class SphericalMNIST(Dataset):
         imgs, labs, used = load_digits(self.root, self.split, self.source)
         R = sample_rotations(len(imgs), self.rotate, self.seed + (0 if self.split == "train" else 10_000))
         x = lift_digits(imgs, self.grid.pos.numpy(), R, self.progress)
-        path = Path(self.processed_paths[0])
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-        os.close(fd)
-        torch.save({"x": x, "y": torch.as_tensor(labs), "source": used}, tmp)
-        os.replace(tmp, path)
+        atomic_torch_save({"x": x, "y": torch.as_tensor(labs), "source": used},
+                          self.processed_paths[0])
 
     def len(self) -> int:
         return len(self.y)

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch_geometric.data import Data, Dataset
+
+from ..fileio import atomic_torch_save
 
 MODELNET_URL = {"10": "http://3dvision.princeton.edu/projects/2014/3DShapeNets/ModelNet10.zip",
                 "40": "http://modelnet.cs.princeton.edu/ModelNet40.zip"}
@@ -146,18 +147,9 @@ class ModelNet(_CloudSet):
             raise FileNotFoundError(f"no {self.split} OFF files under {base}/<class>/{self.split}/")
         rng = np.random.default_rng(self.seed)
         pos = np.stack([sample_surface(*read_off(f), self.num_points, rng) for f, _ in files])
-        _save_atomic(self.processed_paths[0], {
-            "pos": torch.from_numpy(pos).float(), "y": torch.tensor([c for _, c in files]),
-            "classes": ",".join(classes)})
-
-
-def _save_atomic(path, obj) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    os.close(fd)
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+        atomic_torch_save({"pos": torch.from_numpy(pos).float(),
+                           "y": torch.tensor([c for _, c in files]),
+                           "classes": ",".join(classes)}, self.processed_paths[0])
 
 
 # -- procedural shapes ---------------------------------------------------------------------

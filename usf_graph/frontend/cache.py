@@ -9,7 +9,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable
@@ -19,6 +18,7 @@ import numpy as np
 import torch
 
 from .. import __version__
+from ..fileio import atomic_write
 
 
 def default_cache_dir() -> Path | None:
@@ -94,15 +94,11 @@ class GeometryCache:
 
     def _save(self, path: Path, h: str, value: dict) -> None:
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-            with os.fdopen(fd, "wb") as f:
-                np.savez(f, __key__=np.array(h), **{k: v.numpy() for k, v in value.items()})
-            os.replace(tmp, path)
+            atomic_write(path, lambda f: np.savez(f, __key__=np.array(h),
+                                                  **{k: v.numpy() for k, v in value.items()}))
         except OSError as e:
             warnings.warn(f"could not write geometry cache {path} ({e}); continuing without it",
                           stacklevel=3)
-            Path(tmp).unlink(missing_ok=True) if "tmp" in locals() else None
 
 
 _DEFAULT: GeometryCache | None = None

@@ -7,7 +7,6 @@ import json
 import math
 import os
 import random
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,6 +16,8 @@ import torch.distributed as dist
 from torch import nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
+
+from ..fileio import atomic_torch_save
 
 
 def seed_everything(seed: int, deterministic: bool = True) -> None:
@@ -44,8 +45,6 @@ def setup_distributed() -> tuple[int, int]:
 def save_checkpoint(path, model: nn.Module, config: dict, metrics: dict,
                     optimizer=None, scheduler=None, epoch: int = 0) -> None:
     """Atomically write state_dict, config, metrics (and optimizer state for resuming)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     model = model.module if hasattr(model, "module") else model
     blob = {"state_dict": model.state_dict(), "config": config, "metrics": metrics,
             "epoch": epoch}
@@ -53,10 +52,7 @@ def save_checkpoint(path, model: nn.Module, config: dict, metrics: dict,
         blob["optimizer"] = optimizer.state_dict()
     if scheduler is not None:
         blob["scheduler"] = scheduler.state_dict()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    os.close(fd)
-    torch.save(blob, tmp)
-    os.replace(tmp, path)
+    atomic_torch_save(blob, path)
 
 
 def load_checkpoint(path, model: nn.Module | None = None) -> dict:
