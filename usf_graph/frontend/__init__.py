@@ -1,6 +1,7 @@
 """From images to spherical graphs: interpolation tables, field of view, cache, rendering."""
 
 from .cache import GeometryCache, default_cache
-from .frontend import SphericalFrontend, default_radius, render
+from .frontend import SphericalFrontend, default_radius, grid_graph, render
 
-__all__ = ["SphericalFrontend", "GeometryCache", "default_cache", "default_radius", "render"]
+__all__ = ["SphericalFrontend", "GeometryCache", "default_cache", "default_radius", "grid_graph",
+           "render"]

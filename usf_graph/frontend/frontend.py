@@ -27,6 +27,16 @@ def default_radius(grid: Grid) -> float:
     return 1.6 * grid.spacing
 
 
+def grid_graph(grid: Grid, radius: float, cache: GeometryCache | None = None):
+    """The geodesic radius graph of a grid, ``(edge_index, edge_weight)``, from ``cache``
+    (default: the process-wide one), built once per (grid, radius)."""
+    radius = float(radius)
+    g = (cache if cache is not None else default_cache()).get(
+        "graph", {"grid": grid.key(), "radius": radius},
+        lambda: dict(zip(("edge_index", "edge_weight"), geodesic_radius_graph(grid.pos, radius))))
+    return g["edge_index"], g["edge_weight"]
+
+
 class _Table:
     """A row-normalized sparse interpolation matrix, applied as a gather when rows are
     regular (bilinear/nearest) and as a sparse matmul otherwise."""
@@ -117,10 +127,7 @@ class SphericalFrontend:
         self._table = _Table(t["crow"], t["col"], t["val"], camera.width * camera.height)
         self._uv = t["uv"].numpy()
         self.radius = float(radius) if radius is not None else default_radius(grid)
-        g = self.cache.get("graph", {"grid": grid.key(), "radius": self.radius},
-                           lambda: dict(zip(("edge_index", "edge_weight"),
-                                            geodesic_radius_graph(grid.pos, self.radius))))
-        self.edge_index, self.edge_weight = g["edge_index"], g["edge_weight"]
+        self.edge_index, self.edge_weight = grid_graph(grid, self.radius, self.cache)
         self._all_seen = bool(self.mask.all())
         self._maps = None
         self._render = {}

@@ -6,17 +6,9 @@ import torch
 from torch import nn
 
 from .. import grids as G
-from ..frontend.cache import default_cache
-from ..nn import GridPool, MaskedBatchNorm, SphericalConv, geodesic_radius_graph
+from ..frontend import grid_graph
+from ..nn import GridPool, MaskedBatchNorm, SphericalConv
 from ..nn.pool import global_max_pool_masked, global_mean_pool_area
-
-
-def grid_graph(grid: G.Grid, radius: float):
-    """Cached radius graph of a grid: (edge_index, edge_weight)."""
-    g = default_cache().get("graph", {"grid": grid.key(), "radius": float(radius)},
-                            lambda: dict(zip(("edge_index", "edge_weight"),
-                                             geodesic_radius_graph(grid.pos, float(radius)))))
-    return g["edge_index"], g["edge_weight"]
 
 
 class SphericalClassifier(nn.Module):
