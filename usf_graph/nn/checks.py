@@ -8,7 +8,6 @@ import numpy as np
 import torch
 
 from ..cameras import Equirectangular
-from ..frontend.interpolation import barycentric_entries
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> float:
@@ -22,12 +21,15 @@ def grid_equivariance_error(net: Callable[[torch.Tensor], torch.Tensor], grid,
                             image_width: int = 1024) -> dict:
     r"""Lift ``signal`` and ``signal`` rotated by ``R`` onto ``grid`` through an
     equirectangular camera and compare ``net(lift(f o R^T))`` with ``net(lift(f))`` turned
-    by ``R`` (barycentric grid-to-grid resampling).
+    by ``R`` (barycentric grid-to-grid resampling, :func:`~usf_graph.data.rotate_sample`).
 
     Returns ``{"interpolation": e0, "network": e1, "ratio": e1 / e0}``: ``e0`` is the same
     comparison for the identity network, the error the sampling alone makes, so ``ratio``
     says how much the network adds. ``net`` maps ``[N, C]`` float64 to ``[N, C']``.
     """
+    from torch_geometric.data import Data
+
+    from ..data.transforms import rotate_sample
     from ..frontend import GeometryCache, SphericalFrontend
 
     cam = Equirectangular(image_width, image_width // 2)
@@ -40,16 +42,13 @@ def grid_equivariance_error(net: Callable[[torch.Tensor], torch.Tensor], grid,
     x = SphericalFrontend(cam, grid, cache=cache).lift(img.astype(np.float64))
     rot_cam = cam.with_rotation(R.numpy() @ cam.rotation)
     x_r = SphericalFrontend(rot_cam, grid, cache=cache).lift(img.astype(np.float64))
-    pos = grid.pos.numpy()
-    idx, w = barycentric_entries(pos, pos @ R.numpy())  # value at p from R^T p
-
-    def turn(y):
-        return (y[torch.from_numpy(idx)] * torch.from_numpy(w)[..., None]).sum(1)
-
     area = grid.area.double()
     with torch.no_grad():
-        e0 = _rel(x_r, turn(x), area)
-        e1 = _rel(net(x_r), turn(net(x)), area)
+        y, y_r = net(x), net(x_r)
+        # input and output turned together: one triangulation for both
+        both = rotate_sample(Data(x=torch.cat([x, y], -1), pos=grid.pos), R).x
+    e0 = _rel(x_r, both[:, :x.shape[1]], area)
+    e1 = _rel(y_r, both[:, x.shape[1]:], area)
     return {"interpolation": e0, "network": e1, "ratio": e1 / e0}
 
 
