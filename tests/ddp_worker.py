@@ -6,7 +6,7 @@ import torch
 from torch.utils.data import TensorDataset
 
 from usf_graph.models import SphericalClassifier
-from usf_graph.train.engine import fit
+from usf_graph.train.engine import fit, teardown_distributed
 
 
 class NoNorm(SphericalClassifier):
@@ -33,3 +33,4 @@ if __name__ == "__main__":
 
     if not dist.is_initialized() or dist.get_rank() == 0:
         torch.save(model.state_dict(), sys.argv[1])
+    teardown_distributed()

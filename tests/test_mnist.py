@@ -137,10 +137,13 @@ def _free_port():
 def test_two_process_ddp_step_equals_one_process(tmp_path):
     torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
     worker = os.path.join(os.path.dirname(__file__), "ddp_worker.py")
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "USF_GRAPH_CACHE": "off"}
+    # loopback only: the sandbox's other interfaces may not route between processes
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "USF_GRAPH_CACHE": "off",
+           "GLOO_SOCKET_IFNAME": "lo"}
     subprocess.run([sys.executable, worker, str(tmp_path / "one.pt")], check=True, env=env,
                    timeout=300)
-    subprocess.run([torchrun, "--nproc_per_node=2", f"--master_port={_free_port()}", worker,
+    subprocess.run([torchrun, "--nproc_per_node=2", "--master_addr=127.0.0.1",
+                    f"--master_port={_free_port()}", worker,
                     str(tmp_path / "two.pt")], check=True, env=env, timeout=300)
     one = torch.load(tmp_path / "one.pt", weights_only=True)
     two = torch.load(tmp_path / "two.pt", weights_only=True)

@@ -103,6 +103,7 @@ def cmd_lift(args) -> int:
 
 
 def cmd_train(args) -> int:
+    from .train import teardown_distributed
     from .train.mnist import format_table, run
 
     if args.task != "mnist":
@@ -110,6 +111,9 @@ def cmd_train(args) -> int:
     res = run(root=args.root, out=args.out, level=args.level, epochs=args.epochs,
               batch_size=args.batch_size, seed=args.seed, source=args.source,
               planar=not args.no_planar)
+    teardown_distributed()
+    if not res:  # a torchrun rank other than 0
+        return 0
     print("\nSpherical MNIST, trained without rotations; R = Haar-random SO(3) per test sample")
     print(f"({res['samples']['train']} train / {res['samples']['test']} test digits, "
           f"{res['grid']}, {res['seconds']} s)\n")

@@ -42,6 +42,15 @@ def setup_distributed() -> tuple[int, int]:
     return dist.get_rank(), dist.get_world_size()
 
 
+def teardown_distributed() -> None:
+    """Leave the process group together: every rank waits for the others, then the group
+    is destroyed. A rank that simply exits while another still works kills gloo's threads
+    (``terminate called without an active exception``)."""
+    if is_distributed():
+        dist.barrier()
+        dist.destroy_process_group()
+
+
 def save_checkpoint(path, model: nn.Module, config: dict, metrics: dict,
                     optimizer=None, scheduler=None, epoch: int = 0) -> None:
     """Atomically write state_dict, config, metrics (and optimizer state for resuming)."""
@@ -156,6 +165,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
                                 opt, sched, epoch + 1)
             if on_epoch is not None:
                 on_epoch(epoch, row)
+    if world > 1:
+        dist.barrier()  # rank 0 may still be evaluating or writing; leave fit together
     return {"history": history}
 
 

@@ -13,7 +13,7 @@ from ..cameras import Equirectangular
 from ..datasets import SphericalMNIST
 from ..frontend import SphericalFrontend
 from ..models import PlanarCNN, SphericalClassifier
-from .engine import evaluate, fit, save_checkpoint, seed_everything
+from .engine import evaluate, fit, save_checkpoint, seed_everything, setup_distributed
 
 
 def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
@@ -26,7 +26,11 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 8,
         batch_size: int = 32, seed: int = 0, source: str = "auto", planar: bool = True,
         progress: bool = True) -> dict:
     """Train the spherical classifier (and the planar baseline) on unrotated digits and
-    report NR/NR and NR/R accuracy. Writes results.json, checkpoints and a figure."""
+    report NR/NR and NR/R accuracy. Writes results.json, checkpoints and a figure.
+
+    Under ``torchrun`` every process trains its share; rank 0 alone evaluates and writes
+    (the other ranks return ``{}``)."""
+    rank, _ = setup_distributed()
     seed_everything(seed)
     out = Path(out)
     t0 = time.time()
@@ -41,9 +45,10 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 8,
     model = SphericalClassifier(level=level)
     fit(model, sets["train"], sets["NR"], epochs=epochs, batch_size=batch_size, seed=seed,
         log_dir=out / "spherical", config=model.config, progress=progress, name="spherical")
-    results["spherical"] = {k: evaluate(model, sets[k], desc=f"spherical {k}",
-                                        progress=progress)["acc"] for k in ("NR", "R")}
-    save_checkpoint(out / "spherical.pt", model, model.config, results["spherical"])
+    if rank == 0:
+        results["spherical"] = {k: evaluate(model, sets[k], desc=f"spherical {k}",
+                                            progress=progress)["acc"] for k in ("NR", "R")}
+        save_checkpoint(out / "spherical.pt", model, model.config, results["spherical"])
     if planar:
         fe = SphericalFrontend(Equirectangular(64, 32), train.grid)
         pl = {k: TensorDataset(equirect_images(d.tensors[0], fe), d.tensors[1])
@@ -51,9 +56,12 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 8,
         base = PlanarCNN()
         fit(base, pl["train"], pl["NR"], epochs=epochs, batch_size=batch_size, seed=seed,
             log_dir=out / "planar", config=base.config, progress=progress, name="planar")
-        results["planar"] = {k: evaluate(base, pl[k], desc=f"planar {k}",
-                                         progress=progress)["acc"] for k in ("NR", "R")}
-        save_checkpoint(out / "planar.pt", base, base.config, results["planar"])
+        if rank == 0:
+            results["planar"] = {k: evaluate(base, pl[k], desc=f"planar {k}",
+                                             progress=progress)["acc"] for k in ("NR", "R")}
+            save_checkpoint(out / "planar.pt", base, base.config, results["planar"])
+    if rank != 0:
+        return {}
     results["seconds"] = round(time.time() - t0, 1)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(results, indent=1))
