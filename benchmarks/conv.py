@@ -69,9 +69,9 @@ def main():
         from torch_harmonics import DiscreteContinuousConvS2
 
         nlat, nlon = 143, 286
-        disco = DiscreteContinuousConvS2(C, C, (nlat, nlon), (nlat, nlon), kernel_shape=(4,),
-                                         basis_type="piecewise linear", grid_in="equiangular",
-                                         grid_out="equiangular")
+        disco = disco_conv(DiscreteContinuousConvS2, C, (nlat, nlon), 4, r)
+        print(f"DISCO: {nlat}x{nlon} equiangular, {disco.kernel_size} isotropic piecewise-linear "
+              f"basis functions, theta_cutoff = {disco.theta_cutoff:.4f} (ours {r:.4f})")
         xi = torch.randn(B, C, nlat, nlon, requires_grad=True)
         rows["DISCO (torch-harmonics, 143x286)"] = (timeit(lambda: disco(xi), a.reps),
                                                     timeit(fwd_bwd(disco, xi), a.reps))
@@ -89,13 +89,31 @@ def main():
     print("|---|---|---|---|---|")
     for k, (t1, t2) in rows.items():
         print(f"| {k} | {1e3 * t1:.0f} | {1e3 * t2:.0f} | {t1 / base[0]:.2f} | {t2 / base[1]:.2f} |")
+    disco = next((v for k, v in rows.items() if k.startswith("DISCO")), None)
+    if disco is not None:
+        ours = rows["SphericalConv (fast)"]
+        print(f"\nDISCO / SphericalConv: fwd {disco[0] / ours[0]:.2f}x, "
+              f"fwd+bwd {disco[1] / ours[1]:.2f}x")
+
+
+def disco_conv(cls, C, shape, K, radius):
+    """torch-harmonics DISCO with the same kernel as ours: K isotropic basis functions (its
+    kernel_shape=(n,) gives about n/2 of them) and the same support radius."""
+    for n in range(K, 4 * K):
+        d = cls(C, C, shape, shape, kernel_shape=(n,), basis_type="piecewise linear",
+                grid_in="equiangular", grid_out="equiangular", theta_cutoff=radius)
+        if d.kernel_size == K:
+            return d
+    raise RuntimeError(f"no kernel_shape gives {K} isotropic basis functions")
 
 
 def scaling(a, B: int = 2, C: int = 32):
-    """Time per point of the fast SphericalConv from 2.5k to 655k points."""
+    """Time per point of the fast SphericalConv from 2.5k to 655k points, next to Conv2d
+    3x3 on an image with the same pixel count (the same memory hierarchy effects)."""
     print(f"scaling: B={B}, {C}->{C} channels, K=4, radius 1.6 spacings, {a.threads} threads")
-    print("| level | points | fwd (ms) | fwd+bwd (ms) | fwd (ns/point/ch) | fwd+bwd (ns/point/ch) |")
-    print("|---|---|---|---|---|---|")
+    print("| level | points | fwd (ms) | fwd+bwd (ms) | fwd+bwd (ns/point/ch) "
+          "| Conv2d fwd+bwd (ns/pixel/ch) | fwd+bwd / Conv2d |")
+    print("|---|---|---|---|---|---|---|")
     for level in range(4, 9):
         g = grids.icosahedral(level)
         r = 1.6 * g.spacing
@@ -107,9 +125,12 @@ def scaling(a, B: int = 2, C: int = 32):
         f = lambda x, c=conv, ei=ei, ew=ew, w=area: c(x, ei, ew, node_weight=w)  # noqa: E731
         reps = a.reps if level < 8 else 1
         t1, t2 = timeit(lambda f=f, x=x: f(x), reps), timeit(fwd_bwd(f, x), reps)
+        side = int(math.sqrt(len(g)))
+        img = torch.randn(B, C, side, len(g) // side + 1, requires_grad=True)
+        tc = timeit(fwd_bwd(torch.nn.Conv2d(C, C, 3, padding=1), img), reps)
         n = B * len(g) * C
-        print(f"| {level} | {len(g)} | {1e3 * t1:.1f} | {1e3 * t2:.1f} | {1e9 * t1 / n:.1f} "
-              f"| {1e9 * t2 / n:.1f} |", flush=True)
+        print(f"| {level} | {len(g)} | {1e3 * t1:.1f} | {1e3 * t2:.1f} | {1e9 * t2 / n:.1f} "
+              f"| {1e9 * tc / n:.1f} | {t2 / tc:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -101,6 +101,11 @@ def test_gradcheck_including_self_loop():
     x = torch.randn(2, 40, 2, requires_grad=True)
     conv = SphericalConv(2, 3, 0.8, num_basis=3, basis="gaussian")
     assert torch.autograd.gradcheck(lambda x: conv(x, ei, ew, node_weight=area), (x,))
+    # the fast path's hand-written backward, for the input and the weight together
+    W = conv.weight.detach().clone().requires_grad_(True)
+    for xs in (x, x[0]):  # [B, N, C] and [N, C]
+        assert torch.autograd.gradcheck(lambda x, W: torch.func.functional_call(
+            conv, {"weight": W}, (x, ei, ew), {"node_weight": area}), (xs, W))
     w = ew.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda x, w: conv(x, ei, w, node_weight=area, fast=False), (x, w))
