@@ -16,6 +16,7 @@ class NoNorm(SphericalClassifier):
         super().__init__(level=2, channels=(4, 8), basis="gaussian", num_basis=3,
                          radius_spacings=3.0, readout="mean")
         self.norms = torch.nn.ModuleList(_Id() for _ in self.norms)
+        self.jet_norm = _Id()
 
 
 class _Id(torch.nn.Module):
@@ -24,6 +25,7 @@ class _Id(torch.nn.Module):
 
 
 if __name__ == "__main__":
+    torch.set_default_dtype(torch.float64)  # 1 vs 2 processes differ only in summation order
     torch.manual_seed(0)
     x = torch.randn(8, 162, 1)
     y = torch.arange(8) % 10

@@ -8,6 +8,7 @@ from .graph import (
            knn_graph,
            radius_for_neighbors,
 )
+from .jet import LocalJet, jet_operator
 from .kernel import DistanceKernel
 from .norm import MaskedBatchNorm
 from .pool import (
@@ -19,6 +20,6 @@ from .pool import (
            global_mean_pool_area,
 )
 
-__all__ = ["DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool",
+__all__ = ["LocalJet", "jet_operator", "DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool",
            "GridUnpool", "FPSPool", "farthest_point_sampling", "euclidean_radius", "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
            "geodesic_radius_graph", "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]
