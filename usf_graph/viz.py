@@ -85,13 +85,17 @@ def plot_mnist_results(results: dict, model, test_r, path, n: int = 6):
     ax.legend(fontsize=8)
     ax.set_title("trained unrotated", fontsize=9)
     model.eval()
+    # one digit of each of the first n classes present (the test set is sorted by label)
+    labels = test_r.y.tolist()
+    pick = [labels.index(c) for c in sorted(set(labels))][:n]
+    pick += [i for i in range(len(labels)) if i not in pick][:n - len(pick)]
     with torch.no_grad():
-        pred = model(test_r.x[:n]).argmax(-1)
-    for i in range(n):
+        pred = model(test_r.x[pick]).argmax(-1)
+    for i, k in enumerate(pick):
         a = fig.add_subplot(2, n // 2 + 1, (i // (n // 2)) * (n // 2 + 1) + i % (n // 2) + 2,
                             projection="mollweide")
-        mollweide(a, test_r.grid.pos, test_r.x[i], s=2, cmap="gray",
-                  title=f"label {int(test_r.y[i])}, pred {int(pred[i])}")
+        mollweide(a, test_r.grid.pos, test_r.x[k], s=2, cmap="gray",
+                  title=f"label {int(test_r.y[k])}, pred {int(pred[i])}")
         a.set_yticklabels([])
     return _finish(fig, path)
 
