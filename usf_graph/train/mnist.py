@@ -42,24 +42,23 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 8,
     sets = {k: TensorDataset(d.x, d.y) for k, d in
             (("train", train), ("NR", test_nr), ("R", test_r))}
     results = {"samples": {"train": len(train), "test": len(test_nr)}, "grid": grid}
+
+    def train_and_score(name, net, data):
+        """Fit on unrotated digits; rank 0 scores NR and R and writes ``<name>.pt``."""
+        fit(net, data["train"], data["NR"], epochs=epochs, batch_size=batch_size, seed=seed,
+            log_dir=out / name, config=net.config, progress=progress, name=name)
+        if rank == 0:
+            results[name] = {k: evaluate(net, data[k], desc=f"{name} {k}",
+                                         progress=progress)["acc"] for k in ("NR", "R")}
+            save_checkpoint(out / f"{name}.pt", net, net.config, results[name])
+
     model = SphericalClassifier(level=level)
-    fit(model, sets["train"], sets["NR"], epochs=epochs, batch_size=batch_size, seed=seed,
-        log_dir=out / "spherical", config=model.config, progress=progress, name="spherical")
-    if rank == 0:
-        results["spherical"] = {k: evaluate(model, sets[k], desc=f"spherical {k}",
-                                            progress=progress)["acc"] for k in ("NR", "R")}
-        save_checkpoint(out / "spherical.pt", model, model.config, results["spherical"])
+    train_and_score("spherical", model, sets)
     if planar:
         fe = SphericalFrontend(Equirectangular(64, 32), train.grid)
         pl = {k: TensorDataset(equirect_images(d.tensors[0], fe), d.tensors[1])
               for k, d in sets.items()}
-        base = PlanarCNN()
-        fit(base, pl["train"], pl["NR"], epochs=epochs, batch_size=batch_size, seed=seed,
-            log_dir=out / "planar", config=base.config, progress=progress, name="planar")
-        if rank == 0:
-            results["planar"] = {k: evaluate(base, pl[k], desc=f"planar {k}",
-                                             progress=progress)["acc"] for k in ("NR", "R")}
-            save_checkpoint(out / "planar.pt", base, base.config, results["planar"])
+        train_and_score("planar", PlanarCNN(), pl)
     if rank != 0:
         return {}
     results["seconds"] = round(time.time() - t0, 1)
