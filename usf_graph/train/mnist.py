@@ -22,9 +22,9 @@ def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
     return img.permute(0, 3, 1, 2).contiguous()
 
 
-def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 8,
+def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 20,
         batch_size: int = 32, seed: int = 0, source: str = "auto", planar: bool = True,
-        progress: bool = True) -> dict:
+        progress: bool = True, input_level: int | None = None) -> dict:
     """Train the spherical classifier (and the planar baseline) on unrotated digits and
     report NR/NR and NR/R accuracy. Writes results.json, checkpoints and a figure.
 
@@ -34,7 +34,8 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 8,
     seed_everything(seed)
     out = Path(out)
     t0 = time.time()
-    grid = f"icosahedral:{level}"
+    model = SphericalClassifier(level=level, input_level=input_level)
+    grid = f"icosahedral:{model.input_level}"
     kw = dict(grid=grid, source=source, progress=progress)
     train = SphericalMNIST(root, "train", rotate="none", **kw)
     test_nr = SphericalMNIST(root, "test", rotate="none", **kw)
@@ -52,7 +53,6 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 8,
                                          progress=progress)["acc"] for k in ("NR", "R")}
             save_checkpoint(out / f"{name}.pt", net, net.config, results[name])
 
-    model = SphericalClassifier(level=level)
     train_and_score("spherical", model, sets)
     if planar:
         fe = SphericalFrontend(Equirectangular(64, 32), train.grid)
