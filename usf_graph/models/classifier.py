@@ -20,9 +20,10 @@ class SphericalClassifier(nn.Module):
     The input first passes through a :class:`LocalJet` (``jet_spacings``: its fit radius in
     grid spacings; ``None`` to skip it), which adds per channel the gradient magnitude,
     Laplacian and Hessian determinant: rotation invariants that let distance-only kernels
-    tell edges, stroke centres and bends apart. Then, from level ``level`` to
-    ``level - len(channels) + 1``, each stage is conv -> masked BatchNorm -> ReLU, followed
-    by pooling onto the next level: ``pool="gaussian"`` (:class:`GaussianPool`, blur of
+    tell edges, stroke centres and bends apart. Then each stage is conv -> masked
+    BatchNorm -> ReLU, starting on level ``level`` and followed by pooling onto the next
+    level down to ``min_level`` (default ``level - len(channels) + 1``; later stages stay
+    there). Pooling: ``pool="gaussian"`` (:class:`GaussianPool`, blur of
     ``pool_sigma`` coarse spacings, then subsample), or ``"mean"``/``"max"`` over the
     coarsening clusters (:class:`GridPool`). The head sees rotation-invariant integrals of
     the last features: the area-weighted mean (``readout="mean"``), plus either the
@@ -50,7 +51,8 @@ class SphericalClassifier(nn.Module):
                  channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, basis: str = "gaussian", pool: str = "gaussian",
                  pool_sigma: float = 0.5, readout: str = "meanpow",
-                 jet_spacings: float | None = 3.5, input_level: int | None = None):
+                 jet_spacings: float | None = 3.5, input_level: int | None = None,
+                 min_level: int | None = None):
         super().__init__()
         input_level = level if input_level is None else input_level
         if input_level < level or (input_level > level and jet_spacings is None):
@@ -61,8 +63,9 @@ class SphericalClassifier(nn.Module):
         if pool not in ("gaussian", "mean", "max"):
             raise ValueError(f"pool must be 'gaussian', 'mean' or 'max', got {pool!r}")
         self.readout = readout
-        if level - len(channels) + 1 < 0:
-            raise ValueError(f"{len(channels)} stages need level >= {len(channels) - 1}")
+        min_level = level - len(channels) + 1 if min_level is None else min_level
+        if not 0 <= min_level <= level:
+            raise ValueError(f"min_level must be in [0, level={level}], got {min_level}")
         self.level, self.config = level, dict(in_channels=in_channels, num_classes=num_classes,
                                               level=level, channels=list(channels),
                                               num_basis=num_basis,
@@ -70,7 +73,7 @@ class SphericalClassifier(nn.Module):
                                               pool=pool, pool_sigma=pool_sigma,
                                               readout=readout,
                                               jet_spacings=jet_spacings,
-                                              input_level=input_level)
+                                              input_level=input_level, min_level=min_level)
         self.input_level = input_level
         self.convs, self.norms, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
         g, c_in = G.icosahedral(input_level), in_channels
@@ -94,7 +97,7 @@ class SphericalClassifier(nn.Module):
             self.register_buffer(f"area{s}", g.area.float(), persistent=False)
             self.convs.append(SphericalConv(c_in, c, r, num_basis=num_basis, basis=basis))
             self.norms.append(MaskedBatchNorm(c))
-            if s < len(channels) - 1:
+            if s < len(channels) - 1 and g.params["level"] > min_level:
                 coarse, cl = g.coarsen()
                 self.pools.append(
                     GaussianPool(g.pos, coarse.pos, pool_sigma * coarse.spacing, area=g.area)
@@ -113,7 +116,7 @@ class SphericalClassifier(nn.Module):
             ei, ew, a = getattr(self, f"ei{s}"), getattr(self, f"ew{s}"), getattr(self, f"area{s}")
             x = torch.relu(self.norms[s](conv(x, ei, ew.to(x.dtype), node_weight=a.to(x.dtype)),
                                          node_weight=a.to(x.dtype)))
-            if s < len(self.pools):
+            if s < len(self.pools):  # the pools come first; later stages keep the level
                 x, _ = self.pools[s](x)
         a = getattr(self, f"area{len(self.convs) - 1}").to(x.dtype)
         mean = global_mean_pool_area(x, a)

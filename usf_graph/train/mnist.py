@@ -22,11 +22,13 @@ def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
     return img.permute(0, 3, 1, 2).contiguous()
 
 
-def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 20,
+def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 24,
         batch_size: int = 32, seed: int = 0, source: str = "auto", planar: bool = True,
-        progress: bool = True, input_level: int | None = None) -> dict:
+        progress: bool = True, input_level: int | None = 5, min_level: int | None = 2) -> dict:
     """Train the spherical classifier (and the planar baseline) on unrotated digits and
-    report NR/NR and NR/R accuracy. Writes results.json, checkpoints and a figure.
+    report NR/NR and NR/R accuracy. The digits are lifted to ``input_level`` (the jet is
+    taken there), the convolutions start on
+    ``level`` and pool down to ``min_level``. Writes results.json, checkpoints and a figure.
 
     Under ``torchrun`` every process trains its share; rank 0 alone evaluates and writes
     (the other ranks return ``{}``)."""
@@ -34,7 +36,7 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 20,
     seed_everything(seed)
     out = Path(out)
     t0 = time.time()
-    model = SphericalClassifier(level=level, input_level=input_level)
+    model = SphericalClassifier(level=level, input_level=input_level, min_level=min_level)
     grid = f"icosahedral:{model.input_level}"
     kw = dict(grid=grid, source=source, progress=progress)
     train = SphericalMNIST(root, "train", rotate="none", **kw)
