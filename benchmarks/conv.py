@@ -45,6 +45,9 @@ def main():
     p.add_argument("--skip-slow", action="store_true", help="skip naive and mlp variants")
     p.add_argument("--scaling", action="store_true",
                    help="only the scaling run: icosahedral levels 4..8 (2.5k..655k points)")
+    p.add_argument("--locality", action="store_true",
+                   help="scaling run with the points sorted along HEALPix's nested (Z-order) "
+                        "curve, to measure what memory locality is worth")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     if a.scaling:
@@ -110,16 +113,22 @@ def disco_conv(cls, C, shape, K, radius):
 def scaling(a, B: int = 2, C: int = 32):
     """Time per point of the fast SphericalConv from 2.5k to 655k points, next to Conv2d
     3x3 on an image with the same pixel count (the same memory hierarchy effects)."""
-    print(f"scaling: B={B}, {C}->{C} channels, K=4, radius 1.6 spacings, {a.threads} threads")
+    print(f"scaling: B={B}, {C}->{C} channels, K=4, radius 1.6 spacings, {a.threads} threads"
+          + (", points in HEALPix nested order" if a.locality else ""))
     print("| level | points | fwd (ms) | fwd+bwd (ms) | fwd+bwd (ns/point/ch) "
           "| Conv2d fwd+bwd (ns/pixel/ch) | fwd+bwd / Conv2d |")
     print("|---|---|---|---|---|---|---|")
     for level in range(4, 9):
         g = grids.icosahedral(level)
+        pos, area = g.pos, g.area.float()
+        if a.locality:  # same points, numbered so that neighbours sit close in memory
+            import healpy
+
+            order = torch.as_tensor(healpy.vec2pix(2 ** 13, *pos.numpy().T, nest=True)).argsort()
+            pos, area = pos[order], area[order]
         r = 1.6 * g.spacing
-        ei, ew = geodesic_radius_graph(g.pos, r)
+        ei, ew = geodesic_radius_graph(pos, r)
         conv = SphericalConv(C, C, r, num_basis=4)
-        area = g.area.float()
         x = torch.randn(B, len(g), C, requires_grad=True)
         ew = ew.float()
         f = lambda x, c=conv, ei=ei, ew=ew, w=area: c(x, ei, ew, node_weight=w)  # noqa: E731
