@@ -149,6 +149,17 @@ def test_classifier_is_exactly_invariant_under_the_icosahedral_group(readout, po
     assert (y - y2).abs().max() > 1e-7  # another signal: the logits are not constant
 
 
+def test_classifier_options_and_bad_arguments():
+    m = SphericalClassifier(level=3, channels=(4, 6, 8), input_level=4, min_level=2)
+    assert len(m.pools) == 1 and m.input_pool is not None  # 4 -> 3 (input), 3 -> 2, stay
+    assert m(torch.randn(2, len(grids.icosahedral(4).pos), 1)).shape == (2, 10)
+    for bad, match in ((dict(readout="max"), "readout"), (dict(pool="avg"), "pool"),
+                       (dict(min_level=4), "min_level"), (dict(input_level=2), "input_level"),
+                       (dict(input_level=4, jet_spacings=None), "input_level")):
+        with pytest.raises(ValueError, match=match):
+            SphericalClassifier(level=3, channels=(4, 6), **bad)
+
+
 def _free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
