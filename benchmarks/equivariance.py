@@ -10,7 +10,6 @@ equirectangular image. ratio = network error / interpolation error.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from usf_graph import grids
@@ -19,16 +18,8 @@ from usf_graph.nn.checks import (
     equirect_equivariance_error,
     grid_equivariance_error,
     random_spherical_net,
+    smooth_signal,
 )
-
-A = np.array([0.3, -0.8, 0.5])
-
-
-def signal(p):
-    return np.stack([np.exp(p @ A), np.cos(3 * p[..., 0]) * p[..., 1], p[..., 2] ** 2], -1)
-
-
-spherical_net = random_spherical_net
 
 
 def main():
@@ -39,14 +30,14 @@ def main():
                  "fibonacci:2562", "fibonacci:10242"):
         g = grids.from_spec(spec)
         for rs, K, basis in ((4.0, 3, "gaussian"), (2.0, 4, "hat")):
-            e = grid_equivariance_error(spherical_net(g, rs, K, basis), g, signal, R)
+            e = grid_equivariance_error(random_spherical_net(g, rs, K, basis), g, smooth_signal, R)
             print(f"| {spec} | {len(g)} | {basis} K={K}, r={rs:g} spacings | "
                   f"{e['interpolation']:.2e} | {e['network']:.2e} | {e['ratio']:.1f} |", flush=True)
     for W in (128, 256):
         torch.manual_seed(0)
         conv = torch.nn.Sequential(torch.nn.Conv2d(3, 16, 3, padding=1), torch.nn.Tanh(),
                                    torch.nn.Conv2d(16, 8, 3, padding=1)).double()
-        e = equirect_equivariance_error(conv, signal, R, W)
+        e = equirect_equivariance_error(conv, smooth_signal, R, W)
         print(f"| equirectangular {W}x{W // 2} | {W * W // 2} | Conv2d 3x3 | "
               f"{e['interpolation']:.2e} | {e['network']:.2e} | {e['ratio']:.1f} |", flush=True)
 

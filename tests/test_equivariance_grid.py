@@ -1,7 +1,6 @@
 """Equivariance on real grids: the network adds little beyond interpolation error, while
 Conv2d on the equirectangular image does not come close."""
 
-import numpy as np
 import pytest
 import torch
 
@@ -11,22 +10,14 @@ from usf_graph.nn.checks import (
     equirect_equivariance_error,
     grid_equivariance_error,
     random_spherical_net,
+    smooth_signal,
 )
-
-A = np.array([0.3, -0.8, 0.5])
-
-
-def f(p):
-    return np.stack([np.exp(p @ A), np.cos(3 * p[..., 0]) * p[..., 1], p[..., 2] ** 2], -1)
-
-
-spherical_net = random_spherical_net
 
 
 @pytest.mark.parametrize("spec", ["icosahedral:4", "healpix:16", "fibonacci:2562"])
 def test_network_adds_little_beyond_interpolation(spec):
     g = grids.from_spec(spec)
-    e = grid_equivariance_error(spherical_net(g), g, f, random_rotation(seed=7))
+    e = grid_equivariance_error(random_spherical_net(g), g, smooth_signal, random_rotation(seed=7))
     assert e["interpolation"] < 3e-3
     assert e["ratio"] < 2.5, e
 
@@ -35,7 +26,7 @@ def test_kernel_finer_than_the_grid_breaks_equivariance():
     # hat functions 0.67 grid spacings apart resolve single neighbours, so the kernel the
     # grid realizes differs from node to node (see the README on choosing radius and K)
     g = grids.icosahedral(4)
-    e = grid_equivariance_error(spherical_net(g, 2.0, 4, "hat"), g, f, random_rotation(seed=7))
+    e = grid_equivariance_error(random_spherical_net(g, 2.0, 4, "hat"), g, smooth_signal, random_rotation(seed=7))
     assert e["ratio"] > 20, e
 
 
@@ -43,6 +34,6 @@ def test_conv2d_on_equirectangular_is_far_from_equivariant():
     torch.manual_seed(0)
     conv = torch.nn.Sequential(torch.nn.Conv2d(3, 16, 3, padding=1), torch.nn.Tanh(),
                                torch.nn.Conv2d(16, 8, 3, padding=1)).double()
-    e = equirect_equivariance_error(conv, f, random_rotation(seed=7), width=128)
+    e = equirect_equivariance_error(conv, smooth_signal, random_rotation(seed=7), width=128)
     assert e["interpolation"] < 3e-3
     assert e["ratio"] > 50 and e["network"] > 0.05, e

@@ -9,6 +9,13 @@ import torch
 
 from ..cameras import Equirectangular
 
+_A = np.array([0.3, -0.8, 0.5])
+
+
+def smooth_signal(p: np.ndarray) -> np.ndarray:
+    """A smooth analytic 3-channel test signal of unit vectors ``p [..., 3]``."""
+    return np.stack([np.exp(p @ _A), np.cos(3 * p[..., 0]) * p[..., 1], p[..., 2] ** 2], -1)
+
 
 def _rel(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> float:
     """Weighted relative L2 error ||a - b|| / ||b||; ``w`` per point (areas)."""
