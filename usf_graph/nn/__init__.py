@@ -4,6 +4,7 @@ from .conv import DistanceConv, PointConv, SphericalConv
 from .graph import (
            euclidean_radius,
            euclidean_radius_graph,
+           geodesic_radius,
            geodesic_radius_graph,
            knn_graph,
            radius_for_neighbors,
@@ -23,4 +24,4 @@ from .pool import (
 
 __all__ = ["LocalJet", "jet_operator", "DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool", "GaussianPool",
            "GridUnpool", "FPSPool", "farthest_point_sampling", "euclidean_radius", "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
-           "geodesic_radius_graph", "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]
+           "geodesic_radius", "geodesic_radius_graph", "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]

@@ -53,12 +53,25 @@ def geodesic_radius_graph(pos: torch.Tensor, radius: float, batch=None, loop: bo
     row 1: centre i, sorted by i) and ``edge_weight [E]``: the geodesic distance
     atan2(|p x q|, p . q) in ``pos``'s dtype. Self-loops (d = 0) are included by default.
     """
+    ei, w = geodesic_radius(pos, None, radius, batch, loop=loop)
+    w = torch.where(ei[0] == ei[1], torch.zeros_like(w), w)  # exact 0 on self-loops
+    return ei, w
+
+
+def geodesic_radius(pos: torch.Tensor, centres: torch.Tensor | None, radius: float, batch=None,
+                    loop: bool = True):
+    """Edges from unit vectors ``pos`` (row 0) to ``centres`` (row 1; ``None``: ``pos``
+    itself) within geodesic ``radius``, searched on the chord 2 sin(r/2), never truncated;
+    ``edge_weight`` = atan2 geodesic distance."""
     if not 0 < radius <= math.pi:
         raise ValueError(f"radius must be in (0, pi] radians, got {radius}")
     chord = 2 * math.sin(radius / 2) * (1 + 1e-12)
-    ei = _radius_edges(pos.detach(), chord, batch, loop)
-    w = geodesic_distance(pos[ei[0]], pos[ei[1]])
-    w = torch.where(ei[0] == ei[1], torch.zeros_like(w), w)  # exact 0 on self-loops
+    if centres is None:
+        ei = _radius_edges(pos.detach(), chord, batch, loop)
+        w = geodesic_distance(pos[ei[0]], pos[ei[1]])
+    else:
+        ei = _radius_edges(pos.detach(), chord, batch, True, centres.detach())
+        w = geodesic_distance(pos[ei[0]], centres[ei[1]])
     keep = w <= radius
     return ei[:, keep], w[keep]
 

@@ -95,15 +95,12 @@ class GaussianPool(nn.Module):
     def __init__(self, fine_pos: torch.Tensor, coarse_pos: torch.Tensor, sigma: float,
                  area: torch.Tensor | None = None):
         super().__init__()
-        from ..geometry import geodesic_distance
-        from .graph import euclidean_radius
+        from .graph import geodesic_radius
 
         if not sigma > 0:
             raise ValueError(f"sigma must be > 0 radians, got {sigma}")
         fine, coarse = torch.as_tensor(fine_pos).double(), torch.as_tensor(coarse_pos).double()
-        cut = min(3 * sigma, math.pi)
-        (j, c), _ = euclidean_radius(fine, coarse, 2 * math.sin(cut / 2) * (1 + 1e-12))
-        d = geodesic_distance(fine[j], coarse[c])
+        (j, c), d = geodesic_radius(fine, coarse, min(3 * sigma, math.pi))
         w = torch.exp(-0.5 * (d / sigma) ** 2)
         if area is not None:
             w = w * torch.as_tensor(area, dtype=w.dtype)[j]
