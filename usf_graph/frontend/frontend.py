@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import math
 import sys
-import warnings
 
 import cv2
 import numpy as np
@@ -16,6 +15,7 @@ from ..cameras import Camera
 from ..data import SphericalImage
 from ..grids import Grid
 from ..nn.graph import geodesic_radius_graph
+from ..nn.sparse import quiet_sparse
 from .cache import GeometryCache, default_cache
 from .interpolation import bilinear_entries, build_table, nearest_entries
 
@@ -51,8 +51,7 @@ class _Table:
             self.idx = torch.as_tensor(col).reshape(-1, p)
             self.w = torch.as_tensor(val).reshape(-1, p)
         else:
-            with warnings.catch_warnings():  # torch flags sparse CSR as beta
-                warnings.simplefilter("ignore", UserWarning)
+            with quiet_sparse():
                 self.csr = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(col),
                                                    torch.as_tensor(val), (self.n_rows, n_cols))
 

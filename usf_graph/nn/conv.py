@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
 from torch_geometric.nn import MessagePassing
 
 from .kernel import DistanceKernel, envelope
+from .sparse import quiet_sparse
 
 NORMALIZE = ("area", "mean", None)
 
@@ -161,8 +160,7 @@ class DistanceConv(MessagePassing):
             coef = self._edge_coefficients(edge_index, edge_weight, num_nodes, node_weight,
                                            mask).to(dtype)
         j, i = edge_index
-        with warnings.catch_warnings():  # torch flags sparse CSR as beta on every use
-            warnings.simplefilter("ignore", UserWarning)
+        with quiet_sparse():
             A = tuple(self._csr(i, j, c, num_nodes) for c in coef.unbind(1))
             At = tuple(self._csr(j, i, c, num_nodes) for c in coef.unbind(1))
         self._plan = (key, A, At)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from torch import nn
+
+from .sparse import quiet_sparse
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
 _TERMS = 6
@@ -47,8 +47,7 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     coef = torch.linalg.solve(normal[i], w[:, None] * M)  # [E, 6] rows of (A^T W A)^-1 A^T W
     rows = torch.cat([i * 5 + a for a in range(5)])
     vals = torch.cat([coef[:, a + 1] for a in range(5)])
-    with warnings.catch_warnings():  # torch flags sparse CSR as beta
-        warnings.simplefilter("ignore", UserWarning)
+    with quiet_sparse():
         return torch.sparse_coo_tensor(torch.stack([rows, j.repeat(5)]), vals,
                                        (5 * n, n)).coalesce().to_sparse_csr()
 
@@ -92,8 +91,7 @@ class LocalJet(nn.Module):
                              f"{self.num_nodes}")
         lead, (n, c) = x.shape[:-2], x.shape[-2:]
         flat = x.reshape(-1, n, c).permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)
+        with quiet_sparse():
             d = (self._operator(x) @ flat).view(n, 5, -1)
         h = self.spacing
         g1, g2, h11, h12, h22 = d.unbind(1)

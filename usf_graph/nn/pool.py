@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import math
-import warnings
 
 import torch
 from scipy.spatial import cKDTree
 from torch import nn
+
+from .sparse import quiet_sparse
 
 
 def _node_first(x: torch.Tensor):
@@ -105,8 +106,7 @@ class GaussianPool(nn.Module):
         if area is not None:
             w = w * torch.as_tensor(area, dtype=w.dtype)[j]
         self.sigma, self.num_coarse, self.num_fine = float(sigma), len(coarse), len(fine)
-        with warnings.catch_warnings():  # torch flags sparse CSR as beta on every use
-            warnings.simplefilter("ignore", UserWarning)
+        with quiet_sparse():
             P = torch.sparse_coo_tensor(torch.stack([c, j]), w, (len(coarse), len(fine))) \
                 .coalesce().to_sparse_csr()
         # dense buffers (not a sparse one) so .to(), DDP and state handling stay plain
@@ -118,8 +118,7 @@ class GaussianPool(nn.Module):
         xf, restore = _node_first(x)
         m = torch.ones(xf.shape[0], 1, dtype=xf.dtype, device=xf.device) if mask is None \
             else mask.to(xf.dtype)[:, None]
-        with warnings.catch_warnings():  # torch flags sparse CSR as beta on every use
-            warnings.simplefilter("ignore", UserWarning)
+        with quiet_sparse():
             P = torch.sparse_csr_tensor(self.crow, self.col, self.val.to(xf.dtype),
                                         (self.num_coarse, self.num_fine))
             den = (P @ m)[:, 0]
