@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ..geometry import geodesic_distance
+from ..geometry import geodesic_distance, geodesic_to_chord
 
 
 def radius_for_neighbors(num_points: int, k: float) -> float:
@@ -65,7 +65,7 @@ def geodesic_radius(pos: torch.Tensor, centres: torch.Tensor | None, radius: flo
     ``edge_weight`` = atan2 geodesic distance."""
     if not 0 < radius <= math.pi:
         raise ValueError(f"radius must be in (0, pi] radians, got {radius}")
-    chord = 2 * math.sin(radius / 2) * (1 + 1e-12)
+    chord = float(geodesic_to_chord(radius)) * (1 + 1e-12)
     if centres is None:
         ei = _radius_edges(pos.detach(), chord, batch, loop)
         w = geodesic_distance(pos[ei[0]], pos[ei[1]])
