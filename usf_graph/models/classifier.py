@@ -76,6 +76,9 @@ class SphericalClassifier(nn.Module):
                                               input_level=input_level, min_level=min_level)
         self.input_level = input_level
         self.convs, self.norms, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        def blur(fine, coarse):  # anti-aliased pooling between two levels
+            return GaussianPool(fine.pos, coarse.pos, pool_sigma * coarse.spacing, area=fine.area)
+
         g, c_in = G.icosahedral(input_level), in_channels
         self.jet, self.input_pool = None, None
         if jet_spacings is not None:
@@ -86,8 +89,7 @@ class SphericalClassifier(nn.Module):
             c_in = 4 * in_channels
             if input_level > level:  # invariants from the finer input, blurred down
                 coarse = G.icosahedral(level)
-                self.input_pool = GaussianPool(g.pos, coarse.pos, pool_sigma * coarse.spacing,
-                                               area=g.area)
+                self.input_pool = blur(g, coarse)
                 g = coarse
         for s, c in enumerate(channels):
             r = radius_spacings * g.spacing
@@ -99,9 +101,8 @@ class SphericalClassifier(nn.Module):
             self.norms.append(MaskedBatchNorm(c))
             if s < len(channels) - 1 and g.params["level"] > min_level:
                 coarse, cl = g.coarsen()
-                self.pools.append(
-                    GaussianPool(g.pos, coarse.pos, pool_sigma * coarse.spacing, area=g.area)
-                    if pool == "gaussian" else GridPool(cl, len(coarse), pool, area=g.area.float()))
+                self.pools.append(blur(g, coarse) if pool == "gaussian"
+                                  else GridPool(cl, len(coarse), pool, area=g.area.float()))
                 g = coarse
             c_in = c
         n_read = 1 if readout == "mean" else 2
@@ -114,8 +115,8 @@ class SphericalClassifier(nn.Module):
             x, _ = self.input_pool(x)
         for s, conv in enumerate(self.convs):
             ei, ew, a = getattr(self, f"ei{s}"), getattr(self, f"ew{s}"), getattr(self, f"area{s}")
-            x = torch.relu(self.norms[s](conv(x, ei, ew.to(x.dtype), node_weight=a.to(x.dtype)),
-                                         node_weight=a.to(x.dtype)))
+            a = a.to(x.dtype)
+            x = torch.relu(self.norms[s](conv(x, ei, ew.to(x.dtype), node_weight=a), node_weight=a))
             if s < len(self.pools):  # the pools come first; later stages keep the level
                 x, _ = self.pools[s](x)
         a = getattr(self, f"area{len(self.convs) - 1}").to(x.dtype)
