@@ -20,6 +20,7 @@ from usf_graph.nn import (
     geodesic_radius_graph,
     global_mean_pool_area,
 )
+from usf_graph.nn.checks import symmetry_permutation
 
 torch.set_default_dtype(torch.float64)
 
@@ -118,16 +119,11 @@ def _rz(k):
     return rotation_from_axis_angle(torch.tensor([0.0, 0, 1]), torch.tensor(k * math.pi / 2))
 
 
-def _perm(pos, R):
-    """sigma with R pos[i] = pos[sigma[i]] (R a symmetry of the grid)."""
-    d = (rotate(pos, R)[:, None] - pos[None]).norm(dim=-1)
-    s = d.argmin(1)
-    assert d.min(1).values.max() < 1e-9
-    return s
-
-
 def test_conv_pool_conv_stack_is_equivariant_on_healpix():
     g = grids.healpix(8)
+    with pytest.raises(ValueError, match="does not map the points"):  # 45 degrees: no symmetry
+        symmetry_permutation(g.pos, rotation_from_axis_angle(torch.tensor([0.0, 0, 1]),
+                                                             torch.tensor(math.pi / 4)))
     coarse, cl = g.coarsen()
     r1, r2 = 1.7 * g.spacing, 1.7 * coarse.spacing
     ei1, ew1 = geodesic_radius_graph(g.pos, r1)
@@ -144,7 +140,7 @@ def test_conv_pool_conv_stack_is_equivariant_on_healpix():
         x = torch.randn(2, len(g), 2, generator=torch.Generator().manual_seed(5))
         for k in (1, 2, 3):
             R = _rz(k)
-            s, sc = _perm(g.pos, R), _perm(coarse.pos, R)
+            s, sc = symmetry_permutation(g.pos, R), symmetry_permutation(coarse.pos, R)
             xr = torch.empty_like(x)
             xr[:, s] = x  # the rotated signal: (R f)(R p) = f(p)
             y, yr = net(x), net(xr)

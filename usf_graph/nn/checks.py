@@ -17,6 +17,20 @@ def smooth_signal(p: np.ndarray) -> np.ndarray:
     return np.stack([np.exp(p @ _A), np.cos(3 * p[..., 0]) * p[..., 1], p[..., 2] ** 2], -1)
 
 
+def symmetry_permutation(pos: torch.Tensor, R: torch.Tensor, tol: float = 1e-9) -> torch.Tensor:
+    """``sigma`` with ``R pos[i] = pos[sigma[i]]``, for a rotation ``R`` that maps the point
+    set onto itself (e.g. the icosahedral group on icosahedral grids). A rotated signal is
+    then ``x_rot[..., sigma, :] = x``. Raises ``ValueError`` if ``R`` is no such symmetry."""
+    from ..geometry import rotate
+
+    d = torch.cdist(rotate(pos, R), pos, compute_mode="donot_use_mm_for_euclid_dist")
+    best = d.min(1)
+    if best.values.max() >= tol:
+        raise ValueError(f"R does not map the points onto themselves (worst miss "
+                         f"{float(best.values.max()):.3g} >= {tol})")
+    return best.indices
+
+
 def _rel(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> float:
     """Weighted relative L2 error ||a - b|| / ||b||; ``w`` per point (areas)."""
     w = w.reshape(-1, *([1] * (a.dim() - 1)))
