@@ -17,6 +17,7 @@ class NoNorm(SphericalClassifier):
                          radius_spacings=3.0, readout="mean")
         self.norms = torch.nn.ModuleList(_Id() for _ in self.norms)
         self.jet_norm = _Id()
+        self.pair_norms = torch.nn.ModuleList(_Id() for _ in self.pair_norms)
 
 
 class _Id(torch.nn.Module):

@@ -1,11 +1,11 @@
-"""LocalJet: exact rotation invariance and the analytic jet of f = z."""
+"""LocalJet and GradientPairs: exact rotation invariance and analytic values."""
 
 import pytest
 import torch
 
 from usf_graph import grids
 from usf_graph.geometry import normalize, random_rotation, rotate
-from usf_graph.nn import LocalJet, geodesic_radius_graph
+from usf_graph.nn import GradientPairs, LocalJet, geodesic_radius_graph
 
 
 def _jet(pos, radius, h):
@@ -46,3 +46,48 @@ def test_too_few_neighbours_is_a_clear_error():
         _jet(g.pos, 1.1 * g.spacing, g.spacing)
     with pytest.raises(ValueError, match="points"):
         _jet(g.pos, 3.5 * g.spacing, g.spacing)(torch.zeros(10, 1))
+
+
+def _pairs(pos, radius, h, channels, pairs):
+    ei, ew = geodesic_radius_graph(pos, radius)
+    return GradientPairs(pos, ei, ew, h, channels, pairs).double()
+
+
+def test_gradient_pairs_are_exactly_rotation_invariant():
+    pos = normalize(torch.randn(400, 3, dtype=torch.float64,
+                                generator=torch.Generator().manual_seed(0)))
+    x = torch.randn(2, 400, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    layer = _pairs(pos, 0.5, 0.1, 5, 3)
+    y = layer(x)
+    assert y.shape == (2, 400, 6)
+    assert torch.allclose(layer(x[1]), y[1], atol=1e-14)  # [N, C] and [B, N, C] agree
+    for seed in range(3):
+        R = random_rotation(seed=seed).double()
+        rotated = _pairs(rotate(pos, R), 0.5, 0.1, 5, 3)  # new graph, new tangent frames
+        rotated.load_state_dict(layer.state_dict())
+        assert (rotated(x) - y).abs().max() < 1e-10
+    assert y.abs().max() > 1e-2
+
+
+def test_gradient_pairs_match_the_analytic_products():
+    # a = z, b = x: grad z = e_z - z p, grad x = e_x - x p, so the dot product is -x z
+    # and the cross product along p is p . (e_z x e_x) = y
+    g = grids.icosahedral(5)
+    h = g.spacing
+    pos = g.pos.double()
+    layer = _pairs(pos, 3.5 * h, h, 2, 1)
+    with torch.no_grad():
+        layer.lin.weight.copy_(torch.eye(2, dtype=torch.float64))
+    y = layer(torch.stack([pos[:, 2], pos[:, 0]], 1)) / h ** 2
+    assert (y[:, 0] + pos[:, 0] * pos[:, 2]).abs().max() < 5e-3
+    assert (y[:, 1] - pos[:, 1]).abs().max() < 5e-3
+
+
+def test_gradient_pairs_reject_bad_arguments():
+    g = grids.icosahedral(2)
+    with pytest.raises(ValueError, match="pairs"):
+        _pairs(g.pos, 3.5 * g.spacing, g.spacing, 4, 0)
+    layer = _pairs(g.pos, 3.5 * g.spacing, g.spacing, 4, 2)
+    with pytest.raises(ValueError, match="channels"):
+        layer(torch.zeros(len(g.pos), 3, dtype=torch.float64))
+    assert repr(layer) == f"GradientPairs(4, pairs=2, num_nodes=162, spacing={g.spacing:.4g})"

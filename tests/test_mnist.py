@@ -136,6 +136,7 @@ def test_classifier_is_exactly_invariant_under_the_icosahedral_group(readout, po
     torch.manual_seed(1)
     m = SphericalClassifier(level=3, channels=(4, 6, 8), pool=pool, readout=readout).double()
     m.eval()
+    assert len(m.pairs) == 1  # the gradient pairs after the first stage are covered too
     pos = grids.icosahedral(3).pos
     axis = pos[0] / pos[0].norm()  # a vertex of the icosahedron: a 5-fold axis
     R = rotation_from_axis_angle(axis, torch.tensor(2 * np.pi / 5, dtype=torch.float64))
@@ -155,7 +156,8 @@ def test_classifier_options_and_bad_arguments():
     assert m(torch.randn(2, len(grids.icosahedral(4).pos), 1)).shape == (2, 10)
     for bad, match in ((dict(readout="max"), "readout"), (dict(pool="avg"), "pool"),
                        (dict(min_level=4), "min_level"), (dict(input_level=2), "input_level"),
-                       (dict(input_level=4, jet_spacings=None), "input_level")):
+                       (dict(input_level=4, jet_spacings=None), "input_level"),
+                       (dict(pairs=-1), "pairs"), (dict(jet_spacings=None), "gradient pairs")):
         with pytest.raises(ValueError, match=match):
             SphericalClassifier(level=3, channels=(4, 6), **bad)
 

@@ -7,7 +7,7 @@ from torch import nn
 
 from .. import grids as G
 from ..frontend import grid_graph
-from ..nn import GaussianPool, GridPool, LocalJet, MaskedBatchNorm, SphericalConv
+from ..nn import GaussianPool, GradientPairs, GridPool, LocalJet, MaskedBatchNorm, SphericalConv
 from ..nn.pool import global_max_pool_masked, global_mean_pool_area
 
 READOUTS = ("mean", "meanpow", "meanmax")
@@ -39,6 +39,12 @@ class SphericalClassifier(nn.Module):
     spacings) learn the grid's local irregularities. Without the jet the network
     underfits (about 58% even on training digits).
 
+    After the first ``pair_stages`` stages, a :class:`GradientPairs` layer appends
+    ``2 * pairs`` channels: dot and cross products of the surface gradients of learned
+    feature pairs. They carry the relative direction of strokes, which distance-only
+    kernels cannot see, and lift Spherical MNIST accuracy by about 7 points at equal
+    epochs with no loss of invariance (README). ``pairs=0`` turns them off.
+
     ``input_level`` (default ``level``): the grid the samples come on. When finer than
     ``level``, the jet is taken there, where its quadratic fit is more accurate, and
     blurred down to ``level`` by a :class:`GaussianPool` before the first convolution.
@@ -52,7 +58,7 @@ class SphericalClassifier(nn.Module):
                  radius_spacings: float = 3.0, basis: str = "gaussian", pool: str = "gaussian",
                  pool_sigma: float = 0.5, readout: str = "meanpow",
                  jet_spacings: float | None = 3.5, input_level: int | None = None,
-                 min_level: int | None = None):
+                 min_level: int | None = None, pairs: int = 16, pair_stages: int = 1):
         super().__init__()
         input_level = level if input_level is None else input_level
         if input_level < level or (input_level > level and jet_spacings is None):
@@ -60,6 +66,9 @@ class SphericalClassifier(nn.Module):
                              "a finer input needs the jet (jet_spacings) to read it")
         if readout not in READOUTS:
             raise ValueError(f"readout must be one of {READOUTS}, got {readout!r}")
+        if pairs < 0 or pair_stages < 0 or (pairs and pair_stages and jet_spacings is None):
+            raise ValueError(f"pairs ({pairs}) and pair_stages ({pair_stages}) must be >= 0, "
+                             "and gradient pairs need jet_spacings for their fit radius")
         if pool not in ("gaussian", "mean", "max"):
             raise ValueError(f"pool must be 'gaussian', 'mean' or 'max', got {pool!r}")
         self.readout = readout
@@ -73,9 +82,11 @@ class SphericalClassifier(nn.Module):
                                               pool=pool, pool_sigma=pool_sigma,
                                               readout=readout,
                                               jet_spacings=jet_spacings,
-                                              input_level=input_level, min_level=min_level)
+                                              input_level=input_level, min_level=min_level,
+                                              pairs=pairs, pair_stages=pair_stages)
         self.input_level = input_level
         self.convs, self.norms, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        self.pairs, self.pair_norms = nn.ModuleList(), nn.ModuleList()
         def blur(fine, coarse):  # anti-aliased pooling between two levels
             return GaussianPool(fine.pos, coarse.pos, pool_sigma * coarse.spacing, area=fine.area)
 
@@ -99,12 +110,17 @@ class SphericalClassifier(nn.Module):
             self.register_buffer(f"area{s}", g.area.float(), persistent=False)
             self.convs.append(SphericalConv(c_in, c, r, num_basis=num_basis, basis=basis))
             self.norms.append(MaskedBatchNorm(c))
+            c_in = c
+            if pairs and s < min(pair_stages, len(channels) - 1):
+                ei, ew = grid_graph(g, jet_spacings * g.spacing)
+                self.pairs.append(GradientPairs(g.pos, ei, ew, g.spacing, c, pairs))
+                self.pair_norms.append(MaskedBatchNorm(2 * pairs))
+                c_in = c + 2 * pairs
             if s < len(channels) - 1 and g.params["level"] > min_level:
                 coarse, cl = g.coarsen()
                 self.pools.append(blur(g, coarse) if pool == "gaussian"
                                   else GridPool(cl, len(coarse), pool, area=g.area.float()))
                 g = coarse
-            c_in = c
         n_read = 1 if readout == "mean" else 2
         self.head = nn.Sequential(nn.Linear(n_read * c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))
 
@@ -117,6 +133,8 @@ class SphericalClassifier(nn.Module):
             ei, ew, a = getattr(self, f"ei{s}"), getattr(self, f"ew{s}"), getattr(self, f"area{s}")
             a = a.to(x.dtype)
             x = torch.relu(self.norms[s](conv(x, ei, ew.to(x.dtype), node_weight=a), node_weight=a))
+            if s < len(self.pairs):
+                x = torch.cat([x, self.pair_norms[s](self.pairs[s](x), node_weight=a)], -1)
             if s < len(self.pools):  # the pools come first; later stages keep the level
                 x, _ = self.pools[s](x)
         a = getattr(self, f"area{len(self.convs) - 1}").to(x.dtype)

@@ -9,7 +9,7 @@ from .graph import (
            knn_graph,
            radius_for_neighbors,
 )
-from .jet import LocalJet, jet_operator
+from .jet import GradientPairs, LocalJet, jet_operator
 from .kernel import DistanceKernel
 from .norm import MaskedBatchNorm
 from .pool import (
@@ -22,6 +22,6 @@ from .pool import (
            global_mean_pool_area,
 )
 
-__all__ = ["LocalJet", "jet_operator", "DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool", "GaussianPool",
+__all__ = ["LocalJet", "GradientPairs", "jet_operator", "DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool", "GaussianPool",
            "GridUnpool", "FPSPool", "farthest_point_sampling", "euclidean_radius", "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
            "geodesic_radius", "geodesic_radius_graph", "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]

@@ -12,17 +12,21 @@ _TERMS = 6
 
 
 def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor,
-                 sigma: float) -> torch.Tensor:
-    r"""Sparse least-squares operator ``[5 N, N]`` giving, at every point p, the gradient
-    ``(g1, g2)`` and Hessian ``(h11, h12, h22)`` of a signal in a tangent frame at p.
+                 sigma: float, rows: int = 5) -> torch.Tensor:
+    r"""Sparse least-squares operator ``[rows N, N]`` giving, at every point p, the gradient
+    ``(g1, g2)`` and Hessian ``(h11, h12, h22)`` of a signal in a tangent frame at p
+    (``rows=2``: the gradient alone, still from the quadratic fit).
 
     Each neighbour q (``edge_index`` row 0, centre in row 1, ``edge_weight`` the geodesic
     distance d) gets log-map coordinates :math:`u = d\,\hat t` in that frame, and the fit
     :math:`f(q) \approx f(p) + g^\top u + \tfrac12 u^\top H u` is weighted by
     :math:`e^{-d^2 / 2\sigma^2}`. The frame at p is arbitrary; the invariants that
     :class:`LocalJet` takes from (g, H) do not depend on it. Needs at least 6 neighbours
-    per point (a radius of about 3 grid spacings).
+    per point (a radius of about 3 grid spacings). The frame is right-handed with the
+    outward normal (e1 x e2 = p), so the cross product of two gradients is invariant too.
     """
+    if rows not in (2, 5):
+        raise ValueError(f"rows must be 2 (gradient) or 5 (gradient and Hessian), got {rows}")
     pos = pos.double()
     j, i = edge_index
     n = len(pos)
@@ -45,14 +49,44 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
         raise ValueError(f"the local jet needs >= {_TERMS} well-spread neighbours per point "
                          f"(fewest: {int(counts.min())}); use a larger radius")
     coef = torch.linalg.solve(normal[i], w[:, None] * M)  # [E, 6] rows of (A^T W A)^-1 A^T W
-    rows = torch.cat([i * 5 + a for a in range(5)])
-    vals = torch.cat([coef[:, a + 1] for a in range(5)])
+    r = torch.cat([i * rows + a for a in range(rows)])
+    vals = torch.cat([coef[:, a + 1] for a in range(rows)])
     with quiet_sparse():
-        return torch.sparse_coo_tensor(torch.stack([rows, j.repeat(5)]), vals,
-                                       (5 * n, n)).coalesce().to_sparse_csr()
+        return torch.sparse_coo_tensor(torch.stack([r, j.repeat(rows)]), vals,
+                                       (rows * n, n)).coalesce().to_sparse_csr()
 
 
-class LocalJet(nn.Module):
+class _Derivatives(nn.Module):
+    """Holds a :func:`jet_operator` and applies it to ``[..., N, C]`` signals."""
+
+    def __init__(self, pos, edge_index, edge_weight, spacing: float, sigma, rows: int):
+        super().__init__()
+        sigma = float(edge_weight.max()) / 2 if sigma is None else sigma
+        self.spacing, self.num_nodes = float(spacing), len(pos)
+        self._op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
+        self._rows, self._cast = rows, {}
+
+    def _derivatives(self, x: torch.Tensor) -> torch.Tensor:
+        """``[..., N, C]`` -> ``[N, rows, B*C]`` (B: the flattened leading dimensions)."""
+        if x.shape[-2] != self.num_nodes:
+            raise ValueError(f"x has {x.shape[-2]} points, the operator was built for "
+                             f"{self.num_nodes}")
+        key = (x.dtype, x.device)
+        if key not in self._cast:
+            self._cast[key] = self._op.to(device=x.device, dtype=x.dtype)
+        n, c = x.shape[-2:]
+        flat = x.reshape(-1, n, c).permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
+        with quiet_sparse():
+            return (self._cast[key] @ flat).view(n, self._rows, -1)
+
+    @staticmethod
+    def _unflatten(y: torch.Tensor, lead, c: int) -> torch.Tensor:
+        """``[N, F, B*C]`` -> ``[*lead, N, F*C]`` (F blocks of C channels)."""
+        n, f = y.shape[:2]
+        return y.view(n, f, -1, c).permute(2, 0, 1, 3).reshape(*lead, n, f * c)
+
+
+class LocalJet(_Derivatives):
     r"""Per channel, the signal and three rotation-invariant differential invariants:
 
     .. math::
@@ -73,32 +107,63 @@ class LocalJet(nn.Module):
 
     def __init__(self, pos, edge_index, edge_weight, spacing: float,
                  sigma: float | None = None):
-        super().__init__()
-        sigma = float(edge_weight.max()) / 2 if sigma is None else sigma
-        self.spacing, self.num_nodes = float(spacing), len(pos)
-        self._op = jet_operator(pos, edge_index, edge_weight, sigma)
-        self._cast: dict = {}
-
-    def _operator(self, like: torch.Tensor) -> torch.Tensor:
-        key = (like.dtype, like.device)
-        if key not in self._cast:
-            self._cast[key] = self._op.to(device=like.device, dtype=like.dtype)
-        return self._cast[key]
+        super().__init__(pos, edge_index, edge_weight, spacing, sigma, rows=5)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.shape[-2] != self.num_nodes:
-            raise ValueError(f"x has {x.shape[-2]} points, the jet was built for "
-                             f"{self.num_nodes}")
-        lead, (n, c) = x.shape[:-2], x.shape[-2:]
-        flat = x.reshape(-1, n, c).permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
-        with quiet_sparse():
-            d = (self._operator(x) @ flat).view(n, 5, -1)
         h = self.spacing
-        g1, g2, h11, h12, h22 = d.unbind(1)
+        g1, g2, h11, h12, h22 = self._derivatives(x).unbind(1)
         inv = torch.stack([h * torch.sqrt(g1 * g1 + g2 * g2 + 1e-12), h * h * (h11 + h22),
                            h ** 4 * (h11 * h22 - h12 * h12)], 1)  # [N, 3, B*C]
-        inv = inv.view(n, 3, -1, c).permute(2, 0, 1, 3).reshape(*lead, n, 3 * c)
-        return torch.cat([x, inv], -1)
+        return torch.cat([x, self._unflatten(inv, x.shape[:-2], x.shape[-1])], -1)
 
     def extra_repr(self) -> str:
         return f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g}"
+
+
+class GradientPairs(_Derivatives):
+    r"""Learned pairwise gradient invariants: how strongly, and at what angle, two learned
+    features change together.
+
+    .. math::
+        \mathbf{a} = \mathbf{x} \mathbf{W}_a,\quad \mathbf{b} = \mathbf{x} \mathbf{W}_b,
+        \qquad \mathbf{y}_i = h^2 \big(\langle \nabla a_i, \nabla b_i \rangle,\;
+        (\nabla a_i \times \nabla b_i) \cdot \mathbf{n}\big), \quad i = 1..m
+
+    with surface gradients from :func:`jet_operator` (``rows=2``) and :math:`\mathbf{n}`
+    the outward normal. A distance-only kernel sees how much a feature varies around a
+    point but not in which direction; the dot and cross products of two gradients
+    carry their relative angle (a corner, a crossing, two parallel strokes) without a
+    reference direction, so they stay exactly SO(3)-invariant (the cross product flips
+    sign under reflections only). ``h``, the grid spacing, makes them dimensionless.
+
+    Args:
+        pos, edge_index, edge_weight, spacing, sigma: as :class:`LocalJet`;
+        in_channels: C; pairs: m.
+
+    Shapes: ``[N, C]`` or ``[B, N, C]`` -> ``[..., N, 2 m]`` (dot products, then cross).
+    """
+
+    def __init__(self, pos, edge_index, edge_weight, spacing: float, in_channels: int,
+                 pairs: int, sigma: float | None = None):
+        super().__init__(pos, edge_index, edge_weight, spacing, sigma, rows=2)
+        if in_channels < 1 or pairs < 1:
+            raise ValueError(f"in_channels and pairs must be >= 1, got {in_channels}, {pairs}")
+        self.in_channels, self.pairs = in_channels, pairs
+        self.lin = nn.Linear(in_channels, 2 * pairs, bias=False)  # a constant has no gradient
+
+    def reset_parameters(self) -> None:
+        self.lin.reset_parameters()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] != self.in_channels:
+            raise ValueError(f"x has {x.shape[-1]} channels, the layer expects "
+                             f"{self.in_channels}")
+        m, h2 = self.pairs, self.spacing ** 2
+        g = self._derivatives(self.lin(x)).unflatten(2, (-1, 2, m))  # [N, 2, B, (a|b), m]
+        (a1, b1), (a2, b2) = g[:, 0].unbind(-2), g[:, 1].unbind(-2)
+        inv = torch.stack([h2 * (a1 * b1 + a2 * b2), h2 * (a1 * b2 - a2 * b1)], 1)
+        return self._unflatten(inv.flatten(2), x.shape[:-2], m)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}({self.in_channels}, pairs={self.pairs}, "
+                f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g})")
