@@ -91,3 +91,12 @@ def test_gradient_pairs_reject_bad_arguments():
     with pytest.raises(ValueError, match="channels"):
         layer(torch.zeros(len(g.pos), 3, dtype=torch.float64))
     assert repr(layer) == f"GradientPairs(4, pairs=2, num_nodes=162, spacing={g.spacing:.4g})"
+
+
+def test_gradient_pairs_gradcheck():
+    g = grids.icosahedral(1)
+    layer = _pairs(g.pos, 3.5 * g.spacing, g.spacing, 3, 2)
+    x = torch.randn(2, len(g.pos), 3, dtype=torch.float64, requires_grad=True)
+    W = layer.lin.weight.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda x, W: torch.func.functional_call(layer, {"lin.weight": W}, (x,)), (x, W))

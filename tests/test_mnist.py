@@ -136,7 +136,7 @@ def test_classifier_is_exactly_invariant_under_the_icosahedral_group(readout, po
     torch.manual_seed(1)
     m = SphericalClassifier(level=3, channels=(4, 6, 8), pool=pool, readout=readout).double()
     m.eval()
-    assert len(m.pairs) == 1  # the gradient pairs after the first stage are covered too
+    assert len(m.pairs) == 2  # the gradient pairs after the first two stages are covered
     pos = grids.icosahedral(3).pos
     axis = pos[0] / pos[0].norm()  # a vertex of the icosahedron: a 5-fold axis
     R = rotation_from_axis_angle(axis, torch.tensor(2 * np.pi / 5, dtype=torch.float64))

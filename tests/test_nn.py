@@ -64,8 +64,11 @@ def test_fast_path_matches_per_edge_reference_and_batched_form():
     area = torch.as_tensor(voronoi_areas(pos.numpy()))
     mask = torch.rand(300, generator=torch.Generator().manual_seed(0)) > 0.3
     x = torch.randn(4, 300, 6, generator=torch.Generator().manual_seed(3))
-    for normalize_ in ("area", "mean", None):
-        conv = SphericalConv(6, 7, 0.4, num_basis=3, normalize=normalize_)
+    # 6 -> 7 mixes channels first, 2 -> 9 aggregates first (the narrower side)
+    for normalize_, c_in, c_out in (("area", 6, 7), ("mean", 6, 7), (None, 6, 7),
+                                    ("area", 2, 9), (None, 2, 9)):
+        conv = SphericalConv(c_in, c_out, 0.4, num_basis=3, normalize=normalize_)
+        x = x[..., :c_in]
         fast = conv(x, ei, ew, node_weight=area, mask=mask)
         ref = conv(x, ei, ew, node_weight=area, mask=mask, fast=False)
         assert (fast - ref).abs().max() < 1e-12
@@ -108,6 +111,10 @@ def test_gradcheck_including_self_loop():
     for xs in (x, x[0]):  # [B, N, C] and [N, C]
         assert torch.autograd.gradcheck(lambda x, W: torch.func.functional_call(
             conv, {"weight": W}, (x, ei, ew), {"node_weight": area}), (xs, W))
+    wide = SphericalConv(2, 5, 0.8, num_basis=3, basis="gaussian")  # aggregates first
+    W = wide.weight.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x, W: torch.func.functional_call(
+        wide, {"weight": W}, (x, ei, ew), {"node_weight": area}), (x, W))
     w = ew.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda x, w: conv(x, ei, w, node_weight=area, fast=False), (x, w))

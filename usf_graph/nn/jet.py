@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .sparse import quiet_sparse
+from .sparse import quiet_sparse, sparse_apply, transpose_csr
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
 _TERMS = 6
@@ -73,11 +73,11 @@ class _Derivatives(nn.Module):
                              f"{self.num_nodes}")
         key = (x.dtype, x.device)
         if key not in self._cast:
-            self._cast[key] = self._op.to(device=x.device, dtype=x.dtype)
+            op = self._op.to(device=x.device, dtype=x.dtype)
+            self._cast[key] = (op, transpose_csr(op))
         n, c = x.shape[-2:]
         flat = x.reshape(-1, n, c).permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
-        with quiet_sparse():
-            return (self._cast[key] @ flat).view(n, self._rows, -1)
+        return sparse_apply(*self._cast[key], flat).view(n, self._rows, -1)
 
     @staticmethod
     def _unflatten(y: torch.Tensor, lead, c: int) -> torch.Tensor:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import contextlib
 import warnings
 
+import torch
+
 
 @contextlib.contextmanager
 def quiet_sparse():
@@ -13,3 +15,30 @@ def quiet_sparse():
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse", category=UserWarning)
         yield
+
+
+class _Apply(torch.autograd.Function):
+    """``A @ x`` for a constant sparse ``A`` whose transpose is precomputed: torch's own
+    backward transposes the CSR matrix (a sort) on every call."""
+
+    @staticmethod
+    def forward(ctx, x, A, At):
+        ctx.At = At
+        with quiet_sparse():
+            return A @ x
+
+    @staticmethod
+    def backward(ctx, grad):
+        with quiet_sparse():
+            return ctx.At @ grad.contiguous(), None, None
+
+
+def sparse_apply(A: torch.Tensor, At: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``A @ x`` (``x`` dense ``[N, C]``), differentiable in ``x`` through ``At = A^T``."""
+    return _Apply.apply(x, A, At)
+
+
+def transpose_csr(A: torch.Tensor) -> torch.Tensor:
+    """The transpose of a sparse CSR matrix, as CSR."""
+    with quiet_sparse():
+        return A.t().to_sparse_coo().coalesce().to_sparse_csr()

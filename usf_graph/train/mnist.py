@@ -22,7 +22,7 @@ def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
     return img.permute(0, 3, 1, 2).contiguous()
 
 
-def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 24,
+def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
         batch_size: int = 32, seed: int = 0, source: str = "auto", planar: bool = True,
         progress: bool = True, input_level: int | None = 5, min_level: int | None = 2) -> dict:
     """Train the spherical classifier (and the planar baseline) on unrotated digits and
