@@ -13,37 +13,46 @@ from .sparse import quiet_sparse
 NORMALIZE = ("area", "mean", None)
 
 
-class _BasisConv(torch.autograd.Function):
-    r"""``y_b = sum_k A_k (x_b W_k)`` for constant sparse ``A_k`` ``[N, N]`` (transposes
-    ``At_k`` precomputed) and weights ``W`` ``[K, C_in, C_out]``.
+TILE_ROWS = 4096  # rows per tile: a tile's [rows, C] blocks stay in L2
 
-    Working one (sample, basis) block at a time keeps every temporary at ``[N, C]``: the
-    stacked form (one ``[N*K, N]`` product) wrote ``[N, K, B*C]`` tensors that cost more in
-    page faults and copies than in arithmetic. The sparse products dominate and cost in
-    proportion to their column count, so the order follows the narrower side. Mixing
-    first (``C_out`` columns forward and backward), the backward pass shares one
-    ``P = At_k g_b`` between ``dx_b = sum_k P W_k^T`` and ``dW_k = sum_b x_b^T P``.
-    Aggregating first (``C_in`` columns: ``U = A_k x_b`` forward, recomputed backward,
-    and ``At_k (g_b W_k^T)``) wins when ``3 C_in < 2 C_out``, e.g. on a narrow input.
+
+class _BasisConv(torch.autograd.Function):
+    r"""``y_b = sum_k A_k (x_b W_k)`` for constant sparse ``A_k`` ``[N, N]`` and weights
+    ``W`` ``[K, C_in, C_out]``, over a list of tiles.
+
+    A tile ``(s, e, cols, A, At)`` holds rows ``s:e`` of every ``A_k`` restricted to the
+    columns ``cols`` they reach (its halo; ``None``: all), and the transposes ``At``.
+    One tile covering everything is the plain product; on a grid numbered along a
+    space-filling curve, tiles of :data:`TILE_ROWS` rows keep every temporary in cache,
+    so the time per point stays flat when ``[N, C]`` no longer fits.
+
+    Working one (sample, tile, basis) block at a time keeps temporaries small (the
+    stacked ``[N*K, N]`` form cost more in page faults and copies than in arithmetic).
+    The sparse products dominate and cost in proportion to their column count, so the
+    order follows the narrower side. Mixing first (``C_out`` columns), the backward pass
+    shares one ``P = At_k g_b`` between ``dx_b = sum_k P W_k^T`` and
+    ``dW_k = sum_b x_b^T P``. Aggregating first (``C_in`` columns: ``U = A_k x_b``
+    forward, recomputed backward, and ``At_k (g_b W_k^T)``) wins when
+    ``3 C_in < 2 C_out``, e.g. on a narrow input.
     """
 
     @staticmethod
-    def forward(ctx, x, weight, A, At):
+    def forward(ctx, x, weight, tiles):
         B, N, c_in = x.shape
         c_out = weight.shape[2]
-        ctx.aggregate_first = 3 * c_in < 2 * c_out
+        ctx.aggregate_first = agg = 3 * c_in < 2 * c_out
         out = x.new_zeros(B, N, c_out)
-        z = x.new_empty(N, c_in if ctx.aggregate_first else c_out)
         for b in range(B):
-            for k, A_k in enumerate(A):
-                if ctx.aggregate_first:
-                    torch.addmm(z, A_k, x[b], beta=0, out=z)
-                    out[b].addmm_(z, weight[k])
-                else:
-                    torch.mm(x[b], weight[k], out=z)
-                    out[b].addmm_(A_k, z)
+            for s, e, cols, A, _ in tiles:
+                xw = x[b] if cols is None else x[b].index_select(0, cols)
+                ob = out[b, s:e]
+                for k, A_k in enumerate(A):
+                    if agg:
+                        ob.addmm_(A_k @ xw, weight[k])
+                    else:
+                        ob.addmm_(A_k, xw @ weight[k])
         ctx.save_for_backward(x, weight)
-        ctx.A, ctx.At = A, At
+        ctx.tiles = tiles
         return out
 
     @staticmethod
@@ -54,26 +63,61 @@ class _BasisConv(torch.autograd.Function):
         need_x, need_w = ctx.needs_input_grad[:2]
         gx = torch.zeros_like(x) if need_x else None
         gw = torch.zeros_like(weight) if need_w else None
-        if ctx.aggregate_first:
-            u, q = x.new_empty(x.shape[1:]), x.new_empty(x.shape[1:])
-        else:
-            p = x.new_empty(x.shape[1], weight.shape[2])
         for b in range(x.shape[0]):
-            for k, At_k in enumerate(ctx.At):
-                if ctx.aggregate_first:
+            for s, e, cols, A, At in ctx.tiles:
+                xw = x[b] if cols is None else x[b].index_select(0, cols)
+                gb = grad[b, s:e]
+                gxw = gx[b] if cols is None or not need_x else torch.zeros_like(xw)
+                for k, At_k in enumerate(At):
+                    if ctx.aggregate_first:
+                        if need_w:
+                            gw[k].addmm_((A[k] @ xw).t(), gb)
+                        if need_x:
+                            gxw.addmm_(At_k, gb @ weight[k].t())
+                        continue
+                    p = At_k @ gb
                     if need_w:
-                        torch.addmm(u, ctx.A[k], x[b], beta=0, out=u)
-                        gw[k].addmm_(u.t(), grad[b])
+                        gw[k].addmm_(xw.t(), p)
                     if need_x:
-                        torch.mm(grad[b], weight[k].t(), out=q)
-                        gx[b].addmm_(At_k, q)
-                    continue
-                torch.addmm(p, At_k, grad[b], beta=0, out=p)
-                if need_w:
-                    gw[k].addmm_(x[b].t(), p)
-                if need_x:
-                    gx[b].addmm_(p, weight[k].t())
-        return gx, gw, None, None
+                        gxw.addmm_(p, weight[k].t())
+                if need_x and cols is not None:
+                    gx[b].index_add_(0, cols, gxw)
+        return gx, gw, None
+
+
+def plan_tiles(row: torch.Tensor, col: torch.Tensor, coef: torch.Tensor, n: int,
+               tile_rows: int | None = None) -> list:
+    """Tiles for :class:`_BasisConv` from the edges ``(row, col)`` and their ``[E, K]``
+    coefficients: blocks of ``tile_rows`` rows (default :data:`TILE_ROWS`) with the
+    columns they reach, or one tile when the numbering has no locality (the halos
+    would add up to more than twice the points)."""
+    tile_rows = TILE_ROWS if tile_rows is None else tile_rows
+    blocks = [(0, n, None)]
+    if n >= 4 * tile_rows:
+        order = torch.argsort(row * n + col)
+        row, col, coef = row[order], col[order], coef[order]
+        cuts = torch.searchsorted(row, torch.arange(0, n + tile_rows, tile_rows).clamp_max(n))
+        halos = [torch.unique(col[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
+        if sum(len(h) for h in halos) <= 2 * n:
+            blocks = [(t * tile_rows, min((t + 1) * tile_rows, n), h)
+                      for t, h in enumerate(halos)]
+    tiles = []
+    with quiet_sparse():
+        for s, e, cols in blocks:
+            keep = (row >= s) & (row < e)
+            r, c, v = row[keep] - s, col[keep], coef[keep]
+            width = n
+            if cols is not None:
+                c, width = torch.searchsorted(cols, c), len(cols)
+            A = tuple(_csr(r, c, v[:, k], (e - s, width)) for k in range(v.shape[1]))
+            At = tuple(_csr(c, r, v[:, k], (width, e - s)) for k in range(v.shape[1]))
+            tiles.append((s, e, cols, A, At))
+    return tiles
+
+
+def _csr(row, col, val, shape):
+    return torch.sparse_coo_tensor(torch.stack([row, col]), val, shape).coalesce() \
+        .to_sparse_csr()
 
 
 def _key(*tensors) -> tuple:
@@ -175,21 +219,13 @@ class DistanceConv(MessagePassing):
     def _plan_for(self, edge_index, edge_weight, num_nodes, node_weight, mask, dtype):
         key = _key(edge_index, edge_weight, node_weight, mask) + (num_nodes, dtype)
         if self._plan is not None and self._plan[0] == key:
-            return self._plan[1], self._plan[2]
+            return self._plan[1]
         with torch.no_grad():
             coef = self._edge_coefficients(edge_index, edge_weight, num_nodes, node_weight,
                                            mask).to(dtype)
         j, i = edge_index
-        with quiet_sparse():
-            A = tuple(self._csr(i, j, c, num_nodes) for c in coef.unbind(1))
-            At = tuple(self._csr(j, i, c, num_nodes) for c in coef.unbind(1))
-        self._plan = (key, A, At)
-        return A, At
-
-    @staticmethod
-    def _csr(row, col, val, n):
-        return torch.sparse_coo_tensor(torch.stack([row, col]), val, (n, n)).coalesce() \
-            .to_sparse_csr()
+        self._plan = (key, plan_tiles(i, j, coef, num_nodes))
+        return self._plan[1]
 
     # -- forward --------------------------------------------------------------------
     def forward(self, x: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor,
@@ -202,10 +238,10 @@ class DistanceConv(MessagePassing):
         if self.kernel_type == "mlp" or not fast:
             out = self._propagate(x, edge_index, edge_weight, N, node_weight, mask)
         else:
-            A, At = self._plan_for(edge_index, edge_weight, N, node_weight, mask, x.dtype)
+            tiles = self._plan_for(edge_index, edge_weight, N, node_weight, mask, x.dtype)
             w = self.weight.view(self.num_basis, self.in_channels, self.out_channels)
             xb = (x if batched else x.unsqueeze(0)).contiguous()
-            out = _BasisConv.apply(xb, w.to(x.dtype), A, At)
+            out = _BasisConv.apply(xb, w.to(x.dtype), tiles)
             out = out if batched else out[0]
         if self.bias is not None:
             out = out + self.bias
