@@ -122,9 +122,7 @@ def scaling(a, B: int = 2, C: int = 32):
         g = grids.icosahedral(level)
         pos, area = g.pos, g.area.float()
         if a.locality:  # same points, numbered so that neighbours sit close in memory
-            import healpy
-
-            order = torch.as_tensor(healpy.vec2pix(2 ** 13, *pos.numpy().T, nest=True)).argsort()
+            order = grids.locality_order(pos)
             pos, area = pos[order], area[order]
         r = 1.6 * g.spacing
         ei, ew = geodesic_radius_graph(pos, r)

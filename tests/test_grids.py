@@ -120,3 +120,20 @@ def test_rotation_preserves_spacing():
     R = random_rotation(seed=1)
     d = geodesic_distance(rotate(g.pos[:5], R), rotate(g.pos[5:10], R))
     torch.testing.assert_close(d, geodesic_distance(g.pos[:5], g.pos[5:10]))
+
+
+def test_locality_order_lets_the_convolution_tile():
+    from usf_graph.nn import geodesic_radius_graph
+    from usf_graph.nn.conv import plan_tiles
+
+    g = grids.icosahedral(3)
+    order = grids.locality_order(g.pos)
+    assert sorted(order.tolist()) == list(range(len(g)))
+
+    def tiles(pos):  # blocks of 64 rows; one tile when their halos add up to > 2 N
+        (j, i), _ = geodesic_radius_graph(pos, 1.6 * g.spacing)
+        return plan_tiles(i, j, torch.ones(len(i), 1, dtype=torch.float64), len(g), 64)
+
+    local = tiles(g.pos[order])
+    assert len(local) == 11 and sum(len(t[2]) for t in local) < 2 * len(g)
+    assert len(tiles(g.pos)) == 1  # the nested numbering has no locality

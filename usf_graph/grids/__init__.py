@@ -2,7 +2,7 @@
 
 from .base import Grid, voronoi_areas
 from .fibonacci import equiangular, fibonacci
-from .healpix import healpix
+from .healpix import healpix, locality_order
 from .icosahedral import icosahedral, icosahedral_faces
 
 _BUILDERS = {"icosahedral": icosahedral, "healpix": healpix, "fibonacci": fibonacci,
@@ -26,4 +26,4 @@ def from_spec(spec: str) -> Grid:
 
 
 __all__ = ["Grid", "icosahedral", "icosahedral_faces", "healpix", "fibonacci", "equiangular",
-           "from_spec", "voronoi_areas"]
+           "from_spec", "voronoi_areas", "locality_order"]

@@ -13,7 +13,7 @@ from .sparse import quiet_sparse
 NORMALIZE = ("area", "mean", None)
 
 
-TILE_ROWS = 4096  # rows per tile: a tile's [rows, C] blocks stay in L2
+TILE_ROWS = 16384  # rows per tile; 1k-16k measured, 16k fastest (benchmarks/README.md)
 
 
 class _BasisConv(torch.autograd.Function):
@@ -42,15 +42,24 @@ class _BasisConv(torch.autograd.Function):
         c_out = weight.shape[2]
         ctx.aggregate_first = agg = 3 * c_in < 2 * c_out
         out = x.new_zeros(B, N, c_out)
+        # buffers reused by every block: fresh [N, C] tensors cost page faults
+        width = max(N if t[2] is None else len(t[2]) for t in tiles)
+        rows = max(e - s for s, e, *_ in tiles)
+        xbuf = x.new_empty(width, c_in)
+        z = x.new_empty(rows, c_in) if agg else x.new_empty(width, c_out)
         for b in range(B):
             for s, e, cols, A, _ in tiles:
-                xw = x[b] if cols is None else x[b].index_select(0, cols)
+                xw = _gather(x[b], cols, xbuf)
                 ob = out[b, s:e]
                 for k, A_k in enumerate(A):
                     if agg:
-                        ob.addmm_(A_k @ xw, weight[k])
+                        zk = z[:e - s]
+                        torch.addmm(zk, A_k, xw, beta=0, out=zk)
+                        ob.addmm_(zk, weight[k])
                     else:
-                        ob.addmm_(A_k, xw @ weight[k])
+                        zk = z[:len(xw)]
+                        torch.mm(xw, weight[k], out=zk)
+                        ob.addmm_(A_k, zk)
         ctx.save_for_backward(x, weight)
         ctx.tiles = tiles
         return out
@@ -63,19 +72,29 @@ class _BasisConv(torch.autograd.Function):
         need_x, need_w = ctx.needs_input_grad[:2]
         gx = torch.zeros_like(x) if need_x else None
         gw = torch.zeros_like(weight) if need_w else None
+        N, c_in, c_out = x.shape[1], x.shape[2], weight.shape[2]
+        width = max(N if t[2] is None else len(t[2]) for t in ctx.tiles)
+        rows = max(e - s for s, e, *_ in ctx.tiles)
+        xbuf, gbuf = x.new_empty(width, c_in), x.new_empty(width, c_in)
+        u = x.new_empty(rows, c_in) if ctx.aggregate_first else x.new_empty(width, c_out)
+        q = x.new_empty(rows, c_in)
         for b in range(x.shape[0]):
             for s, e, cols, A, At in ctx.tiles:
-                xw = x[b] if cols is None else x[b].index_select(0, cols)
+                xw = _gather(x[b], cols, xbuf)
                 gb = grad[b, s:e]
-                gxw = gx[b] if cols is None or not need_x else torch.zeros_like(xw)
+                gxw = gx[b] if cols is None or not need_x else gbuf[:len(cols)].zero_()
                 for k, At_k in enumerate(At):
                     if ctx.aggregate_first:
+                        uk, qk = u[:e - s], q[:e - s]
                         if need_w:
-                            gw[k].addmm_((A[k] @ xw).t(), gb)
+                            torch.addmm(uk, A[k], xw, beta=0, out=uk)
+                            gw[k].addmm_(uk.t(), gb)
                         if need_x:
-                            gxw.addmm_(At_k, gb @ weight[k].t())
+                            torch.mm(gb, weight[k].t(), out=qk)
+                            gxw.addmm_(At_k, qk)
                         continue
-                    p = At_k @ gb
+                    p = u[:len(xw)]
+                    torch.addmm(p, At_k, gb, beta=0, out=p)
                     if need_w:
                         gw[k].addmm_(xw.t(), p)
                     if need_x:
@@ -83,6 +102,13 @@ class _BasisConv(torch.autograd.Function):
                 if need_x and cols is not None:
                     gx[b].index_add_(0, cols, gxw)
         return gx, gw, None
+
+
+def _gather(x: torch.Tensor, cols: torch.Tensor | None, buf: torch.Tensor) -> torch.Tensor:
+    """``x[cols]`` into ``buf`` (``x`` itself when ``cols`` is None)."""
+    if cols is None:
+        return x
+    return torch.index_select(x, 0, cols, out=buf[:len(cols)])
 
 
 def plan_tiles(row: torch.Tensor, col: torch.Tensor, coef: torch.Tensor, n: int,
