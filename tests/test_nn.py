@@ -288,3 +288,6 @@ def test_tiled_fast_path_matches_the_reference(monkeypatch):
         g_ref = torch.autograd.grad(ref, (x, W), go)
         for a, b in zip(g_fast, g_ref):
             assert (a - b).abs().max() < 1e-12
+        # an input that needs no gradient (a first layer): the weight's gradient alone
+        (g_w,) = torch.autograd.grad(f(x.detach(), W, True), (W,), go)
+        assert (g_w - g_ref[1]).abs().max() < 1e-12

@@ -82,7 +82,8 @@ class _BasisConv(torch.autograd.Function):
             for s, e, cols, A, At in ctx.tiles:
                 xw = _gather(x[b], cols, xbuf)
                 gb = grad[b, s:e]
-                gxw = gx[b] if cols is None or not need_x else gbuf[:len(cols)].zero_()
+                gxw = None if not need_x else gx[b] if cols is None else \
+                    gbuf[:len(cols)].zero_()
                 for k, At_k in enumerate(At):
                     if ctx.aggregate_first:
                         uk, qk = u[:e - s], q[:e - s]
