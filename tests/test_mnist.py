@@ -117,7 +117,7 @@ def test_checkpoint_round_trip(tmp_path):
     torch.manual_seed(0)
     m = SphericalClassifier(level=2, channels=(4, 8), basis="gaussian", num_basis=3)
     save_checkpoint(tmp_path / "m.pt", m, m.config, {"acc": 0.5})
-    m2 = SphericalClassifier(**load_checkpoint(tmp_path / "m.pt")["config"])
+    m2 = SphericalClassifier.from_config(load_checkpoint(tmp_path / "m.pt")["config"])
     blob = load_checkpoint(tmp_path / "m.pt", m2)
     assert blob["metrics"]["acc"] == 0.5
     x = torch.randn(3, 162, 1)
@@ -128,6 +128,11 @@ def test_checkpoint_round_trip(tmp_path):
         load_checkpoint(tmp_path / "bad.pt")
     with pytest.raises(FileNotFoundError):
         load_checkpoint(tmp_path / "missing.pt")
+    # a checkpoint from before the gradient pairs (no "pairs" in its config) still loads
+    old = {k: v for k, v in m.config.items() if k not in ("pairs", "pair_stages")}
+    plain = SphericalClassifier(**old, pairs=0)
+    assert not len(SphericalClassifier.from_config(old).pairs)
+    SphericalClassifier.from_config(old).load_state_dict(plain.state_dict())
 
 
 @pytest.mark.parametrize("readout", ["meanpow", "meanmax", "mean"])

@@ -132,7 +132,7 @@ def cmd_eval(args) -> int:
     from .train import evaluate, load_checkpoint
 
     blob = load_checkpoint(args.checkpoint)
-    model = SphericalClassifier(**blob["config"])
+    model = SphericalClassifier.from_config(blob["config"])
     model.load_state_dict(blob["state_dict"])
     ds = SphericalMNIST(args.root, "test", grid=f"icosahedral:{model.input_level}",
                         rotate=args.rotate, seed=args.seed, source=args.source)

@@ -124,6 +124,12 @@ class SphericalClassifier(nn.Module):
         n_read = 1 if readout == "mean" else 2
         self.head = nn.Sequential(nn.Linear(n_read * c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))
 
+    @classmethod
+    def from_config(cls, config: dict) -> SphericalClassifier:
+        """The model a checkpoint's ``config`` describes. Checkpoints written before the
+        gradient pairs existed (no ``pairs`` key) had none."""
+        return cls(**{"pairs": 0, **config})
+
     def features(self, x: torch.Tensor) -> torch.Tensor:
         if self.jet is not None:
             x = self.jet_norm(self.jet(x), node_weight=self.jet_area.to(x.dtype))
