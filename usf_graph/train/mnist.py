@@ -24,11 +24,13 @@ def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
 
 def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
         batch_size: int = 32, seed: int = 0, source: str = "auto", planar: bool = True,
-        progress: bool = True, input_level: int | None = 5, min_level: int | None = 2) -> dict:
+        progress: bool = True, input_level: int | None = 5, min_level: int | None = 2,
+        pairs: int = 16, pair_stages: int = 2) -> dict:
     """Train the spherical classifier (and the planar baseline) on unrotated digits and
     report NR/NR and NR/R accuracy. The digits are lifted to ``input_level`` (the jet is
     taken there), the convolutions start on
-    ``level`` and pool down to ``min_level``. Writes results.json, checkpoints and a figure.
+    ``level`` and pool down to ``min_level``; ``pairs``/``pair_stages``: the
+    :class:`~usf_graph.nn.GradientPairs` layers. Writes results.json, checkpoints and a figure.
 
     Under ``torchrun`` every process trains its share; rank 0 alone evaluates and writes
     (the other ranks return ``{}``)."""
@@ -36,7 +38,8 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
     seed_everything(seed)
     out = Path(out)
     t0 = time.time()
-    model = SphericalClassifier(level=level, input_level=input_level, min_level=min_level)
+    model = SphericalClassifier(level=level, input_level=input_level, min_level=min_level,
+                                pairs=pairs, pair_stages=pair_stages)
     grid = f"icosahedral:{model.input_level}"
     kw = dict(grid=grid, source=source, progress=progress)
     train = SphericalMNIST(root, "train", rotate="none", **kw)
