@@ -8,7 +8,7 @@ from torch.autograd.function import once_differentiable
 from torch_geometric.nn import MessagePassing
 
 from .kernel import DistanceKernel, envelope
-from .sparse import quiet_sparse
+from .sparse import csr, quiet_sparse
 
 NORMALIZE = ("area", "mean", None)
 
@@ -136,15 +136,10 @@ def plan_tiles(row: torch.Tensor, col: torch.Tensor, coef: torch.Tensor, n: int,
             width = n
             if cols is not None:
                 c, width = torch.searchsorted(cols, c), len(cols)
-            A = tuple(_csr(r, c, v[:, k], (e - s, width)) for k in range(v.shape[1]))
-            At = tuple(_csr(c, r, v[:, k], (width, e - s)) for k in range(v.shape[1]))
+            A = tuple(csr(r, c, v[:, k], (e - s, width)) for k in range(v.shape[1]))
+            At = tuple(csr(c, r, v[:, k], (width, e - s)) for k in range(v.shape[1]))
             tiles.append((s, e, cols, A, At))
     return tiles
-
-
-def _csr(row, col, val, shape):
-    return torch.sparse_coo_tensor(torch.stack([row, col]), val, shape).coalesce() \
-        .to_sparse_csr()
 
 
 def _key(*tensors) -> tuple:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .sparse import quiet_sparse, sparse_apply, transpose_csr
+from .sparse import csr, sparse_apply, transpose_csr
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
 _TERMS = 6
@@ -51,9 +51,7 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     coef = torch.linalg.solve(normal[i], w[:, None] * M)  # [E, 6] rows of (A^T W A)^-1 A^T W
     r = torch.cat([i * rows + a for a in range(rows)])
     vals = torch.cat([coef[:, a + 1] for a in range(rows)])
-    with quiet_sparse():
-        return torch.sparse_coo_tensor(torch.stack([r, j.repeat(rows)]), vals,
-                                       (rows * n, n)).coalesce().to_sparse_csr()
+    return csr(r, j.repeat(rows), vals, (rows * n, n))
 
 
 class _Derivatives(nn.Module):

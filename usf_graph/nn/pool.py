@@ -8,7 +8,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
-from .sparse import quiet_sparse
+from .sparse import csr, quiet_sparse
 
 
 def _node_first(x: torch.Tensor):
@@ -106,9 +106,7 @@ class GaussianPool(nn.Module):
         if area is not None:
             w = w * torch.as_tensor(area, dtype=w.dtype)[j]
         self.sigma, self.num_coarse, self.num_fine = float(sigma), len(coarse), len(fine)
-        with quiet_sparse():
-            P = torch.sparse_coo_tensor(torch.stack([c, j]), w, (len(coarse), len(fine))) \
-                .coalesce().to_sparse_csr()
+        P = csr(c, j, w, (len(coarse), len(fine)))
         # dense buffers (not a sparse one) so .to(), DDP and state handling stay plain
         self.register_buffer("crow", P.crow_indices(), persistent=False)
         self.register_buffer("col", P.col_indices(), persistent=False)

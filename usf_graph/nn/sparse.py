@@ -38,6 +38,13 @@ def sparse_apply(A: torch.Tensor, At: torch.Tensor, x: torch.Tensor) -> torch.Te
     return _Apply.apply(x, A, At)
 
 
+def csr(row: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch.Tensor:
+    """A sparse CSR matrix from COO entries (duplicates summed)."""
+    with quiet_sparse():
+        return torch.sparse_coo_tensor(torch.stack([row, col]), val, shape).coalesce() \
+            .to_sparse_csr()
+
+
 def transpose_csr(A: torch.Tensor) -> torch.Tensor:
     """The transpose of a sparse CSR matrix, as CSR."""
     with quiet_sparse():
