@@ -8,7 +8,7 @@ from torch.autograd.function import once_differentiable
 from torch_geometric.nn import MessagePassing
 
 from .kernel import DistanceKernel, envelope
-from .sparse import csr, quiet_sparse
+from .sparse import csr
 
 NORMALIZE = ("area", "mean", None)
 
@@ -43,8 +43,7 @@ class _BasisConv(torch.autograd.Function):
         ctx.aggregate_first = agg = 3 * c_in < 2 * c_out
         out = x.new_zeros(B, N, c_out)
         # buffers reused by every block: fresh [N, C] tensors cost page faults
-        width = max(N if t[2] is None else len(t[2]) for t in tiles)
-        rows = max(e - s for s, e, *_ in tiles)
+        width, rows = _extent(tiles, N)
         xbuf = x.new_empty(width, c_in)
         z = x.new_empty(rows, c_in) if agg else x.new_empty(width, c_out)
         for b in range(B):
@@ -73,8 +72,7 @@ class _BasisConv(torch.autograd.Function):
         gx = torch.zeros_like(x) if need_x else None
         gw = torch.zeros_like(weight) if need_w else None
         N, c_in, c_out = x.shape[1], x.shape[2], weight.shape[2]
-        width = max(N if t[2] is None else len(t[2]) for t in ctx.tiles)
-        rows = max(e - s for s, e, *_ in ctx.tiles)
+        width, rows = _extent(ctx.tiles, N)
         xbuf, gbuf = x.new_empty(width, c_in), x.new_empty(width, c_in)
         u = x.new_empty(rows, c_in) if ctx.aggregate_first else x.new_empty(width, c_out)
         q = x.new_empty(rows, c_in)
@@ -105,6 +103,12 @@ class _BasisConv(torch.autograd.Function):
         return gx, gw, None
 
 
+def _extent(tiles, n: int) -> tuple[int, int]:
+    """The widest halo and the most rows of any tile: the sizes of the reused buffers."""
+    return (max(n if t[2] is None else len(t[2]) for t in tiles),
+            max(e - s for s, e, *_ in tiles))
+
+
 def _gather(x: torch.Tensor, cols: torch.Tensor | None, buf: torch.Tensor) -> torch.Tensor:
     """``x[cols]`` into ``buf`` (``x`` itself when ``cols`` is None)."""
     if cols is None:
@@ -119,26 +123,25 @@ def plan_tiles(row: torch.Tensor, col: torch.Tensor, coef: torch.Tensor, n: int,
     columns they reach, or one tile when the numbering has no locality (the halos
     would add up to more than twice the points)."""
     tile_rows = TILE_ROWS if tile_rows is None else tile_rows
-    blocks = [(0, n, None)]
+    order = torch.argsort(row * n + col)  # row-major: each block's edges are one slice
+    row, col, coef = row[order], col[order], coef[order]
+    blocks = [(0, n, 0, len(row), None)]
     if n >= 4 * tile_rows:
-        order = torch.argsort(row * n + col)
-        row, col, coef = row[order], col[order], coef[order]
-        cuts = torch.searchsorted(row, torch.arange(0, n + tile_rows, tile_rows).clamp_max(n))
+        starts = torch.arange(0, n + tile_rows, tile_rows).clamp_max(n)
+        cuts = torch.searchsorted(row, starts).tolist()
         halos = [torch.unique(col[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
         if sum(len(h) for h in halos) <= 2 * n:
-            blocks = [(t * tile_rows, min((t + 1) * tile_rows, n), h)
+            blocks = [(int(starts[t]), int(starts[t + 1]), cuts[t], cuts[t + 1], h)
                       for t, h in enumerate(halos)]
     tiles = []
-    with quiet_sparse():
-        for s, e, cols in blocks:
-            keep = (row >= s) & (row < e)
-            r, c, v = row[keep] - s, col[keep], coef[keep]
-            width = n
-            if cols is not None:
-                c, width = torch.searchsorted(cols, c), len(cols)
-            A = tuple(csr(r, c, v[:, k], (e - s, width)) for k in range(v.shape[1]))
-            At = tuple(csr(c, r, v[:, k], (width, e - s)) for k in range(v.shape[1]))
-            tiles.append((s, e, cols, A, At))
+    for s, e, a, b, cols in blocks:
+        r, c, v = row[a:b] - s, col[a:b], coef[a:b]
+        width = n
+        if cols is not None:
+            c, width = torch.searchsorted(cols, c), len(cols)
+        A = tuple(csr(r, c, v[:, k], (e - s, width)) for k in range(v.shape[1]))
+        At = tuple(csr(c, r, v[:, k], (width, e - s)) for k in range(v.shape[1]))
+        tiles.append((s, e, cols, A, At))
     return tiles
 
 
