@@ -198,6 +198,36 @@ def test_equirectangular_pixel_convention():
     check_round_trips(eq, random_rays(np.random.default_rng(0), 300, math.pi * 0.99))
 
 
+@settings(**SETTINGS)
+@given(st.floats(-350, -150), st.floats(3e-4, 2e-3), st.floats(-4e-7, 0), st.floats(0, 5e-10),
+       st.floats(-5, 5), st.floats(-5, 5), st.floats(0.998, 1.002), st.floats(-3e-4, 3e-4),
+       st.integers(0, 2**31))
+def test_scaramuzza_round_trip_random_calibrations(a0, a2, a3, a4, dr, dc, c, d, seed):
+    cam = C.Scaramuzza(pol=[a0, 0.0, a2, a3, a4], center=(480 + dr, 640 + dc),
+                       affine=(c, d, -d / 2), width=1280, height=960)
+    rng = np.random.default_rng(seed)
+    uv = np.stack([rng.uniform(0, 1279, 300), rng.uniform(0, 959, 300)], -1)
+    r, ok = cam.unproject(uv)
+    check_round_trips(cam, r[ok])  # rays of every pixel the model covers come back
+    assert ok.mean() > 0.5
+
+
+@settings(**SETTINGS)
+@given(st.floats(-1.5, 0.5), st.floats(0.2, 1.0), st.floats(-3.0, 0.0), st.floats(0.5, 3.0),
+       st.integers(0, 2**31))
+def test_equirectangular_crop_round_trip(lat0, dlat, lon0, dlon, seed):
+    lat1, lon1 = min(lat0 + dlat, math.pi / 2), min(lon0 + dlon, math.pi)
+    cam = C.Equirectangular(300, 200, lat_range=(lat0, lat1), lon_range=(lon0, lon1))
+    rng = np.random.default_rng(seed)
+    lat = rng.uniform(lat0, lat1, 300) * 0.999 + 0.0005 * (lat0 + lat1)
+    lon = rng.uniform(lon0, lon1, 300) * 0.999 + 0.0005 * (lon0 + lon1)
+    sphere = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+    uv = check_round_trips(cam, sphere @ cam.rotation)  # sphere frame -> optical frame
+    assert cam.in_image(uv).all()
+    assert cam.solid_angle() == pytest.approx((lon1 - lon0) * (math.sin(lat1) - math.sin(lat0)),
+                                              rel=1e-3)
+
+
 def test_scaramuzza_round_trip():
     cam = C.Scaramuzza(pol=[-250.0, 0.0, 1.2e-3, -2e-7, 3e-10], center=(480.2, 640.7),
                        affine=(1.0003, 1.2e-4, -2e-4), width=1280, height=960)
