@@ -115,6 +115,29 @@ def test_interpolations_fov_mask_and_errors():
                           grids.icosahedral(0), cache=GeometryCache(None))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_non_finite_pixels_raise_only_where_the_camera_sees(dtype):
+    cam = cameras.Fisheye(40, 63.5, 63.5, 128, 128, fov_deg=180)
+    vign = np.zeros((128, 128), bool)
+    vign[:, :64] = True
+    fe = SphericalFrontend(cam, grids.icosahedral(3), image_mask=vign, cache=GeometryCache(None))
+    for bad in (np.inf, -np.inf, np.nan):
+        img = np.full((128, 128), 0.5, dtype)
+        img[60:70, 20:30] = bad  # seen
+        with pytest.raises(ValueError, match="NaN or inf"):
+            fe.lift(img)
+        img[:] = 0.5
+        img[:, 100:] = bad  # hidden by the image mask: allowed
+        assert torch.isfinite(fe.lift(img)).all()
+    img = np.full((128, 128), 0.5, dtype)
+    img[60:70, 20:25], img[60:70, 25:30] = np.inf, -np.inf  # sum is NaN, not inf
+    with pytest.raises(ValueError, match="NaN or inf"):
+        fe.lift(img)
+    huge = np.full((128, 128), 3e38, dtype)  # finite, but its float32 sum overflows
+    assert torch.isfinite(fe.lift(huge)).all()
+    assert torch.isfinite(fe.lift_batch(huge[None, ..., None])).all()
+
+
 def test_remap_fast_path_equals_gather_and_batches():
     cam, img = equirect_image(128)
     g = grids.icosahedral(4)
