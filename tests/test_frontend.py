@@ -159,6 +159,11 @@ def test_data_loader_offsets_and_to_image_and_render():
     assert batch.x.shape == (2 * N, 1) and batch.mask.shape == (2 * N,)
     assert torch.equal(batch.edge_index[:, E:], data[1].edge_index + N)
     assert batch.lat.shape == (2 * N,)
+    # lat/lon follow the design's convention: p = (cos lat cos lon, cos lat sin lon, sin lat)
+    lat, lon = batch.lat, batch.lon
+    torch.testing.assert_close(torch.stack([lat.cos() * lon.cos(), lat.cos() * lon.sin(),
+                                            lat.sin()], -1), batch.pos, rtol=0, atol=1e-6)
+    torch.testing.assert_close(batch.x[N:], 2 * batch.x[:N])
     back = fe.to_image(fe.lift(img)[:, 0].numpy())
     assert np.abs(back - img).mean() < 0.05
     labels = fe.to_image(torch.arange(N), mode="nearest")
