@@ -99,7 +99,11 @@ def knn_graph(pos: torch.Tensor, k: int, batch=None, loop: bool = True):
     """k nearest neighbours (self included when ``loop``), euclidean ``edge_weight``."""
     import torch_cluster
 
-    ei = torch_cluster.knn_graph(pos.detach(), k, batch=batch, loop=loop)
+    if int(k) != k or k < 1:
+        raise ValueError(f"k must be a positive integer, got {k!r}")
+    if not torch.isfinite(pos).all():
+        raise ValueError("positions contain NaN or inf; cannot build a graph")
+    ei = torch_cluster.knn_graph(pos.detach(), int(k), batch=batch, loop=loop)
     order = torch.argsort(ei[1] * pos.shape[0] + ei[0])
     ei = ei[:, order]
     return ei, (pos[ei[0]] - pos[ei[1]]).norm(dim=-1)
