@@ -113,6 +113,33 @@ def test_test_rotations_identical_across_runs(tmp_path):
     assert torch.equal(R[0], R[499]) and not torch.equal(R[499], R[500])
 
 
+class Double:
+    def __repr__(self):
+        return "Double()"
+
+    def __call__(self, d):
+        d.x = 2 * d.x
+        return d
+
+
+class Shift:
+    def __call__(self, d):
+        d.pos = d.pos + 1
+        return d
+
+
+def test_pre_transform_is_applied_before_storage_and_transform_at_access(tmp_path):
+    kw = dict(grid="icosahedral:1", progress=False)
+    plain = SphericalMNIST(tmp_path / "a", "test", **kw)
+    pre = SphericalMNIST(tmp_path / "b", "test", pre_transform=Double(), **kw)
+    assert torch.equal(pre.x, 2 * plain.x) and torch.equal(pre.y, plain.y)
+    both = SphericalMNIST(tmp_path / "b", "test", pre_transform=Double(), transform=Double(),
+                          **kw)  # from processed/
+    assert torch.equal(both.x, pre.x) and torch.equal(both[3].x, 4 * plain.x[3])
+    with pytest.raises(ValueError, match="changed 'pos'"):
+        SphericalMNIST(tmp_path / "c", "test", pre_transform=Shift(), **kw)
+
+
 def test_checkpoint_round_trip(tmp_path):
     torch.manual_seed(0)
     m = SphericalClassifier(level=2, channels=(4, 8), basis="gaussian", num_basis=3)

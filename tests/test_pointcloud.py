@@ -123,6 +123,16 @@ def test_modelnet_dataset_reads_the_official_layout(tmp_path):
     assert torch.equal(again.pos, train.pos)
     with pytest.raises(FileNotFoundError, match="ModelNet40"):
         ModelNet(tmp_path / "empty", "40")
+    from torch_geometric.transforms import FixedPoints, NormalizeScale
+
+    shutil.copytree(FIX, tmp_path / "n", dirs_exist_ok=True)
+    norm = ModelNet(tmp_path / "n", "10", "train", num_points=64, pre_transform=NormalizeScale())
+    centred = train.pos - train.pos.mean(1, keepdim=True)
+    scale = centred.abs().amax((1, 2), keepdim=True)
+    torch.testing.assert_close(norm.pos, centred / scale, rtol=0, atol=1e-5)
+    shutil.copytree(FIX, tmp_path / "f", dirs_exist_ok=True)
+    fewer = ModelNet(tmp_path / "f", "10", "train", num_points=64, pre_transform=FixedPoints(16))
+    assert fewer.pos.shape == (3, 16, 3)
 
 
 def test_procedural_shapes_are_deterministic_and_labelled():

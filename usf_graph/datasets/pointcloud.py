@@ -11,6 +11,7 @@ import torch
 from torch_geometric.data import Data, Dataset
 
 from ..fileio import atomic_torch_save
+from .stacked import pre_transform_stacked
 
 MODELNET_URL = {"10": "http://3dvision.princeton.edu/projects/2014/3DShapeNets/ModelNet10.zip",
                 "40": "http://modelnet.cs.princeton.edu/ModelNet40.zip"}
@@ -98,7 +99,8 @@ class ModelNet(_CloudSet):
     Reads ``root/ModelNet{name}/<class>/{train,test}/*.off`` (the layout of the official
     zip), samples ``num_points`` points per mesh by area (seeded), and stores the split as
     ``pos [S, N, 3]`` float32 and ``y [S]`` under ``root/processed``. Classes are the
-    sorted folder names.
+    sorted folder names. ``pre_transform`` acts on each ``Data(pos, y)`` before storage
+    and must keep ``pos`` ``[N', 3]`` with one ``N'`` (e.g. ``NormalizeScale``).
     """
 
     def __init__(self, root, name: str = "40", split: str = "train", num_points: int = 1024,
@@ -146,10 +148,15 @@ class ModelNet(_CloudSet):
         if not files:
             raise FileNotFoundError(f"no {self.split} OFF files under {base}/<class>/{self.split}/")
         rng = np.random.default_rng(self.seed)
-        pos = np.stack([sample_surface(*read_off(f), self.num_points, rng) for f, _ in files])
-        atomic_torch_save({"pos": torch.from_numpy(pos).float(),
-                           "y": torch.tensor([c for _, c in files]),
-                           "classes": ",".join(classes)}, self.processed_paths[0])
+        pos = torch.from_numpy(np.stack([sample_surface(*read_off(f), self.num_points, rng)
+                                         for f, _ in files])).float()
+        y = torch.tensor([c for _, c in files])
+        if self.pre_transform is not None:
+            pos = pre_transform_stacked(self.pre_transform,
+                                        (Data(pos=p, y=y[i:i + 1]) for i, p in enumerate(pos)),
+                                        "pos")
+        atomic_torch_save({"pos": pos, "y": y, "classes": ",".join(classes)},
+                          self.processed_paths[0])
 
 
 # -- procedural shapes ---------------------------------------------------------------------
