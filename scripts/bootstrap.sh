@@ -32,7 +32,7 @@ missing=()
 "$VENV/bin/python" -c "import torch_cluster" 2>/dev/null || missing+=(torch-cluster==1.6.3)
 if [ ${#missing[@]} -gt 0 ]; then
   say "building ${missing[*]} from source against torch $TORCH_VERSION."
-  say "First time on a machine this takes about 25 minutes on 2 cores; pip caches the wheels,"
+  say "First time on a machine this takes 15-25 minutes on 2 cores; pip caches the wheels,"
   say "so later set-ups take seconds. Progress: pip's build log follows."
   MAX_JOBS=${MAX_JOBS:-$(nproc)} "${pip[@]}" install --no-build-isolation -v "${missing[@]}" 2>&1 \
     | grep --line-buffered -E "(building '|Building wheel|Created wheel|Successfully|Using cached|ERROR|error:)" || true
