@@ -22,7 +22,14 @@ from usf_graph.nn import (
 )
 from usf_graph.nn.checks import symmetry_permutation
 
-torch.set_default_dtype(torch.float64)
+
+@pytest.fixture(autouse=True, scope="module")
+def float64_default():
+    """This module's checks run in float64; restored after, so other modules keep float32."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
 
 
 def random_sphere(n, seed):
