@@ -144,6 +144,21 @@ def test_double_sphere_220_degree_lens():
     assert cam.in_image(uv).all()
 
 
+@pytest.mark.parametrize("cam", [
+    C.Pinhole(300, 310, 320.2, 240.7, 640, 480, dist=(-0.3, 0.1, 1e-3, -1e-3, -0.02)),
+    C.KannalaBrandt(300, 300, 320.2, 240.7, 640, 480, k=(0.02, -0.005, 0.001, -1e-4)),
+    C.Fisheye(200, 320.2, 240.7, 640, 480, model="stereographic"),
+    C.Mei(300, 300, 320.2, 240.7, 640, 480, xi=1.2, dist=(-0.1, 0.02, 0, 0)),
+    C.DoubleSphere(300, 300, 320.2, 240.7, 640, 480, xi=-0.2, alpha=0.6),
+])
+def test_principal_point_is_the_optical_axis(cam):
+    # the iterative inverses must stay at an exact root instead of bisecting away from it
+    r, ok = cam.unproject(np.array([[320.2, 240.7], [320.2, 240.7 + 1e-9]]))
+    assert ok.all()
+    np.testing.assert_allclose(r[0], [0, 0, 1], atol=1e-15)
+    assert 0 < r[1, 1] < 1e-10
+
+
 def test_invalid_domain_is_flagged_never_wrong():
     cam = C.Pinhole(300, 300, 320, 240, 640, 480)
     uv, ok = cam.project(np.array([[0, 0, -1.0], [0.1, 0, 1], [np.nan, 0, 1]]))

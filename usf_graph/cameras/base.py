@@ -63,30 +63,43 @@ def monotone_limit(g, upper: float, n: int = 20001) -> float:
     return float(upper if bad.size == 0 else t[bad[0]])
 
 
-def solve_monotone(g, dg, target: np.ndarray, hi: float, iters: int = 100, tol: float = 1e-13):
-    """Solve g(t) = target for t in [0, hi], g increasing there (safeguarded Newton).
+def _converged(step, t) -> np.ndarray:
+    """A step of a few ulp: the iterate has reached float64 precision."""
+    return ~np.isfinite(step) | (np.abs(step) <= 4e-16 * (1 + np.abs(t)))
+
+
+def solve_monotone(g, dg, target: np.ndarray, hi: float, iters: int = 100, tol: float = 1e-13,
+                   t0=None):
+    """Solve g(t) = target for t in [0, hi], g increasing there (safeguarded Newton from
+    ``t0``, default ``target``).
 
     Returns (t, converged). A target outside [g(0), g(hi)] or a point that does not
-    converge comes back as not converged, never as a wrong answer.
+    converge comes back as not converged, never as a wrong answer. Each iteration works
+    only on the points that are still moving, so a whole image costs a few passes.
     """
     target = np.asarray(target, np.float64)
-    lo_t = np.zeros_like(target)
-    hi_t = np.full_like(target, hi)
-    inside = (target >= g(lo_t) - tol) & (target <= g(hi_t) + tol * (1 + np.abs(target)))
-    t = np.clip(target, 0.0, hi) if hi > 0 else lo_t.copy()
+    tgt = target.ravel()
+    lo_t = np.zeros_like(tgt)
+    hi_t = np.full_like(tgt, hi)
+    inside = (tgt >= g(lo_t) - tol) & (tgt <= g(hi_t) + tol * (1 + np.abs(tgt)))
+    start = tgt if t0 is None else np.broadcast_to(np.asarray(t0, np.float64), target.shape).ravel()
+    t = np.clip(start, 0.0, hi) if hi > 0 else lo_t.copy()
+    act = np.flatnonzero(np.isfinite(tgt))
     for _ in range(iters):
-        f = g(t) - target
-        lo_t = np.where(f < 0, t, lo_t)
-        hi_t = np.where(f > 0, t, hi_t)
-        d = dg(t)
-        step = np.where(d > 0, t - f / np.where(d > 0, d, 1.0), np.nan)
-        bisect = 0.5 * (lo_t + hi_t)
-        t_new = np.where((step > lo_t) & (step < hi_t), step, bisect)
-        if np.all(np.abs(t_new - t) <= 1e-16 * (1 + np.abs(t))):
-            t = t_new
+        if act.size == 0:
             break
-        t = t_new
-    ok = inside & (np.abs(g(t) - target) <= tol * (1 + np.abs(target)))
+        ta, lo, up = t[act], lo_t[act], hi_t[act]
+        f = g(ta) - tgt[act]
+        lo = np.where(f < 0, ta, lo)
+        up = np.where(f > 0, ta, up)
+        d = dg(ta)
+        step = np.where(d > 0, ta - f / np.where(d > 0, d, 1.0), np.nan)
+        tn = np.where((step > lo) & (step < up), step, 0.5 * (lo + up))
+        tn = np.where(f == 0, ta, tn)  # a root: stay (bisecting would leave it)
+        t[act], lo_t[act], hi_t[act] = tn, lo, up
+        act = act[~_converged(tn - ta, ta)]
+    t = t.reshape(target.shape)
+    ok = inside.reshape(target.shape) & (np.abs(g(t) - target) <= tol * (1 + np.abs(target)))
     return t, ok
 
 
@@ -153,19 +166,24 @@ def undistort(d: np.ndarray, xd: np.ndarray, yd: np.ndarray, r_max: float,
     rd = np.hypot(xd, yd)
     r0, _ = solve_monotone(g, dg, rd, min(r_max, 1e4) * (1 - 1e-9))
     s0 = np.where(rd > 0, r0 / np.where(rd > 0, rd, 1), 1.0)
-    x, y = xd * s0, yd * s0
-    for _ in range(iters):
-        fx, fy, (a, b, c, e) = distort(d, x, y, jacobian=True)
-        rx, ry = fx - xd, fy - yd
+    x, y = (xd * s0).ravel(), (yd * s0).ravel()
+    xdf, ydf = np.broadcast_to(xd, s0.shape).ravel(), np.broadcast_to(yd, s0.shape).ravel()
+    act = np.arange(x.size)
+    for _ in range(iters):  # Newton on the points still moving
+        if act.size == 0:
+            break
+        xa, ya = x[act], y[act]
+        fx, fy, (a, b, c, e) = distort(d, xa, ya, jacobian=True)
+        rx, ry = fx - xdf[act], fy - ydf[act]
         det = a * e - b * c
         det = np.where(np.abs(det) > 1e-300, det, np.nan)
         dx = (e * rx - b * ry) / det
         dy = (a * ry - c * rx) / det
         # damp steps that would jump past the monotone radius
-        scale = np.where(np.hypot(x - dx, y - dy) > r_max, 0.5, 1.0)
-        x, y = x - scale * dx, y - scale * dy
-        if np.all(~np.isfinite(dx) | (np.hypot(dx, dy) < 1e-16 * (1 + np.hypot(x, y)))):
-            break
+        scale = np.where(np.hypot(xa - dx, ya - dy) > r_max, 0.5, 1.0)
+        x[act], y[act] = xa - scale * dx, ya - scale * dy
+        act = act[~_converged(np.hypot(dx, dy), np.hypot(xa, ya))]
+    x, y = x.reshape(s0.shape), y.reshape(s0.shape)
     fx, fy = distort(d, x, y)
     ok = (np.hypot(fx - xd, fy - yd) <= tol * (1 + np.hypot(xd, yd)) * 100) & (np.hypot(x, y) < r_max)
     return x, y, ok

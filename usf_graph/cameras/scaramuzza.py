@@ -67,7 +67,8 @@ class Scaramuzza(Camera):
 
     def _project(self, rays):
         theta = incidence(rays)
-        rho, ok = solve_monotone(self._theta, self._dtheta, theta, self.rho_max)
+        rho, ok = solve_monotone(self._theta, self._dtheta, theta, self.rho_max,
+                                 t0=theta * (self.rho_max / self._theta(self.rho_max)))
         n = np.hypot(rays[..., 0], rays[..., 1])
         n = np.where(n > 0, n, 1.0)
         xp, yp = rho * rays[..., 1] / n, rho * rays[..., 0] / n
