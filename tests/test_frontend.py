@@ -115,6 +115,25 @@ def test_interpolations_fov_mask_and_errors():
                           grids.icosahedral(0), cache=GeometryCache(None))
 
 
+def test_area_interpolation_averages_each_cell_and_does_not_alias():
+    # a pixel-level checkerboard panorama onto a grid ~20x coarser than the pixels
+    cam = cameras.Equirectangular(512, 256)
+    board = (np.add.outer(np.arange(256), np.arange(512)) % 2).astype(np.float64)
+    g = grids.icosahedral(3)  # 642 points, spacing ~8 deg vs 0.7 deg pixels
+    area = SphericalFrontend(cam, g, interpolation="area", cache=GeometryCache(None)).lift(board)
+    near = SphericalFrontend(cam, g, interpolation="nearest", cache=GeometryCache(None)).lift(board)
+    assert (area - 0.5).abs().max() < 0.03  # each cell averages ~100 pixels or more
+    assert set(near.unique().tolist()) == {0.0, 1.0}  # point sampling aliases
+    # a cell's value is the solid-angle weighted mean of the pixels nearest to its point
+    lnm, _ = cam.lens_normal_map()
+    owner = np.argmax(lnm.reshape(-1, 3) @ g.pos.numpy().T, axis=1)
+    w = cam.pixel_solid_angles().ravel()
+    ramp = np.linspace(0, 1, 256 * 512).reshape(256, 512)
+    ref = np.bincount(owner, w * ramp.ravel(), len(g)) / np.bincount(owner, w, len(g))
+    x = SphericalFrontend(cam, g, interpolation="area", cache=GeometryCache(None)).lift(ramp)
+    np.testing.assert_allclose(x[:, 0].numpy(), ref, rtol=1e-9)
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_non_finite_pixels_raise_only_where_the_camera_sees(dtype):
     cam = cameras.Fisheye(40, 63.5, 63.5, 128, 128, fov_deg=180)
