@@ -1,6 +1,7 @@
 """Camera models: round trips, OpenCV agreement, wide lenses, coverage."""
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -105,6 +106,22 @@ def test_mei_round_trip(i, xi, k1, k2, p1, p2, seed):
     m = np.hypot(rays[:, 0], rays[:, 1]) / (rays[:, 2] + xi)
     keep = (rays[:, 2] > -xi_l + 1e-3) & (m < 0.9 * min(cam.r_max, 5.0))
     check_round_trips(cam, rays[keep][:300])
+
+
+def test_mei_matches_cv2_omnidir():
+    # cv2.omnidir lives in opencv-contrib; its answers are stored by
+    # tests/fixtures/make_omnidir_reference.py (6 random calibrations, 1,684 rays)
+    z = np.load(Path(__file__).parent / "fixtures" / "omnidir_opencv.npz")
+    for i in range(6):
+        K, xi, D = z[f"K{i}"], float(z[f"xi{i}"]), z[f"D{i}"]
+        cam = C.Mei(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 1280, 960, xi, dist=D, skew=K[0, 1])
+        uv, ok = cam.project(z[f"rays{i}"])
+        assert ok.all() and np.abs(uv - z[f"uv{i}"]).max() < 1e-6
+        rays, ok = cam.unproject(z[f"uv{i}"])
+        assert ok.all() and angle(rays, z[f"rays{i}"]).max() < 1e-9
+        front = rays[:, 2] > 0.05  # OpenCV returns x/z, y/z: meaningful in front only
+        und = rays[front, :2] / rays[front, 2:]
+        assert np.abs(und - z[f"und{i}"][front]).max() * K[0, 0] < 1e-6
 
 
 @settings(**SETTINGS)
