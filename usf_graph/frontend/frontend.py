@@ -129,10 +129,25 @@ class SphericalFrontend:
         self._table = _Table(t["crow"], t["col"], t["val"], camera.width * camera.height)
         self._uv = t["uv"].numpy()
         self.radius = float(radius) if radius is not None else default_radius(grid)
-        self.edge_index, self.edge_weight = grid_graph(grid, self.radius, self.cache)
+        self._edges = None  # built on first use: lift/lift_batch never need the graph
         self._all_seen = bool(self.mask.all())
         self._maps = None
         self._render = {}
+
+    @property
+    def edge_index(self) -> torch.Tensor:
+        """``[2, E]`` radius graph of the grid (row 0 neighbour, row 1 centre), cached."""
+        return self._graph()[0]
+
+    @property
+    def edge_weight(self) -> torch.Tensor:
+        """``[E]`` geodesic length of each edge (radians)."""
+        return self._graph()[1]
+
+    def _graph(self):
+        if self._edges is None:
+            self._edges = grid_graph(self.grid, self.radius, self.cache)
+        return self._edges
 
     @property
     def num_points(self) -> int:
