@@ -184,7 +184,7 @@ def main(argv=None) -> int:
                    help="stages followed by a GradientPairs layer")
     e = sub.add_parser("eval", help="evaluate a spherical MNIST checkpoint")
     e.add_argument("checkpoint")
-    e.add_argument("--root", default="data/mnist")
+    e.add_argument("--root", default=d["root"], help="digits and processed data")
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"])
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--source", default="auto")
