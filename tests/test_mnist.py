@@ -59,7 +59,7 @@ def test_idx_reader_rejects_corrupt_files(tmp_path, digits):
     (tmp_path / "short").write_bytes(raw[:3])
     with pytest.raises(ValueError, match="too short"):
         read_idx(tmp_path / "short")
-    with pytest.raises(FileNotFoundError, match="yann.lecun"):
+    with pytest.raises(FileNotFoundError, match="spherical_mnist/prepare.py"):
         load_digits(tmp_path / "none", "train", "idx")
 
 

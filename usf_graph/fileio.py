@@ -6,6 +6,7 @@ one, and a failed write removes its temp file.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from collections.abc import Callable
@@ -33,3 +34,49 @@ def atomic_torch_save(obj, path) -> None:
     import torch
 
     atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def file_md5(path) -> str:
+    h = hashlib.md5()  # noqa: S324 - a checksum the data publishers give, not security
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def download(url: str, path, md5: str | None = None, progress: bool = True) -> Path:
+    """Fetch ``url`` to ``path`` atomically, with a progress bar and an MD5 check.
+
+    An existing ``path`` with the right checksum is kept. A failed or corrupt download
+    leaves nothing behind and raises ``FileNotFoundError`` (unreachable) or
+    ``ValueError`` (wrong checksum), naming the file and the manual fix.
+    """
+    import urllib.error
+    import urllib.request
+
+    from tqdm.auto import tqdm
+
+    path = Path(path)
+    if path.exists() and (md5 is None or file_md5(path) == md5):
+        return path
+
+    def write(f):
+        h = hashlib.md5()  # noqa: S324
+        with urllib.request.urlopen(url, timeout=60) as r:
+            total = int(r.headers.get("Content-Length") or 0) or None
+            with tqdm(total=total, unit="B", unit_scale=True, desc=path.name,
+                      disable=not progress) as bar:
+                for block in iter(lambda: r.read(1 << 20), b""):
+                    f.write(block)
+                    h.update(block)
+                    bar.update(len(block))
+        if md5 is not None and h.hexdigest() != md5:
+            raise ValueError(f"{url}: MD5 {h.hexdigest()} but expected {md5}; the download is "
+                             f"corrupt or the mirror changed. Retry, or put a good copy at {path}.")
+
+    try:
+        atomic_write(path, write)
+    except (urllib.error.URLError, TimeoutError, ConnectionError) as e:
+        raise FileNotFoundError(f"could not download {url} ({getattr(e, 'reason', e)}). "
+                                f"Download it by hand and put it at {path}.") from None
+    return path

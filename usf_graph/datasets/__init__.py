@@ -1,7 +1,7 @@
 """PyG datasets for the tasks."""
 
-from .mnist import SphericalMNIST, load_digits, read_idx, read_mnist_csv
+from .mnist import SphericalMNIST, download_mnist, load_digits, read_idx, read_mnist_csv
 from .pointcloud import SHAPES, ModelNet, ProceduralShapes, make_shape, read_off, sample_surface
 
-__all__ = ["SphericalMNIST", "load_digits", "read_idx", "read_mnist_csv", "ModelNet",
+__all__ = ["SphericalMNIST", "download_mnist", "load_digits", "read_idx", "read_mnist_csv", "ModelNet",
            "ProceduralShapes", "SHAPES", "make_shape", "read_off", "sample_surface"]

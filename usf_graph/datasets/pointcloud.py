@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Data, Dataset
 
-from ..fileio import atomic_torch_save
+from ..fileio import atomic_torch_save, download
 from .stacked import pre_transform_stacked
 
 MODELNET_URL = {"10": "http://3dvision.princeton.edu/projects/2014/3DShapeNets/ModelNet10.zip",
@@ -99,14 +99,16 @@ class ModelNet(_CloudSet):
     Reads ``root/ModelNet{name}/<class>/{train,test}/*.off`` (the layout of the official
     zip), samples ``num_points`` points per mesh by area (seeded), and stores the split as
     ``pos [S, N, 3]`` float32 and ``y [S]`` under ``root/processed``. Classes are the
-    sorted folder names. ``pre_transform`` acts on each ``Data(pos, y)`` before storage
+    sorted folder names. Missing files are downloaded from ``url`` (default: the official
+    zip) and unzipped under ``root``. ``pre_transform`` acts on each ``Data(pos, y)`` before storage
     and must keep ``pos`` ``[N', 3]`` with one ``N'`` (e.g. ``NormalizeScale``).
     """
 
     def __init__(self, root, name: str = "40", split: str = "train", num_points: int = 1024,
-                 seed: int = 0, transform=None, pre_transform=None):
+                 seed: int = 0, transform=None, pre_transform=None, url: str | None = None):
         if name not in MODELNET_URL:
             raise ValueError(f"name must be '10' or '40', got {name!r}")
+        self.url = url or MODELNET_URL[name]
         if split not in ("train", "test"):
             raise ValueError(f"split must be 'train' or 'test', got {split!r}")
         self.name, self.split, self.num_points, self.seed = name, split, num_points, seed
@@ -127,17 +129,23 @@ class ModelNet(_CloudSet):
         return [f"modelnet{self.name}_{self.split}_{self.num_points}_s{self.seed}.pt"]
 
     def download(self):
-        from torch_geometric.data import download_url, extract_zip
+        import zipfile
 
+        path = Path(self.root) / f"ModelNet{self.name}.zip"
         try:
-            path = download_url(MODELNET_URL[self.name], self.root)
-        except Exception as e:  # no network: say where the files must go
+            download(self.url, path)
+        except FileNotFoundError as e:  # no network: say where the files must go
             raise FileNotFoundError(
                 f"ModelNet{self.name} not found under {self.root} and the download failed "
-                f"({e}). Get {MODELNET_URL[self.name]} and unzip it so that "
+                f"({e}). Get {self.url} and unzip it so that "
                 f"{self.root}/ModelNet{self.name}/<class>/{{train,test}}/*.off exist."
             ) from None
-        extract_zip(path, self.root)
+        try:
+            with zipfile.ZipFile(path) as z:
+                z.extractall(self.root)
+        except zipfile.BadZipFile:
+            raise ValueError(f"{path} is not a valid zip archive; delete it and download "
+                             f"{self.url} again") from None
         os.unlink(path)
 
     def process(self):
