@@ -47,13 +47,14 @@ def test_mnist_prepare_downloads_verifies_and_builds_splits(tmp_path, mirror):
     root = tmp_path / "root"
     prep = script("datasets/spherical_mnist/prepare.py")
     sets = prep.main(["--root", str(root), "--mirror", (tmp_path / "gone").as_uri(),
-                      "--mirror", m.as_uri(), "--grid", "icosahedral:1", "--rotate", "none"])
+                      "--mirror", m.as_uri(), "--grid", "icosahedral:1", "--test-rotate", "none", "so3"])
     for p in m.iterdir():  # the second mirror served every file, byte for byte
         assert (root / p.name).read_bytes() == p.read_bytes()
     ds = sets[("test", "none")]
     assert torch.equal(ds.y, torch.as_tensor(labs))
     assert torch.equal(ds.x, lift_digits(imgs, icosahedral(1).pos.numpy(), None, False))
-    assert sorted(sets) == [("test", "none"), ("train", "none")]
+    assert sorted(sets) == [("test", "none"), ("test", "so3"), ("train", "none")]
+    assert not torch.equal(sets[("test", "so3")].x, ds.x)
     # files already there with the right checksum are kept: no mirror needed
     assert len(download_mnist(root, mirrors=((tmp_path / "gone").as_uri(),))) == 4
 
