@@ -113,6 +113,16 @@ def test_spec_round_trip_and_errors():
         grids.healpix(3)
     with pytest.raises(ValueError, match="cannot be coarsened"):
         grids.icosahedral(0).coarsen()
+    for bad, match in ((lambda: grids.icosahedral(2.5), r"integer in \[0, 10\], got 2.5"),
+                       (lambda: grids.icosahedral(11), "got 11"),
+                       (lambda: grids.healpix(0), "nside must be an integer >= 1"),
+                       (lambda: grids.healpix(4.5), "got 4.5"),
+                       (lambda: grids.fibonacci(3), "n must be an integer >= 4"),
+                       (lambda: grids.fibonacci("100"), "got '100'"),
+                       (lambda: grids.equiangular(8, 1), "nlon must be")):
+        with pytest.raises(ValueError, match=match):
+            bad()
+    assert len(grids.fibonacci(100.0)) == 100  # an integral float is fine
 
 
 def test_rotation_preserves_spacing():

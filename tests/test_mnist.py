@@ -186,6 +186,11 @@ def test_classifier_options_and_bad_arguments():
     m = SphericalClassifier(level=3, channels=(4, 6, 8), input_level=4, min_level=2)
     assert len(m.pools) == 1 and m.input_pool is not None  # 4 -> 3 (input), 3 -> 2, stay
     assert m(torch.randn(2, len(grids.icosahedral(4).pos), 1)).shape == (2, 10)
+    for x, match in ((torch.randn(2, 642, 1), r"expected x \[B, 2562, 1\]"),
+                     (torch.randn(2, 2562, 3), "1 channel"),
+                     (torch.full((2, 2562, 1), float("nan")), "NaN")):
+        with pytest.raises(ValueError, match=match):
+            m(x)
     for bad, match in ((dict(readout="max"), "readout"), (dict(pool="avg"), "pool"),
                        (dict(min_level=4), "min_level"), (dict(input_level=2), "input_level"),
                        (dict(input_level=4, jet_spacings=None), "input_level"),

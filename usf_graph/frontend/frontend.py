@@ -17,7 +17,7 @@ from ..grids import Grid
 from ..nn.graph import geodesic_radius_graph
 from ..nn.sparse import quiet_sparse
 from .cache import GeometryCache, default_cache
-from .interpolation import bilinear_entries, build_table, nearest_entries
+from .interpolation import bilinear_entries, build_table, check_method, nearest_entries
 
 _REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32)
 _ROW = 1024  # cv2.remap maps must be narrower than SHRT_MAX, so fold N points into rows
@@ -110,6 +110,7 @@ class SphericalFrontend:
     def __init__(self, camera: Camera, grid: Grid, interpolation: str = "bilinear",
                  radius: float | None = None, image_mask=None,
                  cache: GeometryCache | None = None, rbf_sigma: float | None = None):
+        check_method(interpolation)  # before the cache announces a build
         self.camera, self.grid, self.interpolation = camera, grid, interpolation
         self.cache = cache if cache is not None else default_cache()
         if image_mask is not None and np.shape(image_mask) != (camera.height, camera.width):

@@ -60,6 +60,11 @@ def _pixel_rays(cam: Camera):
     return lnm.reshape(-1, 3)[flat], flat
 
 
+def check_method(method: str) -> None:
+    if method not in METHODS:
+        raise ValueError(f"unknown interpolation {method!r}; use one of {METHODS}")
+
+
 def area_matrix(cam: Camera, pos: np.ndarray, seen: np.ndarray, uv: np.ndarray):
     """Average of every pixel whose ray falls in a point's Voronoi cell (nearest grid
     point), weighted by the pixel's solid angle. Points that receive no pixel (a grid
@@ -112,8 +117,7 @@ def barycentric_entries(pos: np.ndarray, queries: np.ndarray, candidates: int = 
 def build_table(cam: Camera, pos: np.ndarray, method: str, image_mask=None,
                 rbf_sigma: float | None = None, spacing: float | None = None) -> dict:
     """Everything the frontend needs to lift images from ``cam`` onto ``pos [N, 3]``."""
-    if method not in METHODS:
-        raise ValueError(f"unknown interpolation {method!r}; use one of {METHODS}")
+    check_method(method)
     uv, seen = cam.sees(pos)
     if image_mask is not None:
         m = np.asarray(image_mask, bool).ravel()

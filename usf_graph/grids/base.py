@@ -12,6 +12,18 @@ from scipy.spatial import SphericalVoronoi, cKDTree
 from ..geometry import chord_to_geodesic
 
 
+def grid_size(what: str, value, lo: int, hi: float = math.inf) -> int:
+    """``value`` as an int in [lo, hi]; a clear error for 2.5, -1 or "4"."""
+    try:
+        ok = int(value) == value and lo <= value <= hi
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        span = f"in [{lo}, {hi}]" if hi < math.inf else f">= {lo}"
+        raise ValueError(f"{what} must be an integer {span}, got {value!r}")
+    return int(value)
+
+
 class Grid:
     """A set of unit vectors on S2.
 

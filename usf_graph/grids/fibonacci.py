@@ -8,14 +8,12 @@ import numpy as np
 import torch
 
 from ..geometry import from_latlon
-from .base import Grid, nearest_cluster
+from .base import Grid, grid_size, nearest_cluster
 
 
 def fibonacci(n: int) -> Grid:
     """``n`` points on a golden-angle spiral: z_i = 1 - (2i + 1)/n, lon_i = i * golden angle."""
-    n = int(n)
-    if n < 4:
-        raise ValueError(f"a Fibonacci grid needs n >= 4 points, got {n}")
+    n = grid_size("a Fibonacci grid's point count n", n, 4)
     i = np.arange(n, dtype=np.float64)
     z = 1 - (2 * i + 1) / n
     lon = np.mod(i * math.pi * (3 - math.sqrt(5)), 2 * math.pi)
@@ -35,9 +33,7 @@ def equiangular(nlat: int, nlon: int) -> Grid:
     Centres match an equirectangular image of the same size (DESIGN.md's pixel
     convention), and the cell areas are exact.
     """
-    nlat, nlon = int(nlat), int(nlon)
-    if nlat < 2 or nlon < 2:
-        raise ValueError(f"equiangular grid needs nlat, nlon >= 2, got {nlat}x{nlon}")
+    nlat, nlon = grid_size("equiangular nlat", nlat, 2), grid_size("equiangular nlon", nlon, 2)
     lat = math.pi / 2 - math.pi * (np.arange(nlat) + 0.5) / nlat
     lon = 2 * math.pi * (np.arange(nlon) + 0.5) / nlon - math.pi
     pos = from_latlon(*np.meshgrid(lat, lon, indexing="ij")).reshape(-1, 3)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import torch
 
-from .base import Grid
+from .base import Grid, grid_size
 
 
 def healpix(nside: int, nest: bool = True) -> Grid:
@@ -18,8 +18,8 @@ def healpix(nside: int, nest: bool = True) -> Grid:
     """
     import healpy as hp
 
-    nside = int(nside)
-    if nside < 1 or nside & (nside - 1):
+    nside = grid_size("HEALPix nside", nside, 1)
+    if nside & (nside - 1):
         raise ValueError(f"HEALPix nside must be a power of two >= 1, got {nside}")
     n = 12 * nside * nside
     pos = np.stack(hp.pix2vec(nside, np.arange(n), nest=nest), -1)

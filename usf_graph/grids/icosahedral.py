@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from .base import Grid, nearest_cluster
+from .base import Grid, grid_size, nearest_cluster
 
 
 def _icosahedron():
@@ -46,9 +46,7 @@ def icosahedral(level: int) -> Grid:
     vertex is the normalized midpoint of an edge of the previous level. Coarsening
     assigns every point to its nearest vertex of the previous level.
     """
-    level = int(level)
-    if not 0 <= level <= 10:
-        raise ValueError(f"icosahedral level must be in [0, 10], got {level}")
+    level = grid_size("icosahedral level", level, 0, 10)
     v, _ = _mesh(level)
 
     def coarsen():

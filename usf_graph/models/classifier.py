@@ -131,6 +131,13 @@ class SphericalClassifier(nn.Module):
         return cls(**{"pairs": 0, **config})
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
+        n, c = 10 * 4 ** self.input_level + 2, self.config["in_channels"]
+        if x.dim() not in (2, 3) or tuple(x.shape[-2:]) != (n, c):
+            raise ValueError(f"expected x [B, {n}, {c}] (a signal on icosahedral:{self.input_level} "
+                             f"with {c} channel(s)), got {tuple(x.shape)}")
+        if not torch.isfinite(x).all():
+            raise ValueError("x has NaN or inf; lift images with SphericalFrontend (which checks "
+                             "them) or clean the signal")
         if self.jet is not None:
             x = self.jet_norm(self.jet(x), node_weight=self.jet_area.to(x.dtype))
         if self.input_pool is not None:
