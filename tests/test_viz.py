@@ -32,3 +32,15 @@ def test_plot_sphere_writes_a_figure(tmp_path):
     plot_sphere(g.pos, torch.arange(len(g), dtype=torch.float64), path=tmp_path / "s.png",
                 title="index")
     assert (tmp_path / "s.png").stat().st_size > 20_000
+
+
+def test_rgb_signals_are_drawn_in_their_colours():
+    g = grids.icosahedral(1)
+    rgb = torch.rand(len(g), 3, generator=torch.Generator().manual_seed(0)) * 255  # 8-bit range
+    fig = plt.figure()
+    ax = fig.add_subplot(projection="mollweide")
+    mollweide(ax, g.pos, rgb)
+    shown = ax.collections[1]
+    top = float(rgb.max())
+    np.testing.assert_allclose(shown.get_facecolors()[:, :3], rgb.numpy() / top, atol=1e-6)
+    plt.close(fig)

@@ -97,8 +97,9 @@ def cmd_lift(args) -> int:
     if args.preview:
         from .viz import plot_sphere
 
-        x = img.x.float()
-        plot_sphere(img.pos, x.mean(-1), img.mask, args.preview, title=str(args.image))
+        x = img.x.float()  # RGB images in colour, other channel counts as their mean
+        plot_sphere(img.pos, x if x.shape[-1] == 3 else x.mean(-1), img.mask, args.preview,
+                    title=str(args.image))
         print(f"wrote {args.preview}")
     return 0
 

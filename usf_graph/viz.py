@@ -18,13 +18,24 @@ def _np(a):
     return a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
 
 
+def _colours(values, n):
+    """``[N]``/``[N, 1]`` -> scalars for a colormap; ``[N, 3]`` -> RGB in [0, 1] (scaled by
+    the maximum when it exceeds 1, e.g. 8-bit pixels)."""
+    v = _np(values).astype(np.float64).reshape(n, -1)
+    if v.shape[1] != 3:
+        return v[:, 0], False
+    top = v.max() if v.size else 1.0
+    return np.clip(v / (top if top > 1 else 1.0), 0, 1), True
+
+
 def mollweide(ax, pos, values, mask=None, s=4, cmap="viridis", title=None):
-    """Scatter a spherical signal on a Mollweide axis; hidden points in light grey."""
+    """Scatter a spherical signal on a Mollweide axis; hidden points in light grey.
+    ``values`` ``[N]`` use ``cmap``; ``[N, 3]`` are drawn as RGB colours."""
     lat, lon = to_latlon(_np(pos).astype(np.float64))
-    v = _np(values).reshape(len(lat), -1)[:, 0]
+    v, rgb = _colours(values, len(lat))
     m = np.ones(len(v), bool) if mask is None else _np(mask).astype(bool)
     ax.scatter(lon[~m], lat[~m], c="0.85", s=s, linewidths=0)
-    sc = ax.scatter(lon[m], lat[m], c=v[m], s=s, cmap=cmap, linewidths=0)
+    sc = ax.scatter(lon[m], lat[m], c=v[m], s=s, linewidths=0, **({} if rgb else {"cmap": cmap}))
     ax.grid(True, alpha=0.3)
     ax.set_xticklabels([])
     if title:
@@ -33,14 +44,16 @@ def mollweide(ax, pos, values, mask=None, s=4, cmap="viridis", title=None):
 
 
 def plot_sphere(pos, values, mask=None, path=None, title=None):
-    """Mollweide map and 3-D scatter of a signal side by side; saved to ``path``."""
+    """Mollweide map and 3-D scatter of a signal (``[N]``, or ``[N, 3]`` as RGB) side by
+    side; saved to ``path``."""
     fig = plt.figure(figsize=(10, 4))
     ax = fig.add_subplot(1, 2, 1, projection="mollweide")
     sc = mollweide(ax, pos, values, mask, title=title)
-    fig.colorbar(sc, ax=ax, shrink=0.6)
-    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
     p = _np(pos)
-    v = _np(values).reshape(len(p), -1)[:, 0]
+    v, rgb = _colours(values, len(p))
+    if not rgb:
+        fig.colorbar(sc, ax=ax, shrink=0.6)
+    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
     ax3.scatter(p[:, 0], p[:, 1], p[:, 2], c=v, s=2)
     ax3.set_box_aspect((1, 1, 1))
     ax3.set_xlabel("x (forward)")
