@@ -1,0 +1,22 @@
+"""The benchmark scripts still run (tiny sizes; what they time is not asserted here)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(*args):
+    r = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r.stdout
+
+
+def test_conv_and_lift_benchmarks_run():
+    out = run("benchmarks/conv.py", "--level", "2", "--batch", "1", "--channels", "4",
+              "--reps", "1", "--skip-slow")
+    assert "| SphericalConv (fast) |" in out and "| Conv2d 3x3 |" in out
+    out = run("benchmarks/lift.py", "--level", "2", "--reps", "1")
+    assert out.count("| panorama 2048x1024 |") == 2 and out.count("| fisheye 1280x960") == 2
