@@ -4,6 +4,8 @@ import importlib.util
 import json
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -32,3 +34,13 @@ def test_lens_normal_maps_example_writes_its_figures(tmp_path):
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     assert "fisheye_from_pano.png" in pngs and len(pngs) >= len(ex.example_cameras()) + 1
     assert all((tmp_path / p).stat().st_size > 10_000 for p in pngs)
+
+
+@pytest.mark.slow
+def test_pointcloud_example_full_table(tmp_path):
+    """The README's table (about 1 minute): distances only lose nothing under rigid motions,
+    the raw-coordinate baseline loses most of its accuracy."""
+    res = load("pointcloud_se3").main(["--out", str(tmp_path), "--no-progress"])
+    pc, pn = res["PointCloudNet"], res["PointNet (raw xyz)"]
+    assert pc["unmoved"] >= 0.9 and pc["unmoved"] - pc["rigidly moved"] < 0.01
+    assert pn["unmoved"] >= 0.9 and pn["unmoved"] - pn["rigidly moved"] > 0.5
