@@ -91,6 +91,7 @@ class SphericalClassifier(nn.Module):
             return GaussianPool(fine.pos, coarse.pos, pool_sigma * coarse.spacing, area=fine.area)
 
         g, c_in = G.icosahedral(input_level), in_channels
+        self.num_points = len(g)  # what forward expects
         self.jet, self.input_pool = None, None
         if jet_spacings is not None:
             ei, ew = grid_graph(g, jet_spacings * g.spacing)
@@ -131,7 +132,7 @@ class SphericalClassifier(nn.Module):
         return cls(**{"pairs": 0, **config})
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        n, c = 10 * 4 ** self.input_level + 2, self.config["in_channels"]
+        n, c = self.num_points, self.config["in_channels"]
         if x.dim() not in (2, 3) or tuple(x.shape[-2:]) != (n, c):
             raise ValueError(f"expected x [B, {n}, {c}] (a signal on icosahedral:{self.input_level} "
                              f"with {c} channel(s)), got {tuple(x.shape)}")
