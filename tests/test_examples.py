@@ -9,11 +9,16 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
+def load_script(rel: str):
+    """A script of the repository (``examples/x.py``, ``datasets/y/prepare.py``) as a module."""
+    spec = importlib.util.spec_from_file_location(rel.replace("/", "_")[:-3], ROOT / rel)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def load(name):
+    return load_script(f"examples/{name}.py")
 
 
 def test_pointcloud_example_small_run(tmp_path):

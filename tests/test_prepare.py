@@ -1,6 +1,5 @@
 """The dataset preparation scripts: download (from file:// mirrors here), verify, process."""
 
-import importlib.util
 import shutil
 import zipfile
 from pathlib import Path
@@ -8,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_examples import load_script as script
 
 import usf_graph.datasets.mnist as mnist_module
 from usf_graph.datasets import download_mnist
@@ -16,13 +16,6 @@ from usf_graph.fileio import download, file_md5
 from usf_graph.grids import icosahedral
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def script(rel):
-    spec = importlib.util.spec_from_file_location(rel.replace("/", "_"), ROOT / rel)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.fixture
