@@ -4,7 +4,7 @@
 
 A smooth 3-channel signal and the same signal under a Haar rotation are lifted through an
 equirectangular camera; a 2-layer SphericalConv network (random weights, float64) runs on
-both, and its rotated output is compared (usf_graph.nn.checks). Conv2d does the same on the
+both, and its rotated output is compared (usf_graph.testing). Conv2d does the same on the
 equirectangular image. ratio = network error / interpolation error.
 """
 
@@ -14,7 +14,7 @@ import torch
 
 from usf_graph import grids
 from usf_graph.geometry import random_rotation
-from usf_graph.nn.checks import (
+from usf_graph.testing import (
     equirect_equivariance_error,
     grid_equivariance_error,
     random_spherical_net,

@@ -1,20 +1,10 @@
 """The README's examples run, and what they print holds."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_script(rel: str):
-    """A script of the repository (``examples/x.py``, ``datasets/y/prepare.py``) as a module."""
-    spec = importlib.util.spec_from_file_location(rel.replace("/", "_")[:-3], ROOT / rel)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from tests.helpers import load_script
 
 
 def load(name):

@@ -1,9 +1,27 @@
-"""usf-graph: the Unified Spherical Frontend for PyTorch Geometric."""
+"""usf-graph: the Unified Spherical Frontend for PyTorch Geometric.
 
-__version__ = "0.1.0"
+The subpackages load on first use, so ``import usf_graph`` does not import torch, PyG,
+OpenCV or SciPy until something needs them.
+"""
 
-from . import cameras, geometry, grids  # noqa: E402
-from .data import SphericalImage  # noqa: E402
-from .frontend import SphericalFrontend  # noqa: E402
+import importlib
 
+from ._version import __version__
+
+_SUBPACKAGES = ("cameras", "data", "datasets", "frontend", "geometry", "graph", "grids",
+                "models", "nn", "scenes", "sparse", "testing", "train", "viz")
 __all__ = ["cameras", "geometry", "grids", "SphericalFrontend", "SphericalImage", "__version__"]
+
+
+def __getattr__(name: str):
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"{__name__}.{name}")
+    if name == "SphericalFrontend":
+        from .frontend import SphericalFrontend
+
+        return SphericalFrontend
+    if name == "SphericalImage":
+        from .frontend.image import SphericalImage
+
+        return SphericalImage
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

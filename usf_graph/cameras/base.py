@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+FORMAT_TAG = "usf_graph_camera"  # marks usf-graph's own calibration YAML
+
 # Optical axis -> +x, image right -> -y, image down -> -z (columns are the camera axes).
 DEFAULT_ROTATION = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -308,10 +310,17 @@ class Camera:
                 "rotation": np.round(self.rotation, 15).tolist()}
 
     def save(self, path) -> None:
-        """Write this camera to ``path`` in usf-graph's YAML form (see ``cameras.load``)."""
-        from .io import save
+        """Write this camera to ``path`` in usf-graph's YAML form (see ``cameras.load``),
+        atomically."""
+        import yaml
 
-        save(self, path)
+        from ..fileio import atomic_write
+
+        key = self.key()
+        doc = {FORMAT_TAG: 1, "model": type(self).__name__, "rotation": key["rotation"],
+               "params": key["params"]}
+        text = yaml.safe_dump(doc, sort_keys=False)
+        atomic_write(path, lambda f: f.write(text), "w")
 
     def __repr__(self) -> str:
         p = ", ".join(f"{k}={_short(v)}" for k, v in self.params().items())

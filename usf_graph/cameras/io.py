@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..fileio import atomic_write
-from .base import Camera
+from .base import FORMAT_TAG, Camera
 from .fisheye import Fisheye, KannalaBrandt
 from .omni import DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
@@ -18,7 +17,6 @@ from .scaramuzza import Scaramuzza
 
 MODELS = {c.__name__: c for c in (Pinhole, Fisheye, KannalaBrandt, Mei, DoubleSphere,
                                   Scaramuzza, Equirectangular)}
-FORMAT_TAG = "usf_graph_camera"
 
 
 def _need(d: dict, key: str, path, where: str = ""):
@@ -63,18 +61,8 @@ def load(path, key: str | None = None) -> Camera:
 
 
 def save(cam: Camera, path) -> None:
-    """Write ``cam`` in usf-graph's YAML form, atomically."""
-    if isinstance(cam, LensNormalMap):
-        raise ValueError("save a LensNormalMap with numpy.savez(path, rays=..., valid=...)")
-    doc = {FORMAT_TAG: 1, "model": type(cam).__name__, **cam.key()}
-    doc.pop("params")
-    doc["params"] = cam.key()["params"]
-    doc["model"] = type(cam).__name__
-    atomic_write_text(path, yaml.safe_dump(doc, sort_keys=False))
-
-
-def atomic_write_text(path, text: str) -> None:
-    atomic_write(path, lambda f: f.write(text), "w")
+    """Write ``cam`` in usf-graph's YAML form, atomically (:meth:`Camera.save`)."""
+    cam.save(path)
 
 
 def _load_own(path, data) -> Camera:

@@ -113,6 +113,10 @@ class LensNormalMap(Camera):
         h = hashlib.sha256(self.rays.tobytes() + self.valid_table.tobytes()).hexdigest()[:16]
         return dict(width=self.width, height=self.height, digest=h, source=self.source)
 
+    def save(self, path) -> None:
+        raise ValueError("a LensNormalMap is its table: save it with "
+                         "numpy.savez(path, rays=cam.rays, valid=cam.valid_table)")
+
     def with_rotation(self, rotation) -> LensNormalMap:
         return LensNormalMap(self.rays, self.valid_table, rotation, self.source)
 

@@ -6,10 +6,10 @@ import torch
 from torch_geometric.data import Data
 from torch_geometric.transforms import BaseTransform
 
-from ..frontend.cache import GeometryCache
+from ..frontend import GeometryCache, SphericalFrontend
 from ..frontend.interpolation import barycentric_entries
 from ..geometry import random_rotation
-from ..nn.graph import geodesic_radius_graph
+from ..graph import geodesic_radius_graph
 
 
 class RandomRotation(BaseTransform):
@@ -56,8 +56,6 @@ def rotate_sample(data: Data, R: torch.Tensor, frontend=None) -> Data:
     R64 = torch.as_tensor(R, dtype=torch.float64)
     image = getattr(data, "image", None)
     if frontend is not None and image is not None:
-        from ..frontend import SphericalFrontend
-
         cam = frontend.camera
         fe = SphericalFrontend(cam.with_rotation(R64.numpy() @ cam.rotation), frontend.grid,
                                frontend.interpolation, frontend.radius,

@@ -11,12 +11,12 @@ import torch
 from torch_geometric.data import Dataset
 from tqdm.auto import tqdm
 
-from .. import grids as G
 from ..cameras import DEFAULT_ROTATION, Fisheye
-from ..data import SphericalImage
 from ..fileio import atomic_torch_save, download
+from ..frontend.image import SphericalImage
 from ..frontend.interpolation import bilinear_entries
 from ..geometry import random_rotation
+from ..grids import from_spec
 from .stacked import pre_transform_stacked
 
 IDX_FILES = {"train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
@@ -199,7 +199,7 @@ class SphericalMNIST(Dataset):
                  seed: int = 0, source: str = "auto", transform=None, pre_transform=None,
                  progress: bool = True):
         self.split, self.rotate, self.seed, self.source = split, rotate, seed, source
-        self.grid = G.from_spec(grid) if isinstance(grid, str) else grid
+        self.grid = from_spec(grid) if isinstance(grid, str) else grid
         self.progress = progress
         sample_rotations(1, rotate, seed)  # validates the mode early
         super().__init__(str(root), transform, pre_transform, log=False)

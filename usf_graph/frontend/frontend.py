@@ -12,11 +12,11 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..cameras import Camera
-from ..data import SphericalImage
+from ..graph import geodesic_radius_graph
 from ..grids import Grid
-from ..nn.graph import geodesic_radius_graph
-from ..nn.sparse import quiet_sparse
+from ..sparse import quiet_sparse
 from .cache import GeometryCache, default_cache
+from .image import SphericalImage
 from .interpolation import bilinear_entries, build_table, check_method, nearest_entries
 
 _REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .. import grids as G
 from ..frontend import grid_graph
+from ..grids import icosahedral
 from ..nn import GaussianPool, GradientPairs, GridPool, LocalJet, MaskedBatchNorm, SphericalConv
 from ..nn.pool import global_max_pool_masked, global_mean_pool_area
 
@@ -90,7 +90,7 @@ class SphericalClassifier(nn.Module):
         def blur(fine, coarse):  # anti-aliased pooling between two levels
             return GaussianPool(fine.pos, coarse.pos, pool_sigma * coarse.spacing, area=fine.area)
 
-        g, c_in = G.icosahedral(input_level), in_channels
+        g, c_in = icosahedral(input_level), in_channels
         self.num_points = len(g)  # what forward expects
         self.jet, self.input_pool = None, None
         if jet_spacings is not None:
@@ -100,16 +100,15 @@ class SphericalClassifier(nn.Module):
             self.register_buffer("jet_area", g.area.float(), persistent=False)
             c_in = 4 * in_channels
             if input_level > level:  # invariants from the finer input, blurred down
-                coarse = G.icosahedral(level)
+                coarse = icosahedral(level)
                 self.input_pool = blur(g, coarse)
                 g = coarse
         for s, c in enumerate(channels):
             r = radius_spacings * g.spacing
             ei, ew = grid_graph(g, r)
-            self.register_buffer(f"ei{s}", ei, persistent=False)
-            self.register_buffer(f"ew{s}", ew.float(), persistent=False)
             self.register_buffer(f"area{s}", g.area.float(), persistent=False)
-            self.convs.append(SphericalConv(c_in, c, r, num_basis=num_basis, basis=basis))
+            self.convs.append(SphericalConv(c_in, c, r, num_basis=num_basis, basis=basis)
+                              .bind(ei, ew.float(), node_weight=g.area.float()))
             self.norms.append(MaskedBatchNorm(c))
             c_in = c
             if pairs and s < min(pair_stages, len(channels) - 1):
@@ -144,9 +143,8 @@ class SphericalClassifier(nn.Module):
         if self.input_pool is not None:
             x, _ = self.input_pool(x)
         for s, conv in enumerate(self.convs):
-            ei, ew, a = getattr(self, f"ei{s}"), getattr(self, f"ew{s}"), getattr(self, f"area{s}")
-            a = a.to(x.dtype)
-            x = torch.relu(self.norms[s](conv(x, ei, ew.to(x.dtype), node_weight=a), node_weight=a))
+            a = getattr(self, f"area{s}").to(x.dtype)
+            x = torch.relu(self.norms[s](conv(x), node_weight=a))
             if s < len(self.pairs):
                 x = torch.cat([x, self.pair_norms[s](self.pairs[s](x), node_weight=a)], -1)
             if s < len(self.pools):  # the pools come first; later stages keep the level

@@ -86,7 +86,7 @@ class PointCloudNet(nn.Module):
         levels = []
         for s, conv in enumerate(self.convs):
             ei, ew = euclidean_radius_graph(pos, self.radii[s], batch)
-            x = torch.relu(self.norms[s](conv(x, ei, ew, fast=False)))
+            x = torch.relu(self.norms[s](conv(x, ei, ew)))
             levels.append((x, pos, batch))
             if s < len(self.pools):
                 x, pos, batch, _ = self.pools[s](x, pos, batch)

@@ -1,27 +1,31 @@
 """Neural-network layers on S2 and R3 built on one distance kernel."""
 
-from .conv import DistanceConv, PointConv, SphericalConv
-from .graph import (
-           euclidean_radius,
-           euclidean_radius_graph,
-           geodesic_radius,
-           geodesic_radius_graph,
-           knn_graph,
-           radius_for_neighbors,
+from ..graph import (
+    euclidean_radius,
+    euclidean_radius_graph,
+    geodesic_radius,
+    geodesic_radius_graph,
+    knn_graph,
+    radius_for_neighbors,
 )
+from .aggregate import EdgePlan, basis_aggregate
+from .conv import DistanceConv, PointConv, SphericalConv
 from .jet import GradientPairs, LocalJet, jet_operator
 from .kernel import DistanceKernel
 from .norm import MaskedBatchNorm
 from .pool import (
-           FPSPool,
-           GaussianPool,
-           GridPool,
-           GridUnpool,
-           farthest_point_sampling,
-           global_max_pool_masked,
-           global_mean_pool_area,
+    FPSPool,
+    GaussianPool,
+    GridPool,
+    GridUnpool,
+    farthest_point_sampling,
+    global_max_pool_masked,
+    global_mean_pool_area,
 )
 
-__all__ = ["LocalJet", "GradientPairs", "jet_operator", "DistanceKernel", "DistanceConv", "SphericalConv", "PointConv", "GridPool", "GaussianPool",
-           "GridUnpool", "FPSPool", "farthest_point_sampling", "euclidean_radius", "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
-           "geodesic_radius", "geodesic_radius_graph", "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]
+__all__ = ["LocalJet", "GradientPairs", "jet_operator", "DistanceKernel", "DistanceConv",
+           "SphericalConv", "PointConv", "EdgePlan", "basis_aggregate", "GridPool",
+           "GaussianPool", "GridUnpool", "FPSPool", "farthest_point_sampling",
+           "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
+           "euclidean_radius", "geodesic_radius", "geodesic_radius_graph",
+           "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .sparse import csr, sparse_apply, transpose_csr
+from ..sparse import csr, quiet_sparse, sparse_apply, transpose_csr
+from .batching import from_static, to_static
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
 _TERMS = 6
@@ -55,33 +56,42 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
 
 
 class _Derivatives(nn.Module):
-    """Holds a :func:`jet_operator` and applies it to ``[..., N, C]`` signals."""
+    """Holds a :func:`jet_operator` (in buffers) and applies it to signals on its graph:
+    ``[N, C]``, ``[B, N, C]`` or a PyG batch ``[B N, C]`` with ``batch``."""
 
     def __init__(self, pos, edge_index, edge_weight, spacing: float, sigma, rows: int):
         super().__init__()
         sigma = float(edge_weight.max()) / 2 if sigma is None else sigma
         self.spacing, self.num_nodes = float(spacing), len(pos)
-        self._op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
-        self._rows, self._cast = rows, {}
+        op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
+        opt = transpose_csr(op)
+        for name, m in (("op", op), ("op_t", opt)):
+            self.register_buffer(f"{name}_crow", m.crow_indices(), persistent=False)
+            self.register_buffer(f"{name}_col", m.col_indices(), persistent=False)
+            self.register_buffer(f"{name}_val", m.values(), persistent=False)
+        self._rows = rows
 
-    def _derivatives(self, x: torch.Tensor) -> torch.Tensor:
-        """``[..., N, C]`` -> ``[N, rows, B*C]`` (B: the flattened leading dimensions)."""
-        if x.shape[-2] != self.num_nodes:
-            raise ValueError(f"x has {x.shape[-2]} points, the operator was built for "
-                             f"{self.num_nodes}")
-        key = (x.dtype, x.device)
-        if key not in self._cast:
-            op = self._op.to(device=x.device, dtype=x.dtype)
-            self._cast[key] = (op, transpose_csr(op))
-        n, c = x.shape[-2:]
-        flat = x.reshape(-1, n, c).permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
-        return sparse_apply(*self._cast[key], flat).view(n, self._rows, -1)
+    def _operator(self, name: str, dtype, shape) -> torch.Tensor:
+        with quiet_sparse():
+            return torch.sparse_csr_tensor(getattr(self, f"{name}_crow"),
+                                           getattr(self, f"{name}_col"),
+                                           getattr(self, f"{name}_val").to(dtype), shape)
+
+    def _derivatives(self, x: torch.Tensor, batch=None) -> tuple[torch.Tensor, torch.Tensor, str]:
+        """``x`` -> (``[N, rows, B*C]`` derivatives, ``x`` as ``[B, N, C]``, its form)."""
+        xs, form = to_static(x, self.num_nodes, batch, type(self).__name__)
+        n, r = self.num_nodes, self._rows
+        op = self._operator("op", xs.dtype, (r * n, n))
+        op_t = self._operator("op_t", xs.dtype, (n, r * n))
+        flat = xs.permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
+        return sparse_apply(op, op_t, flat).view(n, r, -1), xs, form
 
     @staticmethod
-    def _unflatten(y: torch.Tensor, lead, c: int) -> torch.Tensor:
-        """``[N, F, B*C]`` -> ``[*lead, N, F*C]`` (F blocks of C channels)."""
+    def _unflatten(y: torch.Tensor, xs: torch.Tensor, form: str, c: int) -> torch.Tensor:
+        """``[N, F, B*C]`` -> the input's form with ``F*C`` channels (F blocks of C)."""
         n, f = y.shape[:2]
-        return y.view(n, f, -1, c).permute(2, 0, 1, 3).reshape(*lead, n, f * c)
+        out = y.view(n, f, -1, c).permute(2, 0, 1, 3).reshape(xs.shape[0], n, f * c)
+        return from_static(out, form)[0]
 
 
 class LocalJet(_Derivatives):
@@ -99,20 +109,21 @@ class LocalJet(_Derivatives):
         pos: ``[N, 3]`` points; edge_index/edge_weight: their geodesic radius graph;
         spacing: h; sigma: the fit's Gaussian width (default: the radius / 2).
 
-    Shapes: ``[N, C]`` or ``[B, N, C]`` -> ``[..., N, 4 C]`` (``[f, |g|, lap, det]``
-    blocks of C).
+    Shapes: ``[N, C]``, ``[B, N, C]`` or a PyG batch ``[B N, C]`` with ``batch`` -> the
+    same form with ``4 C`` channels (``[f, |g|, lap, det]`` blocks of C).
     """
 
     def __init__(self, pos, edge_index, edge_weight, spacing: float,
                  sigma: float | None = None):
         super().__init__(pos, edge_index, edge_weight, spacing, sigma, rows=5)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
         h = self.spacing
-        g1, g2, h11, h12, h22 = self._derivatives(x).unbind(1)
+        d, xs, form = self._derivatives(x, batch)
+        g1, g2, h11, h12, h22 = d.unbind(1)
         inv = torch.stack([h * torch.sqrt(g1 * g1 + g2 * g2 + 1e-12), h * h * (h11 + h22),
                            h ** 4 * (h11 * h22 - h12 * h12)], 1)  # [N, 3, B*C]
-        return torch.cat([x, self._unflatten(inv, x.shape[:-2], x.shape[-1])], -1)
+        return torch.cat([x, self._unflatten(inv, xs, form, x.shape[-1])], -1)
 
     def extra_repr(self) -> str:
         return f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g}"
@@ -138,7 +149,8 @@ class GradientPairs(_Derivatives):
         pos, edge_index, edge_weight, spacing, sigma: as :class:`LocalJet`;
         in_channels: C; pairs: m.
 
-    Shapes: ``[N, C]`` or ``[B, N, C]`` -> ``[..., N, 2 m]`` (dot products, then cross).
+    Shapes: ``[N, C]``, ``[B, N, C]`` or a PyG batch ``[B N, C]`` with ``batch`` -> the
+    same form with ``2 m`` channels (dot products, then cross).
     """
 
     def __init__(self, pos, edge_index, edge_weight, spacing: float, in_channels: int,
@@ -152,15 +164,16 @@ class GradientPairs(_Derivatives):
     def reset_parameters(self) -> None:
         self.lin.reset_parameters()
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
         if x.shape[-1] != self.in_channels:
             raise ValueError(f"x has {x.shape[-1]} channels, the layer expects "
                              f"{self.in_channels}")
         m, h2 = self.pairs, self.spacing ** 2
-        g = self._derivatives(self.lin(x)).unflatten(2, (-1, 2, m))  # [N, 2, B, (a|b), m]
+        d, xs, form = self._derivatives(self.lin(x), batch)
+        g = d.unflatten(2, (-1, 2, m))  # [N, 2, B, (a|b), m]
         (a1, b1), (a2, b2) = g[:, 0].unbind(-2), g[:, 1].unbind(-2)
         inv = torch.stack([h2 * (a1 * b1 + a2 * b2), h2 * (a1 * b2 - a2 * b1)], 1)
-        return self._unflatten(inv.flatten(2), x.shape[:-2], m)
+        return self._unflatten(inv.flatten(2), xs, form, m)
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}({self.in_channels}, pairs={self.pairs}, "

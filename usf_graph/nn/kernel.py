@@ -51,6 +51,11 @@ class DistanceKernel(nn.Module):
     def learnable(self) -> bool:
         return self.mlp is not None
 
+    @property
+    def positive(self) -> bool:
+        """Whether every basis function is >= 0 (``hat``, ``gaussian``)."""
+        return self.basis in ("hat", "gaussian")
+
     def reset_parameters(self) -> None:
         if self.mlp is not None:
             for m in self.mlp:

@@ -15,7 +15,13 @@ class MaskedBatchNorm(nn.Module):
     same statistics. Rotating the signal permutes points and so leaves the statistics
     unchanged on a grid symmetric under the rotation.
 
-    Shapes: ``[N, C]`` or ``[B, N, C]`` -> same.
+    The statistics pool every visible point of every sample, as torch's BatchNorm does,
+    so a PyG batch ``[sum N_i, C]`` (graphs of any sizes; ``mask`` and ``node_weight``
+    per point, ``batch`` accepted for a uniform call) gives the same result as the static
+    form ``[B, N, C]`` of the same samples (``mask`` ``[N]`` or ``[B, N]``), and in
+    evaluation mode the same as each graph alone.
+
+    Shapes: ``[N, C]``, ``[B, N, C]`` or ``[sum N_i, C]`` -> same.
     """
 
     def __init__(self, channels: int, eps: float = 1e-5, momentum: float = 0.1):
@@ -33,14 +39,26 @@ class MaskedBatchNorm(nn.Module):
         self.running_var.fill_(1)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
-                node_weight: torch.Tensor | None = None) -> torch.Tensor:
+                node_weight: torch.Tensor | None = None,
+                batch: torch.Tensor | None = None) -> torch.Tensor:
+        if x.dim() not in (2, 3) or x.shape[-1] != self.channels:
+            raise ValueError(f"x must be [N, {self.channels}], [B, N, {self.channels}] or a "
+                             f"PyG batch [sum N_i, {self.channels}], got {tuple(x.shape)}")
+        N = x.shape[-2]
+        if batch is not None and (x.dim() != 2 or batch.shape != (N,)):
+            raise ValueError(f"batch must be [sum N_i] for x [sum N_i, C], got batch "
+                             f"{tuple(batch.shape)} and x {tuple(x.shape)}")
+        for name, t in (("mask", mask), ("node_weight", node_weight)):
+            if t is not None and (t.shape[-1] != N or t.dim() > x.dim() - 1):
+                raise ValueError(f"{name} must have one value per point ({N}), got "
+                                 f"{tuple(t.shape)}")
         if self.training:
-            N = x.shape[-2]
             w = torch.ones(N, dtype=x.dtype, device=x.device) if node_weight is None \
                 else node_weight.to(x.dtype)
             if mask is not None:
                 w = w * mask.to(x.dtype)
-            w = w[:, None] / (w.sum() * (x.shape[0] if x.dim() == 3 else 1))
+            w = w.expand(x.shape[:-1])[..., None]
+            w = w / w.sum().clamp_min(1e-30)
             dims = tuple(range(x.dim() - 1))
             mean = (x * w).sum(dims)
             var = (((x - mean) ** 2) * w).sum(dims)

@@ -8,15 +8,9 @@ import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
-from .sparse import csr, quiet_sparse
-
-
-def _node_first(x: torch.Tensor):
-    """[N, C] or [B, N, C] -> ([N, B*C], restore)."""
-    if x.dim() == 2:
-        return x, lambda y: y
-    B, N, C = x.shape
-    return x.transpose(0, 1).reshape(N, B * C), lambda y: y.reshape(-1, B, C).transpose(0, 1)
+from ..graph import euclidean_radius, geodesic_radius
+from ..sparse import csr, quiet_sparse
+from .batching import from_static, mask_static, pooled_batch, to_static
 
 
 class GridPool(nn.Module):
@@ -28,8 +22,11 @@ class GridPool(nn.Module):
     Uses torch-scatter's ``segment_csr`` on the clusters, sorted once at construction.
 
     Shapes:
-        - x: ``[N, C]`` or ``[B, N, C]``, mask: ``[N]`` (optional)
-        - output: ``([M, C] or [B, M, C], coarse mask [M])``
+        - x: ``[N, C]``, ``[B, N, C]``, or a PyG batch ``[B N, C]`` with ``batch [B N]``
+        - mask: ``[N]``, ``[B, N]`` or ``[B N]`` (optional)
+        - output: ``(y, coarse mask)`` in the input's form (``[M, C]``, ``[B, M, C]``;
+          mask ``[M]``, or ``[B, M]`` for per-sample masks), plus the coarse ``batch
+          [B M]`` for a PyG batch: ``(y [B M, C], mask [B M], batch [B M])``
     """
 
     def __init__(self, cluster: torch.Tensor, num_coarse: int | None = None, mode: str = "max",
@@ -49,26 +46,37 @@ class GridPool(nn.Module):
         self.register_buffer("area", None if area is None else torch.as_tensor(area),
                              persistent=False)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None):
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                batch: torch.Tensor | None = None):
         from torch_scatter import segment_csr
 
-        xf, restore = _node_first(x)
-        m = torch.ones(xf.shape[0], dtype=xf.dtype, device=xf.device) if mask is None \
-            else mask.to(xf.dtype)
-        m_c = segment_csr(m[self.perm], self.indptr, reduce="max") > 0
+        xs, form = to_static(x, len(self.cluster), batch, type(self).__name__)
+        ms = mask_static(mask, xs, form)
+        xf = xs.transpose(0, 1)  # [N, B, C]: segments along dim 0
+        m = torch.ones(xf.shape[:2], dtype=xf.dtype, device=xf.device) if ms is None \
+            else ms.t().to(xf.dtype)
+        m_c = segment_csr(m[self.perm], self.indptr, reduce="max") > 0  # [M, B]
         if self.mode == "mean":
-            w = m * (self.area.to(xf.dtype) if self.area is not None else 1.0)
-            num = segment_csr((xf * w[:, None])[self.perm], self.indptr, reduce="sum")
+            w = m * (self.area.to(xf.dtype)[:, None] if self.area is not None else 1.0)
+            num = segment_csr((xf * w[..., None])[self.perm], self.indptr, reduce="sum")
             den = segment_csr(w[self.perm], self.indptr, reduce="sum")
-            out = num / den.clamp_min(1e-30)[:, None]
+            out = num / den.clamp_min(1e-30)[..., None]
         else:
-            src = xf if mask is None else xf.masked_fill(~mask.bool()[:, None], float("-inf"))
+            src = xf if ms is None else xf.masked_fill(~ms.t()[..., None], float("-inf"))
             out = segment_csr(src[self.perm], self.indptr, reduce="max")
-            out = out.masked_fill(~m_c[:, None], 0.0)
-        return restore(out), m_c
+            out = out.masked_fill(~m_c[..., None], 0.0)
+        return _pooled(out.transpose(0, 1), m_c.t(), form, mask)
 
     def extra_repr(self) -> str:
         return f"{len(self.cluster)} -> {self.num_coarse}, mode='{self.mode}'"
+
+
+def _pooled(y, m, form, given):
+    """A pool's result in its input's form; a PyG batch also gets the coarse ``batch``."""
+    out, mask = from_static(y, form, m, given)
+    if form == "pyg":
+        return out, mask, pooled_batch(y.shape[0], y.shape[1], y.device)
+    return out, mask
 
 
 class GaussianPool(nn.Module):
@@ -88,16 +96,12 @@ class GaussianPool(nn.Module):
     geodesic distance is isotropic, so the layer commutes exactly with rotations that map
     both point sets onto themselves. ``sigma`` defaults to 0.5 coarse spacings.
 
-    Shapes:
-        - x: ``[N, C]`` or ``[B, N, C]``, mask: ``[N]`` (optional)
-        - output: ``([M, C] or [B, M, C], coarse mask [M])``
+    Shapes: as :class:`GridPool` (``x``, ``mask``, ``batch`` in any of the three forms).
     """
 
     def __init__(self, fine_pos: torch.Tensor, coarse_pos: torch.Tensor, sigma: float,
                  area: torch.Tensor | None = None):
         super().__init__()
-        from .graph import geodesic_radius
-
         if not sigma > 0:
             raise ValueError(f"sigma must be > 0 radians, got {sigma}")
         fine, coarse = torch.as_tensor(fine_pos).double(), torch.as_tensor(coarse_pos).double()
@@ -112,17 +116,21 @@ class GaussianPool(nn.Module):
         self.register_buffer("col", P.col_indices(), persistent=False)
         self.register_buffer("val", P.values(), persistent=False)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None):
-        xf, restore = _node_first(x)
-        m = torch.ones(xf.shape[0], 1, dtype=xf.dtype, device=xf.device) if mask is None \
-            else mask.to(xf.dtype)[:, None]
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                batch: torch.Tensor | None = None):
+        xs, form = to_static(x, self.num_fine, batch, type(self).__name__)
+        ms = mask_static(mask, xs, form)
+        B, N, C = xs.shape
+        xf = xs.transpose(0, 1)  # [N, B, C]
+        m = torch.ones(N, B, dtype=xs.dtype, device=xs.device) if ms is None \
+            else ms.t().to(xs.dtype)
         with quiet_sparse():
-            P = torch.sparse_csr_tensor(self.crow, self.col, self.val.to(xf.dtype),
+            P = torch.sparse_csr_tensor(self.crow, self.col, self.val.to(xs.dtype),
                                         (self.num_coarse, self.num_fine))
-            den = (P @ m)[:, 0]
-            num = P @ (xf if mask is None else xf * m)
-        m_c = den > 0
-        return restore(num / den.clamp_min(1e-30)[:, None]), m_c
+            den = P @ m  # [M, B]
+            num = (P @ (xf * m[..., None]).reshape(N, B * C)).view(-1, B, C)
+        y = num / den.clamp_min(1e-30)[..., None]
+        return _pooled(y.transpose(0, 1), (den > 0).t(), form, mask)
 
     def extra_repr(self) -> str:
         return f"{self.num_fine} -> {self.num_coarse}, sigma={self.sigma:.4g}"
@@ -132,7 +140,8 @@ class GridUnpool(nn.Module):
     """Coarse -> fine: ``nearest`` copies the point's cluster value; ``linear`` blends the
     three nearest coarse points by inverse squared distance (needs the positions).
 
-    Shapes: ``[M, C]`` or ``[B, M, C]`` -> ``[N, C]`` or ``[B, N, C]``.
+    Shapes: ``[M, C]``, ``[B, M, C]``, or a PyG batch ``[B M, C]`` with ``batch`` ->
+    the same form on the fine grid (a PyG batch returns ``(y [B N, C], batch [B N])``).
     """
 
     def __init__(self, cluster: torch.Tensor, mode: str = "nearest", fine_pos=None,
@@ -141,12 +150,15 @@ class GridUnpool(nn.Module):
         if mode not in ("nearest", "linear"):
             raise ValueError(f"mode must be 'nearest' or 'linear', got {mode!r}")
         self.mode = mode
+        cluster = torch.as_tensor(cluster, dtype=torch.long)
         if mode == "nearest":
-            idx = torch.as_tensor(cluster, dtype=torch.long)[:, None]
+            self.num_coarse = int(cluster.max()) + 1
+            idx = cluster[:, None]
             w = torch.ones(idx.shape, dtype=torch.float64)
         else:
             if fine_pos is None or coarse_pos is None:
                 raise ValueError("mode='linear' needs fine_pos and coarse_pos")
+            self.num_coarse = len(coarse_pos)
             d, j = cKDTree(torch.as_tensor(coarse_pos).numpy()).query(
                 torch.as_tensor(fine_pos).numpy(), k=3)
             w = 1.0 / torch.as_tensor(d).clamp_min(1e-12) ** 2
@@ -158,28 +170,72 @@ class GridUnpool(nn.Module):
         self.register_buffer("idx", idx, persistent=False)
         self.register_buffer("w", w, persistent=False)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        g = x[..., self.idx, :]  # [..., N, P, C]
-        return (g * self.w.to(x.dtype)[..., None]).sum(-2)
+    def forward(self, x: torch.Tensor, batch: torch.Tensor | None = None):
+        xs, form = to_static(x, self.num_coarse, batch, type(self).__name__)
+        g = xs[:, self.idx, :]  # [B, N, P, C]
+        y, _ = from_static((g * self.w.to(xs.dtype)[..., None]).sum(-2), form)
+        if form == "pyg":
+            return y, pooled_batch(xs.shape[0], self.idx.shape[0], y.device)
+        return y
 
     def extra_repr(self) -> str:
-        return f"{self.idx.shape[0]} points, mode='{self.mode}'"
+        return f"{self.num_coarse} -> {self.idx.shape[0]} points, mode='{self.mode}'"
+
+
+def _readout_weights(x, area, mask, batch):
+    """Per-point weights (area times visibility) broadcastable to ``x[..., :1]``."""
+    w = torch.ones(x.shape[-2], dtype=x.dtype, device=x.device) if area is None \
+        else area.to(x.dtype)
+    if w.shape != (x.shape[-2],):
+        raise ValueError(f"area must have one value per point ({x.shape[-2]}), got "
+                         f"{tuple(w.shape)}")
+    if mask is not None:
+        if mask.shape[-1] != x.shape[-2] or (batch is not None and mask.dim() != 1):
+            raise ValueError(f"mask must have one value per point ({x.shape[-2]}), got "
+                             f"{tuple(mask.shape)}")
+        w = w * mask.to(x.dtype)
+    return w[..., None]
+
+
+def _num_graphs(batch: torch.Tensor, x: torch.Tensor) -> int:
+    if x.dim() != 2 or batch.shape != (x.shape[0],):
+        raise ValueError(f"with batch, x must be [sum N_i, C] and batch [sum N_i]; got "
+                         f"{tuple(x.shape)} and {tuple(batch.shape)}")
+    return int(batch.max()) + 1 if batch.numel() else 0
 
 
 def global_mean_pool_area(x: torch.Tensor, area: torch.Tensor | None = None,
-                          mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Area-weighted mean over visible points: ``[(B,) N, C] -> [(B,) C]``."""
-    w = torch.ones(x.shape[-2], dtype=x.dtype, device=x.device) if area is None else area.to(x.dtype)
-    if mask is not None:
-        w = w * mask.to(x.dtype)
-    return (x * w[:, None]).sum(-2) / w.sum().clamp_min(1e-30)
+                          mask: torch.Tensor | None = None,
+                          batch: torch.Tensor | None = None) -> torch.Tensor:
+    """Area-weighted mean over visible points, per graph: ``[N, C] -> [C]``,
+    ``[B, N, C] -> [B, C]`` (mask ``[N]`` or ``[B, N]``), or a PyG batch ``[sum N_i, C]``
+    with ``batch`` (``area`` and ``mask`` per point) -> ``[num_graphs, C]``, like
+    :func:`torch_geometric.nn.global_mean_pool`."""
+    w = _readout_weights(x, area, mask, batch)
+    if batch is None:
+        return (x * w).sum(-2) / w.sum(-2).clamp_min(1e-30)
+    G = _num_graphs(batch, x)
+    num = x.new_zeros(G, x.shape[-1]).index_add_(0, batch, x * w)
+    den = x.new_zeros(G, 1).index_add_(0, batch, w)
+    return num / den.clamp_min(1e-30)
 
 
-def global_max_pool_masked(x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Maximum over visible points: ``[(B,) N, C] -> [(B,) C]``."""
+def global_max_pool_masked(x: torch.Tensor, mask: torch.Tensor | None = None,
+                           batch: torch.Tensor | None = None) -> torch.Tensor:
+    """Maximum over visible points, per graph: ``[(B,) N, C] -> [(B,) C]`` or a PyG batch
+    with ``batch`` -> ``[num_graphs, C]``. A graph with no visible point gets 0."""
     if mask is not None:
-        x = x.masked_fill(~mask.bool()[:, None], float("-inf"))
-    return x.amax(-2)
+        if mask.shape[-1] != x.shape[-2]:
+            raise ValueError(f"mask must have one value per point ({x.shape[-2]}), got "
+                             f"{tuple(mask.shape)}")
+        x = x.masked_fill(~mask.bool()[..., None], float("-inf"))
+    if batch is None:
+        out = x.amax(-2)
+    else:
+        G = _num_graphs(batch, x)
+        out = x.new_full((G, x.shape[-1]), float("-inf")).scatter_reduce(
+            0, batch[:, None].expand_as(x), x, "amax")
+    return out.masked_fill(torch.isneginf(out), 0.0)
 
 
 def farthest_point_sampling(pos: torch.Tensor, batch: torch.Tensor | None = None,
@@ -223,8 +279,6 @@ class FPSPool(nn.Module):
 
     def forward(self, x, pos, batch=None):
         from torch_scatter import scatter_max
-
-        from .graph import euclidean_radius
 
         batch = torch.zeros(len(pos), dtype=torch.long, device=pos.device) if batch is None else batch
         idx = farthest_point_sampling(pos, batch, self.ratio)

@@ -133,17 +133,17 @@ def test_rotation_preserves_spacing():
 
 
 def test_locality_order_lets_the_convolution_tile():
-    from usf_graph.nn import geodesic_radius_graph
-    from usf_graph.nn.conv import plan_tiles
+    from usf_graph.nn import EdgePlan, geodesic_radius_graph
 
     g = grids.icosahedral(3)
     order = grids.locality_order(g.pos)
     assert sorted(order.tolist()) == list(range(len(g)))
 
-    def tiles(pos):  # blocks of 64 rows; one tile when their halos add up to > 2 N
-        (j, i), _ = geodesic_radius_graph(pos, 1.6 * g.spacing)
-        return plan_tiles(i, j, torch.ones(len(i), 1, dtype=torch.float64), len(g), 64)
+    def plan(pos):  # blocks of 64 rows; one tile when their halos add up to > 2 N
+        ei, _ = geodesic_radius_graph(pos, 1.6 * g.spacing)
+        return EdgePlan(ei, len(g), tile_rows=64)
 
-    local = tiles(g.pos[order])
-    assert len(local) == 11 and sum(len(t[2]) for t in local) < 2 * len(g)
-    assert len(tiles(g.pos)) == 1  # the nested numbering has no locality
+    local = plan(g.pos[order])
+    assert len(local.bounds) == 11
+    assert sum(len(getattr(local, f"cols{t}")) for t in range(11)) < 2 * len(g)
+    assert len(plan(g.pos).bounds) == 1  # the nested numbering has no locality

@@ -1,86 +1,13 @@
-import math
+"""Point-cloud datasets: OFF files, ModelNet's layout, procedural shapes."""
+
 
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from usf_graph.datasets import SHAPES, ModelNet, ProceduralShapes, read_off, sample_surface
-from usf_graph.geometry import random_rotation
-from usf_graph.models import PointCloudNet, PointNet
-from usf_graph.nn import FPSPool, euclidean_radius, farthest_point_sampling
 
 FIX = "tests/fixtures/modelnet"
-
-
-def moved(pos, seed):
-    R = random_rotation(seed=seed)
-    t = torch.randn(3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 3
-    return pos @ R.T + t
-
-
-@pytest.fixture(scope="module")
-def clouds():
-    d = ProceduralShapes("test", per_class=1, num_points=300, seed=1)
-    return d.pos.double()[[0, 2, 5, 7]]
-
-
-@pytest.mark.parametrize("segmentation", [False, True])
-def test_logits_invariant_to_rigid_motions_in_float64(clouds, segmentation):
-    torch.manual_seed(0)
-    net = PointCloudNet(10, segmentation=segmentation).double().eval()
-    ref = net(clouds)
-    for seed in range(4):
-        out = net(moved(clouds, seed))
-        assert (out - ref).abs().max() < 1e-9, seed
-    assert ref.std() > 1e-3  # not a constant output
-    perm = torch.randperm(clouds.shape[1])
-    out = net(clouds[:, perm])
-    assert torch.allclose(out, ref[:, perm] if segmentation else ref, atol=1e-10, rtol=0)
-
-
-def test_baseline_is_not_invariant(clouds):
-    torch.manual_seed(0)
-    net = PointNet(10).double().eval()
-    assert (net(moved(clouds, 0)) - net(clouds)).abs().max() > 1e-2
-
-
-def test_segmentation_labels_move_with_points(clouds):
-    net = PointCloudNet(2, segmentation=True).double().eval()
-    pos = clouds[0]
-    out = net(pos, torch.zeros(len(pos), dtype=torch.long))
-    assert out.shape == (len(pos), 2)
-    perm = torch.randperm(len(pos))
-    assert torch.allclose(net(moved(pos, 3)[perm]), out[perm], atol=1e-10, rtol=0)
-
-
-@settings(max_examples=15, deadline=None)
-@given(st.integers(0, 10_000), st.floats(0.1, 1.0))
-def test_fps_picks_the_same_points_under_motion_and_permutation(seed, ratio):
-    g = torch.Generator().manual_seed(seed)
-    pos = torch.randn(200, 3, generator=g, dtype=torch.float64)
-    batch = torch.tensor([0] * 120 + [1] * 80)
-    idx = farthest_point_sampling(pos, batch, ratio)
-    assert len(idx.unique()) == len(idx) and (batch[idx][:-1] <= batch[idx][1:]).all()
-    assert set(farthest_point_sampling(moved(pos, seed), batch, ratio).tolist()) == set(idx.tolist())
-    perm = torch.cat([torch.randperm(120, generator=g), 120 + torch.randperm(80, generator=g)])
-    idx_p = farthest_point_sampling(pos[perm], batch, ratio)
-    assert set(perm[idx_p].tolist()) == set(idx.tolist())
-    # farthest-point property: each pick is the farthest from the ones before it
-    p0 = pos[idx[batch[idx] == 0]]
-    for k in range(1, min(len(p0), 6)):
-        d_prev = torch.cdist(pos[:120], p0[:k]).min(1).values
-        assert math.isclose(d_prev.max().item(), torch.cdist(p0[k:k + 1], p0[:k]).min().item())
-
-
-def test_fps_pool_takes_max_within_radius():
-    pos = torch.tensor([[0.0, 0, 0], [0.1, 0, 0], [5, 0, 0], [5.1, 0, 0]], dtype=torch.float64)
-    x = torch.tensor([[1.0], [7.0], [3.0], [-2.0]], dtype=torch.float64)
-    out, pc, bc, idx = FPSPool(ratio=0.5, radius=0.5)(x, pos)
-    assert len(idx) == 2 and sorted(out[:, 0].tolist()) == [3.0, 7.0]
-    ei, w = euclidean_radius(pos, pos[:1], 0.2)
-    assert ei.tolist() == [[0, 1], [0, 0]] and torch.allclose(w, torch.tensor([0, 0.1]).double())
 
 
 def test_read_off_standard_and_malformed_header():

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ..geometry import geodesic_distance, geodesic_to_chord
+from .geometry import geodesic_distance, geodesic_to_chord
 
 
 def radius_for_neighbors(num_points: int, k: float) -> float:

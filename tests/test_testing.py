@@ -6,7 +6,7 @@ import torch
 
 from usf_graph import grids
 from usf_graph.geometry import random_rotation
-from usf_graph.nn.checks import (
+from usf_graph.testing import (
     equirect_equivariance_error,
     grid_equivariance_error,
     random_spherical_net,

@@ -2,27 +2,23 @@
 
 import shutil
 import zipfile
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from test_examples import load_script as script
 
 import usf_graph.datasets.mnist as mnist_module
+from tests.helpers import ROOT, write_idx
+from tests.helpers import load_script as script
 from usf_graph.datasets import download_mnist
 from usf_graph.datasets.mnist import IDX_FILES, lift_digits
 from usf_graph.fileio import download, file_md5
 from usf_graph.grids import icosahedral
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture
 def mirror(tmp_path, monkeypatch):
     """A folder laid out like an MNIST mirror (7 real-format digits per split)."""
-    from test_mnist import write_idx
-
     rng = np.random.default_rng(0)
     imgs = (rng.random((7, 28, 28)) * 255).astype(np.uint8)
     labs = np.arange(7) % 10

@@ -1,14 +1,14 @@
 """Calibration files in the formats users have, and bad inputs."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.helpers import FIXTURES
 from usf_graph import cameras as C
 
-FIX = Path(__file__).parent / "fixtures"
+FIX = FIXTURES
 
 
 def test_kalibr_camchain_all_supported_models():

@@ -1,7 +1,6 @@
 """Camera models: round trips, OpenCV agreement, wide lenses, coverage."""
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -9,6 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.helpers import FIXTURES
 from usf_graph import cameras as C
 from usf_graph.cameras.base import incidence
 
@@ -111,7 +111,7 @@ def test_mei_round_trip(i, xi, k1, k2, p1, p2, seed):
 def test_mei_matches_cv2_omnidir():
     # cv2.omnidir lives in opencv-contrib; its answers are stored by
     # tests/fixtures/make_omnidir_reference.py (6 random calibrations, 1,684 rays)
-    z = np.load(Path(__file__).parent / "fixtures" / "omnidir_opencv.npz")
+    z = np.load(FIXTURES / "omnidir_opencv.npz")
     for i in range(6):
         K, xi, D = z[f"K{i}"], float(z[f"xi{i}"]), z[f"D{i}"]
         cam = C.Mei(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 1280, 960, xi, dist=D, skew=K[0, 1])

@@ -1,0 +1,49 @@
+"""Helpers shared by the tests: paths, repository scripts as modules, fixture writers."""
+
+import gzip
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+FIXTURES = ROOT / "tests" / "fixtures"
+
+
+def load_script(rel: str):
+    """A script of the repository (``examples/x.py``, ``datasets/y/prepare.py``) as a module."""
+    spec = importlib.util.spec_from_file_location(rel.replace("/", "_")[:-3], ROOT / rel)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def write_idx(path, arr, gz=False):
+    """An MNIST IDX file (big-endian header, uint8 data), optionally gzipped."""
+    arr = np.asarray(arr, np.uint8)
+    magic = 2051 if arr.ndim == 3 else 2049
+    head = magic.to_bytes(4, "big") + len(arr).to_bytes(4, "big")
+    if arr.ndim == 3:
+        head += arr.shape[1].to_bytes(4, "big") + arr.shape[2].to_bytes(4, "big")
+    data = head + arr.tobytes()
+    (gzip.open if gz else open)(path, "wb").write(data)
+
+
+def random_sphere(n, seed, dtype=None):
+    """``n`` seeded random unit vectors."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    p = torch.randn(n, 3, generator=g, dtype=dtype or torch.get_default_dtype())
+    return p / p.norm(dim=1, keepdim=True)
+
+
+def moved(pos, seed):
+    """``pos`` under a seeded random rigid motion (rotation and translation)."""
+    import torch
+
+    from usf_graph.geometry import random_rotation
+
+    R = random_rotation(seed=seed)
+    t = torch.randn(3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 3
+    return pos @ R.T + t

@@ -1,0 +1,338 @@
+"""SphericalConv / PointConv: an independent dense reference, never-stale geometry,
+gradients everywhere, equivariance through the harness, PyG conventions."""
+
+import math
+
+import pytest
+import torch
+from torch_geometric.nn import Sequential
+
+from tests.helpers import random_sphere
+from usf_graph import grids
+from usf_graph.geometry import rotation_from_axis_angle
+from usf_graph.grids import voronoi_areas
+from usf_graph.nn import EdgePlan, PointConv, SphericalConv, geodesic_radius_graph, knn_graph
+from usf_graph.testing import assert_equivariant, assert_motion_invariant
+
+
+def dense_reference(x, pos, conv, node_weight=None, mask=None, euclidean=False):
+    """The layer's formula from positions alone: every pair of points, its distance, the
+    basis written out here (hat or gaussian), a dense sum. Shares no code with the layer
+    beyond reading its weights."""
+    K, r = conv.num_basis, conv.radius
+    if euclidean:
+        d = (pos[:, None] - pos[None]).norm(dim=-1)
+    else:
+        d = torch.atan2(torch.linalg.cross(pos[:, None].expand(-1, len(pos), -1),
+                                           pos[None].expand(len(pos), -1, -1), dim=-1).norm(dim=-1),
+                        pos @ pos.T)
+    u = (d / r)[..., None]
+    k = torch.arange(K, dtype=d.dtype)
+    if conv.kernel.basis == "hat":
+        phi = torch.relu(1 - (u * K - k).abs())
+    elif conv.kernel.basis == "gaussian":
+        c = k / max(K - 1, 1)
+        env = 1 - u.clamp(0, 1) ** 3 * (10 - 15 * u.clamp(0, 1) + 6 * u.clamp(0, 1) ** 2)
+        phi = torch.exp(-0.5 * ((u - c) * K) ** 2) * env
+    else:
+        raise NotImplementedError(conv.kernel.basis)
+    phi = phi * (d < r)[..., None]  # [N_i, N_j, K]
+    w = torch.ones(len(pos), dtype=d.dtype)
+    if conv.normalize == "area" and node_weight is not None:
+        w = node_weight.to(d.dtype)
+    if mask is not None:
+        w = w * mask.to(d.dtype)
+    a = phi * w[None, :, None]
+    if conv.normalize is not None:
+        a = a / (phi.sum(-1) * w[None]).sum(1).clamp_min(1e-12)[:, None, None]
+    W = conv.weight.view(K, conv.in_channels, conv.out_channels)
+    y = torch.einsum("ijk,...jc,kco->...io", a, x, W)
+    return y + conv.bias if conv.bias is not None else y
+
+
+def graph(pos, r):
+    ei, ew = geodesic_radius_graph(pos, r)
+    return ei, ew, torch.as_tensor(voronoi_areas(pos.numpy()))
+
+
+@pytest.mark.parametrize("normalize, c_in, c_out", [("area", 6, 7), ("mean", 6, 7), (None, 6, 7),
+                                                    ("area", 2, 9), (None, 2, 9)])
+def test_every_path_equals_the_dense_reference(normalize, c_in, c_out):
+    # 6 -> 7 mixes channels first, 2 -> 9 aggregates first (the narrower side)
+    pos = random_sphere(300, 2)
+    ei, ew, area = graph(pos, 0.4)
+    mask = torch.rand(300, generator=torch.Generator().manual_seed(0)) > 0.3
+    x = torch.randn(4, 300, c_in, generator=torch.Generator().manual_seed(3))
+    conv = SphericalConv(c_in, c_out, 0.4, num_basis=3, normalize=normalize)
+    ref = dense_reference(x, pos, conv, area, mask)
+    assert (conv(x, ei, ew, node_weight=area, mask=mask) - ref).abs().max() < 1e-12
+    assert (conv(x, ei, ew, node_weight=area, mask=mask, fast=False) - ref).abs().max() < 1e-12
+    for b in range(4):  # [N, C] calls
+        assert (conv(x[b], ei, ew, node_weight=area, mask=mask) - ref[b]).abs().max() < 1e-12
+    conv.bind(ei, ew, node_weight=area, mask=mask)
+    assert (conv(x) - ref).abs().max() < 1e-12
+    # hidden points contribute nothing
+    x2 = x.clone()
+    x2[:, ~mask] = 1e6
+    assert (conv(x2) - ref).abs().max() < 1e-12
+
+
+def test_pyg_batch_of_different_graphs_equals_each_graph_alone():
+    from torch_geometric.data import Batch, Data
+
+    conv = SphericalConv(3, 4, 0.5, num_basis=3, basis="gaussian")
+    datas = []
+    for seed, n in ((0, 120), (1, 200), (2, 90)):
+        pos = random_sphere(n, seed)
+        ei, ew, area = graph(pos, 0.5)
+        m = torch.rand(n, generator=torch.Generator().manual_seed(seed)) > 0.2
+        x = torch.randn(n, 3, generator=torch.Generator().manual_seed(10 + seed))
+        datas.append(Data(x=x, pos=pos, edge_index=ei, edge_weight=ew, area=area, mask=m))
+    b = Batch.from_data_list(datas)
+    y = conv(b.x, b.edge_index, b.edge_weight, node_weight=b.area, mask=b.mask)
+    for i, d in enumerate(datas):
+        ref = dense_reference(d.x, d.pos, conv, d.area, d.mask)
+        assert (y[b.batch == i] - ref).abs().max() < 1e-12
+
+
+def test_never_stale_fresh_masks_and_fresh_graphs():
+    # A cache keyed by tensor addresses reused old geometry for a fresh mask or graph that
+    # landed at a freed address. Every call here gets new inputs of the same size.
+    gen = torch.Generator().manual_seed(0)
+    pos = random_sphere(200, 5)
+    ei, ew, area = graph(pos, 0.45)
+    x = torch.randn(2, 200, 3, generator=gen)
+    conv = SphericalConv(3, 4, 0.45, num_basis=3)
+    bound = SphericalConv(3, 4, 0.45, num_basis=3)
+    bound.load_state_dict(conv.state_dict())
+    bound.bind(ei, ew, node_weight=area)
+    for _ in range(50):
+        mask = torch.rand(200, generator=gen) > 0.5  # fresh tensor, same size
+        ref = dense_reference(x, pos, conv, area, mask)
+        assert (conv(x, ei, ew, node_weight=area, mask=mask) - ref).abs().max() < 1e-12
+        assert (bound(x, mask=mask) - ref).abs().max() < 1e-12
+        assert (bound.bind(ei, ew, node_weight=area, mask=mask)(x) - ref).abs().max() < 1e-12
+        bound.bind(ei, ew, node_weight=area)
+    # fresh point clouds with same-size k-NN graphs (PointConv, euclidean distances)
+    pconv = PointConv(3, 2, 1.5, num_basis=3)
+    for _ in range(50):
+        p = torch.randn(60, 3, generator=gen)
+        kei, kew = knn_graph(p, 8)
+        xp = torch.randn(60, 3, generator=gen)
+        adj = torch.zeros(60, 60, dtype=torch.bool)
+        adj[kei[1], kei[0]] = True  # which pairs are edges; distances come from p
+        assert (pconv(xp, kei, kew) - _dense_on(xp, p, pconv, adj)).abs().max() < 1e-12
+
+
+def _dense_on(x, pos, conv, adj):
+    """The dense formula in R3 (hat basis, normalize="mean") over the pairs in ``adj``."""
+    K, r = conv.num_basis, conv.radius
+    d = (pos[:, None] - pos[None]).norm(dim=-1)
+    k = torch.arange(K, dtype=d.dtype)
+    phi = torch.relu(1 - ((d / r)[..., None] * K - k).abs()) * ((d < r) & adj)[..., None]
+    a = phi / phi.sum((1, 2)).clamp_min(1e-12)[:, None, None]  # normalize="mean"
+    W = conv.weight.view(K, conv.in_channels, conv.out_channels)
+    return torch.einsum("ijk,jc,kco->io", a, x, W) + conv.bias
+
+
+def test_gradcheck_of_the_default_path_in_every_input():
+    pos = random_sphere(40, 4)
+    ei, ew, area = graph(pos, 0.8)
+    assert (ew == 0).sum() == 40  # self-loops: d = 0 must have a finite gradient
+    mask = torch.rand(40, generator=torch.Generator().manual_seed(1)) > 0.2
+    x = torch.randn(2, 40, 2, requires_grad=True)
+    w_req, a_req = ew.clone().requires_grad_(True), area.clone().requires_grad_(True)
+    for c_out, basis in ((3, "gaussian"), (5, "gaussian"), (3, "mlp")):  # mix / aggregate first
+        conv = SphericalConv(2, c_out, 0.8, num_basis=3, basis=basis)
+        params = dict(conv.named_parameters())
+        names = list(params)
+        leaves = [p.detach().clone().requires_grad_(True) for p in params.values()]
+
+        def general(x, w, a, *p, conv=conv, names=names):
+            return torch.func.functional_call(conv, dict(zip(names, p)), (x, ei, w),
+                                              {"node_weight": a, "mask": mask})
+
+        assert torch.autograd.gradcheck(general, (x, w_req, a_req, *leaves))
+        assert torch.autograd.gradcheck(general, (x[0], w_req, a_req, *leaves))
+
+        def static(x, w, a, *p, conv=conv, names=names):
+            conv.bind(ei, w, node_weight=a, mask=mask)
+            return torch.func.functional_call(conv, dict(zip(names, p)), (x,))
+
+        assert torch.autograd.gradcheck(static, (x, w_req, a_req, *leaves))
+    # the learnable basis's parameters get gradients through the default path
+    conv = SphericalConv(2, 3, 0.8, num_basis=3, basis="mlp").bind(ei, ew, node_weight=area)
+    conv(x).square().sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in conv.kernel.parameters())
+    mlp = SphericalConv(2, 2, 0.8, kernel="mlp", hidden=4)
+    assert torch.autograd.gradcheck(lambda x, w: mlp(x, ei, w, node_weight=area), (x, w_req))
+
+
+def test_bound_geometry_follows_to_reset_and_in_place_edits():
+    pos = random_sphere(150, 6)
+    ei, ew, area = graph(pos, 0.5)
+    conv = SphericalConv(3, 4, 0.5, basis="gaussian").bind(ei, ew, node_weight=area)
+    x = torch.randn(2, 150, 3)
+    y = conv(x)
+    assert conv._coef is not None  # cached while nothing needs its gradient
+    conv.reset_parameters()
+    assert conv._coef is None
+    torch.testing.assert_close(conv(x), dense_reference(x, pos, conv, area), rtol=0, atol=1e-12)
+    mask = torch.ones(150, dtype=torch.bool)
+    conv.bind(ei, ew, node_weight=area, mask=mask)
+    y = conv(x)
+    conv.bound_mask[:50] = False  # an in-place edit is seen through the version counter
+    torch.testing.assert_close(conv(x), dense_reference(x, pos, conv, area, conv.bound_mask),
+                               rtol=0, atol=1e-12)
+    assert not torch.allclose(conv(x), y)
+    y64 = conv(x)
+    conv.float()  # the bound geometry follows .to(): float32 distances, long indices
+    assert conv.bound_edge_weight.dtype == torch.float32 and conv.plan.edge_index.dtype == torch.long
+    torch.testing.assert_close(conv(x.float()), y64.float(), rtol=1e-4, atol=1e-4)
+    conv.double()
+    names = {n for n, _ in conv.named_buffers()}
+    assert {"bound_edge_index", "bound_edge_weight", "plan.crow0", "plan.col_t0"} <= names
+    assert "bound_edge_index" not in conv.state_dict()  # non-persistent: checkpoints stay small
+
+
+def test_documented_call_and_the_initialization_claim():
+    pos = random_sphere(300, 7)
+    ei, ew, area = graph(pos, 0.35)
+    conv = SphericalConv(5, 6, 0.35, num_basis=4)
+    x = torch.randn(300, 5, generator=torch.Generator().manual_seed(0))
+    y = conv(x, ei, ew)  # the documented call: no node_weight -> equal weights
+    mean = SphericalConv(5, 6, 0.35, num_basis=4, normalize="mean")
+    mean.load_state_dict(conv.state_dict())
+    torch.testing.assert_close(y, mean(x, ei, ew), rtol=0, atol=1e-14)
+    torch.testing.assert_close(y, dense_reference(x, pos, conv), rtol=0, atol=1e-12)
+    # the claim: E_W[mean y^2] = mean over (k, c) of E[u_kc^2] (bias 0), for any input
+    U = torch.einsum("ijk,jc->ikc", _aggregation(pos, conv, area), x)  # [N, K, C_in]
+    target = float(U.square().mean())
+    torch.manual_seed(0)
+    draws = []
+    for _ in range(400):
+        conv.reset_parameters()
+        draws.append(float(conv(x, ei, ew, node_weight=area).square().mean()))
+    draws = torch.tensor(draws)
+    assert abs(draws.mean() - target) < 4 * draws.std() / math.sqrt(len(draws))
+    assert abs(float(draws.mean()) / target - 1) < 0.1
+
+
+def _aggregation(pos, conv, area):
+    """The normalized aggregation weights a_ijk, from the dense reference with W = I."""
+    K, C = conv.num_basis, 1
+    probe = SphericalConv(C, K, conv.radius, num_basis=K, basis=conv.kernel.basis, bias=False)
+    with torch.no_grad():
+        probe.weight.copy_(torch.eye(K).reshape(K * C, K))  # output k = basis k
+    eye = torch.eye(len(pos))[..., None]  # x = one-hot per point j
+    return dense_reference(eye, pos, probe, area).detach().permute(1, 0, 2)  # [i, j, k]
+
+
+def test_equivariance_through_the_harness_on_grid_symmetries():
+    g = grids.healpix(8)
+    R = rotation_from_axis_angle(torch.tensor([0.0, 0, 1]), torch.tensor(math.pi / 2))
+    r = 1.7 * g.spacing
+    ei, ew = geodesic_radius_graph(g.pos, r)
+    mask = g.pos[:, 0] > -0.3
+    x = torch.randn(2, len(g), 3, generator=torch.Generator().manual_seed(0))
+    for basis in ("hat", "gaussian", "bessel", "mlp"):
+        conv = SphericalConv(3, 4, r, num_basis=4, basis=basis)
+        err = assert_equivariant(lambda x, m, c=conv: c(x, ei, ew, node_weight=g.area, mask=m),
+                                 (x, mask), g.pos, R)
+        assert err < 1e-10
+        conv.bind(ei, ew, node_weight=g.area)
+        assert_equivariant(lambda x, m, c=conv: c(x, mask=m), (x, mask), g.pos, R)
+        c32 = conv.float()
+        err32 = assert_equivariant(lambda x, m, c=c32: c(x, mask=m), (x.float(), mask), g.pos, R)
+        assert err32 < 1e-5
+    with pytest.raises(AssertionError, match="not equivariant"):  # the harness can fail
+        assert_equivariant(lambda x: x * g.pos[:, :1], x, g.pos, R)
+
+
+@pytest.mark.parametrize("kernel, basis", [("basis", "hat"), ("basis", "gaussian"),
+                                           ("basis", "bessel"), ("mlp", "hat")])
+def test_exact_so3_equivariance_on_moving_point_sets(kernel, basis):
+    pos = random_sphere(400, 0)
+    x = torch.randn(400, 3, generator=torch.Generator().manual_seed(1))
+    conv = SphericalConv(3, 5, radius=0.35, num_basis=4, kernel=kernel, basis=basis)
+
+    def run(p, x):
+        ei, ew = geodesic_radius_graph(p, 0.35)  # rebuilt from the moved points
+        return conv(x, ei, ew, node_weight=torch.as_tensor(voronoi_areas(p.numpy())))
+
+    for seed in range(3):
+        assert assert_motion_invariant(run, pos, (x,), rotation=_rot(seed)) < 1e-10
+
+
+def _rot(seed):
+    from usf_graph.geometry import random_rotation
+
+    return random_rotation(seed=10 + seed)
+
+
+def test_tiled_plan_matches_the_reference_with_every_gradient():
+    g = grids.healpix(8)  # HEALPix nested numbering is a Z-order curve: narrow halos
+    r = 1.6 * g.spacing
+    ei, ew = geodesic_radius_graph(g.pos, r)
+    plan = EdgePlan(ei, len(g), tile_rows=64)
+    assert len(plan.bounds) == 12 and sum(len(getattr(plan, f"cols{t}")) for t in range(12)) < 2 * len(g)
+    shuffled = torch.randperm(len(g), generator=torch.Generator().manual_seed(0))
+    assert len(EdgePlan(shuffled[ei], len(g), tile_rows=64).bounds) == 1  # no locality
+    x = torch.randn(2, len(g), 3, generator=torch.Generator().manual_seed(1), requires_grad=True)
+    mask = torch.rand(len(g), generator=torch.Generator().manual_seed(2)) > 0.2
+    for c_out in (2, 7):  # mixing first and aggregating first
+        conv = SphericalConv(3, c_out, r, num_basis=3, basis="gaussian")
+        w = ew.clone().requires_grad_(True)
+        conv.bind(ei, w, node_weight=g.area, mask=mask, plan=plan)
+        fast = conv(x)
+        ref = conv(x, ei, w, node_weight=g.area, mask=mask, fast=False)
+        assert (fast - ref).abs().max() < 1e-12
+        go = torch.randn_like(fast)
+        g_fast = torch.autograd.grad(fast, (x, conv.weight, w), go)
+        g_ref = torch.autograd.grad(ref, (x, conv.weight, w), go)
+        for a, b in zip(g_fast, g_ref):
+            assert (a - b).abs().max() < 1e-11
+    with pytest.raises(ValueError, match="another graph"):
+        conv.bind(ei[:, 1:], ew[1:], plan=plan)
+
+
+def test_pyg_conventions_sequential_repr_reset_compile():
+    conv = SphericalConv(3, 8, 0.2, num_basis=4)
+    assert repr(conv) == ("SphericalConv(3, 8, radius=0.2, num_basis=4, basis='hat', "
+                          "normalize='area')")
+    w0 = conv.weight.detach().clone()
+    conv.reset_parameters()
+    assert not torch.equal(w0, conv.weight)
+    g = grids.icosahedral(2)
+    ei, ew = geodesic_radius_graph(g.pos, 0.5)
+    assert "bound=162 nodes" in repr(SphericalConv(3, 4, 0.5).bind(ei, ew, g.area))
+    model = Sequential("x, ei, ew, a", [(SphericalConv(3, 4, 0.5), "x, ei, ew, a -> x"),
+                                        torch.nn.ReLU(),
+                                        (SphericalConv(4, 2, 0.5), "x, ei, ew, a -> x")])
+    x = torch.randn(2, len(g), 3)
+    y = model(x, ei, ew, g.area)
+    assert y.shape == (2, len(g), 2)
+    compiled = torch.compile(model, backend="eager")
+    torch.testing.assert_close(compiled(x, ei, ew, g.area), y)
+
+
+def test_bad_inputs_name_the_problem():
+    with pytest.raises(ValueError, match="normalize"):
+        SphericalConv(1, 1, 0.1, normalize="sum")
+    conv = SphericalConv(2, 2, 0.5)
+    g = grids.icosahedral(1)
+    ei, ew = geodesic_radius_graph(g.pos, 0.5)
+    n = len(g)
+    cases = [
+        (lambda: conv(torch.randn(n, 3), ei, ew), "x must be"),
+        (lambda: conv(torch.randn(n, 2)), "no graph"),
+        (lambda: conv(torch.randn(n, 2), ei, None), "edge_weight"),
+        (lambda: conv(torch.randn(n, 2), ei, ew, node_weight=torch.ones(n + 1)), r"\[42\]"),
+        (lambda: conv(torch.randn(n - 2, 2), ei, ew), "outside"),
+        (lambda: conv(torch.randn(n, 2), ei, ew * float("nan")), "NaN"),
+        (lambda: conv.bind(ei, ew)(torch.randn(2, n + 5, 2)), f"{n + 5} points, the bound graph has {n}"),
+        (lambda: conv.bind(ei, ew)(torch.randn(n, 2), ei[:, :0]), "edge_weight"),
+    ]
+    for f, match in cases:
+        with pytest.raises(ValueError, match=match):
+            f()

@@ -1,0 +1,54 @@
+"""Radius and k-NN graphs on S2 and in R3: never truncated, exact distances."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph import grids
+from usf_graph.nn import (
+    geodesic_radius_graph,
+)
+
+
+def test_radius_graph_is_not_truncated():
+    g = grids.fibonacci(3000)
+    ei, ew = geodesic_radius_graph(g.pos, 0.35)  # ~90 neighbours: above the first cap of 64
+    deg = torch.bincount(ei[1])
+    from scipy.spatial import cKDTree
+    ref = [len(n) for n in cKDTree(g.pos.numpy()).query_ball_point(g.pos.numpy(), 2 * math.sin(0.35 / 2))]
+    assert deg.tolist() == ref and int(deg.max()) > 64
+    assert (ew <= 0.35).all() and (ei[1][1:] >= ei[1][:-1]).all()
+    np.testing.assert_allclose(ew.numpy(), torch.atan2(
+        torch.linalg.cross(g.pos[ei[0]], g.pos[ei[1]]).norm(dim=1),
+        (g.pos[ei[0]] * g.pos[ei[1]]).sum(1)).numpy(), rtol=1e-12, atol=1e-15)
+    assert (ew[ei[0] == ei[1]] == 0).all()
+
+
+def test_euclidean_graphs_match_brute_force():
+    from scipy.spatial import cKDTree
+
+    from usf_graph.nn import euclidean_radius_graph, knn_graph
+
+    gen = torch.Generator().manual_seed(0)
+    pos = torch.cat([torch.randn(300, 3, generator=gen, dtype=torch.float64),
+                     0.01 * torch.randn(100, 3, generator=gen, dtype=torch.float64)])  # a dense clump
+    ei, ew = euclidean_radius_graph(pos, 0.3)
+    tree = cKDTree(pos.numpy())
+    ref = tree.query_ball_point(pos.numpy(), 0.3)
+    assert torch.bincount(ei[1], minlength=len(pos)).tolist() == [len(n) for n in ref]
+    assert max(len(n) for n in ref) > 100  # past the first neighbour cap: nothing truncated
+    for i in (0, 350):
+        assert sorted(ei[0][ei[1] == i].tolist()) == sorted(ref[i])
+    torch.testing.assert_close(ew, (pos[ei[0]] - pos[ei[1]]).norm(dim=1), rtol=0, atol=0)
+    ei, ew = knn_graph(pos[:300], 8)
+    d, nb = cKDTree(pos[:300].numpy()).query(pos[:300].numpy(), k=8)
+    assert (torch.bincount(ei[1]) == 8).all()
+    for i in (0, 17, 299):
+        assert sorted(ei[0][ei[1] == i].tolist()) == sorted(nb[i].tolist())
+    np.testing.assert_allclose(np.sort(ew.reshape(300, 8).numpy(), 1), d, rtol=1e-12)
+    with pytest.raises(ValueError, match="positive integer"):
+        knn_graph(pos, 0)
+    with pytest.raises(ValueError, match="NaN"):
+        knn_graph(torch.full((5, 3), float("nan")), 2)
