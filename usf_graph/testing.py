@@ -86,7 +86,7 @@ def _compare(outs, refs, atol) -> float:
 
 def assert_equivariant(fn: Callable, args, pos: torch.Tensor, rotation: torch.Tensor, *,
                        in_dims=None, out_pos: torch.Tensor | None = None, out_dims=None,
-                       atol: float | None = None) -> float:
+                       invariant: bool = False, atol: float | None = None) -> float:
     r"""Assert ``fn(g . args) == g . fn(args)`` for the rotation ``g`` that maps the points
     ``pos [N, 3]`` (and ``out_pos``) onto themselves.
 
@@ -95,8 +95,9 @@ def assert_equivariant(fn: Callable, args, pos: torch.Tensor, rotation: torch.Te
     along its point dimension (``in_dims``; default ``-2`` for tensors of 2 or more
     dimensions, ``-1`` for 1-D ones such as masks and areas; ``None`` leaves an input
     alone). Each output is permuted on ``out_pos`` (default ``pos``; a pool's coarse grid)
-    along ``out_dims`` (default ``-2``, ``-1`` for 1-D outputs; ``None``: the output must be
-    invariant, e.g. logits). Returns the largest relative error; raises
+    along ``out_dims`` (default ``-2``, ``-1`` for 1-D outputs; an entry ``None``: that
+    output must be invariant). ``invariant=True``: every output must be invariant (logits,
+    global readouts). Returns the largest relative error; raises
     ``AssertionError`` above ``atol`` (default :data:`TOLERANCE` for the output dtype)
     and ``ValueError`` when ``rotation`` is not a symmetry of the points.
     """
@@ -111,7 +112,9 @@ def assert_equivariant(fn: Callable, args, pos: torch.Tensor, rotation: torch.Te
     turned = [a if d is None else _permute(a, sigma, d) for a, d in zip(args, in_dims)]
     with torch.no_grad():
         outs, outs_r = _as_tuple(fn(*args)), _as_tuple(fn(*turned))
-    if out_dims is None:
+    if invariant:
+        out_dims = [None] * len(outs)
+    elif out_dims is None:
         out_dims = [default(o) for o in outs]
     elif not isinstance(out_dims, (tuple, list)):
         out_dims = [out_dims] * len(outs)

@@ -210,9 +210,10 @@ def test_documented_call_and_the_initialization_claim():
     target = float(U.square().mean())
     torch.manual_seed(0)
     draws = []
-    for _ in range(400):
-        conv.reset_parameters()
-        draws.append(float(conv(x, ei, ew, node_weight=area).square().mean()))
+    with torch.no_grad():
+        for _ in range(400):
+            conv.reset_parameters()
+            draws.append(float(conv(x, ei, ew, node_weight=area).square().mean()))
     draws = torch.tensor(draws)
     assert abs(draws.mean() - target) < 4 * draws.std() / math.sqrt(len(draws))
     assert abs(float(draws.mean()) / target - 1) < 0.1

@@ -100,3 +100,18 @@ def test_gradient_pairs_gradcheck():
     W = layer.lin.weight.detach().clone().requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda x, W: torch.func.functional_call(layer, {"lin.weight": W}, (x,)), (x, W))
+
+
+def test_jets_on_a_pyg_batch_equal_each_graph_alone():
+    g = grids.icosahedral(2)
+    ei, ew = geodesic_radius_graph(g.pos, 3.5 * g.spacing)
+    x = torch.randn(2 * len(g), 2, dtype=torch.float64)
+    batch = torch.arange(2).repeat_interleave(len(g))
+    for layer in (LocalJet(g.pos, ei, ew, g.spacing),
+                  GradientPairs(g.pos, ei, ew, g.spacing, 2, 3).double()):
+        y = layer(x, batch=batch)
+        for i in range(2):
+            torch.testing.assert_close(y[batch == i], layer(x[batch == i]), rtol=0, atol=1e-14)
+        torch.testing.assert_close(layer(x.view(2, len(g), 2)).reshape(y.shape), y)
+        with pytest.raises(ValueError, match=f"grid of {len(g)}"):
+            layer(x[:10])

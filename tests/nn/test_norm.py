@@ -1,6 +1,5 @@
 """MaskedBatchNorm: statistics over visible points; static and PyG forms agree."""
-
-
+import pytest
 import torch
 
 from usf_graph.nn import (
@@ -19,3 +18,31 @@ def test_masked_batchnorm_and_global_pool():
     area = torch.rand(50)
     gm = global_mean_pool_area(x, area, mask)
     torch.testing.assert_close(gm, (x[:, mask] * area[mask, None]).sum(1) / area[mask].sum())
+
+
+def test_masked_batchnorm_pyg_batch_equals_static_form_and_each_graph_in_eval():
+    from torch_geometric.data import Batch, Data
+
+    gen = torch.Generator().manual_seed(0)
+    n = 40
+    datas = [Data(x=torch.randn(n, 3, generator=gen) * 3 + 1, area=torch.rand(n, generator=gen),
+                  mask=torch.rand(n, generator=gen) > p) for p in (0.1, 0.5)]
+    b = Batch.from_data_list(datas)
+    bn = MaskedBatchNorm(3)
+    y = bn(b.x, b.mask, b.area, batch=b.batch)
+    w = (b.area * b.mask)[:, None]  # statistics over every visible point of both graphs
+    mean = (b.x * w).sum(0) / w.sum()
+    var = (((b.x - mean) ** 2) * w).sum(0) / w.sum()
+    torch.testing.assert_close(y, (b.x - mean) / torch.sqrt(var + 1e-5), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(bn.running_mean, mean * 0.1)
+    # the static form [B, N, C] with per-sample masks [B, N] and shared areas [N]
+    a = datas[0].area
+    static = MaskedBatchNorm(3)(b.x.view(2, n, 3), b.mask.view(2, n), a)
+    torch.testing.assert_close(static.reshape(-1, 3),
+                               MaskedBatchNorm(3)(b.x, b.mask, a.repeat(2), batch=b.batch))
+    bn.eval()
+    y = bn(b.x, b.mask, b.area, batch=b.batch)
+    for i, d in enumerate(datas):
+        torch.testing.assert_close(y[b.batch == i], bn(d.x, d.mask, d.area))
+    with pytest.raises(ValueError, match="one value per point"):
+        bn(b.x, torch.ones(3, dtype=torch.bool))

@@ -14,6 +14,8 @@ from usf_graph.nn import (
     GridUnpool,
     SphericalConv,
     geodesic_radius_graph,
+    global_max_pool_masked,
+    global_mean_pool_area,
 )
 from usf_graph.testing import symmetry_permutation
 
@@ -95,3 +97,77 @@ def test_gaussian_pool_values_mask_and_rigid_invariance():
     assert not far(x)[1].any()
     with pytest.raises(ValueError, match="sigma"):
         GaussianPool(fine, coarse, 0.0)
+
+
+def _two_graphs(g, channels=3):
+    """A PyG batch of two samples on grid ``g`` with different signals and masks."""
+    from torch_geometric.data import Batch, Data
+
+    gen = torch.Generator().manual_seed(11)
+    datas = [Data(x=torch.randn(len(g), channels, generator=gen), pos=g.pos, area=g.area,
+                  mask=torch.rand(len(g), generator=gen) > p) for p in (0.2, 0.6)]
+    return datas, Batch.from_data_list(datas)
+
+
+def test_pools_and_unpool_on_a_pyg_batch_equal_each_graph_alone():
+    g = grids.healpix(4)
+    coarse, cl = g.coarsen()
+    datas, b = _two_graphs(g)
+    pools = [GridPool(cl, len(coarse), "max"), GridPool(cl, len(coarse), "mean", area=g.area),
+             GaussianPool(g.pos, coarse.pos, 0.5 * coarse.spacing, area=g.area)]
+    for pool in pools:
+        y, m, batch = pool(b.x, b.mask, batch=b.batch)
+        assert batch.tolist() == [0] * len(coarse) + [1] * len(coarse)
+        for i, d in enumerate(datas):
+            yi, mi = pool(d.x, d.mask)
+            assert torch.equal(m[batch == i], mi)
+            assert (y[batch == i] - yi).abs().max() < 1e-14
+        # the static form with per-sample masks [B, N] gives the same
+        ys, ms = pool(b.x.view(2, len(g), -1), b.mask.view(2, len(g)))
+        assert (ys.reshape(-1, 3) - y).abs().max() < 1e-14 and torch.equal(ms.reshape(-1), m)
+    for up in (GridUnpool(cl), GridUnpool(cl, "linear", g.pos, coarse.pos)):
+        xc = torch.randn(2 * len(coarse), 3)
+        bc = torch.arange(2).repeat_interleave(len(coarse))
+        y, batch = up(xc, batch=bc)
+        for i in range(2):
+            assert torch.equal(y[batch == i], up(xc[bc == i]))
+
+
+def test_grid_layers_name_both_numbers_on_a_wrong_size():
+    g = grids.healpix(4)
+    coarse, cl = g.coarsen()
+    pool = GridPool(cl, len(coarse))
+    with pytest.raises(ValueError, match=f"x has 100 points .* grid of {len(g)}"):
+        pool(torch.randn(100, 3))
+    with pytest.raises(ValueError, match=f"grid of {len(g)} points, but the batch has graphs of"):
+        pool(torch.randn(len(g) + 100, 3), batch=torch.cat([torch.zeros(len(g)),
+                                                             torch.ones(100)]).long())
+    with pytest.raises(ValueError, match="mask must have one value per point"):
+        pool(torch.randn(2, len(g), 3), torch.ones(7, dtype=torch.bool))
+    with pytest.raises(ValueError, match=f"grid of {len(coarse)}"):
+        GridUnpool(cl)(torch.randn(len(g), 3))
+
+
+def test_readouts_on_a_pyg_batch_of_different_graphs():
+    from torch_geometric.data import Batch, Data
+
+    gen = torch.Generator().manual_seed(3)
+    datas = [Data(x=torch.randn(n, 4, generator=gen), area=torch.rand(n, generator=gen) + 0.1,
+                  mask=torch.rand(n, generator=gen) > 0.3) for n in (30, 55)]
+    datas.append(Data(x=torch.randn(5, 4), area=torch.ones(5), mask=torch.zeros(5, dtype=torch.bool)))
+    b = Batch.from_data_list(datas)
+    gm = global_mean_pool_area(b.x, b.area, b.mask, batch=b.batch)
+    gx = global_max_pool_masked(b.x, b.mask, batch=b.batch)
+    for i, d in enumerate(datas[:2]):
+        torch.testing.assert_close(gm[i], global_mean_pool_area(d.x, d.area, d.mask), rtol=1e-14, atol=1e-14)
+        torch.testing.assert_close(gx[i], global_max_pool_masked(d.x, d.mask), rtol=0, atol=0)
+        w = d.area * d.mask
+        torch.testing.assert_close(gm[i], (d.x * w[:, None]).sum(0) / w.sum())
+        torch.testing.assert_close(gx[i], d.x[d.mask].max(0).values)
+    assert gm[2].abs().sum() == 0 and gx[2].abs().sum() == 0  # nothing visible: 0, not NaN
+    # the static form: [B, N, C] with per-sample masks
+    x, m = torch.randn(2, 30, 4), torch.rand(2, 30) > 0.5
+    torch.testing.assert_close(global_mean_pool_area(x, None, m),
+                               torch.stack([global_mean_pool_area(x[i], None, m[i]) for i in range(2)]))
+    torch.testing.assert_close(global_max_pool_masked(x, m),
+                               torch.stack([global_max_pool_masked(x[i], m[i]) for i in range(2)]))
