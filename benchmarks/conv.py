@@ -1,5 +1,7 @@
-"""SphericalConv vs Conv2d (same pixel count), the naive per-edge PyG path, per-edge MLP
-weights and, when installed, torch-harmonics DISCO. Times in one run; reports ratios.
+"""SphericalConv vs Conv2d (same pixel count): the static-graph path (one bound graph,
+x [B, N, C]), the general PyG path (a batch of B graphs as [B N, C], geometry computed in
+the call), the naive per-edge PyG path, per-edge MLP weights and, when installed,
+torch-harmonics DISCO. Times in one run; reports ratios.
 
     python benchmarks/conv.py [--level 6] [--batch 8] [--channels 64] [--threads 2]
 
@@ -66,8 +68,16 @@ def main():
     c2d = torch.nn.Conv2d(C, C, 3, padding=1)
     rows = {}
     rows["Conv2d 3x3"] = (timeit(lambda: c2d(img), a.reps), timeit(fwd_bwd(c2d, img), a.reps))
-    f = lambda x: conv(x, ei, ew, node_weight=area)  # noqa: E731
-    rows["SphericalConv (fast)"] = (timeit(lambda: f(x), a.reps), timeit(fwd_bwd(f, x), a.reps))
+    conv.bind(ei, ew, node_weight=area)
+    rows["SphericalConv (static, bound)"] = (timeit(lambda: conv(x), a.reps),
+                                             timeit(fwd_bwd(conv, x), a.reps))
+    # the same B samples as a PyG batch of B graphs: [B N, C], edges offset per graph
+    eib = torch.cat([ei + b * N for b in range(B)], 1)
+    ewb, areab = ew.repeat(B), area.repeat(B)
+    xg = x.detach().reshape(B * N, C).requires_grad_(True)
+    g = lambda x: conv(x, eib, ewb, node_weight=areab)  # noqa: E731
+    rows[f"SphericalConv (general, PyG batch of {B})"] = (timeit(lambda: g(xg), a.reps),
+                                                          timeit(fwd_bwd(g, xg), a.reps))
     try:
         from torch_harmonics import DiscreteContinuousConvS2
 
@@ -93,9 +103,11 @@ def main():
     print("|---|---|---|---|---|")
     for k, (t1, t2) in rows.items():
         print(f"| {k} | {1e3 * t1:.0f} | {1e3 * t2:.0f} | {t1 / base[0]:.2f} | {t2 / base[1]:.2f} |")
+    ours = rows["SphericalConv (static, bound)"]
+    gen = rows[f"SphericalConv (general, PyG batch of {B})"]
+    print(f"\ngeneral / static: fwd {gen[0] / ours[0]:.2f}x, fwd+bwd {gen[1] / ours[1]:.2f}x")
     disco = next((v for k, v in rows.items() if k.startswith("DISCO")), None)
     if disco is not None:
-        ours = rows["SphericalConv (fast)"]
         print(f"\nDISCO / SphericalConv: fwd {disco[0] / ours[0]:.2f}x, "
               f"fwd+bwd {disco[1] / ours[1]:.2f}x")
 
@@ -127,10 +139,9 @@ def scaling(a, B: int = 2, C: int = 32):
             pos, area = pos[order], area[order]
         r = 1.6 * g.spacing
         ei, ew = geodesic_radius_graph(pos, r)
-        conv = SphericalConv(C, C, r, num_basis=4)
+        conv = SphericalConv(C, C, r, num_basis=4).bind(ei, ew.float(), node_weight=area)
         x = torch.randn(B, len(g), C, requires_grad=True)
-        ew = ew.float()
-        f = lambda x, c=conv, ei=ei, ew=ew, w=area: c(x, ei, ew, node_weight=w)  # noqa: E731
+        f = conv
         reps = a.reps if level < 8 else 1
         t1, t2 = timeit(lambda f=f, x=x: f(x), reps), timeit(fwd_bwd(f, x), reps)
         side = int(math.sqrt(len(g)))

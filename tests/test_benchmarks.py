@@ -17,6 +17,7 @@ def run(*args):
 def test_conv_and_lift_benchmarks_run():
     out = run("benchmarks/conv.py", "--level", "2", "--batch", "1", "--channels", "4",
               "--reps", "1", "--skip-slow")
-    assert "| SphericalConv (fast) |" in out and "| Conv2d 3x3 |" in out
+    assert "| SphericalConv (static, bound) |" in out and "| Conv2d 3x3 |" in out
+    assert "| SphericalConv (general, PyG batch of 1) |" in out and "general / static" in out
     out = run("benchmarks/lift.py", "--level", "2", "--reps", "1")
     assert out.count("| panorama 2048x1024 |") == 2 and out.count("| fisheye 1280x960") == 2

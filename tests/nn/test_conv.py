@@ -191,7 +191,7 @@ def test_bound_geometry_follows_to_reset_and_in_place_edits():
     torch.testing.assert_close(conv(x.float()), y64.float(), rtol=1e-4, atol=1e-4)
     conv.double()
     names = {n for n, _ in conv.named_buffers()}
-    assert {"bound_edge_index", "bound_edge_weight", "plan.crow0", "plan.col_t0"} <= names
+    assert {"bound_edge_index", "bound_edge_weight", "plan.crow0", "plan.col0"} <= names
     assert "bound_edge_index" not in conv.state_dict()  # non-persistent: checkpoints stay small
 
 

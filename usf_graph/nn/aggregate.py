@@ -47,8 +47,13 @@ class EdgePlan(nn.Module):
         if n >= 4 * tile_rows:
             starts = torch.arange(0, n + tile_rows, tile_rows).clamp_max(n)
             cuts = torch.searchsorted(row, starts).tolist()
-            halos = [torch.unique(col[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
-            if sum(len(h) for h in halos) <= 2 * n:
+            halos, total = [], 0
+            for a, b in zip(cuts[:-1], cuts[1:]):  # stop as soon as the halos are too wide
+                halos.append(torch.unique(col[a:b]))
+                total += len(halos[-1])
+                if total > 2 * n:
+                    break
+            if total <= 2 * n:
                 blocks = [(int(starts[t]), int(starts[t + 1]), cuts[t], cuts[t + 1], h)
                           for t, h in enumerate(halos)]
         self.num_nodes, self.num_edges = n, int(key.numel())
@@ -60,11 +65,9 @@ class EdgePlan(nn.Module):
             width = n
             if cols is not None:
                 c, width = torch.searchsorted(cols, c), len(cols)
-            perm_t = torch.argsort(c * (e - s) + r)  # the transpose, row-major
             self.bounds.append((s, e, a, b, width))
-            for name, value in (("cols", cols), ("row", r), ("col", c),
-                                ("crow", _crow(r, e - s)), ("perm_t", perm_t),
-                                ("crow_t", _crow(c, width)), ("col_t", r[perm_t])):
+            for name, value in (("cols", cols), ("row", r), ("col", c), ("crow", _crow(r, e - s)),
+                                ("perm_t", None), ("crow_t", None), ("col_t", None)):
                 self.register_buffer(f"{name}{t}", value, persistent=False)
 
     def matches(self, edge_index: torch.Tensor, num_nodes: int) -> bool:
@@ -72,9 +75,22 @@ class EdgePlan(nn.Module):
         return num_nodes == self.num_nodes and edge_index.shape == self.edge_index.shape and \
             bool(torch.equal(edge_index.to(self.edge_index.device), self.edge_index))
 
-    def tiles(self, coef: torch.Tensor) -> list:
-        """The tiles ``(s, e, cols, row, col, A, At)`` with ``A``/``At`` tuples of K sparse
-        CSR matrices holding ``coef [E, K]`` (edges in ``edge_index`` order)."""
+    def _transpose(self, t: int) -> None:
+        """The transposed structure of tile ``t``, built when a backward pass first needs it
+        (inference never does)."""
+        if getattr(self, f"perm_t{t}") is not None:
+            return
+        s, e, _, _, width = self.bounds[t]
+        r, c = getattr(self, f"row{t}"), getattr(self, f"col{t}")
+        perm_t = torch.argsort(c * (e - s) + r)  # row-major in the transpose
+        setattr(self, f"perm_t{t}", perm_t)
+        setattr(self, f"crow_t{t}", _crow(c, width))
+        setattr(self, f"col_t{t}", r[perm_t])
+
+    def tiles(self, coef: torch.Tensor, transpose: bool = False) -> list:
+        """The tiles ``(s, e, cols, row, col, A, At)`` with ``A`` (and, with ``transpose``,
+        ``At``; else None) tuples of K sparse CSR matrices holding ``coef [E, K]`` (edges
+        in ``edge_index`` order)."""
         c = coef if self.order is None else coef[self.order]
         cT = c.t().contiguous()  # [K, E]: each basis's values contiguous
         out = []
@@ -82,11 +98,14 @@ class EdgePlan(nn.Module):
             for t, (s, e, a, b, width) in enumerate(self.bounds):
                 g = lambda name, t=t: getattr(self, f"{name}{t}")  # noqa: E731
                 v = cT[:, a:b]
-                vt = v[:, g("perm_t")]
                 A = tuple(torch.sparse_csr_tensor(g("crow"), g("col"), v[k], (e - s, width))
                           for k in range(len(cT)))
-                At = tuple(torch.sparse_csr_tensor(g("crow_t"), g("col_t"), vt[k],
-                                                   (width, e - s)) for k in range(len(cT)))
+                At = None
+                if transpose:
+                    self._transpose(t)
+                    vt = v[:, g("perm_t")]
+                    At = tuple(torch.sparse_csr_tensor(g("crow_t"), g("col_t"), vt[k],
+                                                       (width, e - s)) for k in range(len(cT)))
                 out.append((s, e, g("cols"), g("row"), g("col"), A, At))
         return out
 
@@ -152,7 +171,7 @@ class _BasisAggregate(torch.autograd.Function):
     def backward(ctx, grad):
         x, weight, coef = ctx.saved_tensors
         plan = ctx.plan
-        tiles = plan.tiles(coef)
+        tiles = plan.tiles(coef, transpose=True)
         grad = grad.contiguous()
         need_x, need_w, need_c = ctx.needs_input_grad[:3]
         gx = torch.zeros_like(x) if need_x else None
