@@ -9,7 +9,7 @@ from usf_graph.geometry import to_latlon
 from usf_graph.viz import mollweide, plot_sphere
 
 
-def test_mollweide_places_points_at_their_lat_lon_and_greys_out_hidden_ones():
+def test_mollweide_shows_the_sphere_from_inside_and_greys_out_hidden_ones():
     g = grids.icosahedral(2)
     vals = g.pos[:, 2].clone()  # z
     mask = g.pos[:, 0] > 0
@@ -19,8 +19,13 @@ def test_mollweide_places_points_at_their_lat_lon_and_greys_out_hidden_ones():
     hidden, shown = ax.collections
     lat, lon = to_latlon(g.pos.numpy())
     m = mask.numpy()
-    np.testing.assert_allclose(shown.get_offsets(), np.c_[lon[m], lat[m]], atol=1e-12)
-    np.testing.assert_allclose(hidden.get_offsets(), np.c_[lon[~m], lat[~m]], atol=1e-12)
+    # seen from the centre, as the cameras see it: longitude decreases to the right, so the
+    # left (+y, lon > 0) is drawn on the left of the map
+    np.testing.assert_allclose(shown.get_offsets(), np.c_[-lon[m], lat[m]], atol=1e-12)
+    np.testing.assert_allclose(hidden.get_offsets(), np.c_[-lon[~m], lat[~m]], atol=1e-12)
+    left = np.argmax(g.pos[:, 1].numpy())  # the +y point
+    assert shown.get_offsets()[np.flatnonzero(m) == left].size == 0  # (hidden: x = 0)
+    assert hidden.get_offsets()[np.flatnonzero(~m) == left][0, 0] < 0
     np.testing.assert_allclose(shown.get_array(), vals.numpy()[m], atol=1e-12)
     # x > 0 is the front hemisphere: |lon| < pi/2 there
     assert np.abs(shown.get_offsets()[:, 0]).max() < np.pi / 2
@@ -43,4 +48,24 @@ def test_rgb_signals_are_drawn_in_their_colours():
     shown = ax.collections[1]
     top = float(rgb.max())
     np.testing.assert_allclose(shown.get_facecolors()[:, :3], rgb.numpy() / top, atol=1e-6)
+    plt.close(fig)
+
+
+def test_a_lifted_image_is_not_mirrored_in_its_preview():
+    from usf_graph import SphericalFrontend, cameras
+
+    cam = cameras.Pinhole(100, 100, 63.5, 63.5, 128, 128)
+    img = np.zeros((128, 128), np.float32)
+    img[:, 64:] = 1  # the right half of the picture is bright
+    g = grids.icosahedral(4)
+    fe = SphericalFrontend(cam, g)
+    x = fe.lift(img)[:, 0]
+    fig = plt.figure()
+    ax = fig.add_subplot(projection="mollweide")
+    mollweide(ax, g.pos, x, fe.mask)
+    _, shown = ax.collections
+    xy, v = shown.get_offsets(), shown.get_array()
+    bright, dark = xy[v > 0.9], xy[v < 0.1]
+    assert len(bright) > 20 and len(dark) > 20
+    assert (bright[:, 0] > 0).all() and (dark[:, 0] < 0).all()  # right stays right
     plt.close(fig)

@@ -30,8 +30,11 @@ def _colours(values, n):
 
 def mollweide(ax, pos, values, mask=None, s=4, cmap="viridis", title=None):
     """Scatter a spherical signal on a Mollweide axis; hidden points in light grey.
-    ``values`` ``[N]`` use ``cmap``; ``[N, 3]`` are drawn as RGB colours."""
+    ``values`` ``[N]`` use ``cmap``; ``[N, 3]`` are drawn as RGB colours. The sphere is
+    seen from its centre, as the cameras see it: forward (+x) in the middle, longitude
+    decreasing to the right (left, +y, is on the left)."""
     lat, lon = to_latlon(_np(pos).astype(np.float64))
+    lon = -lon  # matplotlib draws its longitude increasing to the right
     v, rgb = _colours(values, len(lat))
     m = np.ones(len(v), bool) if mask is None else _np(mask).astype(bool)
     ax.scatter(lon[~m], lat[~m], c="0.85", s=s, linewidths=0)

@@ -16,9 +16,11 @@ class Equirectangular(Camera):
     """Equirectangular panorama, full sphere or a latitude/longitude crop.
 
     Its camera frame is the sphere frame (x forward, y left, z up), so the default
-    ``rotation`` is the identity. Pixel centres: lon = lon0 + (lon1 - lon0)(u + 0.5)/W and
+    ``rotation`` is the identity. Pixel centres: lon = lon1 - (lon1 - lon0)(u + 0.5)/W and
     lat = lat1 - (lat1 - lat0)(v + 0.5)/H, which for the full sphere is DESIGN.md's
-    lon = 2 pi (u + 0.5)/W - pi, lat = pi/2 - pi (v + 0.5)/H.
+    lon = pi - 2 pi (u + 0.5)/W, lat = pi/2 - pi (v + 0.5)/H. The image's right is the
+    viewer's right, as in every real panorama and in the other camera models: y points
+    left, so longitude decreases to the right.
     """
 
     model = "equirectangular"
@@ -44,7 +46,7 @@ class Equirectangular(Camera):
 
     def _unproject(self, uv):
         (a, b), (c, d) = self.lat_range, self.lon_range
-        lon = c + (d - c) * (uv[..., 0] + 0.5) / self.width
+        lon = d - (d - c) * (uv[..., 0] + 0.5) / self.width
         lat = b - (b - a) * (uv[..., 1] + 0.5) / self.height
         ok = (lat >= a - 1e-12) & (lat <= b + 1e-12) & (self.wraps_u | ((lon >= c - 1e-12) & (lon <= d + 1e-12)))
         return from_latlon(np.clip(lat, -math.pi / 2, math.pi / 2), lon), ok
@@ -52,10 +54,10 @@ class Equirectangular(Camera):
     def _project(self, rays):
         (a, b), (c, d) = self.lat_range, self.lon_range
         lat, lon = to_latlon(normalize(rays))
-        lon = c + np.mod(lon - c, 2 * math.pi)  # into [c, c + 2 pi)
-        u = (lon - c) / (d - c) * self.width - 0.5
+        lon = d - np.mod(d - lon, 2 * math.pi)  # into (d - 2 pi, d]
+        u = (d - lon) / (d - c) * self.width - 0.5
         v = (b - lat) / (b - a) * self.height - 0.5
-        ok = (lat >= a - 1e-12) & (lat <= b + 1e-12) & (self.wraps_u | (lon <= d + 1e-12))
+        ok = (lat >= a - 1e-12) & (lat <= b + 1e-12) & (self.wraps_u | (lon >= c - 1e-12))
         return np.stack([u, v], -1), ok
 
 
