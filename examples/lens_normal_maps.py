@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import cv2
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -33,13 +34,25 @@ def example_cameras() -> dict:
 
 
 def checkerboard_panorama(width: int = 1024, height: int = 512) -> np.ndarray:
-    """A latitude/longitude checkerboard with a colour ramp, easy to read after re-imaging."""
+    """A latitude/longitude checkerboard with a colour ramp and FRONT/LEFT/RIGHT labels, easy
+    to read after re-imaging."""
     pano = cameras.Equirectangular(width, height)
     rays, _ = pano.lens_normal_map()
     lat, lon = to_latlon(rays.reshape(-1, 3))
     check = ((np.floor(lat / np.radians(15)) + np.floor(lon / np.radians(15))) % 2).reshape(height, width)
     ramp = ((lon.reshape(height, width) + np.pi) / (2 * np.pi))
-    return np.stack([check, ramp, 1 - check * ramp], -1).astype(np.float32)
+    img = np.stack([check, ramp, 1 - check * ramp], -1).astype(np.float32)
+    # labels where the viewer looks forward, left and right: they must read correctly in
+    # every view made from the panorama (a mirrored convention would flip them)
+    ink = np.zeros((height, width), np.uint8)  # 128: outline, 255: letters
+    for text, lon0 in (("FRONT", 0.0), ("LEFT", np.pi / 2), ("RIGHT", -np.pi / 2)):
+        (u, v), _ = pano.project(np.array([np.cos(lon0), np.sin(lon0), 0.0]))
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 4)
+        org = (int(u - tw / 2), int(v + th / 2))
+        cv2.putText(ink, text, org, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 128, 10, cv2.LINE_AA)
+        cv2.putText(ink, text, org, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 255, 4, cv2.LINE_AA)
+    outline = np.clip(ink / 128.0, 0, 1)[..., None]
+    return (img * (1 - outline) + np.clip(ink / 127.0 - 1, 0, 1)[..., None]).astype(np.float32)
 
 
 def main(argv=None):

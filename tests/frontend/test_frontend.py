@@ -198,3 +198,15 @@ def test_data_loader_offsets_and_to_image_and_render():
     out = render(img, cam, fish)
     lnm, valid = fish.lens_normal_map()
     assert np.abs(out[valid] - smooth(lnm[valid])).max() < 0.05
+
+
+def test_tables_of_an_older_geometry_convention_are_not_read(tmp_path, monkeypatch):
+    import usf_graph.frontend.cache as cache_module
+
+    cam, img = equirect_image(64)
+    g = grids.icosahedral(2)
+    SphericalFrontend(cam, g, cache=GeometryCache(tmp_path))
+    monkeypatch.setattr(cache_module, "GEOMETRY_VERSION", cache_module.GEOMETRY_VERSION + 1)
+    c = GeometryCache(tmp_path)  # a newer convention: the old file is another key
+    SphericalFrontend(cam, g, cache=c)
+    assert c.builds == 1 and len(list(tmp_path.glob("lift-*.npz"))) == 2

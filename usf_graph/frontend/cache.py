@@ -20,6 +20,10 @@ import torch
 from .._version import __version__
 from ..fileio import atomic_write
 
+# Part of every key: bump it whenever cached geometry changes meaning, so tables written by
+# an older convention are never read again (2: panoramas no longer mirrored).
+GEOMETRY_VERSION = 2
+
 
 def default_cache_dir() -> Path | None:
     """``$USF_GRAPH_CACHE`` (``off`` disables the disk cache), else ``~/.cache/usf_graph``."""
@@ -42,7 +46,8 @@ class GeometryCache:
 
     @staticmethod
     def digest(kind: str, key: dict) -> str:
-        blob = json.dumps({"kind": kind, "key": key, "version": __version__}, sort_keys=True,
+        blob = json.dumps({"kind": kind, "key": key, "version": __version__,
+                           "geometry": GEOMETRY_VERSION}, sort_keys=True,
                           default=str)
         return hashlib.sha256(blob.encode()).hexdigest()
 
