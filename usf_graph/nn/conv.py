@@ -212,10 +212,8 @@ class DistanceConv(MessagePassing):
                 raise ValueError(f"x has {N} points, the bound graph has {self.plan.num_nodes}")
             if mask is not None and mask.shape != (N,):
                 raise ValueError(f"mask must have shape [{N}], got {tuple(mask.shape)}")
-            edge_index, edge_weight = self.bound_edge_index, self.bound_edge_weight
-            node_weight, plan = self.bound_node_weight, self.plan
+            edge_index, plan = self.bound_edge_index, self.plan
             coef = self._bound_coefficients(mask)
-            mask = self.bound_mask if mask is None else mask
         else:
             self._check_graph(edge_index, edge_weight, N, node_weight, mask)
             plan = None
