@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from .cameras import Equirectangular
-from .geometry import rotate
+from .geometry import random_rotation, rotate
 
 _A = np.array([0.3, -0.8, 0.5])
 
@@ -34,7 +34,6 @@ def symmetry_permutation(pos: torch.Tensor, R: torch.Tensor, tol: float = 1e-9) 
     """``sigma`` with ``R pos[i] = pos[sigma[i]]``, for a rotation ``R`` that maps the point
     set onto itself (e.g. the icosahedral group on icosahedral grids). A rotated signal is
     then ``x_rot[..., sigma, :] = x``. Raises ``ValueError`` if ``R`` is no such symmetry."""
-
     d = torch.cdist(rotate(pos, R), pos, compute_mode="donot_use_mm_for_euclid_dist")
     best = d.min(1)
     if best.values.max() >= tol:
@@ -131,8 +130,6 @@ def assert_motion_invariant(fn: Callable, pos: torch.Tensor, args=(),
     global) for moved points. ``rotation`` defaults to a fixed generic rotation; use no
     ``translation`` on S2. Returns the largest relative error (see
     :func:`assert_equivariant`)."""
-    from .geometry import random_rotation
-
     R = random_rotation(generator=torch.Generator().manual_seed(7)) if rotation is None \
         else torch.as_tensor(rotation)
     moved = rotate(pos, R.to(pos.dtype))

@@ -106,9 +106,10 @@ class SphericalClassifier(nn.Module):
         for s, c in enumerate(channels):
             r = radius_spacings * g.spacing
             ei, ew = grid_graph(g, r)
-            self.register_buffer(f"area{s}", g.area.float(), persistent=False)
+            area = g.area.float()  # one tensor for the norms, the readout and the conv
+            self.register_buffer(f"area{s}", area, persistent=False)
             self.convs.append(SphericalConv(c_in, c, r, num_basis=num_basis, basis=basis)
-                              .bind(ei, ew.float(), node_weight=g.area.float()))
+                              .bind(ei, ew.float(), node_weight=area))
             self.norms.append(MaskedBatchNorm(c))
             c_in = c
             if pairs and s < min(pair_stages, len(channels) - 1):

@@ -191,21 +191,23 @@ class _BasisAggregate(torch.autograd.Function):
                     gxw = None if not need_x else gx[b] if cols is None else \
                         gbuf[:len(cols)].zero_()
                     for k, At_k in enumerate(At):
-                        if need_c:  # the narrower side of <g W_k^T, x> = <g, x W_k>
-                            if c_in <= c_out:
-                                qk = torch.mm(gb, weight[k].t(), out=q[:e - s])
-                                gc[a0:a1, k] += (qk[r] * xw[c]).sum(-1)
-                            else:
-                                gc[a0:a1, k] += (gb[r] * (xw @ weight[k])[c]).sum(-1)
+                        # q = g_b W_k^T, shared by the coefficients' gradient (when C_in is
+                        # the narrower side of <g W_k^T, x> = <g, x W_k>) and by dx when
+                        # aggregating first
+                        qk = None
+                        if (need_c and c_in <= c_out) or (need_x and ctx.aggregate_first):
+                            qk = torch.mm(gb, weight[k].t(), out=q[:e - s])
+                        if need_c:
+                            gc[a0:a1, k] += (qk[r] * xw[c]).sum(-1) if qk is not None else \
+                                (gb[r] * (xw @ weight[k])[c]).sum(-1)
                         if not (need_x or need_w):
                             continue
                         if ctx.aggregate_first:
-                            uk, qk = u[:e - s], q[:e - s]
+                            uk = u[:e - s]
                             if need_w:
                                 torch.addmm(uk, A[k], xw, beta=0, out=uk)
                                 gw[k].addmm_(uk.t(), gb)
                             if need_x:
-                                torch.mm(gb, weight[k].t(), out=qk)
                                 gxw.addmm_(At_k, qk)
                             continue
                         p = u[:len(xw)]

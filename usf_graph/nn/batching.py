@@ -21,8 +21,7 @@ def to_static(x: torch.Tensor, num_nodes: int, batch: torch.Tensor | None = None
             raise ValueError(f"with batch, {layer} takes x [sum N_i, C] and batch [sum N_i]; "
                              f"got x {tuple(x.shape)} and batch {tuple(batch.shape)}")
         sizes = torch.bincount(batch) if batch.numel() else batch.new_zeros(0)
-        expect = torch.arange(len(sizes), device=batch.device).repeat_interleave(n)
-        if (sizes != n).any() or not torch.equal(batch, expect):
+        if not torch.equal(batch, pooled_batch(len(sizes), n, batch.device)):
             raise ValueError(f"{layer} was built for a grid of {n} points, but the batch has "
                              f"graphs of {sorted(set(sizes.tolist()))} points (or is not "
                              "sorted by graph); every graph must be on that grid")
@@ -64,6 +63,13 @@ def from_static(y: torch.Tensor, form: str, mask: torch.Tensor | None = None,
     if mask is not None and (given is None or given.dim() == 1):
         mask = mask[0]
     return y, mask
+
+
+def check_per_point(name: str, t: torch.Tensor | None, n: int, max_dim: int = 1) -> None:
+    """Raise unless ``t`` (a mask, areas) has one value per point: last dimension ``n``, at
+    most ``max_dim`` dimensions (2 allows per-sample ``[B, N]``)."""
+    if t is not None and (t.dim() < 1 or t.shape[-1] != n or t.dim() > max_dim):
+        raise ValueError(f"{name} must have one value per point ({n}), got {tuple(t.shape)}")
 
 
 def pooled_batch(num_graphs: int, num_points: int, device) -> torch.Tensor:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .batching import check_per_point
+
 
 class MaskedBatchNorm(nn.Module):
     r"""Batch normalization whose statistics use only visible points (``mask``), weighted
@@ -48,10 +50,8 @@ class MaskedBatchNorm(nn.Module):
         if batch is not None and (x.dim() != 2 or batch.shape != (N,)):
             raise ValueError(f"batch must be [sum N_i] for x [sum N_i, C], got batch "
                              f"{tuple(batch.shape)} and x {tuple(x.shape)}")
-        for name, t in (("mask", mask), ("node_weight", node_weight)):
-            if t is not None and (t.shape[-1] != N or t.dim() > x.dim() - 1):
-                raise ValueError(f"{name} must have one value per point ({N}), got "
-                                 f"{tuple(t.shape)}")
+        check_per_point("mask", mask, N, x.dim() - 1)
+        check_per_point("node_weight", node_weight, N, x.dim() - 1)
         if self.training:
             w = torch.ones(N, dtype=x.dtype, device=x.device) if node_weight is None \
                 else node_weight.to(x.dtype)

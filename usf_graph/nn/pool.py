@@ -10,7 +10,7 @@ from torch import nn
 
 from ..graph import euclidean_radius, geodesic_radius
 from ..sparse import csr, quiet_sparse
-from .batching import from_static, mask_static, pooled_batch, to_static
+from .batching import check_per_point, from_static, mask_static, pooled_batch, to_static
 
 
 class GridPool(nn.Module):
@@ -184,15 +184,11 @@ class GridUnpool(nn.Module):
 
 def _readout_weights(x, area, mask, batch):
     """Per-point weights (area times visibility) broadcastable to ``x[..., :1]``."""
+    check_per_point("area", area, x.shape[-2])
+    check_per_point("mask", mask, x.shape[-2], 1 if batch is not None else x.dim() - 1)
     w = torch.ones(x.shape[-2], dtype=x.dtype, device=x.device) if area is None \
         else area.to(x.dtype)
-    if w.shape != (x.shape[-2],):
-        raise ValueError(f"area must have one value per point ({x.shape[-2]}), got "
-                         f"{tuple(w.shape)}")
     if mask is not None:
-        if mask.shape[-1] != x.shape[-2] or (batch is not None and mask.dim() != 1):
-            raise ValueError(f"mask must have one value per point ({x.shape[-2]}), got "
-                             f"{tuple(mask.shape)}")
         w = w * mask.to(x.dtype)
     return w[..., None]
 
@@ -224,10 +220,8 @@ def global_max_pool_masked(x: torch.Tensor, mask: torch.Tensor | None = None,
                            batch: torch.Tensor | None = None) -> torch.Tensor:
     """Maximum over visible points, per graph: ``[(B,) N, C] -> [(B,) C]`` or a PyG batch
     with ``batch`` -> ``[num_graphs, C]``. A graph with no visible point gets 0."""
+    check_per_point("mask", mask, x.shape[-2], 1 if batch is not None else x.dim() - 1)
     if mask is not None:
-        if mask.shape[-1] != x.shape[-2]:
-            raise ValueError(f"mask must have one value per point ({x.shape[-2]}), got "
-                             f"{tuple(mask.shape)}")
         x = x.masked_fill(~mask.bool()[..., None], float("-inf"))
     if batch is None:
         out = x.amax(-2)
