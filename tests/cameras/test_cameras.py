@@ -137,6 +137,54 @@ def test_double_sphere_round_trip(i, xi, alpha, seed):
     check_round_trips(cam, rays[keep][:300])
 
 
+@settings(**SETTINGS)
+@given(intr, st.floats(0.0, 1.0), st.floats(0.3, 2.5), st.integers(0, 2**31))
+def test_eucm_round_trip(i, alpha, beta, seed):
+    f, aspect, dx, dy = i
+    cam = C.EUCM(f, f * aspect, 640 + dx, 480 + dy, 1280, 960, alpha=alpha, beta=beta)
+    rng = np.random.default_rng(seed)
+    rays = random_rays(rng, 3000, math.pi * 0.999)
+    d = np.sqrt(beta * (rays[:, 0] ** 2 + rays[:, 1] ** 2) + rays[:, 2] ** 2)
+    den = alpha * d + (1 - alpha) * rays[:, 2]
+    keep = (rays[:, 2] > -cam._w * d + 1e-3) & (den > 1e-2) & (incidence(rays) < cam.theta_max - 1e-3)
+    check_round_trips(cam, rays[keep][:300])
+
+
+@settings(**SETTINGS)
+@given(intr, st.floats(0.05, 0.9), st.integers(0, 2**31))
+def test_eucm_with_beta_one_is_mei(i, alpha, seed):
+    # EUCM(alpha, beta=1) is the unified model with xi = alpha/(1-alpha), f' = f/(1-alpha):
+    # checked against our Mei, itself checked against cv2.omnidir
+    f, aspect, dx, dy = i
+    cam = C.EUCM(f, f * aspect, 640 + dx, 480 + dy, 1280, 960, alpha=alpha, beta=1.0)
+    mei = C.Mei(f / (1 - alpha), f * aspect / (1 - alpha), 640 + dx, 480 + dy, 1280, 960,
+                xi=alpha / (1 - alpha))
+    rays = random_rays(np.random.default_rng(seed), 500, cam.theta_max * 0.999)
+    uv, ok = cam.project(rays)
+    uv2, ok2 = mei.project(rays)
+    assert ok.all() and ok2.all() and np.abs(uv - uv2).max() < 1e-7
+    r, ok = cam.unproject(uv)
+    assert ok.all() and angle(r, mei.unproject(uv)[0]).max() < 1e-10
+
+
+def test_usable_field_of_view_limits_any_model():
+    for cam in (C.KannalaBrandt(120, 120, 199.5, 199.5, 400, 400),
+                C.Mei(300, 300, 320, 240, 640, 480, xi=1.2),
+                C.EUCM(200, 200, 320, 240, 640, 480, alpha=0.6, beta=1.1)):
+        assert cam.fov_deg > 150
+        cut = cam.with_fov(150)
+        assert cut.fov_deg == pytest.approx(150, abs=0.5) and cut.key() != cam.key()
+        rays = random_rays(np.random.default_rng(0), 500, math.radians(74))
+        uv, ok = cut.project(rays)
+        assert ok.all()
+        _, ok = cut.project(random_rays(np.random.default_rng(0), 50, math.radians(80), math.radians(76)))
+        assert not ok.any()
+        assert cut.with_rotation(np.eye(3)).fov_limit == cut.fov_limit
+        assert cut.with_fov(None).key() == cam.key()
+    with pytest.raises(ValueError, match="at most 360"):
+        cam.with_fov(400)
+
+
 def test_kb_200_degree_lens_past_90_degrees():
     # equidistant-like KB lens whose 200 degree image circle fits in a 1280x1280 sensor
     cam = C.KannalaBrandt(330, 330, 640, 640, 1280, 1280, k=(0.02, -0.003, 2e-4, -1e-5),
@@ -167,6 +215,7 @@ def test_double_sphere_220_degree_lens():
     C.Fisheye(200, 320.2, 240.7, 640, 480, model="stereographic"),
     C.Mei(300, 300, 320.2, 240.7, 640, 480, xi=1.2, dist=(-0.1, 0.02, 0, 0)),
     C.DoubleSphere(300, 300, 320.2, 240.7, 640, 480, xi=-0.2, alpha=0.6),
+    C.EUCM(300, 300, 320.2, 240.7, 640, 480, alpha=0.6, beta=1.3),
 ])
 def test_principal_point_is_the_optical_axis(cam):
     # the iterative inverses must stay at an exact root instead of bisecting away from it
@@ -287,6 +336,8 @@ def test_scaramuzza_round_trip():
     (lambda: C.Mei(300, 300, 320, 240, 640, 480, xi=-0.5), "xi"),
     (lambda: C.DoubleSphere(300, 300, 320, 240, 640, 480, xi=0.1, alpha=1.5), "alpha"),
     (lambda: C.DoubleSphere(300, 300, 320, 240, 640, 480, xi=-1.5, alpha=0.5), "xi"),
+    (lambda: C.EUCM(300, 300, 320, 240, 640, 480, alpha=1.2, beta=1.0), "alpha"),
+    (lambda: C.EUCM(300, 300, 320, 240, 640, 480, alpha=0.5, beta=0.0), "beta"),
     (lambda: C.Fisheye(300, 320, 240, 640, 480, model="fancy"), "unknown fisheye model"),
     (lambda: C.Fisheye(300, 320, 240, 640, 480, model="orthographic", fov_deg=200), "fov_deg"),
     (lambda: C.Scaramuzza([250.0, 0, 1e-3], (240, 320), (1, 0, 0), 640, 480), "a0 < 0"),

@@ -2,6 +2,7 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -22,10 +23,147 @@ def test_kalibr_camchain_all_supported_models():
     c3 = C.load(FIX / "kalibr_camchain.yaml", key="cam3")
     assert isinstance(c3, C.DoubleSphere) and (c3.xi, c3.alpha, c3.fx, c3.cy) == (-0.2, 0.59, 313.2, 511.2)
     assert c3.fov_deg > 180
-    with pytest.raises(ValueError, match="eucm"):
-        C.load(FIX / "kalibr_camchain.yaml", key="cam4")
-    with pytest.raises(ValueError, match="no camera 'cam9'"):
+    c4 = C.load(FIX / "kalibr_camchain.yaml", key="cam4")  # [alpha, beta, fu, fv, pu, pv]
+    assert isinstance(c4, C.EUCM) and (c4.alpha, c4.beta, c4.fx, c4.fy, c4.cx, c4.cy) == \
+        (0.6, 1.1, 300, 300, 320, 240) and (c4.width, c4.height) == (640, 480)
+    with pytest.raises(ValueError, match=r"no camera 'cam9'.*--key"):
         C.load(FIX / "kalibr_camchain.yaml", key="cam9")
+
+
+def test_kalibr_extrinsics_mount_each_camera_in_the_rig():
+    chain = FIX / "kalibr_camchain.yaml"
+    c0, c1 = C.load(chain), C.load(chain, key="cam1")
+    np.testing.assert_array_equal(c0.rotation, C.DEFAULT_ROTATION)  # cam0 looks along +x
+    T = np.array([[0.999997256477, 0.002312067192, 0.000376008102],
+                  [-0.002317135723, 0.999898048507, 0.014089835846],
+                  [-0.000343393121, -0.014090668452, 0.999900662637]])
+    np.testing.assert_allclose(c1.rotation, C.DEFAULT_ROTATION @ T.T, atol=1e-8)
+    # a camera without extrinsics keeps the default mounting
+    np.testing.assert_array_equal(C.load(chain, key="cam2").rotation, C.DEFAULT_ROTATION)
+    rig = C.load_rig(FIX / "kalibr_rig.yaml")
+    assert list(rig) == ["cam0", "cam1"]
+    axes = [cam.rotation @ [0, 0, 1.0] for cam in rig.values()]  # optical axes, sphere frame
+    np.testing.assert_allclose(axes, [[1, 0, 0], [-1, 0, 0]], atol=1e-15)
+    # the back camera's image right is the rig's +y (left when seen from the front)
+    np.testing.assert_allclose(rig["cam1"].rotation @ [1.0, 0, 0], [0, 1, 0], atol=1e-15)
+    with pytest.raises(ValueError, match=r"\[cam2\].*T_cn_cnm1"):
+        C.load_rig(chain)
+
+
+def test_opencv_calibration_sample_fisheye_model_flag():
+    cam = C.load(FIX / "opencv_sample_fisheye.yaml")  # fisheye_model: 1, no distortion_model
+    assert isinstance(cam, C.KannalaBrandt) and (cam.width, cam.height) == (1280, 960)
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (331.27, 331.09, 641.35, 480.72)
+    np.testing.assert_array_equal(cam.k, [0.0312, -0.0104, 0.0021, -0.0003])
+    assert cam.fov_deg > 180  # a fisheye, not a pinhole with four radtan coefficients
+
+
+def test_cv2_omnidir_file_with_xi_as_a_matrix():
+    cam = C.load(FIX / "omnidir_calibration.yml")
+    assert isinstance(cam, C.Mei) and (cam.width, cam.height) == (1280, 960)
+    assert (cam.xi, cam.fx, cam.fy, cam.cx, cam.cy, cam.skew) == \
+        (1.2153, 702.15, 701.63, 640.82, 479.11, 0.35)
+    np.testing.assert_array_equal(cam.dist[:4], [-0.2341, 0.0912, 0.0012, -0.0007])
+
+
+def test_k_d_dim_files_as_yaml_filestorage_and_npz(tmp_path):
+    ref = C.load(FIX / "fisheye_kdd.yaml")
+    assert isinstance(ref, C.KannalaBrandt) and (ref.width, ref.height) == (1280, 960)
+    np.testing.assert_array_equal(ref.k, [0.0312, -0.0104, 0.0021, -0.0003])
+    K = np.array([[331.27, 0, 641.35], [0, 331.09, 480.72], [0, 0, 1.0]])
+    D = np.array([[0.0312], [-0.0104], [0.0021], [-0.0003]])
+    np.savez(tmp_path / "calib.npz", K=K, D=D, DIM=np.array([1280, 960]))
+    fs = cv2.FileStorage(str(tmp_path / "calib.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("K", K), fs.write("D", D), fs.write("DIM", np.array([[1280, 960]], np.float64))
+    fs.release()
+    for name in ("calib.npz", "calib.yaml"):
+        assert C.load(tmp_path / name).key() == ref.key()
+    np.savez(tmp_path / "pin.npz", K=K, D=np.array([0.1, -0.05, 1e-3, 2e-4, 0.01]), DIM=[1280, 960])
+    assert isinstance(C.load(tmp_path / "pin.npz"), C.Pinhole)  # 5 coefficients: radtan
+
+
+def test_usf_reference_sensor_yaml(tmp_path):
+    cam = C.load(FIX / "usf_sensor_mei.yaml")
+    assert isinstance(cam, C.Mei) and (cam.width, cam.height) == (612, 514)
+    assert (cam.xi, cam.fx, cam.fy, cam.cx, cam.cy) == (1.7993, 409.006, 409.004, 304.715, 255.533)
+    np.testing.assert_array_equal(cam.dist[:4], [-0.09541, 0.20030, 5.52e-4, 2.17e-5])
+    mask = cv2.imread(str(FIX / "usf_sensor_mask.png"), cv2.IMREAD_GRAYSCALE) > 0
+    np.testing.assert_array_equal(cam.image_mask, mask)
+    _, seen = cam.lens_normal_map()
+    assert not seen[0, 0] and seen[256, 305]  # the mask is applied
+    # model_type 0 is a pinhole; a lens_normal_map next to the file replaces the model
+    text = (FIX / "usf_sensor_mei.yaml").read_text().replace("mask: usf_sensor_mask.png\n", "")
+    pin = text.replace("model_type: 1", "model_type: 0").replace("gamma1", "fx") \
+        .replace("gamma2", "fy").replace("u0", "cx").replace("v0", "cy")
+    (tmp_path / "pin.yaml").write_text(pin)
+    p = C.load(tmp_path / "pin.yaml")
+    assert isinstance(p, C.Pinhole) and (p.fx, p.cy, p.dist[3]) == (409.006, 255.533, 2.17e-5)
+    rays, _ = C.Fisheye(200, 305, 256, 612, 514, fov_deg=180).unproject(
+        C.Pinhole(1, 1, 0, 0, 612, 514).pixel_grid())
+    np.save(tmp_path / "lnm.npy", np.nan_to_num(rays))
+    (tmp_path / "lnm.yaml").write_text(text + "lens_normal_map: lnm.npy\n")
+    assert isinstance(C.load(tmp_path / "lnm.yaml"), C.LensNormalMap)
+    np.save(tmp_path / "lnm.npy", np.nan_to_num(rays[:100]))
+    with pytest.raises(ValueError, match=r"lnm.yaml: lens_normal_map is 612 x 100"):
+        C.load(tmp_path / "lnm.yaml")
+
+
+def test_fov_and_mask_from_files_and_arguments(tmp_path):
+    kb = C.load(FIX / "kalibr_rig.yaml")  # equidistant to the sensor's corners
+    assert kb.fov_deg == pytest.approx(270, abs=2)
+    cut = C.load(FIX / "kalibr_rig.yaml", fov_deg=190)
+    assert cut.fov_deg == pytest.approx(190, abs=0.5)
+    rays, ok = cut.unproject(cut.pixel_grid())
+    assert ok.sum() < kb.unproject(kb.pixel_grid())[1].sum()
+    mask = np.zeros((400, 400), bool)
+    mask[50:350, 50:350] = True
+    cam = cut.with_image_mask(mask)
+    cam.save(tmp_path / "cam.yaml")
+    assert "fov_deg: 190" in (tmp_path / "cam.yaml").read_text()
+    back = C.load(tmp_path / "cam.yaml")
+    assert back.key() == cam.key() and (back.image_mask == mask).all()
+    np.testing.assert_array_equal(back.lens_normal_map()[1], cam.lens_normal_map()[1])
+    assert C.load(tmp_path / "cam.yaml", image_mask=tmp_path / "cam.mask.png").key() == cam.key()
+
+
+BROKEN = [
+    ("opencv_sample_fisheye.yaml", "image_width: 1280\n", "", "missing key 'image_width'"),
+    ("omnidir_calibration.yml", "rows: 1\n   cols: 1\n   dt: d\n   data: [ 1.2153 ]",
+     "rows: 1\n   cols: 2\n   dt: d\n   data: [ 1.2153, 1.0 ]", "'xi' must be one number"),
+    ("fisheye_kdd.yaml", "DIM: [1280, 960]\n", "", "missing key 'DIM'"),
+    ("fisheye_kdd.yaml", "[[0.0312], [-0.0104], [0.0021], [-0.0003]]", "[0.0312, 0.1, -0.0104]",
+     "'D' must have 4 or 5 or 8 or 12 elements, got 3"),
+    ("kalibr_camchain.yaml", "intrinsics: [0.8, 520.1", "intrinsics: [520.1",
+     r"\[cam2\]: Kalibr 'omni' intrinsics are \[xi, fu, fv, pu, pv\] \(5 values\), got 4"),
+    ("kalibr_camchain.yaml", "- [0.0, 0.0, 0.0, 1.0]\n  camera_model: pinhole\n  distortion_coeffs: [0.0034",
+     "- [0.0, 0.0, 0.0, 1.0]\n  camera_model: pinhole\n  distortion_coeffs: [0.0034, 0.1",
+     r"\[cam1\]: Kalibr distortion_model 'equidistant' takes 4 distortion_coeffs, got 5"),
+    ("kalibr_camchain.yaml", "[0.999997256477, 0.002312067192", "[2.999997256477, 0.002312067192",
+     r"\[cam1\]: 'T_cn_cnm1' is not a rigid transform"),
+    ("usf_sensor_mei.yaml", "model_type: 1", "model_type: 7", r"unknown model_type 7; supported: 0"),
+    ("usf_sensor_mei.yaml", "    gamma1: 409.006\n", "", "missing key 'gamma1' in 'projection_parameters'"),
+    ("usf_sensor_mei.yaml", "gamma1: 409.006", "gamma1: -330.0", r"fx must be a positive finite number, got -330.0\."),
+    ("usf_sensor_mei.yaml", "usf_sensor_mask.png", "nothing.png", "cannot read the image mask"),
+]
+
+
+@pytest.mark.parametrize("name, old, new, match", BROKEN)
+def test_broken_files_name_the_file_and_the_key(tmp_path, name, old, new, match):
+    text = (FIX / name).read_text()
+    assert old in text
+    bad = tmp_path / name
+    bad.write_text(text.replace(old, new, 1))
+    for f in FIX.glob("usf_sensor_mask.png"):
+        (tmp_path / f.name).write_bytes(f.read_bytes())
+    key = "cam2" if "omni'" in match else ("cam1" if "[cam1" in match.replace("\\", "") else None)
+    with pytest.raises(ValueError, match=match) as e:
+        C.load(bad, key=key)
+    assert str(bad) in str(e.value) and "np.float64" not in str(e.value)
+
+
+def test_key_for_a_single_camera_file_is_an_error():
+    with pytest.raises(ValueError, match=r"key='cam1' \(--key\).*OpenCV file with one camera"):
+        C.load(FIX / "opencv_pinhole.yaml", key="cam1")
 
 
 def test_opencv_filestorage_yaml_and_xml():
@@ -75,6 +213,7 @@ def test_ocamcalib_calib_results():
     C.Fisheye(250, 300, 300, 600, 600, model="equisolid", fov_deg=180),
     C.Mei(400, 400, 640, 480, 1280, 960, xi=1.2, dist=(0.01, 0, 0, 0), skew=0.5),
     C.DoubleSphere(300, 300, 640, 480, 1280, 960, xi=-0.2, alpha=0.6),
+    C.EUCM(300, 300, 640, 480, 1280, 960, alpha=0.6, beta=1.1),
     C.Equirectangular(512, 256, lat_range=(-1.0, 1.2)),
     C.Scaramuzza([-250.0, 0.0, 1e-3], (240, 320), (1, 0, 0), 640, 480),
 ])
@@ -120,7 +259,7 @@ def test_bad_files_raise_clear_errors(tmp_path):
         C.load(p)
     k = (FIX / "kalibr_camchain.yaml").read_text().replace("  resolution: [752, 480]\n", "")
     p.write_text(k)
-    with pytest.raises(ValueError, match="missing key 'resolution' in cam0"):
+    with pytest.raises(ValueError, match=r"\[cam0\]: missing key .resolution."):
         C.load(p)
     o = (FIX / "opencv_pinhole.yaml").read_text().replace("image_width: 1280\n", "")
     q = tmp_path / "o.yaml"

@@ -150,14 +150,14 @@ def test_non_finite_pixels_raise_only_where_the_camera_sees(dtype):
     for bad in (np.inf, -np.inf, np.nan):
         img = np.full((128, 128), 0.5, dtype)
         img[60:70, 20:30] = bad  # seen
-        with pytest.raises(ValueError, match="NaN or inf"):
+        with pytest.raises(ValueError, match="NaN or inf.*--image-mask"):
             fe.lift(img)
         img[:] = 0.5
         img[:, 100:] = bad  # hidden by the image mask: allowed
         assert torch.isfinite(fe.lift(img)).all()
     img = np.full((128, 128), 0.5, dtype)
     img[60:70, 20:25], img[60:70, 25:30] = np.inf, -np.inf  # sum is NaN, not inf
-    with pytest.raises(ValueError, match="NaN or inf"):
+    with pytest.raises(ValueError, match="NaN or inf.*--image-mask"):
         fe.lift(img)
     huge = np.full((128, 128), 3e38, dtype)  # finite, however large
     assert torch.isfinite(fe.lift(huge)).all()

@@ -9,6 +9,7 @@ All math is numpy float64. Invalid outputs are NaN and flagged False in ``valid`
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -18,10 +19,18 @@ FORMAT_TAG = "usf_graph_camera"  # marks usf-graph's own calibration YAML
 DEFAULT_ROTATION = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
+def plain(value) -> str:
+    """A number as people write it (``-330.0``, not ``np.float64(-330.0)``)."""
+    try:
+        return repr(float(value))
+    except (TypeError, ValueError):
+        return repr(value)
+
+
 def check_positive(name: str, value, fix: str = "") -> float:
     v = float(value)
     if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}. {fix}".strip())
+        raise ValueError(f"{name} must be a positive finite number, got {plain(value)}. {fix}".strip())
     return v
 
 
@@ -204,9 +213,11 @@ class Camera:
     def __init__(self, width: int, height: int, rotation=None):
         for name, v in (("width", width), ("height", height)):
             if int(v) != v or v <= 0:
-                raise ValueError(f"{name} must be a positive integer number of pixels, got {v!r}")
+                raise ValueError(f"{name} must be a positive integer number of pixels, got {plain(v)}")
         self.width, self.height = int(width), int(height)
         self.rotation = check_rotation(rotation)
+        self.fov_limit: float | None = None  # usable half-angle (rad) about the optical axis
+        self.image_mask: np.ndarray | None = None  # [H, W] bool, False on pixels to ignore
 
     # -- to implement ------------------------------------------------------------
     def _project(self, rays: np.ndarray):
@@ -231,7 +242,7 @@ class Camera:
         finite = np.all(np.isfinite(rays), -1) & (np.linalg.norm(rays, axis=-1) > 0)
         rays = np.where(finite[..., None], rays, np.array([0.0, 0.0, 1.0]))
         uv, valid = self._project(rays)
-        valid = valid & finite & np.all(np.isfinite(uv), -1)
+        valid = valid & finite & np.all(np.isfinite(uv), -1) & self._within_fov(rays)
         return np.where(valid[..., None], uv, np.nan), valid
 
     def unproject(self, uv):
@@ -241,7 +252,15 @@ class Camera:
         uv = np.where(finite[..., None], uv, 0.0)
         rays, valid = self._unproject(uv)
         valid = valid & finite & np.all(np.isfinite(rays), -1)
+        valid &= self._within_fov(np.where(valid[..., None], rays, self.optical_axis))
         return np.where(valid[..., None], rays, np.nan), valid
+
+    def _within_fov(self, rays) -> np.ndarray:
+        if self.fov_limit is None:
+            return np.ones(rays.shape[:-1], bool)
+        a = self.optical_axis
+        ang = np.arctan2(np.linalg.norm(np.cross(rays, a), axis=-1), rays @ a)
+        return ang <= self.fov_limit * (1 + 1e-12)
 
     def in_image(self, uv) -> np.ndarray:
         """True where a pixel coordinate lies on the sensor (pixel centres at integers)."""
@@ -258,14 +277,23 @@ class Camera:
         return np.stack([u, v], -1)
 
     def lens_normal_map(self):
-        """Per-pixel unit rays in the sphere frame ``[H, W, 3]`` and ``valid [H, W]``."""
+        """Per-pixel unit rays in the sphere frame ``[H, W, 3]`` and ``valid [H, W]``
+        (False also where :attr:`image_mask` is)."""
         rays, valid = self.unproject(self.pixel_grid())
+        if self.image_mask is not None:
+            valid = valid & self.image_mask
+            rays = np.where(valid[..., None], rays, np.nan)
         return rays @ self.rotation.T, valid
 
     def sees(self, points) -> tuple[np.ndarray, np.ndarray]:
-        """Sphere-frame points ``[..., 3]`` -> (pixels, seen): the camera's field-of-view test."""
+        """Sphere-frame points ``[..., 3]`` -> (pixels, seen): the camera's field-of-view test,
+        with the :attr:`image_mask` (nearest pixel) when there is one."""
         uv, valid = self.project(np.asarray(points, np.float64) @ self.rotation)
         seen = valid & self.in_image(np.where(valid[..., None], uv, -1e9))
+        if self.image_mask is not None:
+            j = np.clip(np.rint(np.nan_to_num(uv[..., 0])), 0, self.width - 1).astype(np.int64)
+            i = np.clip(np.rint(np.nan_to_num(uv[..., 1])), 0, self.height - 1).astype(np.int64)
+            seen &= self.image_mask[i, j % self.width]
         return uv, seen
 
     @property
@@ -300,25 +328,76 @@ class Camera:
         """Total solid angle (sr) the image covers; 4*pi for a full panorama."""
         return float(self.pixel_solid_angles().sum())
 
+    def _rebuild(self, rotation) -> Camera:
+        return type(self)(**self.params(), rotation=rotation)
+
+    def _copy(self, rotation=None, fov_limit=..., image_mask=...) -> Camera:
+        new = self._rebuild(self.rotation if rotation is None else rotation)
+        new.fov_limit = self.fov_limit if fov_limit is ... else fov_limit
+        new.image_mask = self.image_mask if image_mask is ... else image_mask
+        return new
+
     def with_rotation(self, rotation) -> Camera:
         """A copy of this camera mounted with another ``rotation`` (sphere <- camera)."""
-        return type(self)(**self.params(), rotation=rotation)
+        return self._copy(rotation=rotation)
+
+    def with_fov(self, fov_deg: float | None) -> Camera:
+        """A copy that sees only rays within ``fov_deg / 2`` of the optical axis (``None``:
+        the whole lens). Use it for a lens whose calibration extrapolates past its image
+        circle: a 190-degree fisheye calibrated as Kannala-Brandt may report 270."""
+        if fov_deg is None:
+            return self._copy(fov_limit=None)
+        fov = check_positive("fov_deg", fov_deg, "It is the full field of view in degrees.")
+        if fov > 360:
+            raise ValueError(f"fov_deg must be at most 360 degrees, got {plain(fov_deg)}")
+        return self._copy(fov_limit=math.radians(fov) / 2)
+
+    def with_image_mask(self, mask) -> Camera:
+        """A copy that ignores the pixels where ``mask [H, W]`` is False (vignetting, the
+        robot's body); ``None`` removes the mask."""
+        if mask is None:
+            return self._copy(image_mask=None)
+        m = np.asarray(mask)
+        if m.shape[:2] != (self.height, self.width) or m.ndim not in (2, 3):
+            raise ValueError(f"image mask has shape {m.shape} but the camera's image is "
+                             f"{self.height} x {self.width} (rows x columns)")
+        m = (m if m.ndim == 2 else m.max(-1)) != 0
+        if not m.any():
+            raise ValueError("the image mask is all zero: the camera would see nothing")
+        return self._copy(image_mask=m)
 
     def key(self) -> dict:
         """Everything that determines this camera's geometry (for cache keys and files)."""
-        return {"model": self.model, "params": _jsonable(self.params()),
-                "rotation": np.round(self.rotation, 15).tolist()}
+        k = {"model": self.model, "params": _jsonable(self.params()),
+             "rotation": np.round(self.rotation, 15).tolist()}
+        if self.fov_limit is not None:
+            k["fov_deg"] = round(math.degrees(2 * self.fov_limit), 12)
+        if self.image_mask is not None:
+            import hashlib
+
+            k["image_mask"] = hashlib.sha256(np.packbits(self.image_mask).tobytes()).hexdigest()[:16]
+        return k
 
     def save(self, path) -> None:
         """Write this camera to ``path`` in usf-graph's YAML form (see ``cameras.load``),
-        atomically."""
+        atomically. An image mask goes next to it as ``<stem>.mask.png``."""
         import yaml
 
         from ..fileio import atomic_write
 
+        path = Path(path)
         key = self.key()
         doc = {FORMAT_TAG: 1, "model": type(self).__name__, "rotation": key["rotation"],
                "params": key["params"]}
+        if "fov_deg" in key:
+            doc["fov_deg"] = key["fov_deg"]
+        if self.image_mask is not None:
+            import cv2
+
+            name = f"{path.stem}.mask.png"
+            ok, png = cv2.imencode(".png", self.image_mask.astype(np.uint8) * 255)
+            atomic_write(path.with_name(name), lambda f: f.write(png.tobytes()))
+            doc["image_mask"] = name
         text = yaml.safe_dump(doc, sort_keys=False)
         atomic_write(path, lambda f: f.write(text), "w")
 

@@ -132,3 +132,57 @@ class DoubleSphere(Camera):
         rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
         ok &= (rays[..., 2] > -self._w2) & (incidence(rays) < self.theta_max)
         return rays, ok
+
+
+class EUCM(Camera):
+    """Enhanced Unified Camera Model (Khomutenko, Garcia & Martinet 2016), closed form.
+
+    With d = sqrt(beta (x^2 + y^2) + z^2) and den = alpha d + (1 - alpha) z, a ray maps to
+    u = fx x / den + cx, v = fy y / den + cy. ``alpha`` in [0, 1], ``beta`` > 0; beta = 1 is
+    Mei's model with xi = alpha / (1 - alpha). Kalibr orders the intrinsics
+    [alpha, beta, fu, fv, pu, pv]; basalt [fx, fy, cx, cy, alpha, beta].
+    """
+
+    model = "eucm"
+
+    def __init__(self, fx, fy, cx, cy, width, height, alpha, beta, rotation=None):
+        super().__init__(width, height, rotation)
+        _intrinsics(self, fx, fy, cx, cy)
+        self.alpha = check_finite("alpha", alpha).item()
+        self.beta = check_positive("beta", beta, "EUCM's beta shapes the projection ellipsoid.")
+        if not 0 <= self.alpha <= 1:
+            raise ValueError(f"EUCM alpha must lie in [0, 1], got {self.alpha}")
+        a = self.alpha
+        self._w = a / (1 - a) if a <= 0.5 else (1 - a) / a
+        # as for the Double Sphere: stop where the image radius stops growing
+        w = float(np.clip(self._w, -1, 1))
+        t_w = float(np.arctan2(np.sqrt(1 - w * w), -w))
+        radius = lambda t: self._project(np.stack([np.sin(t), 0 * t, np.cos(t)], -1))[0][..., 0]  # noqa: E731
+        self.theta_max = monotone_limit(lambda t: radius(t) - self.cx, t_w)
+
+    def params(self) -> dict:
+        return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, alpha=self.alpha, beta=self.beta)
+
+    def _project(self, rays):
+        x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]
+        d = np.sqrt(self.beta * (x * x + y * y) + z * z)
+        den = self.alpha * d + (1 - self.alpha) * z
+        ok = (z > -self._w * d) & (den > 0)
+        if hasattr(self, "theta_max"):
+            ok &= incidence(rays) < self.theta_max
+        den = np.where(ok, den, 1.0)
+        return np.stack([self.fx * x / den + self.cx, self.fy * y / den + self.cy], -1), ok
+
+    def _unproject(self, uv):
+        a, b = self.alpha, self.beta
+        mx = (uv[..., 0] - self.cx) / self.fx
+        my = (uv[..., 1] - self.cy) / self.fy
+        r2 = mx * mx + my * my
+        disc = 1 - (2 * a - 1) * b * r2
+        ok = disc >= 0
+        mz = (1 - b * a * a * r2) / (a * np.sqrt(np.maximum(disc, 0)) + 1 - a)
+        rays = np.stack([mx, my, mz], -1)
+        rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        ok &= incidence(rays) < self.theta_max
+        return rays, ok

@@ -119,7 +119,7 @@ class LensNormalMap(Camera):
         raise ValueError("a LensNormalMap is its table: save it with "
                          "numpy.savez(path, rays=cam.rays, valid=cam.valid_table)")
 
-    def with_rotation(self, rotation) -> LensNormalMap:
+    def _rebuild(self, rotation) -> LensNormalMap:
         return LensNormalMap(self.rays, self.valid_table, rotation, self.source)
 
     def _cell(self, uv):

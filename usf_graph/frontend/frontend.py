@@ -98,7 +98,7 @@ class SphericalFrontend:
             coarser than the image) | ``rbf`` (Gaussian weights of the lifted pixels).
         radius: geodesic radius (rad) of the graph edges; default about 1.6 spacings.
         image_mask: optional ``[H, W]`` bool, False on pixels to ignore (vignetting,
-            the robot's body).
+            the robot's body); combined with the camera's own :attr:`~Camera.image_mask`.
         cache: a :class:`GeometryCache`; defaults to the process-wide one.
 
     The interpolation table, field-of-view mask and radius graph depend only on the
@@ -116,6 +116,9 @@ class SphericalFrontend:
         if image_mask is not None and np.shape(image_mask) != (camera.height, camera.width):
             raise ValueError(f"image_mask must have shape {(camera.height, camera.width)}, "
                              f"got {np.shape(image_mask)}")
+        if camera.image_mask is not None:  # the camera's own mask (from its file) applies too
+            image_mask = camera.image_mask if image_mask is None else \
+                camera.image_mask & np.asarray(image_mask, bool)
         key = {"camera": camera.key(), "grid": grid.key(), "interpolation": interpolation,
                "image_mask": _digest(image_mask), "rbf_sigma": rbf_sigma}
 
@@ -271,8 +274,8 @@ def _check_finite(x: torch.Tensor, mask: torch.Tensor) -> None:
     if bool(np.isfinite(x.detach().numpy()).all() if fast else torch.isfinite(x).all()):
         return  # the masked check only on failure
     if not torch.isfinite(x[..., mask, :]).all():
-        raise ValueError("the image has NaN or inf in pixels the camera sees; clean or mask "
-                         "them (image_mask=) before lifting")
+        raise ValueError("the image has NaN or inf in pixels the camera sees; clean them, or "
+                         "mask them: image_mask= in Python, --image-mask on the command line")
 
 
 def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear"):
