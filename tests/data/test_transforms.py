@@ -85,8 +85,9 @@ def test_grid_to_grid_moves_the_mask_with_the_signal():
     data = SphericalFrontend(cam, g, cache=GeometryCache(None))(np.ones((128, 128)))
     R = torch.tensor([[-1.0, 0, 0], [0, -1, 0], [0, 0, 1]], dtype=torch.float64)  # pi about z
     out = rotate_sample(data.clone(), R)
-    fwd = g.pos[:, 0] > 0.05
-    back = g.pos[:, 0] < -0.05
+    # more than a triangle (edges up to ~0.09 rad) from the rim: whole triangles on one side
+    fwd = g.pos[:, 0] > 0.12
+    back = g.pos[:, 0] < -0.12
     assert data.mask[fwd].all() and not data.mask[back].any()
     assert out.mask[back].all() and not out.mask[fwd].any()
     assert (out.x[~out.mask] == 0).all()
@@ -99,8 +100,9 @@ def test_geodesic_radius_graph_transform_and_batches():
     t = GeodesicRadiusGraph(2 * g.spacing)
     out = t(data.clone())
     ei, ew = geodesic_radius_graph(g.pos, 2 * g.spacing)
-    assert torch.equal(out.edge_index, ei) and torch.allclose(out.edge_weight.double(), ew, atol=1e-6)
-    assert out.edge_weight.max() <= 2 * g.spacing + 1e-6
+    assert torch.equal(out.edge_index, ei) and out.edge_attr.shape == (len(ew), 1)
+    assert torch.allclose(out.edge_attr[:, 0].double(), ew, atol=1e-6)
+    assert out.edge_attr.max() <= 2 * g.spacing + 1e-6 and "edge_weight" not in out
     batch = next(iter(DataLoader([out, out.clone()], batch_size=2)))
     again = t(batch.clone())
     assert again.edge_index.shape[1] == 2 * ei.shape[1]

@@ -1,4 +1,5 @@
-"""PyG transforms for spherical samples: random rotations and radius graphs."""
+"""PyG transforms for spherical samples: random rotations, radius graphs, and the bridges to
+PyG's own layers (an affinity ``edge_weight``, the visible subgraph)."""
 
 from __future__ import annotations
 
@@ -78,10 +79,11 @@ def rotate_sample(data: Data, R: torch.Tensor, frontend=None) -> Data:
 class GeodesicRadiusGraph(BaseTransform):
     r"""Connects points of S2 within geodesic distance ``r`` (radians).
 
-    Sets ``edge_index [2, E]`` (row 0 neighbour, row 1 centre) and ``edge_weight [E]``, the
-    geodesic distance :math:`\operatorname{atan2}(|p \times q|, p \cdot q)`. Self-loops are
-    included unless ``loop=False``; neighbourhoods are never truncated. Respects
-    ``data.batch`` for batched samples.
+    Sets ``edge_index [2, E]`` (row 0 neighbour, row 1 centre) and ``edge_attr [E, 1]``, the
+    geodesic distance :math:`\operatorname{atan2}(|p \times q|, p \cdot q)` (PyG's
+    ``Distance`` layout, as in :class:`SphericalImage`). Self-loops are included unless
+    ``loop=False``; neighbourhoods are never truncated. Respects ``data.batch`` for
+    batched samples.
     """
 
     def __init__(self, r: float, loop: bool = True):
@@ -91,8 +93,53 @@ class GeodesicRadiusGraph(BaseTransform):
 
     def forward(self, data: Data) -> Data:
         ei, ew = geodesic_radius_graph(data.pos.double(), self.r, getattr(data, "batch", None), self.loop)
-        data.edge_index, data.edge_weight = ei, ew.to(data.pos.dtype)
+        data.edge_index, data.edge_attr = ei, ew.to(data.pos.dtype)[:, None]
         return data
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(r={self.r:g}, loop={self.loop})"
+
+
+class GaussianEdgeWeight(BaseTransform):
+    r"""Writes ``edge_weight`` :math:`= \exp(-d^2 / 2\sigma^2)` from the distances in
+    ``edge_attr [E, 1]``: an affinity in (0, 1], 1 on self-loops, the meaning PyG layers
+    such as ``GCNConv``, ``GraphConv`` or ``SAGEConv``-with-weights give ``edge_weight``.
+
+    Args:
+        sigma: the length scale, in radians on S2 (default: half the largest edge).
+    """
+
+    def __init__(self, sigma: float | None = None):
+        if sigma is not None and not sigma > 0:
+            raise ValueError(f"sigma must be positive (radians), got {sigma}")
+        self.sigma = sigma
+
+    def forward(self, data: Data) -> Data:
+        d = getattr(data, "edge_attr", None)
+        if d is None or d.dim() != 2 or d.shape[1] != 1:
+            raise ValueError("GaussianEdgeWeight reads the distances from edge_attr [E, 1] (a "
+                             "SphericalImage, or GeodesicRadiusGraph first)")
+        d = d[:, 0]
+        sigma = self.sigma if self.sigma is not None else 0.5 * float(d.max().clamp_min(1e-12))
+        data.edge_weight = torch.exp(-0.5 * (d / sigma) ** 2)
+        return data
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(sigma={self.sigma})"
+
+
+class VisibleSubgraph(BaseTransform):
+    r"""Keeps only the points the camera sees (``data.mask``) and the edges between them.
+
+    Layers that take no mask (every PyG layer) would otherwise mix the zeros of unseen
+    points into their neighbours. Node attributes (``x``, ``pos``, ``area``, ...) and edge
+    attributes are subset alike (``Data.subgraph``); ``data.mask`` becomes all True.
+    """
+
+    def forward(self, data: Data) -> Data:
+        mask = getattr(data, "mask", None)
+        if mask is None:
+            raise ValueError("VisibleSubgraph needs data.mask (the points the camera sees)")
+        if not bool(mask.any()):
+            raise ValueError("data.mask is all False: the sample has no visible point")
+        return data.subgraph(mask.bool())

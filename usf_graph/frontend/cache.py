@@ -21,8 +21,9 @@ from .._version import __version__
 from ..fileio import atomic_write
 
 # Part of every key: bump it whenever cached geometry changes meaning, so tables written by
-# an older convention are never read again (2: panoramas no longer mirrored).
-GEOMETRY_VERSION = 2
+# an older convention are never read again (2: panoramas no longer mirrored; 3: pixels
+# without a ray no longer blend into their neighbours).
+GEOMETRY_VERSION = 3
 
 
 def default_cache_dir() -> Path | None:

@@ -217,10 +217,15 @@ class SphericalFrontend:
         return x
 
     def __call__(self, image) -> SphericalImage:
-        x = self.lift(image)
-        return SphericalImage(x=x, pos=self.grid.pos.to(x.dtype), mask=self.mask.clone(),
+        return self.image(self.lift(image))
+
+    def image(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> SphericalImage:
+        """The :class:`SphericalImage` of lifted values ``x [N, C]`` on this grid, with the
+        cached graph (``mask``: default, the camera's field of view)."""
+        mask = self.mask if mask is None else mask
+        return SphericalImage(x=x, pos=self.grid.pos.to(x.dtype), mask=mask.clone(),
                               area=self.grid.area.to(x.dtype), edge_index=self.edge_index,
-                              edge_weight=self.edge_weight.to(x.dtype))
+                              edge_attr=self.edge_weight.to(x.dtype)[:, None])
 
     # -- back to pixels ------------------------------------------------------------------
     def to_image(self, values, mode: str = "bilinear"):

@@ -17,10 +17,24 @@ class SphericalImage(Data):
         mask: ``[N]`` bool, True where the camera sees the point.
         area: ``[N]`` quadrature weights (cell areas, summing to 4 pi for a full grid).
         edge_index: ``[2, E]`` radius edges (row 0 neighbour j, row 1 centre i).
-        edge_weight: ``[E]`` geodesic distance of each edge in radians.
+        edge_attr: ``[E, 1]`` geodesic distance of each edge in radians (0 on self-loops),
+            the layout of PyG's ``Distance`` transform; :attr:`edge_dist` is the same as
+            ``[E]``.
+
+    There is deliberately no ``edge_weight``: PyG layers such as ``GCNConv`` read
+    ``edge_weight`` as an affinity (larger = closer), and radians would be silently
+    wrong there. :class:`usf_graph.data.GaussianEdgeWeight` writes a true affinity, and
+    :class:`usf_graph.data.VisibleSubgraph` drops the points the camera does not see,
+    for layers that do not take a mask. Our convolutions take ``edge_attr`` directly:
+    ``conv(img.x, img.edge_index, img.edge_attr, node_weight=img.area, mask=img.mask)``.
 
     Batches from PyG's ``DataLoader`` concatenate nodes and offset ``edge_index``.
     """
+
+    @property
+    def edge_dist(self) -> torch.Tensor:
+        """``[E]`` geodesic distance of each edge in radians (a view of ``edge_attr``)."""
+        return self.edge_attr.view(-1)
 
     @property
     def lat(self) -> torch.Tensor:

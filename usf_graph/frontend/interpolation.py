@@ -119,6 +119,11 @@ def build_table(cam: Camera, pos: np.ndarray, method: str, image_mask=None,
     """Everything the frontend needs to lift images from ``cam`` onto ``pos [N, 3]``."""
     check_method(method)
     uv, seen = cam.sees(pos)
+    # pixels without a ray (past the image circle or the usable fov) never contribute
+    has_ray = cam.unproject(cam.pixel_grid())[1]
+    if image_mask is not None:
+        has_ray &= np.asarray(image_mask, bool)
+    image_mask = None if has_ray.all() else has_ray
     if image_mask is not None:
         m = np.asarray(image_mask, bool).ravel()
         idx, _ = nearest_entries(cam, uv, seen)

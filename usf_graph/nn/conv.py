@@ -72,7 +72,8 @@ class DistanceConv(MessagePassing):
     Shapes:
         - x: ``[N, C_in]`` (any graph) or ``[B, N, C_in]`` (one graph shared by the batch)
         - edge_index: ``[2, E]``, row 0 the neighbour j and row 1 the centre i
-        - edge_weight: ``[E]`` distances
+        - edge_weight: ``[E]`` distances, or ``[E, 1]`` (a :class:`SphericalImage`'s
+          ``edge_attr``, PyG's ``Distance`` layout)
         - node_weight: ``[N]`` areas (optional), mask: ``[N]`` bool (optional)
         - output: ``[N, C_out]`` or ``[B, N, C_out]``
     """
@@ -123,6 +124,7 @@ class DistanceConv(MessagePassing):
             sized = node_weight if node_weight is not None else mask
             num_nodes = len(sized) if sized is not None else \
                 int(edge_index.max()) + 1 if edge_index.numel() else 0
+        edge_weight = _distances(edge_weight)
         self._check_graph(edge_index, edge_weight, int(num_nodes), node_weight, mask)
         self.bound_edge_index, self.bound_edge_weight = edge_index, edge_weight
         self.bound_node_weight, self.bound_mask = node_weight, mask
@@ -215,6 +217,7 @@ class DistanceConv(MessagePassing):
             edge_index, plan = self.bound_edge_index, self.plan
             coef = self._bound_coefficients(mask)
         else:
+            edge_weight = _distances(edge_weight)
             self._check_graph(edge_index, edge_weight, N, node_weight, mask)
             plan = None
             coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask)
@@ -275,3 +278,10 @@ class PointConv(DistanceConv):
                  bias: bool = True, hidden: int = 32):
         super().__init__(in_channels, out_channels, radius, num_basis, kernel, basis, normalize,
                          bias, hidden)
+
+
+def _distances(edge_weight):
+    """``[E, 1]`` edge attributes (PyG's ``Distance`` layout) as ``[E]`` distances."""
+    if edge_weight is not None and edge_weight.dim() == 2 and edge_weight.shape[1] == 1:
+        return edge_weight[:, 0]
+    return edge_weight

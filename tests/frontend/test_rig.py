@@ -1,0 +1,75 @@
+"""RigFrontend: the cameras of a rig lifted onto one sphere."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tests.helpers import FIXTURES
+from usf_graph import cameras, grids
+from usf_graph.frontend import GeometryCache, RigFrontend, SphericalFrontend
+
+
+def scene(p):
+    """A smooth RGB world seen from the rig's centre, as a function of the direction."""
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    return np.stack([0.5 + 0.4 * np.sin(2 * x + y), 0.5 + 0.4 * np.cos(3 * z - y),
+                     0.5 + 0.3 * x * z], -1)
+
+
+def shoot(cam):
+    """The image ``cam`` takes of :func:`scene` (0 where it has no ray)."""
+    rays, valid = cam.lens_normal_map()
+    return np.where(valid[..., None], scene(np.nan_to_num(rays)), 0.0)
+
+
+@pytest.fixture(scope="module")
+def rig():
+    cams = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    return cams, grids.icosahedral(3), GeometryCache(None)
+
+
+def test_two_opposite_fisheyes_cover_the_sphere_and_agree_where_both_see(rig):
+    cams, g, cache = rig
+    fe = RigFrontend(cams, g, cache=cache)
+    pos = g.pos.numpy()
+    assert fe.mask.all()  # two 190-degree lenses back to back see everything
+    assert (fe.source[pos[:, 0] > 0] == 0).all() and (fe.source[pos[:, 0] < 0] == 1).all()
+    shots = [shoot(c) for c in cams.values()]
+    alone = [SphericalFrontend(c, g, cache=cache) for c in cams.values()]
+    both = alone[0].mask & alone[1].mask
+    assert 20 < int(both.sum()) and np.abs(pos[both.numpy(), 0]).max() < math.sin(math.radians(5)) + 1e-9
+    x0, x1 = (a.lift(s) for a, s in zip(alone, shots))
+    truth = torch.from_numpy(scene(pos))
+    # a point seen by both cameras gets the same value from either side
+    assert (x0[both] - x1[both]).abs().max() < 2e-3
+    for blend in ("best", "feather"):
+        rf = RigFrontend(cams, g, blend=blend, cache=cache)
+        img = rf(shots)
+        assert img.mask.all() and (img.x - truth).abs().max() < 2e-3
+        torch.testing.assert_close(rf.weights.sum(0), torch.ones(len(g), dtype=torch.float64))
+    feather = RigFrontend(cams, g, blend="feather", cache=cache)
+    assert ((feather.weights > 0).sum(0) == 2).sum() == int(both.sum()) - 0  # blended in the overlap
+    best = RigFrontend(cams, g, cache=cache)
+    np.testing.assert_array_equal(best(shots).x[~both].numpy(),
+                                  torch.where(fe.source[~both, None] == 0, x0[~both], x1[~both]).numpy())
+
+
+def test_rig_inputs_batches_and_errors(rig):
+    cams, g, cache = rig
+    fe = RigFrontend(cams, g, cache=cache)
+    shots = [shoot(c) for c in cams.values()]
+    x = fe.lift(shots)
+    torch.testing.assert_close(fe.lift({"cam1": shots[1], "cam0": shots[0]}), x)
+    xb = fe.lift_batch([np.stack([s, 2 * s]) for s in shots])
+    torch.testing.assert_close(xb, torch.stack([x, 2 * x]))
+    assert "cam0=kannala-brandt" in repr(fe)
+    with pytest.raises(ValueError, match="2 cameras.*1 images"):
+        fe.lift(shots[:1])
+    with pytest.raises(ValueError, match=r"no image for camera\(s\) \['cam1'\]"):
+        fe.lift({"cam0": shots[0]})
+    with pytest.raises(ValueError, match="blend"):
+        RigFrontend(cams, g, blend="average")
+    img = RigFrontend.from_file(FIXTURES / "kalibr_rig.yaml", g, cache=cache)(shots)
+    assert img.mask.all() and img.edge_attr.shape[1] == 1
