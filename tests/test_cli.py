@@ -1,9 +1,14 @@
+import argparse
+
 import cv2
 import numpy as np
+import pytest
 import torch
 
-from usf_graph import SphericalFrontend, cameras, grids
-from usf_graph.cli import main
+from tests.helpers import FIXTURES
+from usf_graph import SphericalFrontend, SphericalImage, cameras, grids
+from usf_graph.cli import build_parser, main
+from usf_graph.frontend import load_lifted, read_lifted
 
 
 def test_lift_cli_writes_sample_and_preview(tmp_path, capsys):
@@ -18,13 +23,126 @@ def test_lift_cli_writes_sample_and_preview(tmp_path, capsys):
     assert rc == 0
     out = capsys.readouterr()
     assert "points visible" in out.out and "building lift table" in out.err
-    d = torch.load(tmp_path / "s.pt", weights_only=True)
-    ref = SphericalFrontend(cameras.load(tmp_path / "cam.yaml"), grids.icosahedral(4)).lift(img)
-    assert torch.equal(d["x"], ref) and d["x"].shape == (2562, 3)
-    assert d["mask"].sum() == (ref.abs().sum(1) > 0).sum() > 100
+    fe = SphericalFrontend(cameras.load(tmp_path / "cam.yaml"), grids.icosahedral(4))
+    ref = fe(img)
+    back = load_lifted(tmp_path / "s.pt")  # the documented way back
+    assert isinstance(back, SphericalImage) and torch.equal(back.x, ref.x)
+    for k in ("mask", "pos", "area", "edge_index", "edge_attr"):
+        assert torch.equal(back[k], ref[k]), k
+    assert back.mask.sum() == (ref.x.abs().sum(1) > 0).sum() > 100
+    # the file holds the signal, the mask and the spec, not the graph
+    blob = read_lifted(tmp_path / "s.pt")
+    assert set(blob) >= {"x", "mask", "grid", "radius", "interpolation", "cameras"}
+    assert "edge_index" not in blob and blob["grid"] == "icosahedral:4"
+    assert cameras.from_doc(blob["cameras"]["cam0"]).key() == fe.camera.key()
+    assert (tmp_path / "s.pt").stat().st_size < ref.x.numel() * 4 + 2562 + 8_000
     assert (tmp_path / "s.png").stat().st_size > 10_000
+    torch.save({"format": "usf_graph.lifted", "version": 99}, tmp_path / "old.pt")
+    with pytest.raises(ValueError, match="version 99"):
+        load_lifted(tmp_path / "old.pt")
+    (tmp_path / "cut.pt").write_bytes((tmp_path / "s.pt").read_bytes()[:500])
+    with pytest.raises(ValueError, match="not a readable lifted file"):
+        load_lifted(tmp_path / "cut.pt")
 
 
+def test_lift_cli_keeps_rgba_order_panoramas_fov_and_masks(tmp_path, capsys):
+    rgba = np.zeros((32, 64, 4), np.uint8)
+    rgba[..., 0], rgba[..., 3] = 200, 255  # red, opaque
+    cv2.imwrite(str(tmp_path / "pano.png"), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+    assert main(["lift", str(tmp_path / "pano.png"), "--camera", "equirectangular",
+                 "--grid", "icosahedral:2", "--out", str(tmp_path / "p.pt")]) == 0
+    x = load_lifted(tmp_path / "p.pt").x
+    assert (x[:, 0] == 200).all() and (x[:, 2] == 0).all() and (x[:, 3] == 255).all()
+    # --fov and --image-mask reach the camera; the lifted file records them
+    kb = cameras.KannalaBrandt(40, 40, 63.5, 63.5, 128, 128)
+    kb.save(tmp_path / "kb.yaml")
+    cv2.imwrite(str(tmp_path / "img.png"), np.full((128, 128), 90, np.uint8))
+    mask = np.full((128, 128), 255, np.uint8)
+    mask[:, :64] = 0
+    cv2.imwrite(str(tmp_path / "m.png"), mask)
+    args = ["lift", str(tmp_path / "img.png"), "--camera", str(tmp_path / "kb.yaml"),
+            "--grid", "icosahedral:3", "--out", str(tmp_path / "k.pt")]
+    assert main(args) == 0
+    full = load_lifted(tmp_path / "k.pt").mask.sum()
+    assert main(args + ["--fov", "180"]) == 0
+    half = load_lifted(tmp_path / "k.pt")
+    assert read_lifted(tmp_path / "k.pt")["cameras"]["cam0"]["fov_deg"] == 180
+    assert half.mask.sum() < full and (half.pos[half.mask, 0] >= -1e-9).all()
+    assert main(args + ["--fov", "180", "--image-mask", str(tmp_path / "m.png")]) == 0
+    left = load_lifted(tmp_path / "k.pt")
+    assert 0 < left.mask.sum() < 0.6 * half.mask.sum()
+    assert (left.pos[left.mask, 1] <= 1e-9).all()  # only the image's right half: y <= 0
+    capsys.readouterr()
+    assert main(args + ["--key", "cam1"]) == 2
+    assert "--key" in capsys.readouterr().err
+
+
+def test_lift_cli_lifts_a_rig_onto_one_sphere(tmp_path, capsys):
+    rig = FIXTURES / "kalibr_rig.yaml"
+    for i, v in enumerate((60, 180)):
+        cv2.imwrite(str(tmp_path / f"cam{i}.png"), np.full((400, 400), v, np.uint8))
+    assert main(["lift", str(tmp_path / "cam0.png"), str(tmp_path / "cam1.png"), "--camera",
+                 str(rig), "--grid", "icosahedral:3", "--fov", "190",
+                 "--out", str(tmp_path / "r.pt")]) == 0
+    img = load_lifted(tmp_path / "r.pt")
+    assert img.mask.all()
+    front, back = img.pos[:, 0] > 0.1, img.pos[:, 0] < -0.1
+    assert (img.x[front] == 60).all() and (img.x[back] == 180).all()
+    assert set(read_lifted(tmp_path / "r.pt")["cameras"]) == {"cam0", "cam1"}
+    capsys.readouterr()
+    assert main(["lift", str(tmp_path / "cam0.png"), "--camera", str(rig), "--grid",
+                 "icosahedral:2"]) == 0
+    assert main(["lift", *(str(tmp_path / f"cam{i}.png") for i in (0, 1, 0)), "--camera",
+                 str(rig), "--grid", "icosahedral:2"]) == 2
+    assert "2 cameras" in capsys.readouterr().err
+
+
+def test_render_and_camera_save_commands(tmp_path, capsys):
+    pano = np.zeros((64, 128, 3), np.uint8)
+    pano[:, 40:64] = (255, 0, 0)  # red, left of the centre column (64): longitude > 0
+    cv2.imwrite(str(tmp_path / "pano.png"), pano[..., ::-1])
+    assert main(["camera", "equirectangular:128x64", "--save", str(tmp_path / "pano.yaml")]) == 0
+    assert isinstance(cameras.load(tmp_path / "pano.yaml"), cameras.Equirectangular)
+    cameras.Pinhole(50, 50, 49.5, 49.5, 100, 100).save(tmp_path / "pin.yaml")
+    assert main(["render", str(tmp_path / "pano.png"), "--camera", str(tmp_path / "pano.yaml"),
+                 "--to", str(tmp_path / "pin.yaml"), "--out", str(tmp_path / "view.png")]) == 0
+    view = cv2.imread(str(tmp_path / "view.png"))[..., ::-1]
+    # the red band left of the panorama's centre is left of the pinhole's centre, in red
+    assert view[50, 20, 0] > 200 and view[50, 20, 2] == 0 and view[50, 80].max() == 0
+
+
+def test_cache_command_shows_and_clears(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("USF_GRAPH_CACHE", str(tmp_path / "c"))
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "lift-abc.npz").write_bytes(b"x" * 1000)
+    (tmp_path / "c" / "graph-def.npz").write_bytes(b"x" * 3000)
+    assert main(["cache"]) == 0
+    out = capsys.readouterr().out
+    assert str(tmp_path / "c") in out and "lift" in out and "total        2 files" in out
+    assert main(["cache", "--clear"]) == 0
+    assert "removed 2 files" in capsys.readouterr().out and not list((tmp_path / "c").iterdir())
+    monkeypatch.setenv("USF_GRAPH_CACHE", "off")
+    assert main(["cache"]) == 0 and "off" in capsys.readouterr().out
+
+
+def test_every_command_and_option_has_help(capsys):
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(subs.choices) == {"info", "camera", "lift", "render", "cache", "train", "eval"}
+    for name, sub in subs.choices.items():
+        assert sub.description, name
+        for a in sub._actions:
+            assert a.help and a.help.strip(), f"usf-graph {name} {a.dest} has no help"
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert "``" not in text and "lift" in text
+    with pytest.raises(SystemExit):
+        main(["lift", "--help"])
+    text = capsys.readouterr().out
+    for word in ("icosahedral:L", "healpix:NSIDE", "bilinear", "Kalibr", "equirectangular",
+                 "(default: icosahedral:6)", "--image-mask", "--fov"):
+        assert word in text, word
 def test_lift_cli_reports_bad_input(tmp_path, capsys):
     cam = cameras.Pinhole(100.0, 100.0, 79.5, 59.5, 160, 120)
     cam.save(tmp_path / "cam.yaml")

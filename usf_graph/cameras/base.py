@@ -378,6 +378,16 @@ class Camera:
             k["image_mask"] = hashlib.sha256(np.packbits(self.image_mask).tobytes()).hexdigest()[:16]
         return k
 
+    def to_doc(self) -> dict:
+        """This camera as plain data (``usf_graph.cameras.from_doc`` reads it back); an
+        image mask is not included, only its digest in :meth:`key`."""
+        key = self.key()
+        doc = {FORMAT_TAG: 1, "model": type(self).__name__, "rotation": key["rotation"],
+               "params": key["params"]}
+        if "fov_deg" in key:
+            doc["fov_deg"] = key["fov_deg"]
+        return doc
+
     def save(self, path) -> None:
         """Write this camera to ``path`` in usf-graph's YAML form (see ``cameras.load``),
         atomically. An image mask goes next to it as ``<stem>.mask.png``."""
@@ -386,11 +396,7 @@ class Camera:
         from ..fileio import atomic_write
 
         path = Path(path)
-        key = self.key()
-        doc = {FORMAT_TAG: 1, "model": type(self).__name__, "rotation": key["rotation"],
-               "params": key["params"]}
-        if "fov_deg" in key:
-            doc["fov_deg"] = key["fov_deg"]
+        doc = self.to_doc()
         if self.image_mask is not None:
             import cv2
 

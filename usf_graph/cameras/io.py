@@ -275,6 +275,11 @@ def _k(src: _Src, K, name: str):
     return dict(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
 
 
+def from_doc(doc: dict) -> Camera:
+    """A camera from :meth:`Camera.to_doc`'s plain data."""
+    return _load_own(_Src(Path("<camera document>")), doc)
+
+
 def _load_own(src: _Src, data: dict) -> Camera:
     name = src.need(data, "model")
     if name not in MODELS:

@@ -1,8 +1,10 @@
-"""From images to spherical graphs: interpolation tables, field of view, cache, rendering."""
+"""From images to spherical graphs: interpolation tables, field of view, cache, rendering,
+rigs, and lifted samples on disk."""
 
 from .cache import GeometryCache, default_cache
 from .frontend import SphericalFrontend, default_radius, grid_graph, render
+from .lifted import load_lifted, read_lifted, save_lifted
 from .rig import RigFrontend
 
-__all__ = ["SphericalFrontend", "RigFrontend", "GeometryCache", "default_cache", "default_radius", "grid_graph",
-           "render"]
+__all__ = ["SphericalFrontend", "RigFrontend", "GeometryCache", "default_cache",
+           "default_radius", "grid_graph", "render", "save_lifted", "load_lifted", "read_lifted"]
