@@ -1,7 +1,8 @@
 """Lens normal maps for several real lens models, and a fisheye view synthesized from a panorama.
 
 Run: ``.venv/bin/python examples/lens_normal_maps.py --out runs/lens``. Writes one PNG per
-camera (rays as RGB plus sphere coverage) and ``fisheye_from_pano.png``.
+camera (rays as RGB plus sphere coverage), ``fisheye_from_pano.png`` and
+``rig_on_sphere.png`` (two back-to-back fisheyes of a Kalibr rig lifted onto one sphere).
 """
 
 from __future__ import annotations
@@ -9,14 +10,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import cv2
 import matplotlib.pyplot as plt
 import numpy as np
 
-from usf_graph import cameras
-from usf_graph.frontend import render
-from usf_graph.geometry import to_latlon
-from usf_graph.viz import plot_lens_normal_map
+from usf_graph import cameras, grids
+from usf_graph.frontend import RigFrontend, render
+from usf_graph.viz import labelled_panorama, mollweide, plot_lens_normal_map
+
+RIG = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "kalibr_rig.yaml"
 
 
 def example_cameras() -> dict:
@@ -33,28 +34,6 @@ def example_cameras() -> dict:
     }
 
 
-def checkerboard_panorama(width: int = 1024, height: int = 512) -> np.ndarray:
-    """A latitude/longitude checkerboard with a colour ramp and FRONT/LEFT/RIGHT labels, easy
-    to read after re-imaging."""
-    pano = cameras.Equirectangular(width, height)
-    rays, _ = pano.lens_normal_map()
-    lat, lon = to_latlon(rays.reshape(-1, 3))
-    check = ((np.floor(lat / np.radians(15)) + np.floor(lon / np.radians(15))) % 2).reshape(height, width)
-    ramp = ((lon.reshape(height, width) + np.pi) / (2 * np.pi))
-    img = np.stack([check, ramp, 1 - check * ramp], -1).astype(np.float32)
-    # labels where the viewer looks forward, left and right: they must read correctly in
-    # every view made from the panorama (a mirrored convention would flip them)
-    ink = np.zeros((height, width), np.uint8)  # 128: outline, 255: letters
-    for text, lon0 in (("FRONT", 0.0), ("LEFT", np.pi / 2), ("RIGHT", -np.pi / 2)):
-        (u, v), _ = pano.project(np.array([np.cos(lon0), np.sin(lon0), 0.0]))
-        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 4)
-        org = (int(u - tw / 2), int(v + th / 2))
-        cv2.putText(ink, text, org, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 128, 10, cv2.LINE_AA)
-        cv2.putText(ink, text, org, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 255, 4, cv2.LINE_AA)
-    outline = np.clip(ink / 128.0, 0, 1)[..., None]
-    return (img * (1 - outline) + np.clip(ink / 127.0 - 1, 0, 1)[..., None]).astype(np.float32)
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="runs/lens_normal_maps")
@@ -65,7 +44,7 @@ def main(argv=None):
         plot_lens_normal_map(cam, out / f"{name}.png")
         print(f"{name:24s} FOV {cam.fov_deg:6.1f} deg  covers {cam.solid_angle() / (4 * np.pi):6.1%}"
               f" of S2  -> {out / (name + '.png')}")
-    pano = checkerboard_panorama()
+    pano = labelled_panorama()
     fish = cameras.KannalaBrandt(170.0, 170.0, 320.0, 320.0, 640, 640, k=(0, 0, 0, 0), fov_deg=190)
     view = render(pano, cameras.Equirectangular(*pano.shape[1::-1]), fish)
     fig, ax = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [2, 1]})
@@ -77,6 +56,21 @@ def main(argv=None):
         a.axis("off")
     fig.savefig(out / "fisheye_from_pano.png", dpi=100, bbox_inches="tight")
     print(f"fisheye view from panorama -> {out / 'fisheye_from_pano.png'}")
+    # a rig: two 190-degree fisheyes back to back (Kalibr camchain), one sphere
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(RIG).items()}
+    views = [render(pano, cameras.Equirectangular(*pano.shape[1::-1]), c) for c in rig.values()]
+    fe = RigFrontend(rig, grids.icosahedral(6))
+    x = fe.lift(views)
+    fig = plt.figure(figsize=(15, 4))
+    for i, (n, v) in enumerate(zip(rig, views)):
+        a = fig.add_subplot(1, 4, i + 1)
+        a.imshow(np.clip(v, 0, 1))
+        a.set_title(f"{n} ({'front' if i == 0 else 'back'})")
+        a.axis("off")
+    a = fig.add_subplot(1, 2, 2, projection="mollweide")
+    mollweide(a, fe.grid.pos, x, fe.mask, s=3, title="both on one sphere (seen from the centre)")
+    fig.savefig(out / "rig_on_sphere.png", dpi=100, bbox_inches="tight")
+    print(f"rig lifted onto one sphere -> {out / 'rig_on_sphere.png'}")
 
 
 if __name__ == "__main__":

@@ -21,3 +21,33 @@ def test_quick_tour_runs(monkeypatch):
     assert ns["rot"].x.shape == ns["img"].x.shape and bool(ns["valid"].all())
     assert ns["yb"].shape == (2, N, 16) and ns["g_feat"].shape == (2, 16)
     assert ns["err"] < 1e-10
+
+
+def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
+    import shlex
+
+    import torch
+
+    from usf_graph.cli import main
+    from usf_graph.frontend import load_lifted
+
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Your camera", 1)[1].split("\n## ", 1)[0]
+    code = "\n".join(re.findall(r"```python\n(.*?)```", section, re.S))
+    (tmp_path / "tests").symlink_to(ROOT / "tests")  # the section reads tests/fixtures
+    monkeypatch.chdir(tmp_path)
+    ns = {}
+    exec(compile(code.replace("grids.icosahedral(6)", "grids.icosahedral(3)"), "README", "exec"), ns)
+    assert ns["both"].mask.all() and ns["img"].mask.sum() > 300
+    assert type(ns["mei"]).__name__ == "Mei" and ns["mei"].image_mask is not None
+    assert ns["h"].shape == (int(ns["img"].mask.sum()), 8)
+    shell = re.findall(r"```bash\n(.*?)```", section, re.S)
+    lines = [ln for block in shell for ln in block.splitlines() if ln.startswith("usf-graph ")]
+    assert len(lines) == 4
+    for ln in lines:
+        argv = shlex.split(ln.split("#")[0].replace("icosahedral:6", "icosahedral:3"))[1:]
+        assert main(argv) == 0, ln
+    assert load_lifted("sample.pt").x.shape == (642, 3)
+    rig = load_lifted("rig.pt")
+    assert rig.mask.all() and torch.isfinite(rig.x).all()
+    assert (tmp_path / "fisheye.png").stat().st_size > 10_000

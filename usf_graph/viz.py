@@ -122,3 +122,31 @@ def _finish(fig, path):
         fig.savefig(path, dpi=110)
         plt.close(fig)
     return fig
+
+
+def labelled_panorama(width: int = 1024, height: int = 512) -> np.ndarray:
+    """A float32 RGB equirectangular test picture: a 15-degree latitude/longitude checkerboard,
+    a colour ramp in longitude, and FRONT/LEFT/RIGHT written where the viewer looks forward
+    (+x), left (+y) and right. Re-image it through any camera (:func:`frontend.render`) to
+    check conventions by looking: the words must read correctly in every view."""
+    import cv2
+
+    from .cameras import Equirectangular
+
+    pano = Equirectangular(width, height)
+    rays, _ = pano.lens_normal_map()
+    lat, lon = to_latlon(rays.reshape(-1, 3))
+    check = ((np.floor(lat / np.radians(15)) + np.floor(lon / np.radians(15))) % 2).reshape(height, width)
+    ramp = ((lon.reshape(height, width) + np.pi) / (2 * np.pi))
+    img = np.stack([check, ramp, 1 - check * ramp], -1).astype(np.float32)
+    # labels where the viewer looks forward, left and right: they must read correctly in
+    # every view made from the panorama (a mirrored convention would flip them)
+    ink = np.zeros((height, width), np.uint8)  # 128: outline, 255: letters
+    for text, lon0 in (("FRONT", 0.0), ("LEFT", np.pi / 2), ("RIGHT", -np.pi / 2)):
+        (u, v), _ = pano.project(np.array([np.cos(lon0), np.sin(lon0), 0.0]))
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 4)
+        org = (int(u - tw / 2), int(v + th / 2))
+        cv2.putText(ink, text, org, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 128, 10, cv2.LINE_AA)
+        cv2.putText(ink, text, org, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 255, 4, cv2.LINE_AA)
+    outline = np.clip(ink / 128.0, 0, 1)[..., None]
+    return (img * (1 - outline) + np.clip(ink / 127.0 - 1, 0, 1)[..., None]).astype(np.float32)
