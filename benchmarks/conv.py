@@ -17,15 +17,26 @@ import time
 import torch
 
 from usf_graph import grids
+from usf_graph.frontend import grid_graph
 from usf_graph.nn import SphericalConv, geodesic_radius_graph
+
+
+DEVICE = torch.device("cpu")
+
+
+def _sync():
+    if DEVICE.type == "cuda":
+        torch.cuda.synchronize()
 
 
 def timeit(fn, reps: int) -> float:
     fn()
+    _sync()
     best = math.inf
     for _ in range(reps):
         t = time.perf_counter()
         fn()
+        _sync()
         best = min(best, time.perf_counter() - t)
     return best
 
@@ -44,6 +55,7 @@ def main():
     p.add_argument("--channels", type=int, default=64)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--reps", type=int, default=3)
+    p.add_argument("--device", default="cpu", help="cpu or cuda (times include a synchronize)")
     p.add_argument("--skip-slow", action="store_true", help="skip naive and mlp variants")
     p.add_argument("--scaling", action="store_true",
                    help="only the scaling run: icosahedral levels 4..8 (2.5k..655k points)")
@@ -54,18 +66,21 @@ def main():
     torch.set_num_threads(a.threads)
     if a.scaling:
         return scaling(a)
+    global DEVICE
+    DEVICE = dev = torch.device(a.device)
     g = grids.icosahedral(a.level)
     N, B, C = len(g), a.batch, a.channels
     r = 1.6 * g.spacing
-    ei, ew = geodesic_radius_graph(g.pos, r)
-    ew, area = ew.float(), g.area.float()
+    ei, ew = grid_graph(g, r)  # the cached geodesic radius graph
+    ei, ew, area = ei.to(dev), ew.float().to(dev), g.area.float().to(dev)
+    where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"{a.threads} threads"
     print(f"N={N} points, {ei.shape[1] / N:.1f} neighbours/point, B={B}, {C}->{C} ch, "
-          f"K=4, {a.threads} threads")
-    x = torch.randn(B, N, C, requires_grad=True)
-    conv = SphericalConv(C, C, r, num_basis=4)
+          f"K=4, {where}")
+    x = torch.randn(B, N, C, requires_grad=True, device=dev)
+    conv = SphericalConv(C, C, r, num_basis=4).to(dev)
     side = int(math.sqrt(N))
-    img = torch.randn(B, C, side, N // side + 1, requires_grad=True)
-    c2d = torch.nn.Conv2d(C, C, 3, padding=1)
+    img = torch.randn(B, C, side, N // side + 1, requires_grad=True, device=dev)
+    c2d = torch.nn.Conv2d(C, C, 3, padding=1).to(dev)
     rows = {}
     rows["Conv2d 3x3"] = (timeit(lambda: c2d(img), a.reps), timeit(fwd_bwd(c2d, img), a.reps))
     conv.bind(ei, ew, node_weight=area)
@@ -83,10 +98,10 @@ def main():
 
         nlat = round(math.sqrt(N / 2))  # an equiangular grid with about N nodes (143x286 at level 6)
         nlon = 2 * nlat
-        disco = disco_conv(DiscreteContinuousConvS2, C, (nlat, nlon), 4, r)
+        disco = disco_conv(DiscreteContinuousConvS2, C, (nlat, nlon), 4, r).to(dev)
         print(f"DISCO: {nlat}x{nlon} equiangular, {disco.kernel_size} isotropic piecewise-linear "
               f"basis functions, theta_cutoff = {disco.theta_cutoff:.4f} (ours {r:.4f})")
-        xi = torch.randn(B, C, nlat, nlon, requires_grad=True)
+        xi = torch.randn(B, C, nlat, nlon, requires_grad=True, device=dev)
         rows[f"DISCO (torch-harmonics, {nlat}x{nlon})"] = (timeit(lambda: disco(xi), a.reps),
                                                     timeit(fwd_bwd(disco, xi), a.reps))
     except Exception as e:  # noqa: BLE001 - optional competitor
@@ -94,7 +109,7 @@ def main():
     if not a.skip_slow:
         naive = lambda x: conv(x, ei, ew, node_weight=area, fast=False)  # noqa: E731
         rows["naive PyG per-edge"] = (timeit(lambda: naive(x), 1), timeit(fwd_bwd(naive, x), 1))
-        mlp = SphericalConv(C, C, r, kernel="mlp", hidden=8)
+        mlp = SphericalConv(C, C, r, kernel="mlp", hidden=8).to(dev)
         fm = lambda x: mlp(x[:1], ei, ew, node_weight=area)  # noqa: E731
         t = (timeit(lambda: fm(x), 1) * B, timeit(fwd_bwd(fm, x), 1) * B)
         rows["per-edge MLP weights (B=1 x B)"] = t

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import torch
 from torch import nn
-from torch_scatter import scatter_max, scatter_mean
 
 from ..nn import FPSPool, PointConv, euclidean_radius_graph
 
@@ -75,6 +74,8 @@ class PointCloudNet(nn.Module):
             self.head = _mlp(2 * channels[-1], 128, num_classes)
 
     def forward(self, pos: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        from torch_scatter import scatter_max, scatter_mean  # compiled: imported where used
+
         shape = pos.shape
         pos, batch, B = _flatten(pos, batch)
         cen = scatter_mean(pos, batch, dim=0, dim_size=B)
@@ -128,6 +129,8 @@ class PointNet(nn.Module):
         self.head = _mlp(channels[-1], 128, num_classes)
 
     def forward(self, pos: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        from torch_scatter import scatter_max
+
         pos, batch, B = _flatten(pos, batch)
         h = torch.relu(self.point(pos))
         return self.head(scatter_max(h, batch, dim=0, dim_size=B)[0])
