@@ -117,7 +117,7 @@ def main():
     print("\n| variant | fwd (ms) | fwd+bwd (ms) | fwd / Conv2d | fwd+bwd / Conv2d |")
     print("|---|---|---|---|---|")
     for k, (t1, t2) in rows.items():
-        print(f"| {k} | {1e3 * t1:.0f} | {1e3 * t2:.0f} | {t1 / base[0]:.2f} | {t2 / base[1]:.2f} |")
+        print(f"| {k} | {1e3 * t1:.3g} | {1e3 * t2:.3g} | {t1 / base[0]:.2f} | {t2 / base[1]:.2f} |")
     ours = rows["SphericalConv (static, bound)"]
     gen = rows[f"SphericalConv (general, PyG batch of {B})"]
     print(f"\ngeneral / static: fwd {gen[0] / ours[0]:.2f}x, fwd+bwd {gen[1] / ours[1]:.2f}x")

@@ -45,7 +45,7 @@ class EdgePlan(nn.Module):
         row, col = (i, j) if order is None else (i[order], j[order])
         blocks = [(0, n, 0, len(row), None)]
         if n >= 4 * tile_rows:
-            starts = torch.arange(0, n + tile_rows, tile_rows).clamp_max(n)
+            starts = torch.arange(0, n + tile_rows, tile_rows, device=row.device).clamp_max(n)
             cuts = torch.searchsorted(row, starts).tolist()
             halos, total = [], 0
             for a, b in zip(cuts[:-1], cuts[1:]):  # stop as soon as the halos are too wide
