@@ -12,33 +12,19 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 
 import torch
+from timing import best_time
 
 from usf_graph import grids
 from usf_graph.frontend import grid_graph
 from usf_graph.nn import SphericalConv, geodesic_radius_graph
 
-
 DEVICE = torch.device("cpu")
 
 
-def _sync():
-    if DEVICE.type == "cuda":
-        torch.cuda.synchronize()
-
-
 def timeit(fn, reps: int) -> float:
-    fn()
-    _sync()
-    best = math.inf
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        _sync()
-        best = min(best, time.perf_counter() - t)
-    return best
+    return best_time(fn, reps, DEVICE)
 
 
 def fwd_bwd(f, x):

@@ -12,10 +12,9 @@ from __future__ import annotations
 
 import argparse
 import inspect
-import math
-import time
 
 import torch
+from timing import best_time
 
 from usf_graph.models import PlanarCNN, SphericalClassifier
 from usf_graph.train.mnist import run as mnist_run
@@ -29,20 +28,7 @@ def step_time(model, x, y, reps: int, dev) -> float:
         torch.nn.functional.cross_entropy(model(x), y).backward()
         opt.step()
 
-    def sync():
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-
-    for _ in range(3):  # warm-up: lazy structures, allocator, cuDNN autotuning
-        step()
-    sync()
-    best = math.inf
-    for _ in range(reps):
-        t = time.perf_counter()
-        step()
-        sync()
-        best = min(best, time.perf_counter() - t)
-    return best
+    return best_time(step, reps, dev, warmup=3)  # warm-up: lazy structures, allocator, cuDNN
 
 
 def main():

@@ -21,3 +21,8 @@ def test_conv_and_lift_benchmarks_run():
     assert "| SphericalConv (general, PyG batch of 1) |" in out and "general / static" in out
     out = run("benchmarks/lift.py", "--level", "2", "--reps", "1")
     assert out.count("| panorama 2048x1024 |") == 2 and out.count("| fisheye 1280x960") == 2
+
+
+def test_train_step_benchmark_runs():
+    out = run("benchmarks/train_step.py", "--batch", "2", "--reps", "1")
+    assert "| SphericalClassifier | 10242 |" in out and "spherical / planar step time" in out

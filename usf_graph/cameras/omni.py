@@ -23,6 +23,15 @@ def _intrinsics(cam, fx, fy, cx, cy):
     cam.cx, cam.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
 
 
+def _fold_limit(cam: Camera, w: float) -> float:
+    """Largest incidence below the model's bound z > -w |X| up to which the image radius
+    keeps growing (``cam._project`` before ``theta_max`` exists)."""
+    w = float(np.clip(w, -1, 1))
+    t_w = float(np.arctan2(np.sqrt(1 - w * w), -w))
+    radius = lambda t: cam._project(np.stack([np.sin(t), 0 * t, np.cos(t)], -1))[0][..., 0]  # noqa: E731
+    return monotone_limit(lambda t: radius(t) - cam.cx, t_w)
+
+
 class Mei(Camera):
     """Unified omnidirectional model (Mei & Rives 2007), as ``cv2.omnidir``.
 
@@ -97,10 +106,7 @@ class DoubleSphere(Camera):
         # The paper's condition z > -w2 |X| does not exclude every fold (e.g. xi < 0 with
         # alpha near 1), so the honest domain also stops where the image radius stops
         # growing with the incidence angle.
-        w2 = float(np.clip(self._w2, -1, 1))
-        t_w2 = float(np.arctan2(np.sqrt(1 - w2 * w2), -w2))
-        radius = lambda t: self._project(np.stack([np.sin(t), 0 * t, np.cos(t)], -1))[0][..., 0]  # noqa: E731
-        self.theta_max = monotone_limit(lambda t: radius(t) - self.cx, t_w2)
+        self.theta_max = _fold_limit(self, self._w2)
 
     def params(self) -> dict:
         return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
@@ -154,11 +160,7 @@ class EUCM(Camera):
             raise ValueError(f"EUCM alpha must lie in [0, 1], got {self.alpha}")
         a = self.alpha
         self._w = a / (1 - a) if a <= 0.5 else (1 - a) / a
-        # as for the Double Sphere: stop where the image radius stops growing
-        w = float(np.clip(self._w, -1, 1))
-        t_w = float(np.arctan2(np.sqrt(1 - w * w), -w))
-        radius = lambda t: self._project(np.stack([np.sin(t), 0 * t, np.cos(t)], -1))[0][..., 0]  # noqa: E731
-        self.theta_max = monotone_limit(lambda t: radius(t) - self.cx, t_w)
+        self.theta_max = _fold_limit(self, self._w)  # as for the Double Sphere
 
     def params(self) -> dict:
         return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,

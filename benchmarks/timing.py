@@ -1,0 +1,29 @@
+"""The timer the benchmarks share: best of several runs, synchronized on a GPU."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+
+
+def best_time(fn, reps: int, device: torch.device | str = "cpu", warmup: int = 1) -> float:
+    """Seconds of the fastest of ``reps`` calls of ``fn`` after ``warmup`` calls; on CUDA each
+    run ends with a synchronize, so queued kernels are counted."""
+    dev = torch.device(device)
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    for _ in range(warmup):
+        fn()
+    sync()
+    best = math.inf
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        sync()
+        best = min(best, time.perf_counter() - t)
+    return best
