@@ -90,7 +90,9 @@ def test_usf_reference_sensor_yaml(tmp_path):
     mask = cv2.imread(str(FIX / "usf_sensor_mask.png"), cv2.IMREAD_GRAYSCALE) > 0
     np.testing.assert_array_equal(cam.image_mask, mask)
     _, seen = cam.lens_normal_map()
-    assert not seen[0, 0] and seen[256, 305]  # the mask is applied
+    assert not seen[0, 0] and seen[256, 305]  # the mask is applied, to the coverage too
+    whole = cam.with_image_mask(None)
+    assert cam.solid_angle() < whole.solid_angle() and cam.fov_deg < whole.fov_deg - 20
     # model_type 0 is a pinhole; a lens_normal_map next to the file replaces the model
     text = (FIX / "usf_sensor_mei.yaml").read_text().replace("mask: usf_sensor_mask.png\n", "")
     pin = text.replace("model_type: 1", "model_type: 0").replace("gamma1", "fx") \
@@ -134,7 +136,8 @@ BROKEN = [
     ("fisheye_kdd.yaml", "[[0.0312], [-0.0104], [0.0021], [-0.0003]]", "[0.0312, 0.1, -0.0104]",
      "'D' must have 4 or 5 or 8 or 12 elements, got 3"),
     ("kalibr_camchain.yaml", "intrinsics: [0.8, 520.1", "intrinsics: [520.1",
-     r"\[cam2\]: Kalibr 'omni' intrinsics are \[xi, fu, fv, pu, pv\] \(5 values\), got 4"),
+     r"\[cam2\]: Kalibr 'omni' intrinsics are \[xi, fu, fv, pu, pv\] \(5 values\), got 4: "
+     r"\[520.1, 519.8, 640.3, 480.7\]"),
     ("kalibr_camchain.yaml", "- [0.0, 0.0, 0.0, 1.0]\n  camera_model: pinhole\n  distortion_coeffs: [0.0034",
      "- [0.0, 0.0, 0.0, 1.0]\n  camera_model: pinhole\n  distortion_coeffs: [0.0034, 0.1",
      r"\[cam1\]: Kalibr distortion_model 'equidistant' takes 4 distortion_coeffs, got 5"),

@@ -298,8 +298,11 @@ class Camera:
 
     @property
     def max_incidence(self) -> float:
-        """Largest angle (radians) between a visible ray and the optical axis."""
+        """Largest angle (radians) between a visible ray and the optical axis (pixels the
+        :attr:`image_mask` ignores do not count)."""
         rays, valid = self.unproject(self.pixel_grid())
+        if self.image_mask is not None:
+            valid &= self.image_mask
         if not valid.any():
             return 0.0
         r = rays[valid]
@@ -312,7 +315,8 @@ class Camera:
         return math.degrees(2 * self.max_incidence)
 
     def pixel_solid_angles(self) -> np.ndarray:
-        """Solid angle (sr) each pixel covers ``[H, W]``; 0 where a pixel corner is invalid.
+        """Solid angle (sr) each pixel covers ``[H, W]``; 0 where a pixel corner is invalid
+        or the :attr:`image_mask` ignores the pixel.
 
         Each pixel is split into two spherical triangles between its corner rays.
         """
@@ -322,6 +326,8 @@ class Camera:
         a, b, cc, d = c[:-1, :-1], c[:-1, 1:], c[1:, 1:], c[1:, :-1]
         okp = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, 1:] & ok[1:, :-1]
         om = _triangle_solid_angle(a, b, cc) + _triangle_solid_angle(a, cc, d)
+        if self.image_mask is not None:
+            okp &= self.image_mask
         return np.where(okp, om, 0.0)
 
     def solid_angle(self) -> float:

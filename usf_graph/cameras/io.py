@@ -92,7 +92,7 @@ class _Src:
         if sizes and a.size not in sizes:
             want = " or ".join(str(s) for s in sizes)
             raise self.error(f"'{name}' must have {want} elements, got {a.size}: "
-                             f"{[plain(x) for x in a]}")
+                             f"{_plain_list(a)}")
         return a
 
     def build(self, cls, **kw) -> Camera:
@@ -135,7 +135,8 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
         fmt, cam = _load_single(path, data)
     if key is not None and fmt is not None:
         raise ValueError(f"{path}: key={key!r} (--key) picks a camera in a Kalibr camchain, but "
-                         f"this is a {fmt} file with one camera; leave the key out")
+                         f"this is {'an' if fmt[0] in 'AEIOU' else 'a'} {fmt} file with one camera; leave "
+                         "the key out")
     if fov_deg is not None:
         cam = cam.with_fov(fov_deg)
     if image_mask is not None:
@@ -248,6 +249,10 @@ def _node(n):
 
 # -- single-camera formats -----------------------------------------------------------------
 
+def _plain_list(a) -> str:
+    return "[" + ", ".join(plain(x) for x in np.ravel(a)) + "]"
+
+
 def _load_single(path: Path, data: dict):
     """(format name, camera) for every format that holds one camera."""
     src = _Src(path)
@@ -333,7 +338,7 @@ def _pad(src: _Src, D: np.ndarray, n: int, name: str) -> np.ndarray:
         raise src.error(f"'{name}' must have {n} coefficients, got {D.size}")
     if np.any(D[n:] != 0):
         raise src.error(f"'{name}' has {D.size} coefficients but this model uses {n}; "
-                        f"the extra ones are not zero: {[plain(x) for x in D[n:]]}")
+                        f"the extra ones are not zero: {_plain_list(D[n:])}")
     return np.pad(D[:n], (0, n - min(n, D.size)))
 
 
@@ -408,7 +413,7 @@ def _load_kalibr(src: _Src, c: dict) -> Camera:
     intr = src.array(src.need(c, "intrinsics"), "intrinsics")
     if intr.size != len(names):
         raise src.error(f"Kalibr '{model}' intrinsics are [{', '.join(names)}] ({len(names)} "
-                        f"values), got {intr.size}: {[plain(x) for x in intr]}")
+                        f"values), got {intr.size}: {_plain_list(intr)}")
     p = dict(zip(names, intr.tolist()))
     dm = c.get("distortion_model", "none")
     if f"{model}-{dm}" not in _KALIBR_PAIRS:
