@@ -28,10 +28,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera, check_rotation, plain
+from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
+from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import Fisheye, KannalaBrandt
+from .kalibr import is_kalibr, kalibr_names, kalibr_rotation, load_kalibr
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Pinhole
@@ -39,67 +40,8 @@ from .scaramuzza import Scaramuzza
 
 MODELS = {c.__name__: c for c in (Pinhole, Fisheye, KannalaBrandt, Mei, DoubleSphere, EUCM,
                                   Scaramuzza, Equirectangular)}
-FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.omnidir xi)",
-           "K/D/DIM (cv2.fisheye scripts)", "ROS camera_info", "USF sensor YAML",
-           "OCamCalib calib_results.txt", "lens normal map .npy/.npz", "usf-graph YAML")
-
-# Kalibr's intrinsics per camera_model, and the (model, distortion) pairs we read.
-_KALIBR_INTRINSICS = {"pinhole": "fu fv pu pv", "omni": "xi fu fv pu pv",
-                      "ds": "xi alpha fu fv pu pv", "eucm": "alpha beta fu fv pu pv"}
-_KALIBR_DIST = {"radtan": 4, "equidistant": 4, "none": 0}
-_KALIBR_PAIRS = ("pinhole-radtan", "pinhole-equidistant", "pinhole-none", "omni-radtan",
-                 "omni-none", "ds-none", "eucm-none")
 _PINHOLE_DIST = ("plumb_bob", "rational_polynomial", "pinhole", "radtan")
 _FISHEYE_DIST = ("equidistant", "fisheye", "kannala-brandt", "kb4")
-
-
-class _Src:
-    """Where a value came from, for error messages: the file and the camera in it."""
-
-    def __init__(self, path: Path, key: str | None = None):
-        self.path, self.key = path, key
-
-    def __str__(self) -> str:
-        return f"{self.path}" + (f" [{self.key}]" if self.key else "")
-
-    def error(self, msg: str) -> ValueError:
-        return ValueError(f"{self}: {msg}")
-
-    def need(self, d, name: str, where: str = "", hint: str = ""):
-        if not isinstance(d, dict) or name not in d or d[name] is None:
-            inside = f" in '{where}'" if where else ""
-            raise self.error(f"missing key '{name}'{inside}; {hint or 'the calibration file is incomplete'}")
-        return d[name]
-
-    def number(self, v, name: str) -> float:
-        a = np.asarray(v, dtype=object if isinstance(v, dict) else None)
-        if a.dtype == object or a.size != 1:
-            raise self.error(f"'{name}' must be one number, got {v!r}")
-        try:
-            return float(a.reshape(()))
-        except (TypeError, ValueError):
-            raise self.error(f"'{name}' must be a number, got {v!r}") from None
-
-    def array(self, v, name: str, sizes: tuple = ()) -> np.ndarray:
-        """A matrix or vector given as an OpenCV matrix, a ROS ``{rows, cols, data}`` map or
-        a (nested) list; ``sizes``: the accepted numbers of elements."""
-        if isinstance(v, dict):
-            v = self.need(v, "data", name)
-        try:
-            a = np.asarray(v, np.float64).ravel()
-        except (TypeError, ValueError):
-            raise self.error(f"'{name}' must hold numbers, got {v!r}") from None
-        if sizes and a.size not in sizes:
-            want = " or ".join(str(s) for s in sizes)
-            raise self.error(f"'{name}' must have {want} elements, got {a.size}: "
-                             f"{_plain_list(a)}")
-        return a
-
-    def build(self, cls, **kw) -> Camera:
-        try:
-            return cls(**kw)
-        except ValueError as e:
-            raise self.error(str(e)) from None
 
 
 def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=None) -> Camera:
@@ -119,17 +61,17 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"calibration file {path} does not exist")
-    data = _read(path)
+    data = read_document(path, _load_ocamcalib)
     if isinstance(data, Camera):
         fmt, cam = ("OCamCalib" if isinstance(data, Scaramuzza) else "lens normal map"), data
-    elif _is_kalibr(data):
-        names = _kalibr_names(data)
+    elif is_kalibr(data):
+        names = kalibr_names(data)
         key = key or names[0]
         if key not in data:
             raise ValueError(f"{path}: no camera '{key}' in the camchain (it has {names}); "
                              "choose one with key= (--key on the command line)")
-        cam = _load_kalibr(_Src(path, key), data[key])
-        rot = _kalibr_rotation(path, data, key)
+        cam = load_kalibr(Src(path, key), data[key])
+        rot = kalibr_rotation(path, data, key)
         cam, fmt = cam.with_rotation(DEFAULT_ROTATION @ rot if rot is not None else None), None
     else:
         fmt, cam = _load_single(path, data)
@@ -153,17 +95,17 @@ def load_rig(path) -> dict[str, Camera]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"calibration file {path} does not exist")
-    data = _read(path)
-    if isinstance(data, Camera) or not _is_kalibr(data):
+    data = read_document(path, _load_ocamcalib)
+    if isinstance(data, Camera) or not is_kalibr(data):
         raise ValueError(f"{path}: a rig is read from a Kalibr camchain (cam0, cam1, ... with "
                          "T_cn_cnm1); this file holds one camera, use cameras.load")
     rig = {}
-    for name in _kalibr_names(data):
-        rot = _kalibr_rotation(path, data, name)
+    for name in kalibr_names(data):
+        rot = kalibr_rotation(path, data, name)
         if rot is None:
             raise ValueError(f"{path} [{name}]: no 'T_cn_cnm1' (or 'T_cam_imu' on it and on "
                              f"cam0), so its place in the rig is unknown; add the extrinsics")
-        rig[name] = _load_kalibr(_Src(path, name), data[name]).with_rotation(DEFAULT_ROTATION @ rot)
+        rig[name] = load_kalibr(Src(path, name), data[name]).with_rotation(DEFAULT_ROTATION @ rot)
     return rig
 
 
@@ -172,90 +114,9 @@ def save(cam: Camera, path) -> None:
     cam.save(path)
 
 
-def read_mask(path) -> np.ndarray:
-    """An image mask from an image file: nonzero pixels are seen, zero ones ignored."""
-    import cv2
-
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if m is None:
-        raise ValueError(f"cannot read the image mask {path}: not an image file OpenCV reads")
-    return (m if m.ndim == 2 else m.max(-1)) != 0
-
-
-# -- reading any file into a dict ----------------------------------------------------------
-
-def _read(path: Path):
-    if path.suffix == ".npy":
-        return LensNormalMap.from_file(path)
-    if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                keys = set(z.files)
-                if "rays" not in keys and {"K", "D"} <= keys:
-                    return {k: z[k] for k in z.files}
-        except Exception as e:  # noqa: BLE001 - numpy raises many kinds here
-            raise ValueError(f"cannot read {path}: {e}") from e
-        return LensNormalMap.from_file(path)
-    text = path.read_text(errors="replace")
-    head = text.lstrip()[:64]
-    if path.suffix == ".xml" or head.startswith(("%YAML", "<?xml", "<opencv_storage")) \
-            or "opencv-matrix" in text:
-        return _read_filestorage(path)
-    if "polynomial coefficients" in text or path.name.startswith("calib_results"):
-        return _load_ocamcalib(path, text)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ValueError(f"{path}: not valid YAML ({e})") from e
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: unrecognized calibration file (expected a YAML mapping); "
-                         f"readable formats: {', '.join(FORMATS)}")
-    return data
-
-
-def _read_filestorage(path: Path) -> dict:
-    import cv2
-
-    try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
-        raise ValueError(f"{path}: OpenCV cannot parse this FileStorage file ({e})") from e
-    if not fs.isOpened():
-        raise ValueError(f"{path}: OpenCV cannot open this FileStorage file")
-    try:
-        return _node(fs.root())
-    except cv2.error as e:
-        raise ValueError(f"{path}: OpenCV cannot read a node of this file ({e})") from e
-    finally:
-        fs.release()
-
-
-def _node(n):
-    if n.isMap():
-        keys = n.keys()
-        if {"rows", "cols", "dt", "data"} <= set(keys):  # an !!opencv-matrix
-            return np.asarray(n.mat(), np.float64)
-        return {k: _node(n.getNode(k)) for k in keys}
-    if n.isSeq():
-        return [_node(n.at(i)) for i in range(n.size())]
-    if n.isInt():
-        return int(n.real())
-    if n.isReal():
-        return float(n.real())
-    if n.isString():
-        return n.string()
-    return None
-
-
-# -- single-camera formats -----------------------------------------------------------------
-
-def _plain_list(a) -> str:
-    return "[" + ", ".join(plain(x) for x in np.ravel(a)) + "]"
-
-
 def _load_single(path: Path, data: dict):
     """(format name, camera) for every format that holds one camera."""
-    src = _Src(path)
+    src = Src(path)
     if FORMAT_TAG in data:
         return "usf-graph", _load_own(src, data)
     if "intrinsic" in data or ("model_type" in data and "projection_parameters" in data):
@@ -269,23 +130,23 @@ def _load_single(path: Path, data: dict):
                      f"{sorted(map(str, data))}); readable formats: {', '.join(FORMATS)}")
 
 
-def _size(src: _Src, data: dict) -> tuple[int, int]:
+def _size(src: Src, data: dict) -> tuple[int, int]:
     hint = "give the image size as image_width and image_height"
     w, h = (src.number(src.need(data, k, hint=hint), k) for k in ("image_width", "image_height"))
     return int(w), int(h)
 
 
-def _k(src: _Src, K, name: str):
+def _k(src: Src, K, name: str):
     K = src.array(K, name, (9,)).reshape(3, 3)
     return dict(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
 
 
 def from_doc(doc: dict) -> Camera:
     """A camera from :meth:`Camera.to_doc`'s plain data."""
-    return _load_own(_Src(Path("<camera document>")), doc)
+    return _load_own(Src(Path("<camera document>")), doc)
 
 
-def _load_own(src: _Src, data: dict) -> Camera:
+def _load_own(src: Src, data: dict) -> Camera:
     name = src.need(data, "model")
     if name not in MODELS:
         raise src.error(f"unknown camera model '{name}'; known: {sorted(MODELS)}")
@@ -296,7 +157,7 @@ def _load_own(src: _Src, data: dict) -> Camera:
     return _extras(src, cam, data.get("fov_deg"), data.get("image_mask"))
 
 
-def _extras(src: _Src, cam: Camera, fov, mask) -> Camera:
+def _extras(src: Src, cam: Camera, fov, mask) -> Camera:
     try:
         if fov is not None:
             cam = cam.with_fov(src.number(fov, "fov_deg"))
@@ -307,7 +168,7 @@ def _extras(src: _Src, cam: Camera, fov, mask) -> Camera:
     return cam
 
 
-def _load_opencv(src: _Src, data: dict, ros: bool) -> Camera:
+def _load_opencv(src: Src, data: dict, ros: bool) -> Camera:
     K = _k(src, data["camera_matrix"], "camera_matrix")
     w, h = _size(src, data)
     D = src.array(src.need(data, "distortion_coefficients"), "distortion_coefficients")
@@ -332,17 +193,17 @@ def _load_opencv(src: _Src, data: dict, ros: bool) -> Camera:
                     f"{', '.join(_PINHOLE_DIST + _FISHEYE_DIST)}")
 
 
-def _pad(src: _Src, D: np.ndarray, n: int, name: str) -> np.ndarray:
+def _pad(src: Src, D: np.ndarray, n: int, name: str) -> np.ndarray:
     """The first ``n`` coefficients; extra ones must be zero (OpenCV pads to 5 or 8)."""
     if D.size < n and D.size != 0:
         raise src.error(f"'{name}' must have {n} coefficients, got {D.size}")
     if np.any(D[n:] != 0):
         raise src.error(f"'{name}' has {D.size} coefficients but this model uses {n}; "
-                        f"the extra ones are not zero: {_plain_list(D[n:])}")
+                        f"the extra ones are not zero: {plain_list(D[n:])}")
     return np.pad(D[:n], (0, n - min(n, D.size)))
 
 
-def _load_kdd(src: _Src, data: dict) -> Camera:
+def _load_kdd(src: Src, data: dict) -> Camera:
     K = _k(src, data["K"], "K")
     D = src.array(src.need(data, "D", hint="K/D/DIM files need the distortion D"), "D",
                   (4, 5, 8, 12))
@@ -364,7 +225,7 @@ def _load_kdd(src: _Src, data: dict) -> Camera:
 _USF_MODELS = {0: "pinhole", 1: "mei", "pinhole": "pinhole", "mei": "mei"}
 
 
-def _load_usf(src: _Src, data: dict) -> Camera:
+def _load_usf(src: Src, data: dict) -> Camera:
     w, h = _size(src, data)
     intr = data.get("intrinsic", data)
     where = "intrinsic" if "intrinsic" in data else ""
@@ -396,76 +257,6 @@ def _load_usf(src: _Src, data: dict) -> Camera:
 
 # -- Kalibr ------------------------------------------------------------------------------
 
-def _is_kalibr(data: dict) -> bool:
-    return any(isinstance(v, dict) and "camera_model" in v for v in data.values())
-
-
-def _kalibr_names(data: dict) -> list[str]:
-    return [k for k, v in data.items() if isinstance(v, dict) and "camera_model" in v]
-
-
-def _load_kalibr(src: _Src, c: dict) -> Camera:
-    model = src.need(c, "camera_model")
-    if model not in _KALIBR_INTRINSICS:
-        raise src.error(f"unknown Kalibr camera_model '{model}'; supported: "
-                        f"{', '.join(_KALIBR_INTRINSICS)}")
-    names = _KALIBR_INTRINSICS[model].split()
-    intr = src.array(src.need(c, "intrinsics"), "intrinsics")
-    if intr.size != len(names):
-        raise src.error(f"Kalibr '{model}' intrinsics are [{', '.join(names)}] ({len(names)} "
-                        f"values), got {intr.size}: {_plain_list(intr)}")
-    p = dict(zip(names, intr.tolist()))
-    dm = c.get("distortion_model", "none")
-    if f"{model}-{dm}" not in _KALIBR_PAIRS:
-        raise src.error(f"Kalibr {model}-{dm} is not supported; supported: {', '.join(_KALIBR_PAIRS)}")
-    dist = src.array(c.get("distortion_coeffs") or [], "distortion_coeffs")
-    if dist.size != _KALIBR_DIST[dm]:
-        raise src.error(f"Kalibr distortion_model '{dm}' takes {_KALIBR_DIST[dm]} "
-                        f"distortion_coeffs, got {dist.size}")
-    w, h = (int(v) for v in src.array(src.need(c, "resolution"), "resolution", (2,)))
-    K = dict(fx=p["fu"], fy=p["fv"], cx=p["pu"], cy=p["pv"], width=w, height=h)
-    if model == "pinhole":
-        if dm == "equidistant":
-            return src.build(KannalaBrandt, **K, k=dist)
-        return src.build(Pinhole, **K, dist=dist if dist.size else None)
-    if model == "omni":
-        return src.build(Mei, **K, xi=p["xi"], dist=dist if dist.size else (0, 0, 0, 0))
-    if model == "ds":
-        return src.build(DoubleSphere, **K, xi=p["xi"], alpha=p["alpha"])
-    return src.build(EUCM, **K, alpha=p["alpha"], beta=p["beta"])
-
-
-def _transform_rotation(path, name: str, key: str, T) -> np.ndarray:
-    src = _Src(path, name)
-    T = src.array(T, key, (12, 16))
-    try:
-        return check_rotation(T.reshape(-1, 4)[:3, :3])
-    except ValueError as e:
-        raise src.error(f"'{key}' is not a rigid transform ({e})") from None
-
-
-def _kalibr_rotation(path, data: dict, key: str) -> np.ndarray | None:
-    """Rotation from ``key``'s optical frame to cam0's, from the T_cn_cnm1 chain (or both
-    cameras' T_cam_imu); None when the file does not say."""
-    names = _kalibr_names(data)
-    idx = names.index(key)
-    R = np.eye(3)
-    for name in names[1:idx + 1]:
-        T = data[name].get("T_cn_cnm1")
-        if T is None:
-            break
-        R = R @ _transform_rotation(path, name, "T_cn_cnm1", T).T  # R_c0<-cn
-    else:
-        return R
-    t0, tk = data[names[0]].get("T_cam_imu"), data[key].get("T_cam_imu")
-    if t0 is None or tk is None:
-        return None
-    return _transform_rotation(path, names[0], "T_cam_imu", t0) @ \
-        _transform_rotation(path, key, "T_cam_imu", tk).T
-
-
-# -- OCamCalib -----------------------------------------------------------------------------
-
 def _load_ocamcalib(path, text) -> Camera:
     rows = [ln.strip() for ln in text.splitlines()]
     nums = [ln for ln in rows if ln and not ln.startswith("#")]
@@ -480,6 +271,6 @@ def _load_ocamcalib(path, text) -> Camera:
         raise ValueError(f"{path}: malformed OCamCalib calib_results.txt ({e}); expected the "
                          "sections pol, invpol, centre, affine, size") from e
     h, w = int(size[0]), int(size[1])
-    return _Src(Path(path)).build(Scaramuzza, pol=pol[1:], center=center, affine=affine,
+    return Src(Path(path)).build(Scaramuzza, pol=pol[1:], center=center, affine=affine,
                                   width=w, height=h, invpol=invpol[1:])
 

@@ -6,15 +6,12 @@ import numpy as np
 
 from .base import (
     Camera,
-    _split_dist,
     check_finite,
     check_positive,
-    distort,
-    distortion_radius_limit,
     incidence,
     monotone_limit,
-    undistort,
 )
+from .distortion import _split_dist, distort, distortion_radius_limit, undistort
 
 
 def _intrinsics(cam, fx, fy, cx, cy):

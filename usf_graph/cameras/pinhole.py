@@ -6,13 +6,10 @@ import numpy as np
 
 from .base import (
     Camera,
-    _split_dist,
     check_finite,
     check_positive,
-    distort,
-    distortion_radius_limit,
-    undistort,
 )
+from .distortion import _split_dist, distort, distortion_radius_limit, undistort
 
 
 class Pinhole(Camera):

@@ -1,0 +1,89 @@
+"""Kalibr camchains: each camera's model, and its place in the rig from the extrinsics."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Camera, check_rotation
+from .files import Src, plain_list
+from .fisheye import KannalaBrandt
+from .omni import EUCM, DoubleSphere, Mei
+from .pinhole import Pinhole
+
+# Kalibr's intrinsics per camera_model, and the (model, distortion) pairs we read.
+_KALIBR_INTRINSICS = {"pinhole": "fu fv pu pv", "omni": "xi fu fv pu pv",
+                      "ds": "xi alpha fu fv pu pv", "eucm": "alpha beta fu fv pu pv"}
+_KALIBR_DIST = {"radtan": 4, "equidistant": 4, "none": 0}
+_KALIBR_PAIRS = ("pinhole-radtan", "pinhole-equidistant", "pinhole-none", "omni-radtan",
+                 "omni-none", "ds-none", "eucm-none")
+
+
+def is_kalibr(data: dict) -> bool:
+    return any(isinstance(v, dict) and "camera_model" in v for v in data.values())
+
+
+def kalibr_names(data: dict) -> list[str]:
+    return [k for k, v in data.items() if isinstance(v, dict) and "camera_model" in v]
+
+
+def load_kalibr(src: Src, c: dict) -> Camera:
+    model = src.need(c, "camera_model")
+    if model not in _KALIBR_INTRINSICS:
+        raise src.error(f"unknown Kalibr camera_model '{model}'; supported: "
+                        f"{', '.join(_KALIBR_INTRINSICS)}")
+    names = _KALIBR_INTRINSICS[model].split()
+    intr = src.array(src.need(c, "intrinsics"), "intrinsics")
+    if intr.size != len(names):
+        raise src.error(f"Kalibr '{model}' intrinsics are [{', '.join(names)}] ({len(names)} "
+                        f"values), got {intr.size}: {plain_list(intr)}")
+    p = dict(zip(names, intr.tolist()))
+    dm = c.get("distortion_model", "none")
+    if f"{model}-{dm}" not in _KALIBR_PAIRS:
+        raise src.error(f"Kalibr {model}-{dm} is not supported; supported: {', '.join(_KALIBR_PAIRS)}")
+    dist = src.array(c.get("distortion_coeffs") or [], "distortion_coeffs")
+    if dist.size != _KALIBR_DIST[dm]:
+        raise src.error(f"Kalibr distortion_model '{dm}' takes {_KALIBR_DIST[dm]} "
+                        f"distortion_coeffs, got {dist.size}")
+    w, h = (int(v) for v in src.array(src.need(c, "resolution"), "resolution", (2,)))
+    K = dict(fx=p["fu"], fy=p["fv"], cx=p["pu"], cy=p["pv"], width=w, height=h)
+    if model == "pinhole":
+        if dm == "equidistant":
+            return src.build(KannalaBrandt, **K, k=dist)
+        return src.build(Pinhole, **K, dist=dist if dist.size else None)
+    if model == "omni":
+        return src.build(Mei, **K, xi=p["xi"], dist=dist if dist.size else (0, 0, 0, 0))
+    if model == "ds":
+        return src.build(DoubleSphere, **K, xi=p["xi"], alpha=p["alpha"])
+    return src.build(EUCM, **K, alpha=p["alpha"], beta=p["beta"])
+
+
+def _transform_rotation(path, name: str, key: str, T) -> np.ndarray:
+    src = Src(path, name)
+    T = src.array(T, key, (12, 16))
+    try:
+        return check_rotation(T.reshape(-1, 4)[:3, :3])
+    except ValueError as e:
+        raise src.error(f"'{key}' is not a rigid transform ({e})") from None
+
+
+def kalibr_rotation(path, data: dict, key: str) -> np.ndarray | None:
+    """Rotation from ``key``'s optical frame to cam0's, from the T_cn_cnm1 chain (or both
+    cameras' T_cam_imu); None when the file does not say."""
+    names = kalibr_names(data)
+    idx = names.index(key)
+    R = np.eye(3)
+    for name in names[1:idx + 1]:
+        T = data[name].get("T_cn_cnm1")
+        if T is None:
+            break
+        R = R @ _transform_rotation(path, name, "T_cn_cnm1", T).T  # R_c0<-cn
+    else:
+        return R
+    t0, tk = data[names[0]].get("T_cam_imu"), data[key].get("T_cam_imu")
+    if t0 is None or tk is None:
+        return None
+    return _transform_rotation(path, names[0], "T_cam_imu", t0) @ \
+        _transform_rotation(path, key, "T_cam_imu", tk).T
+
+
+# -- OCamCalib -----------------------------------------------------------------------------
