@@ -66,9 +66,7 @@ def _camera(spec: str, key=None, fov=None, image_mask=None, image_shape=None):
             h, w = image_shape[:2]
         else:
             raise ValueError("give the panorama's size: equirectangular:WIDTHxHEIGHT")
-        cam = cameras.Equirectangular(w, h)
-        cam = cam.with_fov(fov) if fov is not None else cam
-        return cam.with_image_mask(cameras.read_mask(image_mask)) if image_mask else cam
+        return cameras.with_fov_and_mask(cameras.Equirectangular(w, h), fov, image_mask)
     return cameras.load(spec, key=key, fov_deg=fov, image_mask=image_mask)
 
 
@@ -123,8 +121,8 @@ def cmd_lift(args) -> int:
             raise ValueError("--key picks one camera; several images are lifted with the whole "
                              "rig of a Kalibr camchain, one image per camera in file order")
         rig = cameras.load_rig(args.camera)
-        if args.fov is not None or args.image_mask is not None:
-            rig = {n: _camera_extras(c, args) for n, c in rig.items()}
+        rig = {n: cameras.with_fov_and_mask(c, args.fov, args.image_mask)
+               for n, c in rig.items()}
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
                          radius=args.radius)
         x = fe.lift(images)
@@ -148,13 +146,6 @@ def cmd_lift(args) -> int:
                     title=" + ".join(args.image))
         print(f"wrote {args.preview}")
     return 0
-
-
-def _camera_extras(cam, args):
-    from . import cameras
-
-    cam = cam.with_fov(args.fov) if args.fov is not None else cam
-    return cam.with_image_mask(cameras.read_mask(args.image_mask)) if args.image_mask else cam
 
 
 def cmd_render(args) -> int:

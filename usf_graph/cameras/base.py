@@ -52,6 +52,17 @@ def check_rotation(R) -> np.ndarray:
     return u @ vt
 
 
+def angle_to(rays: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Angle between each ray ``[..., 3]`` and ``axis [3]``, via atan2 (any norm)."""
+    return np.arctan2(np.linalg.norm(np.cross(rays, axis), axis=-1), rays @ axis)
+
+
+def mask_from_image(m) -> np.ndarray:
+    """``[H, W]`` or ``[H, W, C]`` image -> ``[H, W]`` bool: True where any channel is nonzero."""
+    m = np.asarray(m)
+    return (m if m.ndim == 2 else m.max(-1)) != 0
+
+
 def incidence(rays: np.ndarray) -> np.ndarray:
     """Angle between each ray and the optical axis +z, via atan2 (valid past 90 degrees)."""
     return np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
@@ -172,9 +183,7 @@ class Camera:
     def _within_fov(self, rays) -> np.ndarray:
         if self.fov_limit is None:
             return np.ones(rays.shape[:-1], bool)
-        a = self.optical_axis
-        ang = np.arctan2(np.linalg.norm(np.cross(rays, a), axis=-1), rays @ a)
-        return ang <= self.fov_limit * (1 + 1e-12)
+        return angle_to(rays, self.optical_axis) <= self.fov_limit * (1 + 1e-12)
 
     def in_image(self, uv) -> np.ndarray:
         """True where a pixel coordinate lies on the sensor (pixel centres at integers)."""
@@ -219,9 +228,7 @@ class Camera:
             valid &= self.image_mask
         if not valid.any():
             return 0.0
-        r = rays[valid]
-        a = self.optical_axis
-        return float(np.max(np.arctan2(np.linalg.norm(np.cross(r, a), axis=-1), r @ a)))
+        return float(np.max(angle_to(rays[valid], self.optical_axis)))
 
     @property
     def fov_deg(self) -> float:
@@ -281,7 +288,7 @@ class Camera:
         if m.shape[:2] != (self.height, self.width) or m.ndim not in (2, 3):
             raise ValueError(f"image mask has shape {m.shape} but the camera's image is "
                              f"{self.height} x {self.width} (rows x columns)")
-        m = (m if m.ndim == 2 else m.max(-1)) != 0
+        m = mask_from_image(m)
         if not m.any():
             raise ValueError("the image mask is all zero: the camera would see nothing")
         return self._copy(image_mask=m)

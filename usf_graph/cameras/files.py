@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .base import Camera, plain
+from .base import Camera, mask_from_image, plain
 from .panorama import LensNormalMap
 
 FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.omnidir xi)",
@@ -69,7 +69,6 @@ def plain_list(a) -> str:
     return "[" + ", ".join(plain(x) for x in np.ravel(a)) + "]"
 
 
-
 def read_mask(path) -> np.ndarray:
     """An image mask from an image file: nonzero pixels are seen, zero ones ignored."""
     import cv2
@@ -77,7 +76,7 @@ def read_mask(path) -> np.ndarray:
     m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if m is None:
         raise ValueError(f"cannot read the image mask {path}: not an image file OpenCV reads")
-    return (m if m.ndim == 2 else m.max(-1)) != 0
+    return mask_from_image(m)
 
 
 def read_document(path: Path, ocamcalib):

@@ -79,6 +79,12 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
         raise ValueError(f"{path}: key={key!r} (--key) picks a camera in a Kalibr camchain, but "
                          f"this is {'an' if fmt[0] in 'AEIOU' else 'a'} {fmt} file with one camera; leave "
                          "the key out")
+    return with_fov_and_mask(cam, fov_deg, image_mask)
+
+
+def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None) -> Camera:
+    """``cam`` with a usable field of view (:meth:`Camera.with_fov`) and an image mask
+    (``[H, W]`` array, or an image file: :func:`read_mask`), each where given."""
     if fov_deg is not None:
         cam = cam.with_fov(fov_deg)
     if image_mask is not None:
@@ -159,13 +165,10 @@ def _load_own(src: Src, data: dict) -> Camera:
 
 def _extras(src: Src, cam: Camera, fov, mask) -> Camera:
     try:
-        if fov is not None:
-            cam = cam.with_fov(src.number(fov, "fov_deg"))
-        if mask is not None:
-            cam = cam.with_image_mask(read_mask(src.path.parent / mask))
+        return with_fov_and_mask(cam, None if fov is None else src.number(fov, "fov_deg"),
+                                 None if mask is None else src.path.parent / mask)
     except ValueError as e:
         raise src.error(str(e)) from None
-    return cam
 
 
 def _load_opencv(src: Src, data: dict, ros: bool) -> Camera:
@@ -255,7 +258,7 @@ def _load_usf(src: Src, data: dict) -> Camera:
     return _extras(src, cam, data.get("fov_deg"), data.get("mask"))
 
 
-# -- Kalibr ------------------------------------------------------------------------------
+# -- OCamCalib -----------------------------------------------------------------------------
 
 def _load_ocamcalib(path, text) -> Camera:
     rows = [ln.strip() for ln in text.splitlines()]

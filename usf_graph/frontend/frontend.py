@@ -223,9 +223,8 @@ class SphericalFrontend:
         """The :class:`SphericalImage` of lifted values ``x [N, C]`` on this grid, with the
         cached graph (``mask``: default, the camera's field of view)."""
         mask = self.mask if mask is None else mask
-        return SphericalImage(x=x, pos=self.grid.pos.to(x.dtype), mask=mask.clone(),
-                              area=self.grid.area.to(x.dtype), edge_index=self.edge_index,
-                              edge_attr=self.edge_weight.to(x.dtype)[:, None])
+        return SphericalImage.on_grid(x, self.grid, mask.clone(), self.edge_index,
+                                      self.edge_weight)
 
     # -- back to pixels ------------------------------------------------------------------
     def to_image(self, values, mode: str = "bilinear"):

@@ -31,6 +31,14 @@ class SphericalImage(Data):
     Batches from PyG's ``DataLoader`` concatenate nodes and offset ``edge_index``.
     """
 
+    @classmethod
+    def on_grid(cls, x: torch.Tensor, grid, mask: torch.Tensor, edge_index: torch.Tensor,
+                edge_weight: torch.Tensor) -> SphericalImage:
+        """Values ``x [N, C]`` on ``grid`` with its radius graph (``edge_weight [E]``
+        distances, stored as ``edge_attr [E, 1]``); geometry cast to ``x``'s dtype."""
+        return cls(x=x, pos=grid.pos.to(x.dtype), mask=mask, area=grid.area.to(x.dtype),
+                   edge_index=edge_index, edge_attr=edge_weight.to(x.dtype)[:, None])
+
     @property
     def edge_dist(self) -> torch.Tensor:
         """``[E]`` geodesic distance of each edge in radians (a view of ``edge_attr``)."""

@@ -69,8 +69,6 @@ def load_lifted(path, cache=None) -> SphericalImage:
     if x.shape[0] != len(grid) or mask.shape != (len(grid),):
         raise ValueError(f"{path}: x {tuple(x.shape)} and mask {tuple(mask.shape)} do not fit "
                          f"the grid {blob['grid']} of {len(grid)} points; the file is corrupt")
-    ei, ew = grid_graph(grid, float(blob["radius"]), cache)
-    return SphericalImage(x=x, pos=grid.pos.to(x.dtype), mask=mask, area=grid.area.to(x.dtype),
-                          edge_index=ei, edge_attr=ew.to(x.dtype)[:, None])
+    return SphericalImage.on_grid(x, grid, mask, *grid_graph(grid, float(blob["radius"]), cache))
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
+from ..cameras.base import angle_to
 from ..grids import Grid
 from .cache import GeometryCache
 from .frontend import SphericalFrontend
@@ -56,7 +57,7 @@ class RigFrontend:
                           for c in cams]
         seen = torch.stack([fe.mask for fe in self.frontends]).numpy()  # [K, N]
         pos = grid.pos.numpy()
-        ang = np.stack([_angle(pos, c.rotation @ c.optical_axis) for c in cams])
+        ang = np.stack([angle_to(pos, c.rotation @ c.optical_axis) for c in cams])
         ang = np.where(seen, ang, np.inf)
         best = ang.argmin(0)
         self.mask = torch.from_numpy(seen.any(0))
@@ -129,7 +130,3 @@ class RigFrontend:
     def __call__(self, images) -> SphericalImage:
         x = self.lift(images)
         return self.frontends[0].image(x, self.mask)
-
-
-def _angle(p: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    return np.arctan2(np.linalg.norm(np.cross(p, axis), axis=-1), p @ axis)
