@@ -1,0 +1,202 @@
+r"""Spherical boxes: the region of S2 bounded by four great circles.
+
+A box is ``[lon, lat, fov_x, fov_y, roll]`` in radians, in the sphere frame of DESIGN.md
+(x forward, y left, z up; longitude counter-clockwise from +x). Its centre direction is
+:math:`c`; its horizontal axis :math:`e` is the local east at :math:`c` turned by ``roll``
+towards the local north :math:`n`. A direction :math:`p` is inside when
+
+.. math::
+    p \cdot c > 0,\quad |p \cdot e| \le \tan(f_x/2)\, p \cdot c,\quad
+    |p \cdot n| \le \tan(f_y/2)\, p \cdot c,
+
+the tangent-plane rectangle at :math:`c` seen from the sphere's centre. Files use PANDORA's
+``[lon, lat, fov_x, fov_y, gamma]`` in degrees, where longitude grows to the right of the
+panorama and positive gamma turns the box counter-clockwise as displayed: both are the
+negatives of ours (:func:`from_pandora`, :func:`to_pandora`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import from_latlon, normalize, rotation_from_axis_angle, to_latlon
+
+__all__ = ["box_axes", "boxes_from_axes", "from_pandora", "to_pandora", "points_in_boxes",
+           "rotate_boxes", "fit_box", "box_corners", "box_edges"]
+
+
+def _as_boxes(boxes) -> np.ndarray:
+    b = np.asarray(boxes, np.float64)
+    if b.shape[-1:] != (5,):
+        raise ValueError(f"boxes must have shape [..., 5] (lon, lat, fov_x, fov_y, roll), got {b.shape}")
+    if not np.all(np.isfinite(b)):
+        raise ValueError("boxes contain NaN or infinite values")
+    return b
+
+
+def _local_frame(lon, lat):
+    """East and north unit vectors at (lon, lat); at a pole east is the limit along ``lon``."""
+    e0 = np.stack([-np.sin(lon), np.cos(lon), np.zeros_like(lon)], -1)
+    n0 = np.stack([-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)], -1)
+    return e0, n0
+
+
+def box_axes(boxes):
+    """Boxes ``[..., 5]`` -> centre ``c``, horizontal axis ``e`` and vertical axis ``n``, each
+    ``[..., 3]`` (a right-handed frame ``(c, e, n)``)."""
+    b = _as_boxes(boxes)
+    lon, lat, roll = b[..., 0], b[..., 1], b[..., 4]
+    c = from_latlon(lat, lon)
+    e0, n0 = _local_frame(lon, lat)
+    cr, sr = np.cos(roll)[..., None], np.sin(roll)[..., None]
+    return c, cr * e0 + sr * n0, cr * n0 - sr * e0
+
+
+def boxes_from_axes(c, e, fov_x, fov_y):
+    """The boxes with centre ``c [..., 3]``, horizontal axis ``e`` (projected onto the
+    tangent plane at ``c``) and fields of view (radians); roll in [-pi/2, pi/2)."""
+    c = normalize(np.asarray(c, np.float64))
+    e = np.asarray(e, np.float64)
+    e = normalize(e - (e * c).sum(-1, keepdims=True) * c)
+    lat, lon = to_latlon(c)
+    e0, n0 = _local_frame(lon, lat)
+    roll = np.arctan2((e * n0).sum(-1), (e * e0).sum(-1))
+    roll = np.mod(roll + np.pi / 2, np.pi) - np.pi / 2  # a half turn maps a box onto itself
+    fx, fy = np.broadcast_arrays(np.asarray(fov_x, np.float64), np.asarray(fov_y, np.float64))
+    return np.stack(np.broadcast_arrays(lon, lat, fx, fy, roll), -1)
+
+
+def from_pandora(bbox):
+    """PANDORA ``[lon, lat, fov_x, fov_y, gamma]`` (degrees, image terms) -> our boxes."""
+    b = np.radians(_as_boxes(bbox))
+    b[..., 0] *= -1
+    b[..., 4] *= -1
+    b[..., 0] = np.mod(b[..., 0] + np.pi, 2 * np.pi) - np.pi
+    return b
+
+
+def to_pandora(boxes):
+    """Our boxes -> PANDORA ``[lon, lat, fov_x, fov_y, gamma]`` in degrees, gamma wrapped to
+    [-90, 90] (a half turn of a box is the same box)."""
+    b = _as_boxes(boxes).copy()
+    b[..., 0] *= -1
+    b[..., 4] = -(np.mod(b[..., 4] + np.pi / 2, np.pi) - np.pi / 2)
+    b[..., 0] = np.mod(b[..., 0] + np.pi, 2 * np.pi) - np.pi
+    return np.degrees(b)
+
+
+def points_in_boxes(points, boxes, margin: float = 0.0) -> np.ndarray:
+    """``[P, B]`` True where direction ``points[p]`` lies in ``boxes[b]``; ``margin``
+    (radians) widens each side's half field of view (negative shrinks it)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    b = _as_boxes(boxes).reshape(-1, 5)
+    c, e, n = box_axes(b)
+    z, x, y = p @ c.T, p @ e.T, p @ n.T
+    hx = np.tan(np.clip(b[:, 2] / 2 + margin, 0, np.pi / 2))
+    hy = np.tan(np.clip(b[:, 3] / 2 + margin, 0, np.pi / 2))
+    eps = 1e-12 * np.abs(z)
+    return (z > 0) & (np.abs(x) <= hx * z + eps) & (np.abs(y) <= hy * z + eps)
+
+
+def rotate_boxes(boxes, R):
+    """The boxes seen in a frame rotated by ``R`` (``R @ p`` maps old directions to new):
+    exact, since a rotation maps great circles to great circles."""
+    b = _as_boxes(boxes)
+    R = np.asarray(R, np.float64)
+    c, e, _ = box_axes(b)
+    return boxes_from_axes(c @ R.T, e @ R.T, b[..., 2], b[..., 3])
+
+
+def box_corners(boxes):
+    """The four corner directions ``[..., 4, 3]`` of each box (counter-clockwise seen from
+    outside when roll is 0: top-left, bottom-left, bottom-right, top-right in east/north)."""
+    b = _as_boxes(boxes)
+    c, e, n = box_axes(b)
+    tx, ty = np.tan(b[..., 2:3] / 2), np.tan(b[..., 3:4] / 2)
+    signs = [(1, 1), (1, -1), (-1, -1), (-1, 1)]
+    return normalize(np.stack([c + sx * tx * e + sy * ty * n for sx, sy in signs], -2))
+
+
+def box_edges(boxes, n: int = 32):
+    """Points along the four great-circle edges, ``[..., 4 * n + 1, 3]`` (closed), for drawing."""
+    k = box_corners(boxes)
+    t = np.linspace(0, 1, n, endpoint=False)[:, None]
+    sides = [normalize(k[..., i, None, :] * (1 - t) + k[..., (i + 1) % 4, None, :] * t)
+             for i in range(4)]
+    return np.concatenate(sides + [k[..., :1, :]], -2)
+
+
+def _gnomonic(p, c, e, n):
+    z = p @ c
+    return p @ e / z, p @ n / z, z
+
+
+def fit_box(directions, up=(0.0, 0.0, 1.0), iters: int = 60, tol: float = 1e-12):
+    """The tight box around unit ``directions [M, 3]`` whose vertical axis points towards
+    ``up`` (roll 0 when ``up`` is the frame's z axis).
+
+    The centre is moved until the directions' gnomonic extents are symmetric about it; only
+    their convex hull matters, since great circles are lines in the gnomonic plane. Returns
+    ``None`` when the directions do not fit in an open hemisphere (the object surrounds the
+    viewpoint).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    d = normalize(np.asarray(directions, np.float64).reshape(-1, 3))
+    if len(d) == 0:
+        raise ValueError("fit_box needs at least one direction")
+    up = normalize(np.asarray(up, np.float64))
+    R = _align_z(up)  # work in a frame whose z is up, so roll 0 = vertical axis up
+    d = d @ R.T
+    c = normalize(d.mean(0))
+    if not np.all(d @ c > 1e-6):
+        return None
+    if len(d) > 8:  # keep the hull vertices in the gnomonic plane at c
+        e0, n0 = _local_frame(*to_latlon(c)[::-1])
+        x, y, _ = _gnomonic(d, c, e0, n0)
+        try:
+            d = d[ConvexHull(np.stack([x, y], -1)).vertices]
+        except QhullError:  # collinear or a single point: extremes are enough
+            d = d[np.unique([x.argmin(), x.argmax(), y.argmin(), y.argmax()])]
+    lat, lon = to_latlon(c)
+    t, r = np.array([lon, lat]), _asymmetry(d, lon, lat)
+    for _ in range(iters):  # Newton on (lon, lat), Jacobian by differences, with backtracking
+        if r is None or np.abs(r).max() < tol:
+            break
+        h = 1e-7
+        J = np.stack([(_asymmetry(d, *(t + h * np.eye(2)[k])) - r) / h for k in range(2)], -1) \
+            if all(_asymmetry(d, *(t + h * np.eye(2)[k])) is not None for k in range(2)) else None
+        step = np.linalg.lstsq(J, -r, rcond=None)[0] if J is not None else np.zeros(2)
+        for scale in 0.5 ** np.arange(30):
+            r_new = _asymmetry(d, *(t + scale * step))
+            if r_new is not None and np.abs(r_new).max() < np.abs(r).max():
+                t, r = t + scale * step, r_new
+                break
+        else:
+            break
+    if r is None:
+        return None
+    lon, lat = t
+    e0, n0 = _local_frame(lon, lat)
+    x, y, _ = _gnomonic(d, from_latlon(lat, lon), e0, n0)
+    fx, fy = 2 * np.arctan(np.abs(x).max()), 2 * np.arctan(np.abs(y).max())
+    lon = np.mod(lon + np.pi, 2 * np.pi) - np.pi
+    return rotate_boxes(np.array([lon, lat, fx, fy, 0.0]), R.T)
+
+
+def _asymmetry(d, lon, lat):
+    """Midpoints of the gnomonic extents of ``d`` at (lon, lat), or None past the horizon."""
+    e0, n0 = _local_frame(lon, lat)
+    x, y, z = _gnomonic(d, from_latlon(lat, lon), e0, n0)
+    if not np.all(z > 1e-9):
+        return None
+    return np.array([(x.max() + x.min()) / 2, (y.max() + y.min()) / 2])
+
+
+def _align_z(up):
+    """A rotation taking ``up`` to +z."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(up, z)
+    if np.linalg.norm(axis) < 1e-15:
+        return np.eye(3) if up @ z > 0 else np.diag([1.0, -1.0, -1.0])
+    return rotation_from_axis_angle(axis, np.arctan2(np.linalg.norm(axis), up @ z))
