@@ -131,14 +131,14 @@ def _gnomonic(p, c, e, n):
     return p @ e / z, p @ n / z, z
 
 
-def fit_box(directions, up=(0.0, 0.0, 1.0), iters: int = 60, tol: float = 1e-12):
+def fit_box(directions, up=(0.0, 0.0, 1.0), iters: int = 60, tol: float = 1e-12, centre=None):
     """The tight box around unit ``directions [M, 3]`` whose vertical axis points towards
     ``up`` (roll 0 when ``up`` is the frame's z axis).
 
     The centre is moved until the directions' gnomonic extents are symmetric about it; only
     their convex hull matters, since great circles are lines in the gnomonic plane. Returns
     ``None`` when the directions do not fit in an open hemisphere (the object surrounds the
-    viewpoint).
+    viewpoint). ``centre`` is a starting guess (the mean direction by default).
     """
     from scipy.spatial import ConvexHull, QhullError
 
@@ -148,7 +148,7 @@ def fit_box(directions, up=(0.0, 0.0, 1.0), iters: int = 60, tol: float = 1e-12)
     up = normalize(np.asarray(up, np.float64))
     R = _align_z(up)  # work in a frame whose z is up, so roll 0 = vertical axis up
     d = d @ R.T
-    c = normalize(d.mean(0))
+    c = normalize(d.mean(0) if centre is None else R @ np.asarray(centre, np.float64))
     if not np.all(d @ c > 1e-6):
         return None
     if len(d) > 8:  # keep the hull vertices in the gnomonic plane at c
@@ -163,10 +163,11 @@ def fit_box(directions, up=(0.0, 0.0, 1.0), iters: int = 60, tol: float = 1e-12)
     for _ in range(iters):  # Newton on (lon, lat), Jacobian by differences, with backtracking
         if r is None or np.abs(r).max() < tol:
             break
-        h = 1e-7
-        J = np.stack([(_asymmetry(d, *(t + h * np.eye(2)[k])) - r) / h for k in range(2)], -1) \
-            if all(_asymmetry(d, *(t + h * np.eye(2)[k])) is not None for k in range(2)) else None
-        step = np.linalg.lstsq(J, -r, rcond=None)[0] if J is not None else np.zeros(2)
+        probe = [_asymmetry(d, *(t + 1e-7 * np.eye(2)[k])) for k in range(2)]
+        if any(q is None for q in probe):
+            break
+        J = np.stack([(q - r) / 1e-7 for q in probe], -1)
+        step = np.linalg.lstsq(J, -r, rcond=None)[0]
         for scale in 0.5 ** np.arange(30):
             r_new = _asymmetry(d, *(t + scale * step))
             if r_new is not None and np.abs(r_new).max() < np.abs(r).max():

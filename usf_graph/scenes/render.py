@@ -17,13 +17,13 @@ import numpy as np
 
 from ..cameras import Camera
 from ..geometry import normalize
-from ..ops.boxes import fit_box, rotate_boxes
+from ..ops.boxes import box_axes, fit_box, rotate_boxes
 from .classes import IGNORE
 from .room import Scene
 from .textures import sample
 
 #: Angular spacing (degrees) of the spherical ray cast that gives the boxes.
-BOX_SPACING_DEG = 0.3
+BOX_SPACING_DEG = 0.4
 #: An object gets a box when its visible part covers at least this solid angle (sr) ...
 MIN_SOLID_ANGLE = 5e-4
 #: ... and a view keeps it when the camera sees at least this fraction of that part.
@@ -74,8 +74,10 @@ def shade(scene: Scene, origin, dirs, inst, t, face, pix_size) -> np.ndarray:
     p = origin + dirs * t[:, None]
     n = scene.mesh.face_normals[face]
     n = np.where(((n * dirs).sum(-1) > 0)[:, None], -n, n)  # face the viewer
-    a = np.abs(n).argmax(-1)
-    uv = np.where((a == 0)[:, None], p[:, [1, 2]], np.where((a == 1)[:, None], p[:, [0, 2]], p[:, :2]))
+    # Vertical faces: u to the viewer's right, v down, so pictures read the right way round.
+    right = normalize(np.stack([-n[:, 1], n[:, 0], np.zeros(len(n))], -1), 1e-12)
+    flat = np.abs(n[:, 2]) > 0.7
+    uv = np.where(flat[:, None], p[:, :2], np.stack([(p * right).sum(-1), -p[:, 2]], -1))
     ap = scene.appearance
     tile = ap["tile"][inst]
     cos_in = np.maximum(np.abs((n * dirs).sum(-1)), 0.2)
@@ -89,7 +91,8 @@ def shade(scene: Scene, origin, dirs, inst, t, face, pix_size) -> np.ndarray:
     return np.clip(albedo * light[:, None], 0, 1)
 
 
-def _edges(inst: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def edge_pixels(inst: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Valid pixels whose instance differs from a 4-neighbour's."""
     e = np.zeros_like(valid)
     dh = inst[:, 1:] != inst[:, :-1]
     dv = inst[1:] != inst[:-1]
@@ -104,8 +107,11 @@ def world_boxes(scene: Scene, position, spacing_deg: float = BOX_SPACING_DEG):
     """Boxes of the objects seen from ``position``, in the world frame with roll 0 (vertical
     axis up), from a dense spherical ray cast that does not depend on any lens.
 
-    Returns ``(boxes [K, 5], classes [K], instances [K], rays)``; ``rays[k]`` holds the cast
-    directions that hit instance k (for field-of-view tests). Cached on the scene.
+    The cast has ``spacing_deg`` between rays; each box is then refined by strips of rays
+    five times finer just outside its sides (:func:`_refine`), so it is tight to about
+    ``spacing_deg / 5``. Returns ``(boxes [K, 5], classes [K], instances [K], rays)``, where
+    ``rays[k]`` holds the cast's directions that hit instance k (for field-of-view tests).
+    Cached on the scene.
     """
     position = scene.check_viewpoint(position)
     key = (tuple(np.round(position, 12)), float(spacing_deg))
@@ -116,22 +122,46 @@ def world_boxes(scene: Scene, position, spacing_deg: float = BOX_SPACING_DEG):
     inst, _, _ = scene.cast(position, dirs)
     order = np.argsort(inst, kind="stable")
     ids, starts = np.unique(inst[order], return_index=True)
-    groups = np.split(order, starts[1:])
-    boxes, classes, owners, rays = [], [], [], []
-    for k, g in zip(ids, groups):
+    hits = {}
+    for k, g in zip(ids, np.split(order, starts[1:])):
         obj = scene.instances[k] if k >= 0 else None
-        if obj is None or obj.detect is None or len(g) * 4 * math.pi / n < MIN_SOLID_ANGLE:
-            continue
-        b = fit_box(dirs[g])
+        if obj is not None and obj.detect is not None and len(g) * 4 * math.pi / n >= MIN_SOLID_ANGLE:
+            hits[int(k)] = dirs[g]
+    boxes = {k: fit_box(d) for k, d in hits.items()}
+    for _ in range(2):
+        boxes = _refine(scene, position, boxes, hits, math.radians(spacing_deg))
+    owners = [k for k in hits if boxes[k] is not None]
+    out = (np.array([boxes[k] for k in owners], np.float64).reshape(-1, 5),
+           np.array([scene.instances[k].detect for k in owners], np.int64),
+           np.array(owners, np.int64), [hits[k] for k in owners])
+    scene._boxes[key] = out
+    return out
+
+
+def _refine(scene: Scene, position, boxes: dict, hits: dict, s: float) -> dict:
+    """Cast strips of rays ``s / 5`` apart just outside each box's sides (one cast for all
+    boxes) and refit each box with what its object there."""
+    rays, owner = [], []
+    for k, b in boxes.items():
         if b is None:
             continue
-        boxes.append(b)
-        classes.append(obj.detect)
-        owners.append(k)
-        rays.append(dirs[g])
-    out = (np.array(boxes, np.float64).reshape(-1, 5), np.array(classes, np.int64),
-           np.array(owners, np.int64), rays)
-    scene._boxes[key] = out
+        c, e, n = box_axes(b)
+        for half, other, ax, bx in ((b[2] / 2, b[3] / 2, e, n), (b[3] / 2, b[2] / 2, n, e)):
+            across = np.tan(np.linspace(half - s / 5, min(half + s, 1.55), 6))
+            along = np.tan(np.arange(-min(other + s, 1.55), min(other + s, 1.55), s / 5))
+            for sign in (-1, 1):
+                a, o = np.meshgrid(sign * across, along, indexing="ij")
+                r = (c + a[..., None] * ax + o[..., None] * bx).reshape(-1, 3)
+                rays.append(r)
+                owner.append(np.full(len(r), k))
+    if not rays:
+        return boxes
+    rays, owner = normalize(np.concatenate(rays)), np.concatenate(owner)
+    got = scene.cast(position, rays)[0]
+    out = dict(boxes)
+    for k in np.unique(owner[got == owner]):
+        hits[k] = np.concatenate([hits[k], rays[(owner == k) & (got == k)]])
+        out[k] = fit_box(hits[k], centre=box_axes(boxes[k])[0])
     return out
 
 
@@ -181,7 +211,7 @@ def render(scene: Scene, camera: Camera, position=None, rotation=None, view: int
     depth[valid] = t_v
     rgb = np.zeros((H, W, 3), np.float32)
     rgb[valid] = shade(scene, position, dirs, inst_v, t_v, face_v, pix[valid])
-    edge = _edges(inst, valid)
+    edge = edge_pixels(inst, valid)
     if edge.any():  # 2 x 2 supersampling where an object's edge crosses the pixel
         i, j = np.nonzero(edge)
         acc, cnt = np.zeros((len(i), 3)), np.zeros(len(i))

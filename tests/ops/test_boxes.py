@@ -1,0 +1,116 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from usf_graph.geometry import from_latlon, random_rotation
+from usf_graph.ops import (
+    box_axes,
+    box_corners,
+    box_edges,
+    fit_box,
+    from_pandora,
+    points_in_boxes,
+    rotate_boxes,
+    to_pandora,
+)
+
+
+def _same_box(a, b, tol):
+    """Boxes as regions: equal corners up to the order a half turn gives."""
+    ka, kb = box_corners(a), box_corners(b)
+    return min(np.abs(ka - np.roll(kb, s, 0)).max() for s in (0, 2)) < tol
+
+
+def test_frame_is_orthonormal_and_right_handed():
+    c, e, n = box_axes([[0.3, -0.4, 0.5, 0.2, 0.7]])
+    M = np.stack([c[0], e[0], n[0]])
+    np.testing.assert_allclose(M @ M.T, np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(np.cross(c[0], e[0]), n[0], atol=1e-15)
+
+
+def test_roll_zero_axes_are_east_and_north():
+    c, e, n = box_axes([0.0, 0.0, 0.5, 0.5, 0.0])
+    np.testing.assert_allclose(c, [1, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(e, [0, 1, 0], atol=1e-15)  # east = increasing longitude = +y
+    np.testing.assert_allclose(n, [0, 0, 1], atol=1e-15)
+
+
+def test_sign_of_roll_in_pandora_terms():
+    # DESIGN.md: PANDORA [0,0,60,20,30] contains (lon 22, lat 12) and not (22, -12), in its
+    # own coordinates, where longitude grows to the right of the image.
+    box = from_pandora([0, 0, 60, 20, 30])
+    inside = from_latlon(math.radians(12), -math.radians(22))  # our lon is PANDORA's negative
+    outside = from_latlon(-math.radians(12), -math.radians(22))
+    assert points_in_boxes(inside, box)[0, 0]
+    assert not points_in_boxes(outside, box)[0, 0]
+
+
+def test_pandora_round_trip():
+    b = np.array([[170, 20, 30, 20, 45], [-179.5, -89, 10, 100, -90.0 + 1e-9], [0, 0, 1, 1, 0]])
+    np.testing.assert_allclose(to_pandora(from_pandora(b)), b, atol=1e-9)
+
+
+def test_points_in_box_edges_are_great_circles():
+    b = np.array([0.4, 0.3, 1.0, 0.6, 0.2])
+    edge = box_edges(b, 50)[:-1]
+    c, _, _ = box_axes(b)
+    inward = (edge + 1e-7 * c) / np.linalg.norm(edge + 1e-7 * c, axis=-1, keepdims=True)
+    outward = (edge - 1e-7 * c) / np.linalg.norm(edge - 1e-7 * c, axis=-1, keepdims=True)
+    assert points_in_boxes(inward, b).all()
+    assert not points_in_boxes(outward, b).any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(lon=st.floats(-math.pi, math.pi), lat=st.floats(-1.55, 1.55),
+       fx=st.floats(0.02, 2.6), fy=st.floats(0.02, 2.6), seed=st.integers(0, 10_000))
+def test_rotation_is_exact(lon, lat, fx, fy, seed):
+    b = np.array([lon, lat, fx, fy, 0.3])
+    R = random_rotation(seed=seed).numpy()
+    got, want = box_corners(rotate_boxes(b, R)), box_corners(b) @ R.T
+    assert min(np.abs(got - np.roll(want, s, 0)).max() for s in (0, 2)) < 1e-12
+    p = np.random.default_rng(seed).normal(size=(200, 3))
+    assert np.array_equal(points_in_boxes(p, b), points_in_boxes(p @ R.T, rotate_boxes(b, R)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(lon=st.floats(-math.pi, math.pi), lat=st.floats(-1.5707, 1.5707),
+       fx=st.floats(0.01, 2.6), fy=st.floats(0.01, 2.6), seed=st.integers(0, 10_000),
+       tilted=st.booleans())
+def test_fit_recovers_a_box_from_its_outline(lon, lat, fx, fy, seed, tilted):
+    b = np.array([lon, lat, fx, fy, 0.0])
+    up = np.array([0.0, 0.0, 1.0])
+    if tilted:  # a box with roll 0 in a tilted frame is up-aligned with that frame's up
+        R = random_rotation(seed=seed).numpy()
+        b, up = rotate_boxes(b, R), R[:, 2]
+    fit = fit_box(box_edges(b, 40), up=up)
+    assert fit is not None and _same_box(fit, b, 1e-8)
+
+
+def test_fit_is_tight_and_contains_random_points():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(500, 3)) * [0.3, 0.3, 0.2] + [3, 1, 0.5]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    b = fit_box(d)
+    assert abs(b[4]) < 1e-12
+    assert points_in_boxes(d, b).all()
+    for side in range(4):  # moving any one side in by 1e-6 rad leaves a point out
+        c, e, n = box_axes(b)
+        x, y, z = d @ e, d @ n, d @ c
+        u = (x, -x, y, -y)[side] / z
+        half = b[2 + side // 2] / 2
+        assert u.max() > math.tan(half - 1e-6)
+
+
+def test_fit_rejects_directions_around_the_viewpoint():
+    ring = from_latlon(np.zeros(12), np.linspace(-math.pi, math.pi, 12, endpoint=False))
+    assert fit_box(ring) is None
+
+
+def test_bad_boxes_raise():
+    with pytest.raises(ValueError, match=r"\[\.\.\., 5\]"):
+        box_axes([1, 2, 3])
+    with pytest.raises(ValueError, match="NaN"):
+        rotate_boxes([0, 0, np.nan, 1, 0], np.eye(3))

@@ -1,0 +1,172 @@
+import math
+
+import numpy as np
+import pytest
+from scipy.ndimage import binary_dilation
+
+from usf_graph import cameras, scenes
+from usf_graph.geometry import normalize, random_rotation, rotation_from_axis_angle
+from usf_graph.grids import fibonacci
+from usf_graph.ops import box_axes, box_corners, rotate_boxes
+from usf_graph.scenes import IGNORE, SEMANTIC_CLASSES
+from usf_graph.scenes.render import edge_pixels
+
+EQUI = cameras.Equirectangular(1024, 512)
+FISHEYE = cameras.KannalaBrandt(160, 160, 255.5, 255.5, 512, 512, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return scenes.make_room(seed=0, index=3)
+
+
+def _labels_along(view, cam, world_dirs):
+    """Nearest-pixel labels of the view along world directions, and where the view sees them."""
+    uv, seen = cam.sees(world_dirs @ view.rotation)
+    j = np.clip(np.rint(np.nan_to_num(uv[:, 0])), 0, cam.width - 1).astype(int)
+    i = np.clip(np.rint(np.nan_to_num(uv[:, 1])), 0, cam.height - 1).astype(int)
+    return view.label[i, j], seen & view.valid[i, j]
+
+
+def test_labels_and_depth_match_the_geometry(scene):
+    view = scenes.render(scene, EQUI)
+    assert view.valid.all() and (view.label != IGNORE).all()
+    # every pixel's hit point lies on (the bounding box of) the instance it is labelled with
+    lnm, _ = EQUI.lens_normal_map()
+    hit = view.position + (lnm @ view.rotation.T) * view.depth[..., None].astype(np.float64)
+    lo = np.stack([scene.instances[k].lo for k in range(len(scene.instances))])[view.instance]
+    hi = np.stack([scene.instances[k].hi for k in range(len(scene.instances))])[view.instance]
+    assert np.all((hit >= lo - 1e-4) & (hit <= hi + 1e-4))
+    # straight down from a camera at 1.2-1.7 m over open floor: the floor, at the camera's height
+    bottom = view.label[-1]
+    floor = SEMANTIC_CLASSES.index("floor")
+    assert (bottom == floor).mean() > 0.9
+    np.testing.assert_allclose(view.depth[-1][bottom == floor], view.position[2], rtol=2e-3)
+    assert set(np.unique(view.label)) >= {SEMANTIC_CLASSES.index(c) for c in ("ceiling", "wall", "floor")}
+
+
+def _near_edge(view, cam, world_dirs):
+    uv, _ = cam.sees(world_dirs @ view.rotation)
+    j = np.clip(np.rint(np.nan_to_num(uv[:, 0])), 0, cam.width - 1).astype(int)
+    i = np.clip(np.rint(np.nan_to_num(uv[:, 1])), 0, cam.height - 1).astype(int)
+    return binary_dilation(edge_pixels(view.instance, view.valid))[i, j]
+
+
+def test_rotated_views_agree_on_world_rays_and_boxes(scene):
+    cam = cameras.Equirectangular(2048, 1024)
+    p, R0 = scene.viewpoint(0)
+    a = scenes.render(scene, cam, position=p, rotation=R0)
+    b = scenes.render(scene, cam, position=p, rotation=random_rotation(seed=7).numpy())
+    d = fibonacci(60_000).pos.numpy()
+    la, sa = _labels_along(a, cam, d)
+    lb, sb = _labels_along(b, cam, d)
+    both = sa & sb
+    assert both.mean() > 0.99
+    assert (la[both] == lb[both]).mean() >= 0.995
+    differ = both & (la != lb)  # the rest lie on an object's edge in one of the views
+    assert (_near_edge(a, cam, d) | _near_edge(b, cam, d))[differ].all()
+    assert len(a.boxes) >= 5 and np.array_equal(a.box_instance, b.box_instance)
+    wa, wb = rotate_boxes(a.boxes, a.rotation), rotate_boxes(b.boxes, b.rotation)
+    np.testing.assert_allclose(box_corners(wa), box_corners(wb), atol=1e-6)
+    assert np.abs(wa[:, 4]).max() < 1e-9  # roll 0 in the world: boxes stand upright
+    assert np.abs(b.boxes[:, 4]).max() > 0.05  # and turn with a tilted camera
+
+
+def test_boxes_contain_and_hug_the_visible_pixels(scene):
+    view = scenes.render(scene, EQUI)
+    lnm, _ = EQUI.lens_normal_map()
+    checked = 0
+    for box, k in zip(view.boxes, view.box_instance):
+        rays = lnm[view.instance == k]
+        c, e, n = box_axes(box)
+        z = rays @ c
+        x, y = rays @ e / z, rays @ n / z
+        inside = (z > 0) & (np.abs(x) <= math.tan(box[2] / 2) + 1e-9) & (np.abs(y) <= math.tan(box[3] / 2) + 1e-9)
+        assert inside.mean() >= 0.99, (scene.instances[k].kind, inside.mean())
+        if min(box[2], box[3]) < math.radians(4):
+            continue
+        checked += 1
+        for u, half in ((x, box[2] / 2), (-x, box[2] / 2), (y, box[3] / 2), (-y, box[3] / 2)):
+            assert u.max() > math.tan(half - math.radians(1)), scene.instances[k].kind
+    assert checked >= 4
+
+
+def test_fisheye_and_panorama_agree_where_both_see(scene):
+    p, R = scene.viewpoint(1)
+    a = scenes.render(scene, EQUI, position=p, rotation=R)
+    b = scenes.render(scene, FISHEYE, position=p, rotation=R)
+    assert 0.2 < b.valid.mean() < 0.9 and (b.label[~b.valid] == IGNORE).all()
+    d = fibonacci(60_000).pos.numpy()
+    la, sa = _labels_along(a, EQUI, d)
+    lb, sb = _labels_along(b, FISHEYE, d)
+    both = sa & sb
+    assert both.mean() > 0.4
+    assert (la[both] == lb[both]).mean() >= 0.99
+    # the fisheye keeps a subset of the panorama's boxes, with the same values
+    assert set(b.box_instance) <= set(a.box_instance) and len(b.box_instance) < len(a.box_instance)
+    same = np.isin(a.box_instance, b.box_instance)
+    np.testing.assert_allclose(a.boxes[same], b.boxes, atol=1e-12)
+
+
+def test_pinhole_sees_what_it_faces(scene):
+    cam = cameras.Pinhole(128, 128, 127.5, 127.5, 256, 256)
+    p, _ = scene.viewpoint(0)
+    down = rotation_from_axis_angle([0.0, 1.0, 0.0], math.pi / 2)  # optical axis (+x) to -z
+    view = scenes.render(scene, cam, position=p, rotation=down)
+    assert view.valid.all()
+    floor = SEMANTIC_CLASSES.index("floor")
+    centre = view.label[118:138, 118:138]
+    if (centre == floor).all():
+        np.testing.assert_allclose(view.depth[127:129, 127:129], p[2], rtol=1e-3)
+
+
+def test_scenes_are_deterministic():
+    a, b = scenes.make_room(5, 11), scenes.make_room(5, 11)
+    assert np.array_equal(a.mesh.vertices, b.mesh.vertices) and a.size == b.size
+    va, vb = scenes.render(a, cameras.Equirectangular(256, 128)), scenes.render(b, cameras.Equirectangular(256, 128))
+    for f in ("rgb", "label", "instance", "depth", "boxes", "box_class"):
+        assert np.array_equal(getattr(va, f), getattr(vb, f)), f
+    c = scenes.make_room(5, 12)
+    assert c.size != a.size
+
+
+def test_rooms_follow_the_spec():
+    for i in range(6):
+        s = scenes.make_room(1, i)
+        L, W, H = s.size
+        assert 3 <= L <= 9 and 3 <= W <= 9 and 2.5 <= H <= 3.5
+        objs = [o for o in s.instances if o.kind not in ("structure",)]
+        for m in range(len(objs)):  # no two objects overlap (table clutter sits on its table)
+            for k in range(m):
+                overlap = np.minimum(objs[m].hi, objs[k].hi) - np.maximum(objs[m].lo, objs[k].lo)
+                if np.all(overlap > 1e-6):
+                    assert "table" in (objs[m].kind, objs[k].kind), (objs[m].kind, objs[k].kind)
+        p, R = s.viewpoint(0)
+        assert 1.2 <= p[2] <= 1.7 and abs(R[2, 2] - 1) < 1e-12
+    kinds = {o.kind for i in range(6) for o in scenes.make_room(1, i).instances}
+    assert {"door", "table", "chair"} <= kinds
+
+
+def test_bad_inputs_get_clear_errors(scene):
+    with pytest.raises(ValueError, match="Did you mean 'chair'"):
+        scenes.semantic_index("chiar")
+    with pytest.raises(ValueError, match="unknown detection class 'bookcase'"):
+        scenes.detection_index("bookcase")
+    table = next(o for o in scene.instances if o.kind == "table")
+    inside = (table.lo + table.hi) / 2
+    with pytest.raises(ValueError, match=r"inside object \d+ \(table"):
+        scenes.render(scene, EQUI, position=inside)
+    with pytest.raises(ValueError, match="outside the room"):
+        scenes.render(scene, EQUI, position=(100.0, 0.0, 1.5))
+    with pytest.raises(ValueError, match="three positive lengths"):
+        scenes.make_room(size=(0, 4, 3))
+    with pytest.raises(ValueError, match="too small"):
+        scenes.make_room(size=(1, 4, 3))
+
+
+def test_colourize_marks_ignored_pixels_black():
+    lab = np.array([[0, 12, IGNORE]], np.uint8)
+    rgb = scenes.colourize(lab)
+    assert (rgb[0, 2] == 0).all() and np.array_equal(rgb[0, 0], scenes.PALETTE[0])
+    assert len(scenes.PALETTE) == len(SEMANTIC_CLASSES) == 13
+    assert normalize(np.ones(3)).shape == (3,)
