@@ -2,6 +2,7 @@
 
 from .mnist import SphericalMNIST, download_mnist, load_digits, read_idx, read_mnist_csv
 from .pointcloud import SHAPES, ModelNet, ProceduralShapes, make_shape, read_off, sample_surface
+from .rooms import RoomsDetection, RoomsSegmentation
 
 __all__ = ["SphericalMNIST", "download_mnist", "load_digits", "read_idx", "read_mnist_csv", "ModelNet",
-           "ProceduralShapes", "SHAPES", "make_shape", "read_off", "sample_surface"]
+           "ProceduralShapes", "RoomsDetection", "RoomsSegmentation", "SHAPES", "make_shape", "read_off", "sample_surface"]

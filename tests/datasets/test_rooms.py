@@ -1,0 +1,84 @@
+import numpy as np
+import pytest
+import torch
+from torch_geometric.loader import DataLoader
+
+from usf_graph import cameras, scenes
+from usf_graph.datasets import RoomsDetection, RoomsSegmentation
+from usf_graph.datasets.rooms import view_pose
+from usf_graph.scenes import IGNORE
+
+KW = dict(num_scenes=3, grid="icosahedral:3", progress=False)
+FISHEYE = cameras.KannalaBrandt(90, 90, 127.5, 127.5, 256, 256, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    return tmp_path_factory.mktemp("rooms")
+
+
+def test_sample_holds_lifted_rgb_exact_labels_and_the_raw_view(root):
+    ds = RoomsSegmentation(root, "train", **KW)
+    assert len(ds) == 3
+    d = ds[1]
+    assert d.x.shape == (642, 3) and d.y.shape == (642,) and d.mask.all()
+    # x is the camera image lifted through the dataset's frontend
+    lifted = ds.frontend.lift(d.image[0].numpy().astype(np.float32) / 255)
+    torch.testing.assert_close(d.x, lifted, atol=2e-3, rtol=0)
+    # y is the exact label of each point's ray; the nearest pixel agrees away from edges
+    uv, _ = ds.camera.sees(ds.grid.pos.numpy())
+    j, i = np.rint(uv[:, 0]).astype(int) % 256, np.clip(np.rint(uv[:, 1]), 0, 127).astype(int)
+    assert (d.label_image[0].numpy()[i, j] == d.y.numpy()).mean() > 0.93
+    scene = scenes.make_room(0, 1)
+    p, R = view_pose(scene, "none", 1, 0)
+    inst, _, _ = scene.cast(p, ds.grid.pos.numpy() @ R.T)
+    assert np.array_equal(d.y.numpy(), scene.semantic[inst])
+
+
+def test_splits_are_different_rooms_and_reload_from_disk(root):
+    a = RoomsSegmentation(root, "train", **KW)
+    b = RoomsSegmentation(root, "test", **KW)
+    assert not torch.equal(a.x, b.x)
+    again = RoomsSegmentation(root, "train", **KW)
+    assert torch.equal(a.x, again.x) and torch.equal(a.y, again.y)
+
+
+def test_zero_shot_lens_sees_the_same_rotated_test_views(root):
+    eq = RoomsSegmentation(root, "test", rotate="so3", **KW)
+    fe = RoomsSegmentation(root, "test", rotate="so3", camera=FISHEYE, **KW)
+    for k in range(len(eq)):
+        m = fe.mask[k]
+        assert 0.3 < m.float().mean() < 0.8
+        assert (fe.y[k][~m] == IGNORE).all()
+        assert torch.equal(fe.y[k][m], eq.y[k][m])  # same pose, same exact labels
+    none = RoomsSegmentation(root, "test", **KW)
+    assert not torch.equal(none.y, eq.y)
+
+
+def test_detection_boxes_match_a_direct_rendering(root):
+    ds = RoomsDetection(root, "train", **KW)
+    d = ds[2]
+    scene = scenes.make_room(0, 2)
+    p, R = view_pose(scene, "none", 2, 0)
+    view = scenes.render(scene, ds.camera, position=p, rotation=R)
+    torch.testing.assert_close(d.boxes, torch.as_tensor(view.boxes).float())
+    assert torch.equal(d.box_class, torch.as_tensor(view.box_class))
+    batch = next(iter(DataLoader(ds, batch_size=3, follow_batch=["boxes"])))
+    assert batch.boxes_batch.bincount().tolist() == [len(ds[i].boxes) for i in range(3)]
+
+
+def test_corrupt_file_is_rendered_again(root):
+    ds = RoomsSegmentation(root, "train", num_scenes=2, grid="icosahedral:2", progress=False)
+    path = ds.processed_paths[0]
+    with open(path, "wb") as f:
+        f.write(b"not a torch file")
+    with pytest.warns(UserWarning, match="unreadable"):
+        again = RoomsSegmentation(root, "train", num_scenes=2, grid="icosahedral:2", progress=False)
+    assert torch.equal(again.y, ds.y)
+
+
+def test_bad_arguments(root):
+    with pytest.raises(ValueError, match="rotate must be one of"):
+        RoomsSegmentation(root, rotate="z", **KW)
+    with pytest.raises(ValueError, match="split must be"):
+        RoomsSegmentation(root, split="val", **KW)

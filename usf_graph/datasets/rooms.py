@@ -1,0 +1,201 @@
+r"""PyG datasets of procedural rooms (:mod:`usf_graph.scenes`) seen through any camera.
+
+Each sample is one view: the RGB image lifted to a grid as ``x``, the exact label of every
+grid point as ``y`` (from a ray cast along the point's direction, not from the image), the
+camera's field-of-view ``mask``, and for detection the view's spherical boxes. The raw
+image and its per-pixel labels are kept too, for planar baselines.
+
+Training and test rooms never overlap: the test split uses the rooms of ``seed + 1``.
+Views are gravity-aligned with random yaw (``rotate="none"``) or turned by a Haar-random
+rotation (``rotate="so3"``), both seeded, so a test set is the same in every run and for
+every camera: the same viewpoints seen through another lens give a zero-shot test.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+import torch
+from torch_geometric.data import Dataset
+from tqdm.auto import tqdm
+
+from ..cameras import Camera, Equirectangular
+from ..fileio import atomic_torch_save
+from ..frontend import SphericalFrontend
+from ..frontend.image import SphericalImage
+from ..geometry import random_rotation
+from ..grids import Grid, from_spec
+from ..scenes import IGNORE, make_room, render
+from .stacked import pre_transform_stacked
+
+ROTATIONS = ("none", "so3")
+
+
+def view_pose(scene, rotate: str, sample: int, seed: int):
+    """Position and rotation (world <- view) of a sample under a rotation protocol."""
+    if rotate not in ROTATIONS:
+        raise ValueError(f"rotate must be one of {ROTATIONS}, got {rotate!r}")
+    p, R = scene.viewpoint(0)
+    if rotate == "so3":
+        R = random_rotation(seed=(seed * 1_000_003 + sample) % 2**62).numpy()
+    return p, R
+
+
+def grid_labels(scene, position, rotation, pos: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Exact semantic label of each grid point ``pos [N, 3]`` (view frame) seen from
+    ``position``; :data:`~usf_graph.scenes.IGNORE` where ``mask`` is False."""
+    y = np.full(len(pos), IGNORE, np.int64)
+    inst, _, _ = scene.cast(position, pos[mask] @ rotation.T)
+    y[mask] = scene.semantic[inst]
+    return y
+
+
+class _Rooms(Dataset):
+    """Renders, lifts and stores a split once under ``root/processed``; loads it after."""
+
+    def __init__(self, root, split: str = "train", camera: Camera | None = None,
+                 grid="icosahedral:5", num_scenes: int | None = None, rotate: str = "none",
+                 seed: int = 0, interpolation: str = "bilinear", transform=None,
+                 pre_transform=None, progress: bool = True):
+        if split not in ("train", "test"):
+            raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+        if rotate not in ROTATIONS:
+            raise ValueError(f"rotate must be one of {ROTATIONS}, got {rotate!r}")
+        self.split, self.rotate, self.seed = split, rotate, int(seed)
+        self.camera = Equirectangular(256, 128) if camera is None else camera
+        self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
+        self.num_scenes = int(num_scenes if num_scenes is not None else (200 if split == "train" else 50))
+        if self.num_scenes < 1:
+            raise ValueError(f"num_scenes must be at least 1, got {num_scenes}")
+        self.interpolation, self.progress = interpolation, progress
+        self.frontend = SphericalFrontend(self.camera, self.grid, interpolation=interpolation)
+        super().__init__(str(root), transform, pre_transform, log=False)
+        self._load()
+
+    # -- storage -------------------------------------------------------------------
+    @property
+    def raw_file_names(self):
+        return []
+
+    def download(self):  # rendered, nothing to download
+        pass
+
+    @property
+    def processed_file_names(self):
+        import hashlib
+        import json
+
+        key = json.dumps({"camera": self.camera.key(), "grid": self.grid.spec,
+                          "interp": self.interpolation, "n": self.num_scenes}, sort_keys=True)
+        h = hashlib.sha256(key.encode()).hexdigest()[:12]
+        return [f"rooms_{self.split}_{self.rotate}_s{self.seed}_{h}.pt"]
+
+    def _load(self):
+        path = self.processed_paths[0]
+        try:
+            blob = torch.load(path, weights_only=True)
+            missing = {"x", "y", "mask", "image", "label_image", "boxes", "box_class", "box_ptr"} - set(blob)
+            if missing:
+                raise KeyError(f"missing {sorted(missing)}")
+        except Exception as e:  # noqa: BLE001 - any unreadable file is rebuilt, not trusted
+            warnings.warn(f"{path} is unreadable ({type(e).__name__}: {e}); rendering it again",
+                          stacklevel=3)
+            os.remove(path)
+            self.process()
+            blob = torch.load(path, weights_only=True)
+        for k, v in blob.items():
+            setattr(self, k, v)
+
+    def process(self):
+        scene_seed = self.seed + (0 if self.split == "train" else 1)
+        pos, mask = self.grid.pos.numpy(), self.frontend.mask.numpy()
+        xs, ys, masks, imgs, labs, boxes, classes, counts = [], [], [], [], [], [], [], []
+        for i in tqdm(range(self.num_scenes), desc=f"rendering {self.split} rooms",
+                      disable=not self.progress, leave=False):
+            scene = make_room(scene_seed, i)
+            p, R = view_pose(scene, self.rotate, i, scene_seed)
+            view = render(scene, self.camera, position=p, rotation=R)
+            xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
+            ys.append(grid_labels(scene, p, R, pos, mask))
+            masks.append(mask)
+            imgs.append(view.rgb)
+            labs.append(view.label)
+            boxes.append(view.boxes)
+            classes.append(view.box_class)
+            counts.append(len(view.boxes))
+        x = torch.stack(xs).to(torch.float16)
+        y = torch.as_tensor(np.stack(ys))
+        if self.pre_transform is not None:
+            x = pre_transform_stacked(
+                self.pre_transform, (self._sample(xi.float(), y[i], i) for i, xi in enumerate(x)),
+                "x", fixed=("pos",)).to(torch.float16)
+        atomic_torch_save({
+            "x": x, "y": y, "mask": torch.as_tensor(np.stack(masks)),
+            "image": torch.as_tensor(np.stack(imgs)), "label_image": torch.as_tensor(np.stack(labs)),
+            "boxes": torch.as_tensor(np.concatenate(boxes)).reshape(-1, 5),
+            "box_class": torch.as_tensor(np.concatenate(classes)).long(),
+            "box_ptr": torch.as_tensor(np.r_[0, np.cumsum(counts)]).long()},
+            self.processed_paths[0])
+
+    # -- samples ---------------------------------------------------------------------
+    def len(self) -> int:
+        return len(self.x)
+
+    def _sample(self, x, y, idx) -> SphericalImage:
+        return SphericalImage(x=x, y=y, pos=self.grid.pos.float(), area=self.grid.area.float())
+
+    def get(self, idx: int) -> SphericalImage:
+        d = self._sample(self.x[idx].float(), self.y[idx], idx)
+        d.mask = self.mask[idx]
+        d.image = self.image[idx][None]
+        d.label_image = self.label_image[idx][None]
+        return d
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}({len(self)}, split={self.split}, rotate={self.rotate}, "
+                f"camera={self.camera!r}, grid={self.grid.spec})")
+
+
+class RoomsSegmentation(_Rooms):
+    r"""Semantic segmentation of procedural rooms, a PyG dataset (13 Stanford 2D-3D-S classes).
+
+    Args:
+        root: where the rendered split is stored (one file, written atomically; an
+            unreadable file is rendered again).
+        split: ``train`` (rooms of ``seed``) or ``test`` (rooms of ``seed + 1``).
+        camera: any :mod:`usf_graph.cameras` model (default ``Equirectangular(256, 128)``).
+        grid: grid spec or :class:`~usf_graph.grids.Grid` the image is lifted to.
+        num_scenes: number of rooms, one view each (200 for train, 50 for test by default).
+        rotate: ``none`` (gravity-aligned, random yaw) or ``so3`` (Haar, seeded per view).
+        seed: seed of the rooms and rotations.
+
+    A sample has ``x [N, 3]`` (RGB in [0, 1], 0 outside the field of view), ``y [N]``
+    (class index, 255 = ignore outside the field of view), ``mask [N]``, ``pos``, ``area``,
+    and the camera's ``image [1, H, W, 3]`` uint8 and ``label_image [1, H, W]``. The whole
+    split is also in static-graph form: ``dataset.x [S, N, 3]`` (float16), ``dataset.y``,
+    ``dataset.mask``, ``dataset.image``, ``dataset.label_image``.
+    """
+
+
+
+class RoomsDetection(_Rooms):
+    r"""Spherical-box detection in procedural rooms, a PyG dataset.
+
+    The same arguments and fields as :class:`RoomsSegmentation`, plus ``boxes [K, 5]``
+    (``[lon, lat, fov_x, fov_y, roll]`` in radians, the view's frame; see
+    :mod:`usf_graph.ops.boxes`) and ``box_class [K]`` (index into
+    :data:`usf_graph.scenes.DETECTION_CLASSES`). Batch them with PyG's
+    ``DataLoader(..., follow_batch=["boxes"])`` to get ``boxes_batch``. A view lists an
+    object when its visible part covers at least
+    :data:`usf_graph.scenes.render.MIN_SOLID_ANGLE` sr and the camera sees at least
+    :data:`~usf_graph.scenes.render.MIN_VISIBLE_FRACTION` of it.
+    """
+
+    def get(self, idx: int) -> SphericalImage:
+        d = super().get(idx)
+        a, b = int(self.box_ptr[idx]), int(self.box_ptr[idx + 1])
+        d.boxes = self.boxes[a:b].float()
+        d.box_class = self.box_class[a:b]
+        return d
