@@ -169,6 +169,35 @@ def cmd_render(args) -> int:
     return 0
 
 
+def cmd_scenes(args) -> int:
+    from . import scenes, viz
+    from .fileio import atomic_write
+    from .scenes.export import pandora_json, save_view
+    from .scenes.lenses import protocol_cameras
+
+    out = Path(args.out)
+    cams = protocol_cameras(args.size)
+    rows, panoramas = [], []
+    for i in range(args.num):
+        scene = scenes.make_room(args.seed, i)
+        row = []
+        for name, cam in cams.items():
+            view = scenes.render(scene, cam)
+            files = save_view(view, out, f"room{i:03d}_{name}")
+            if name == "equirectangular":
+                panoramas.append((files["rgb"], view))
+            row += viz.view_panels(view, cam, name)
+        rows.append(row)
+        print(f"room {i}: {scene.size[0]:.1f} x {scene.size[1]:.1f} x {scene.size[2]:.1f} m, "
+              f"{len(scene.instances)} instances, {len(panoramas[-1][1].boxes)} boxes in the panorama")
+    doc = json.dumps(pandora_json(panoramas, cams["equirectangular"]), indent=1)
+    atomic_write(out / "pandora_boxes.json", lambda f: f.write(doc), "w")
+    viz.contact_sheet(rows, out / "contact_sheet.png", titles=[f"room {i}" for i in range(args.num)],
+                      legend=dict(zip(scenes.SEMANTIC_CLASSES, scenes.PALETTE)))
+    print(f"wrote {out}/contact_sheet.png, per-view rgb/label/depth PNGs, pandora_boxes.json")
+    return 0
+
+
 def cmd_cache(args) -> int:
     from .frontend.cache import GEOMETRY_VERSION, default_cache_dir
 
@@ -330,6 +359,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="nearest for label images")
     r.add_argument("--out", required=True, metavar="IMG", help="output image (.png, .jpg, .npy)")
 
+    sc = sub.add_parser("scenes", help="render procedural rooms through three lenses",
+                        formatter_class=fmt,
+                        description="Render procedural indoor rooms through an equirectangular "
+                                    "camera, a 190-degree fisheye and a 90-degree pinhole from "
+                                    "the same viewpoint; write RGB, labels (13 Stanford "
+                                    "classes), depth, PANDORA-style boxes and a contact sheet.")
+    sc.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    sc.add_argument("--num", type=int, default=3, help="number of rooms")
+    sc.add_argument("--seed", type=int, default=0, help="rooms are scene 0..num-1 of this seed")
+    sc.add_argument("--size", type=int, default=512,
+                    help="image height in pixels (the panorama is twice as wide)")
+
     k = sub.add_parser("cache", help="show (and clear) the geometry cache", formatter_class=fmt,
                        description="Show the geometry cache on disk: lift tables, graphs and "
                                    "render tables, by kind and size.")
@@ -378,7 +419,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return {"info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "render": cmd_render,
-                "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval}[args.cmd](args)
+                "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval}[args.cmd](args)
     except (ValueError, FileNotFoundError) as e:
         print(f"usf-graph: error: {e}", file=sys.stderr)
         return 2

@@ -150,3 +150,74 @@ def labelled_panorama(width: int = 1024, height: int = 512) -> np.ndarray:
         cv2.putText(ink, text, org, cv2.FONT_HERSHEY_SIMPLEX, 1.5, 255, 4, cv2.LINE_AA)
     outline = np.clip(ink / 128.0, 0, 1)[..., None]
     return (img * (1 - outline) + np.clip(ink / 127.0 - 1, 0, 1)[..., None]).astype(np.float32)
+
+
+def draw_boxes(image: np.ndarray, camera, boxes, names=None, colour=(255, 255, 0),
+               thickness: int = 2) -> np.ndarray:
+    """A copy of ``image [H, W, 3]`` uint8 with spherical ``boxes [K, 5]`` (the camera's
+    sphere frame, radians) drawn as their four great-circle edges, cut where the camera
+    does not see them or where a panorama wraps, and labelled with ``names``."""
+    import cv2
+
+    from .ops.boxes import box_edges
+
+    out = np.ascontiguousarray(image.copy())
+    boxes = _np(boxes).reshape(-1, 5)
+    for k, b in enumerate(boxes):
+        uv, seen = camera.sees(box_edges(b, 64))
+        runs, cur = [], []
+        for (u, v), ok in zip(uv, seen):
+            if ok and cur and abs(u - cur[-1][0]) > camera.width / 2:  # panorama seam
+                runs.append(cur)
+                cur = []
+            if ok:
+                cur.append((u, v))
+            elif cur:
+                runs.append(cur)
+                cur = []
+        runs.append(cur)
+        for r in runs:
+            if len(r) > 1:
+                pts = np.round(np.array(r) * 4).astype(np.int32)  # 2 fractional bits
+                cv2.polylines(out, [pts], False, colour, thickness, cv2.LINE_AA, shift=2)
+        top = max((r for r in runs if r), key=len, default=None)
+        if names is not None and top:
+            u, v = min(top, key=lambda q: q[1])
+            cv2.putText(out, str(names[k]), (int(u), max(int(v) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX,
+                        0.4, colour, 1, cv2.LINE_AA)
+    return out
+
+
+def contact_sheet(rows, path=None, titles=None, legend=None):
+    """A figure of rendered views: ``rows`` is a list (one per scene) of lists of
+    ``(title, image)`` pairs; images of one row share a height. ``legend``: ``{name: RGB
+    uint8}`` drawn below (e.g. the label palette)."""
+    rows = [list(r) for r in rows]
+    ncol = max(len(r) for r in rows)
+    ratios = [im.shape[1] / im.shape[0] for _, im in rows[0]]
+    fig, axes = plt.subplots(len(rows), ncol, figsize=(2.2 * sum(ratios), 2.4 * len(rows)),
+                             gridspec_kw={"width_ratios": ratios}, squeeze=False)
+    for i, row in enumerate(rows):
+        for j, (title, im) in enumerate(row):
+            axes[i, j].imshow(im, interpolation="lanczos")
+            axes[i, j].set_title(title if titles is None else f"{titles[i]}: {title}", fontsize=8)
+            axes[i, j].axis("off")
+    if legend:
+        from matplotlib.patches import Patch
+
+        fig.legend(handles=[Patch(color=np.asarray(c) / 255, label=n) for n, c in legend.items()],
+                   loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
+        fig.tight_layout(rect=(0, 0.05, 1, 1))
+        if path is not None:
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+        return fig
+    return _finish(fig, path)
+
+
+def view_panels(view, camera, name: str) -> list:
+    """``[(title, RGB with boxes), (title, labels in the palette)]`` of a rendered view."""
+    from .scenes import DETECTION_CLASSES, colourize
+
+    rgb = draw_boxes(view.rgb, camera, view.boxes, [DETECTION_CLASSES[c] for c in view.box_class])
+    return [(f"{name}: RGB + boxes", rgb), (f"{name}: labels", colourize(view.label))]
