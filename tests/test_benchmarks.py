@@ -26,3 +26,8 @@ def test_conv_and_lift_benchmarks_run():
 def test_train_step_benchmark_runs():
     out = run("benchmarks/train_step.py", "--batch", "2", "--reps", "1")
     assert "| SphericalClassifier | 10242 |" in out and "spherical / planar step time" in out
+
+
+def test_scenes_benchmark_runs():
+    out = run("benchmarks/scenes.py", "--rooms", "1", "--sizes", "32")
+    assert "| equirectangular 64x32 |" in out and "| pinhole90 512x512 |" in out

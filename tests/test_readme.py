@@ -51,3 +51,30 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     rig = load_lifted("rig.pt")
     assert rig.mask.all() and torch.isfinite(rig.x).all()
     assert (tmp_path / "fisheye.png").stat().st_size > 10_000
+
+
+def test_scenes_section_runs(tmp_path, monkeypatch):
+    """The scenes section's code, with the datasets shrunk to 2 rooms on a small grid, and
+    its command."""
+    from usf_graph.cli import main
+
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Indoor scenes through any lens", 1)[1].split("\n## ", 1)[0]
+    code = "\n".join(re.findall(r"```python\n(.*?)```", section, re.S))
+    code = code.replace('grid="icosahedral:5"', 'grid="icosahedral:2", num_scenes=2')
+    code = code.replace('rotate="so3")', 'rotate="so3", num_scenes=2, grid="icosahedral:2")')
+    code = code.replace('camera=protocol_cameras(256)["fisheye190"])',
+                        'camera=protocol_cameras(64)["fisheye190"], num_scenes=2, grid="icosahedral:2")')
+    code = code.replace('RoomsDetection("data/rooms", "train")',
+                        'RoomsDetection("data/rooms", "train", grid="icosahedral:2", num_scenes=2)')
+    assert code.count("num_scenes=2") == 4
+    monkeypatch.chdir(tmp_path)
+    ns = {}
+    exec(compile(code, "README", "exec"), ns)
+    assert ns["view"].rgb.shape == (256, 512, 3) and len(ns["view"].boxes) > 3
+    assert ns["tilted"].label.shape == (256, 512)
+    assert len(ns["det"]) == 2 and ns["det"][0].boxes.shape[1] == 5
+    assert (ns["fisheye"].y[ns["fisheye"].mask] == ns["test_rot"].y[ns["fisheye"].mask]).all()
+    cmd = re.findall(r"```bash\n(.*?)```", section, re.S)[0].split("#")[0].split()
+    assert cmd[0].endswith("usf-graph") and main([*cmd[1:], "--num", "1", "--size", "64"]) == 0
+    assert (tmp_path / "runs/scenes/contact_sheet.png").exists()

@@ -57,7 +57,7 @@ def pandora_json(panoramas: list[tuple[str, View]], camera) -> dict:
     for i, (name, view) in enumerate(panoramas, 1):
         images.append({"id": i, "file_name": name, "width": camera.width, "height": camera.height})
         for b, c in zip(to_pandora(view.boxes), view.box_class):
-            anns.append({"id": len(anns) + 1, "image_id": i, "bbox": [round(float(v), 6) for v in b],
+            anns.append({"id": len(anns) + 1, "image_id": i, "bbox": [round(float(v), 6) + 0.0 for v in b],
                          "category_id": int(PANDORA_IDS[c]), "area": 1, "iscrowd": 0})
     cats = [{"id": k + 1, "name": n} for k, n in enumerate(PANDORA_CLASSES)]
     return {"images": images, "annotations": anns, "categories": cats}
