@@ -4,6 +4,7 @@ from .boxes import (
                     box_axes,
                     box_corners,
                     box_edges,
+                    box_planes,
                     boxes_from_axes,
                     fit_box,
                     from_pandora,
@@ -11,6 +12,7 @@ from .boxes import (
                     rotate_boxes,
                     to_pandora,
 )
+from .iou import box_area, box_iou, pairwise_box_iou, spherical_nms
 
-__all__ = ["box_axes", "box_corners", "box_edges", "boxes_from_axes", "fit_box", "from_pandora",
+__all__ = ["box_area", "box_iou", "pairwise_box_iou", "spherical_nms", "box_planes", "box_axes", "box_corners", "box_edges", "boxes_from_axes", "fit_box", "from_pandora",
            "points_in_boxes", "rotate_boxes", "to_pandora"]

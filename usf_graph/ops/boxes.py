@@ -18,38 +18,58 @@ negatives of ours (:func:`from_pandora`, :func:`to_pandora`).
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from ..geometry import from_latlon, normalize, rotation_from_axis_angle, to_latlon
 
-__all__ = ["box_axes", "boxes_from_axes", "from_pandora", "to_pandora", "points_in_boxes",
+__all__ = ["box_axes", "box_planes", "boxes_from_axes", "from_pandora", "to_pandora", "points_in_boxes",
            "rotate_boxes", "fit_box", "box_corners", "box_edges"]
 
 
-def _as_boxes(boxes) -> np.ndarray:
-    b = np.asarray(boxes, np.float64)
-    if b.shape[-1:] != (5,):
-        raise ValueError(f"boxes must have shape [..., 5] (lon, lat, fov_x, fov_y, roll), got {b.shape}")
-    if not np.all(np.isfinite(b)):
+def _as_boxes(boxes):
+    """Boxes as float64 numpy, or tensors as they are; shape and finiteness checked."""
+    b = boxes if torch.is_tensor(boxes) else np.asarray(boxes, np.float64)
+    if tuple(b.shape[-1:]) != (5,):
+        raise ValueError(f"boxes must have shape [..., 5] (lon, lat, fov_x, fov_y, roll), got {tuple(b.shape)}")
+    if not bool((torch.isfinite(b) if torch.is_tensor(b) else np.isfinite(b)).all()):
         raise ValueError("boxes contain NaN or infinite values")
     return b
 
 
 def _local_frame(lon, lat):
     """East and north unit vectors at (lon, lat); at a pole east is the limit along ``lon``."""
-    e0 = np.stack([-np.sin(lon), np.cos(lon), np.zeros_like(lon)], -1)
-    n0 = np.stack([-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)], -1)
+    xp = torch if torch.is_tensor(lon) else np
+    e0 = xp.stack([-xp.sin(lon), xp.cos(lon), xp.zeros_like(lon)], -1)
+    n0 = xp.stack([-xp.sin(lat) * xp.cos(lon), -xp.sin(lat) * xp.sin(lon), xp.cos(lat)], -1)
     return e0, n0
 
 
 def box_axes(boxes):
-    """Boxes ``[..., 5]`` -> centre ``c``, horizontal axis ``e`` and vertical axis ``n``, each
-    ``[..., 3]`` (a right-handed frame ``(c, e, n)``)."""
+    """Boxes ``[..., 5]`` (numpy or torch) -> centre ``c``, horizontal axis ``e`` and
+    vertical axis ``n``, each ``[..., 3]`` (a right-handed frame ``(c, e, n)``)."""
     b = _as_boxes(boxes)
+    xp = torch if torch.is_tensor(b) else np
     lon, lat, roll = b[..., 0], b[..., 1], b[..., 4]
     c = from_latlon(lat, lon)
     e0, n0 = _local_frame(lon, lat)
-    cr, sr = np.cos(roll)[..., None], np.sin(roll)[..., None]
+    cr, sr = xp.cos(roll)[..., None], xp.sin(roll)[..., None]
     return c, cr * e0 + sr * n0, cr * n0 - sr * e0
+
+
+def box_planes(boxes):
+    """Boxes ``[..., 5]`` -> the inward normals ``[..., 4, 3]`` of their four great circles
+    (inside: ``p . m >= 0`` for all four) and their corners ``[..., 4, 3]`` in order around
+    the box. Both stay finite up to fields of view of 180 degrees."""
+    b = _as_boxes(boxes)
+    xp = torch if torch.is_tensor(b) else np
+    c, e, n = box_axes(b)
+    hx, hy = b[..., 2:3] / 2, b[..., 3:4] / 2
+    sx, cx, sy, cy = xp.sin(hx), xp.cos(hx), xp.sin(hy), xp.cos(hy)
+    planes = xp.stack([sx * c - cx * e, sx * c + cx * e, sy * c - cy * n, sy * c + cy * n], -2)
+    base = cx * cy * c
+    corners = xp.stack([base + sx * cy * e + cx * sy * n, base + sx * cy * e - cx * sy * n,
+                        base - sx * cy * e - cx * sy * n, base - sx * cy * e + cx * sy * n], -2)
+    return planes, corners / (corners * corners).sum(-1, keepdims=True) ** 0.5
 
 
 def boxes_from_axes(c, e, fov_x, fov_y):
@@ -108,13 +128,9 @@ def rotate_boxes(boxes, R):
 
 
 def box_corners(boxes):
-    """The four corner directions ``[..., 4, 3]`` of each box (counter-clockwise seen from
-    outside when roll is 0: top-left, bottom-left, bottom-right, top-right in east/north)."""
-    b = _as_boxes(boxes)
-    c, e, n = box_axes(b)
-    tx, ty = np.tan(b[..., 2:3] / 2), np.tan(b[..., 3:4] / 2)
-    signs = [(1, 1), (1, -1), (-1, -1), (-1, 1)]
-    return normalize(np.stack([c + sx * tx * e + sy * ty * n for sx, sy in signs], -2))
+    """The four corner directions ``[..., 4, 3]`` of each box, in order around it: (+e, +n),
+    (+e, -n), (-e, -n), (-e, +n) in its own axes."""
+    return box_planes(boxes)[1]
 
 
 def box_edges(boxes, n: int = 32):

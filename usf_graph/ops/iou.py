@@ -1,0 +1,126 @@
+r"""Area, exact intersection over union and non-maximum suppression of spherical boxes.
+
+The intersection of two boxes is a convex spherical polygon: box A's corners clipped by the
+four great-circle half-spaces of box B (Sutherland-Hodgman on the sphere, where the edge
+``p -> q`` meets the plane of normal ``m`` at ``+-((p.m) q - (q.m) p)``). Its area is the sum of
+the spherical excesses of a fan of triangles (Girard's theorem), each computed with Van
+Oosterom and Strackee's formula :math:`\tan(\Omega/2) = \det[a, b, c] / (1 + a\cdot b +
+b\cdot c + c\cdot a)`, which stays accurate for thin and tiny triangles. Points within a
+few ulps of a plane count as on it, so identical boxes give 1 and touching boxes 0.
+
+Everything is batched torch, differentiable, and runs on any device. In float64 it is the
+exact reference (errors about 1e-12); in float32 it is the fast path for training and NMS
+(errors documented in ``benchmarks/README.md``). Fields of view must be below 180 degrees.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .boxes import _as_boxes, box_planes
+
+__all__ = ["box_area", "box_iou", "pairwise_box_iou", "spherical_nms"]
+
+
+def _tensor(boxes, dtype=None) -> torch.Tensor:
+    b = _as_boxes(boxes)
+    b = b if torch.is_tensor(b) else torch.from_numpy(b)
+    return b.to(dtype) if dtype is not None else b
+
+
+def box_area(boxes):
+    """Solid angle (sr) of boxes ``[..., 5]``: :math:`4 \\arcsin(\\sin(f_x/2)\\sin(f_y/2))`
+    (the same as PANDORA's ``4 arccos(-sin(a/2) sin(b/2)) - 2 pi``)."""
+    b = _as_boxes(boxes)
+    xp = torch if torch.is_tensor(b) else np
+    s = xp.sin(b[..., 2] / 2) * xp.sin(b[..., 3] / 2)
+    return 4 * (xp.asin(s) if xp is torch else np.arcsin(s))
+
+
+def _safe_unit(v: torch.Tensor) -> torch.Tensor:
+    tiny = torch.finfo(v.dtype).tiny ** 0.5
+    return v / (v * v).sum(-1, keepdim=True).clamp_min(tiny).sqrt()
+
+
+def _clip(poly: torch.Tensor, count: torch.Tensor, m: torch.Tensor, eps: float):
+    """Clip convex polygons ``poly [P, S, 3]`` (first ``count`` vertices valid) by the
+    half-spaces ``p . m >= 0``, ``m [P, 3]``."""
+    P, S, _ = poly.shape
+    slot = torch.arange(S, device=poly.device)
+    valid = slot < count[:, None]
+    nxt_idx = torch.where(slot + 1 < count[:, None], slot + 1, torch.zeros_like(slot))
+    nxt = poly.gather(1, nxt_idx[..., None].expand(P, S, 3))
+    d = (poly * m[:, None]).sum(-1)
+    dn = d.gather(1, nxt_idx)
+    keep = valid & (d >= -eps)
+    cross = valid & (((d > eps) & (dn < -eps)) | ((d < -eps) & (dn > eps)))
+    # (p.m) q - (q.m) p lies on the plane; the sign keeps it between p and q, not opposite
+    hit = _safe_unit((d[..., None] * nxt - dn[..., None] * poly) * torch.sign(d - dn)[..., None])
+    cand = torch.stack([poly, hit], 2).reshape(P, 2 * S, 3)
+    flag = torch.stack([keep, cross], 2).reshape(P, 2 * S)
+    order = torch.sort((~flag).to(torch.int8), dim=1, stable=True).indices[:, :S]
+    new = cand.gather(1, order[..., None].expand(P, S, 3))
+    return new, flag.sum(1).clamp_max(S)
+
+
+def _polygon_area(poly: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+    a = poly[:, :1]
+    b, c = poly[:, 1:-1], poly[:, 2:]
+    det = (a * torch.linalg.cross(b, c, dim=-1)).sum(-1)
+    den = 1 + (a * b).sum(-1) + (b * c).sum(-1) + (c * a).sum(-1)
+    tri = 2 * torch.atan2(det, den)
+    use = torch.arange(2, poly.shape[1], device=poly.device) < count[:, None]
+    return torch.where(use, tri, torch.zeros_like(tri)).sum(1).abs()
+
+
+def _fov_ok(b: torch.Tensor) -> torch.Tensor:
+    if bool((b[..., 2:4] >= math.pi).any()) or bool((b[..., 2:4] < 0).any()):
+        raise ValueError("box IoU needs fields of view in [0, 180) degrees")
+    return b
+
+
+def box_iou(a, b, dtype=None) -> torch.Tensor:
+    """IoU of boxes ``a [..., 5]`` and ``b [..., 5]`` pair by pair (broadcast), as a tensor.
+
+    ``dtype=torch.float64`` gives the exact reference; float32 the fast path.
+    """
+    a, b = _fov_ok(_tensor(a, dtype)), _fov_ok(_tensor(b, dtype))
+    a, b = torch.broadcast_tensors(a, b)
+    shape = a.shape[:-1]
+    a, b = a.reshape(-1, 5), b.reshape(-1, 5)
+    eps = 64 * torch.finfo(a.dtype).eps
+    _, corners = box_planes(a)
+    planes, _ = box_planes(b)
+    S = 8  # a quadrilateral clipped by four half-spaces has at most 8 vertices
+    poly = torch.cat([corners, corners.new_zeros(len(a), S - 4, 3)], 1)
+    count = torch.full((len(a),), 4, device=a.device)
+    for k in range(4):
+        poly, count = _clip(poly, count, planes[:, k], eps)
+    inter = _polygon_area(poly, count)
+    union = box_area(a) + box_area(b) - inter
+    iou = inter / union.clamp_min(torch.finfo(a.dtype).tiny)
+    return iou.clamp(0, 1).reshape(shape)
+
+
+def pairwise_box_iou(a, b, dtype=None, chunk: int = 65536) -> torch.Tensor:
+    """IoU matrix ``[N, M]`` of boxes ``a [N, 5]`` and ``b [M, 5]``, in chunks of pairs."""
+    a, b = _tensor(a, dtype).reshape(-1, 5), _tensor(b, dtype).reshape(-1, 5)
+    rows = max(1, chunk // max(len(b), 1))
+    out = [box_iou(a[i:i + rows, None], b[None]) for i in range(0, len(a), rows)]
+    return torch.cat(out) if out else a.new_zeros(0, len(b))
+
+
+def spherical_nms(boxes, scores, iou_threshold: float) -> torch.Tensor:
+    """Indices of the boxes kept by greedy non-maximum suppression with the spherical IoU,
+    highest score first (as ``torchvision.ops.nms``)."""
+    boxes, scores = _tensor(boxes), torch.as_tensor(scores)
+    order = torch.argsort(scores, descending=True)
+    iou = pairwise_box_iou(boxes[order], boxes[order])
+    alive = torch.ones(len(order), dtype=torch.bool)
+    for i in range(len(order)):
+        if alive[i]:
+            alive[i + 1:] &= iou[i, i + 1:] <= iou_threshold
+    return order[alive]
