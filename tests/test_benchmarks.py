@@ -31,3 +31,8 @@ def test_train_step_benchmark_runs():
 def test_scenes_benchmark_runs():
     out = run("benchmarks/scenes.py", "--rooms", "1", "--sizes", "32")
     assert "| equirectangular 64x32 |" in out and "| pinhole90 512x512 |" in out
+
+
+def test_boxes_benchmark_runs():
+    out = run("benchmarks/boxes.py", "--pairs", "300")
+    assert "| batched float32 (fast path) |" in out and "| sampling, 200k points |" in out
