@@ -1,0 +1,44 @@
+import numpy as np
+import pytest
+
+from usf_graph.ops import box_iou, from_pandora
+from usf_graph.train.det_metrics import coco_ap
+
+
+def P(*rows):
+    return from_pandora(np.array(rows, np.float64))
+
+
+GT = [(P([0, 0, 20, 20, 0], [179, 10, 30, 20, 45]), np.array([0, 1])),
+      (P([0, 85, 30, 30, 0]), np.array([1]))]
+
+
+def test_perfect_detections_score_one():
+    dets = [(b, c, np.ones(len(c))) for b, c in GT]
+    assert coco_ap(GT, dets, 2) == pytest.approx({"AP": 1.0, "AP50": 1.0, "AP75": 1.0})
+
+
+def test_ap_thresholds_follow_the_spherical_iou():
+    # shifted by 4 degrees: IoU 0.67 for the 20x20 box, so it counts at 0.50 and not at 0.75
+    shifted = P([4, 0, 20, 20, 0])
+    assert 0.6 < float(box_iou(shifted, GT[0][0][0])) < 0.7
+    truth = [(GT[0][0][:1], np.array([0]))]
+    r = coco_ap(truth, [(shifted, np.array([0]), np.array([0.9]))], 1)
+    assert r["AP50"] == pytest.approx(1.0) and r["AP75"] == pytest.approx(0.0)
+    # AP averages the ten thresholds 0.50:0.95; IoU 0.67 passes 0.50, 0.55, 0.60, 0.65
+    assert r["AP"] == pytest.approx(0.4)
+
+
+def test_seam_and_pole_matches_count_and_wrong_classes_do_not():
+    # PANDORA can write the same box with lon 179 or -181 and a box over the pole in any lon
+    same = P([-181, 10, 30, 20, 45], [0, 85, 30, 30, 0])
+    r = coco_ap([(GT[0][0][1:], [1]), GT[1]], [(same[:1], [1], [0.8]), (same[1:], [1], [0.7])], 2)
+    assert r["AP50"] == pytest.approx(1.0)
+    wrong = coco_ap(GT, [(b, 1 - c if len(c) == 2 else c * 0, np.ones(len(c))) for b, c in GT], 2)
+    assert wrong["AP50"] == pytest.approx(0.0)
+
+
+def test_no_detections_and_mismatched_lengths():
+    assert coco_ap(GT, [(np.zeros((0, 5)), [], []), (np.zeros((0, 5)), [], [])], 2)["AP"] == 0.0
+    with pytest.raises(ValueError, match="2 images"):
+        coco_ap(GT, [], 2)

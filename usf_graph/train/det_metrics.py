@@ -1,0 +1,81 @@
+"""COCO AP for spherical boxes: pycocotools' ``COCOeval`` with the exact spherical IoU.
+
+This is how the panorama detection community evaluates (PANDORA, Sph2Pob): the matching,
+the 101-point precision curves and the averaging are pycocotools' own; only the IoU of two
+boxes is replaced by :func:`usf_graph.ops.pairwise_box_iou` in float64, and every box's
+area is set to 1, so only the "all" area range is meaningful.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+
+import numpy as np
+import torch
+
+from ..ops import pairwise_box_iou
+
+__all__ = ["coco_ap"]
+
+
+def _cocoeval():
+    from pycocotools.cocoeval import COCOeval
+
+    class SphericalCOCOeval(COCOeval):
+        """``COCOeval`` whose ``bbox`` IoU is the exact spherical one."""
+
+        def computeIoU(self, imgId, catId):  # noqa: N802 - pycocotools' name
+            gt, dt = self._gts[imgId, catId], self._dts[imgId, catId]
+            if not gt and not dt:
+                return []
+            order = np.argsort([-d["score"] for d in dt], kind="mergesort")  # as COCOeval does
+            dt = [dt[i] for i in order][: self.params.maxDets[-1]]
+            if not gt or not dt:
+                return np.zeros((len(dt), len(gt)))
+            return pairwise_box_iou(np.array([d["bbox"] for d in dt]), np.array([g["bbox"] for g in gt]),
+                                    dtype=torch.float64).numpy()
+
+    return SphericalCOCOeval
+
+
+def _coco(images, anns, cats):
+    from pycocotools.coco import COCO
+
+    c = COCO()
+    c.dataset = {"images": images, "annotations": anns, "categories": cats}
+    with contextlib.redirect_stdout(io.StringIO()):
+        c.createIndex()
+    return c
+
+
+def coco_ap(truth, detections, num_classes: int) -> dict:
+    """COCO AP, AP50 and AP75 of spherical detections.
+
+    Args:
+        truth: per image, ``(boxes [G, 5], classes [G])`` (radians, any frame).
+        detections: per image, ``(boxes [D, 5], classes [D], scores [D])`` in the same frame.
+        num_classes: classes are ``0 .. num_classes - 1``.
+
+    Returns ``{"AP": ..., "AP50": ..., "AP75": ...}`` in [0, 1] (-1 where no class has a
+    ground-truth box, as pycocotools reports it).
+    """
+    if len(truth) != len(detections):
+        raise ValueError(f"{len(truth)} images of ground truth but {len(detections)} of detections")
+    images = [{"id": i + 1} for i in range(len(truth))]
+    cats = [{"id": k + 1, "name": str(k)} for k in range(num_classes)]
+    gts, dts = [], []
+    for i, ((gb, gc), (db, dc, ds)) in enumerate(zip(truth, detections)):
+        for b, c in zip(np.asarray(gb, np.float64).reshape(-1, 5), np.asarray(gc).reshape(-1)):
+            gts.append({"id": len(gts) + 1, "image_id": i + 1, "category_id": int(c) + 1,
+                        "bbox": b.tolist(), "area": 1.0, "iscrowd": 0})
+        for b, c, s in zip(np.asarray(db, np.float64).reshape(-1, 5), np.asarray(dc).reshape(-1),
+                           np.asarray(ds, np.float64).reshape(-1)):
+            dts.append({"id": len(dts) + 1, "image_id": i + 1, "category_id": int(c) + 1,
+                        "bbox": b.tolist(), "score": float(s), "area": 1.0, "iscrowd": 0})
+    ev = _cocoeval()(_coco(images, gts, cats), _coco(images, dts, cats), "bbox")
+    with contextlib.redirect_stdout(io.StringIO()):
+        ev.evaluate()
+        ev.accumulate()
+        ev.summarize()
+    return {"AP": float(ev.stats[0]), "AP50": float(ev.stats[1]), "AP75": float(ev.stats[2])}
