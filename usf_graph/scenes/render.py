@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..cameras import Camera
+from ..cameras.base import check_rotation
 from ..geometry import normalize
 from ..ops.boxes import box_axes, fit_box, rotate_boxes
 from .classes import IGNORE
@@ -196,8 +197,6 @@ def render(scene: Scene, camera: Camera, position=None, rotation=None, view: int
         position = p0 if position is None else position
         rotation = r0 if rotation is None else rotation
     position = scene.check_viewpoint(position)
-    from ..cameras.base import check_rotation
-
     rotation = check_rotation(rotation)
     lnm, valid, pix = _camera_rays(camera)
     H, W = valid.shape

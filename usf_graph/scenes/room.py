@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 
 from ..geometry import rotation_from_axis_angle
-from .classes import DETECTION_CLASSES, SEMANTIC_CLASSES, semantic_index
+from .classes import DETECTION_CLASSES, semantic_index
 from .objects import AGAINST_WALL, FLOOR, ON_TABLE, ON_WALL, box, cylinder
 from .textures import num_textures
 
@@ -36,10 +36,6 @@ class Instance:
     detect: int | None
     lo: np.ndarray
     hi: np.ndarray
-
-    @property
-    def name(self) -> str:
-        return SEMANTIC_CLASSES[self.semantic] if self.kind in ("structure",) else self.kind
 
 
 @dataclass
