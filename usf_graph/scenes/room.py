@@ -119,14 +119,12 @@ class _Layout:
     def __init__(self, rng, size):
         self.rng, self.size = rng, size
         self.meshes, self.owner, self.instances = [], [], []
+        self.reserved = []  # space kept free that no object occupies (in front of doors)
 
     def free(self, lo, hi, ignore=()) -> bool:
-        for k, inst in enumerate(self.instances):
-            if inst.kind == "structure" or k in ignore:
-                continue
-            if np.all(np.minimum(hi, inst.hi) - np.maximum(lo, inst.lo) > 1e-6):
-                return False
-        return True
+        boxes = [(i.lo, i.hi) for k, i in enumerate(self.instances)
+                 if i.kind != "structure" and k not in ignore] + self.reserved
+        return not any(np.all(np.minimum(hi, h) - np.maximum(lo, l) > 1e-6) for l, h in boxes)
 
     def add(self, kind, semantic, detect, parts, T=None, check=True, ignore=()) -> int | None:
         m = trimesh.util.concatenate(parts)
@@ -222,10 +220,8 @@ def _wall_items(lay, L, W, H):
                     lo, hi = trimesh.util.concatenate([clear]).apply_transform(T).bounds
                     if not lay.free(lo, hi):
                         continue
-                    k = lay.add(kind, t.semantic, t.detect, parts, T)
-                    if k is not None:
-                        lay.instances[k].lo, lay.instances[k].hi = np.minimum(lo, lay.instances[k].lo), \
-                            np.maximum(hi, lay.instances[k].hi)
+                    if lay.add(kind, t.semantic, t.detect, parts, T) is not None:
+                        lay.reserved.append((lo, hi))
                         break
                 elif lay.add(kind, t.semantic, t.detect, parts, T) is not None:
                     break
