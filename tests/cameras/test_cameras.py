@@ -346,3 +346,14 @@ def test_scaramuzza_round_trip():
 def test_bad_parameters_raise_clear_errors(bad, match):
     with pytest.raises(ValueError, match=match):
         bad()
+
+
+def test_repr_shows_the_usable_field_of_view_and_mask():
+    import numpy as np
+
+    from usf_graph import cameras
+
+    cam = cameras.Fisheye(100, 99.5, 99.5, 200, 200).with_fov(170)
+    assert repr(cam).endswith(").with_fov(170.0)")
+    masked = cam.with_image_mask(np.ones((200, 200), bool))
+    assert repr(masked).endswith(".with_fov(170.0).with_image_mask(<200x200 mask>)")

@@ -336,7 +336,9 @@ class Camera:
 
     def __repr__(self) -> str:
         p = ", ".join(f"{k}={_short(v)}" for k, v in self.params().items())
-        return f"{type(self).__name__}({p})"
+        fov = "" if self.fov_limit is None else f".with_fov({plain(round(math.degrees(2 * self.fov_limit), 9))})"
+        mask = "" if self.image_mask is None else f".with_image_mask(<{self.height}x{self.width} mask>)"
+        return f"{type(self).__name__}({p}){fov}{mask}"
 
 
 def _triangle_solid_angle(a, b, c):
