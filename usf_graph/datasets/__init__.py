@@ -1,8 +1,9 @@
 """PyG datasets for the tasks."""
 
 from .mnist import SphericalMNIST, download_mnist, load_digits, read_idx, read_mnist_csv
+from .pandora import Pandora, read_annotations
 from .pointcloud import SHAPES, ModelNet, ProceduralShapes, make_shape, read_off, sample_surface
 from .rooms import RoomsDetection, RoomsSegmentation
 
 __all__ = ["SphericalMNIST", "download_mnist", "load_digits", "read_idx", "read_mnist_csv", "ModelNet",
-           "ProceduralShapes", "RoomsDetection", "RoomsSegmentation", "SHAPES", "make_shape", "read_off", "sample_surface"]
+           "ProceduralShapes", "Pandora", "read_annotations", "RoomsDetection", "RoomsSegmentation", "SHAPES", "make_shape", "read_off", "sample_surface"]

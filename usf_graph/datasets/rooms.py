@@ -13,9 +13,6 @@ every camera: the same viewpoints seen through another lens give a zero-shot tes
 
 from __future__ import annotations
 
-import os
-import warnings
-
 import numpy as np
 import torch
 from torch_geometric.data import Dataset
@@ -28,7 +25,7 @@ from ..frontend.image import SphericalImage
 from ..geometry import random_rotation
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, make_room, render
-from .stacked import pre_transform_stacked
+from .stacked import add_boxes, load_or_rebuild, pack_boxes, pre_transform_stacked
 
 ROTATIONS = ("none", "so3")
 
@@ -93,25 +90,15 @@ class _Rooms(Dataset):
         return [f"rooms_{self.split}_{self.rotate}_s{self.seed}_{h}.pt"]
 
     def _load(self):
-        path = self.processed_paths[0]
-        try:
-            blob = torch.load(path, weights_only=True)
-            missing = {"x", "y", "mask", "image", "label_image", "boxes", "box_class", "box_ptr"} - set(blob)
-            if missing:
-                raise KeyError(f"missing {sorted(missing)}")
-        except Exception as e:  # noqa: BLE001 - any unreadable file is rebuilt, not trusted
-            warnings.warn(f"{path} is unreadable ({type(e).__name__}: {e}); rendering it again",
-                          stacklevel=3)
-            os.remove(path)
-            self.process()
-            blob = torch.load(path, weights_only=True)
+        blob = load_or_rebuild(self.processed_paths[0], self.process,
+                               ("x", "y", "mask", "image", "label_image", "boxes", "box_class", "box_ptr"))
         for k, v in blob.items():
             setattr(self, k, v)
 
     def process(self):
         scene_seed = self.seed + (0 if self.split == "train" else 1)
         pos, mask = self.grid.pos.numpy(), self.frontend.mask.numpy()
-        xs, ys, masks, imgs, labs, boxes, classes, counts = [], [], [], [], [], [], [], []
+        xs, ys, masks, imgs, labs, boxes, classes = [], [], [], [], [], [], []
         for i in tqdm(range(self.num_scenes), desc=f"rendering {self.split} rooms",
                       disable=not self.progress, leave=False):
             scene = make_room(scene_seed, i)
@@ -124,7 +111,6 @@ class _Rooms(Dataset):
             labs.append(view.label)
             boxes.append(view.boxes)
             classes.append(view.box_class)
-            counts.append(len(view.boxes))
         x = torch.stack(xs).to(torch.float16)
         y = torch.as_tensor(np.stack(ys))
         if self.pre_transform is not None:
@@ -134,10 +120,7 @@ class _Rooms(Dataset):
         atomic_torch_save({
             "x": x, "y": y, "mask": torch.as_tensor(np.stack(masks)),
             "image": torch.as_tensor(np.stack(imgs)), "label_image": torch.as_tensor(np.stack(labs)),
-            "boxes": torch.as_tensor(np.concatenate(boxes)).reshape(-1, 5),
-            "box_class": torch.as_tensor(np.concatenate(classes)).long(),
-            "box_ptr": torch.as_tensor(np.r_[0, np.cumsum(counts)]).long()},
-            self.processed_paths[0])
+            **pack_boxes(boxes, classes)}, self.processed_paths[0])
 
     # -- samples ---------------------------------------------------------------------
     def len(self) -> int:
@@ -194,8 +177,4 @@ class RoomsDetection(_Rooms):
     """
 
     def get(self, idx: int) -> SphericalImage:
-        d = super().get(idx)
-        a, b = int(self.box_ptr[idx]), int(self.box_ptr[idx + 1])
-        d.boxes = self.boxes[a:b].float()
-        d.box_class = self.box_class[a:b]
-        return d
+        return add_boxes(super().get(idx), self, idx)

@@ -34,3 +34,42 @@ def pre_transform_stacked(pre_transform: Callable[[Data], Data], samples: Iterab
                                  f"which is not stored per sample; use it as a transform instead")
         out.append(v)
     return torch.stack(out)
+
+
+def load_or_rebuild(path, process: Callable[[], None], required: tuple[str, ...]) -> dict:
+    """Load a processed file; one that cannot be read or lacks a ``required`` key is
+    deleted and made again by ``process()`` (with a warning), never trusted."""
+    import os
+    import warnings
+
+    try:
+        blob = torch.load(path, weights_only=True)
+        missing = set(required) - set(blob)
+        if missing:
+            raise KeyError(f"missing {sorted(missing)}")
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, it is rebuilt
+        warnings.warn(f"{path} is unreadable ({type(e).__name__}: {e}); processing it again",
+                      stacklevel=3)
+        os.remove(path)
+        process()
+        blob = torch.load(path, weights_only=True)
+    return blob
+
+
+def pack_boxes(boxes, classes) -> dict:
+    """Per-sample boxes ``[K_i, 5]`` and classes ``[K_i]`` -> one ``boxes``, ``box_class``
+    and ``box_ptr [S + 1]`` (sample i owns rows ``box_ptr[i]:box_ptr[i + 1]``)."""
+    import numpy as np
+
+    counts = [len(b) for b in boxes]
+    return {"boxes": torch.as_tensor(np.concatenate([np.reshape(b, (-1, 5)) for b in boxes])).reshape(-1, 5),
+            "box_class": torch.as_tensor(np.concatenate([np.reshape(c, -1) for c in classes])).long(),
+            "box_ptr": torch.as_tensor(np.r_[0, np.cumsum(counts)]).long()}
+
+
+def add_boxes(data: Data, store, idx: int) -> Data:
+    """Attach sample ``idx``'s ``boxes`` (float32) and ``box_class`` from ``store`` (an object
+    with the fields of :func:`pack_boxes`) to ``data``."""
+    a, b = int(store.box_ptr[idx]), int(store.box_ptr[idx + 1])
+    data.boxes, data.box_class = store.boxes[a:b].float(), store.box_class[a:b]
+    return data

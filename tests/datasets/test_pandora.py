@@ -1,0 +1,75 @@
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph.datasets import Pandora, read_annotations
+from usf_graph.geometry import from_latlon
+from usf_graph.ops import points_in_boxes
+
+FIX = Path(__file__).resolve().parents[1] / "fixtures" / "pandora"
+
+
+@pytest.fixture()
+def root(tmp_path):
+    shutil.copytree(FIX, tmp_path / "pandora")
+    return tmp_path / "pandora"
+
+
+def test_reads_the_release_layout_and_converts_boxes(root):
+    ds = Pandora(root, "train", grid="icosahedral:2", progress=False)
+    assert len(ds) == 2
+    d = ds[0]
+    assert d.x.shape == (162, 3) and d.boxes.shape == (3, 5)
+    assert d.box_class.tolist() == [10, 39, 23]  # chair, table, light (PANDORA ids 11, 40, 24)
+    # across the seam: PANDORA lon 179 (right edge) is our lon -179
+    assert math.degrees(float(d.boxes[0, 0])) == pytest.approx(-179.0, abs=1e-4)
+    # gamma 90 turns a 20x20 box onto itself; the pole box contains the pole
+    north = from_latlon(math.pi / 2, 0.0)
+    assert points_in_boxes(north, d.boxes[2].double().numpy())[0, 0]
+    test = Pandora(root, "test", grid="icosahedral:2", progress=False)
+    assert len(test) == 2 and test[1].boxes.shape == (0, 5)
+
+
+def test_roll_sign_matches_pandoras_definition(root):
+    boxes, _ = read_annotations(root / "annotations" / "test.json")["0003.jpg"]
+    # [0, 0, 60, 20, 30] contains (lon 22, lat 12) in PANDORA's terms, not (22, -12)
+    inside, outside = from_latlon(math.radians(12), -math.radians(22)), from_latlon(-math.radians(12), -math.radians(22))
+    assert points_in_boxes(inside, boxes)[0, 0] and not points_in_boxes(outside, boxes)[0, 0]
+
+
+def test_lifted_pixels_are_the_image(root):
+    import cv2
+
+    ds = Pandora(root, "train", grid="icosahedral:3", interpolation="bilinear", progress=False)
+    from usf_graph import SphericalFrontend, cameras
+
+    img = cv2.imread(str(root / "images" / "0001.jpg"))[..., ::-1].astype(np.float32) / 255
+    fe = SphericalFrontend(cameras.Equirectangular(64, 32), ds.grid)
+    torch.testing.assert_close(ds[0].x, fe.lift(img), atol=2e-3, rtol=0)
+
+
+def test_missing_data_says_how_to_get_it(tmp_path):
+    with pytest.raises(FileNotFoundError, match="SphericalObjectDetection"):
+        Pandora(tmp_path, "train", progress=False)
+
+
+def test_bad_annotations_are_named(root):
+    path = root / "annotations" / "train.json"
+    doc = json.loads(path.read_text())
+    doc["annotations"][1]["category_id"] = 48
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="annotation 2 of train.json has category_id 48"):
+        Pandora(root, "train", grid="icosahedral:2", progress=False)
+    doc["annotations"][1]["category_id"] = 40
+    doc["annotations"][0]["bbox"] = [1, 2, 3]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="5 finite numbers"):
+        read_annotations(path)
+    path.write_text("{not json")
+    with pytest.raises(ValueError, match="not a PANDORA annotation file"):
+        read_annotations(path)
