@@ -33,7 +33,7 @@ def _tensor(boxes, dtype=None) -> torch.Tensor:
 
 def box_area(boxes):
     """Solid angle (sr) of boxes ``[..., 5]``: :math:`4 \\arcsin(\\sin(f_x/2)\\sin(f_y/2))`
-    (the same as PANDORA's ``4 arccos(-sin(a/2) sin(b/2)) - 2 pi``)."""
+    (equal to PANDORA's inverse-cosine form, written without it; see the tests)."""
     b = _as_boxes(boxes)
     xp = torch if torch.is_tensor(b) else np
     s = xp.sin(b[..., 2] / 2) * xp.sin(b[..., 3] / 2)
