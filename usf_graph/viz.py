@@ -116,8 +116,8 @@ def plot_mnist_results(results: dict, model, test_r, path, n: int = 6):
     return _finish(fig, path)
 
 
-def _finish(fig, path):
-    fig.tight_layout()
+def _finish(fig, path, rect=None):
+    fig.tight_layout(rect=rect)
     if path is not None:
         fig.savefig(path, dpi=110)
         plt.close(fig)
@@ -207,12 +207,7 @@ def contact_sheet(rows, path=None, titles=None, legend=None):
 
         fig.legend(handles=[Patch(color=np.asarray(c) / 255, label=n) for n, c in legend.items()],
                    loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
-        fig.tight_layout(rect=(0, 0.05, 1, 1))
-        if path is not None:
-            fig.savefig(path, dpi=110)
-            plt.close(fig)
-        return fig
-    return _finish(fig, path)
+    return _finish(fig, path, rect=(0, 0.05, 1, 1) if legend else None)
 
 
 def view_panels(view, camera, name: str) -> list:

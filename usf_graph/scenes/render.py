@@ -8,6 +8,7 @@ of mip-mapped textures, supersampled (2 x 2 rays) on pixels at an object's edge.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections import OrderedDict
@@ -166,16 +167,11 @@ def _refine(scene: Scene, position, boxes: dict, hits: dict, s: float) -> dict:
     return out
 
 
-_FIB: dict = {}
-
-
+@functools.lru_cache(maxsize=1)
 def _fib(n: int) -> np.ndarray:
-    if n not in _FIB:
-        from ..grids import fibonacci
+    from ..grids import fibonacci
 
-        _FIB.clear()
-        _FIB[n] = fibonacci(n).pos.numpy()
-    return _FIB[n]
+    return fibonacci(n).pos.numpy()
 
 
 def render(scene: Scene, camera: Camera, position=None, rotation=None, view: int = 0,
