@@ -12,6 +12,18 @@ from .batching import from_static, to_static
 _TERMS = 6
 
 
+def tangent_frame(pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tangent frame ``(e1, e2)``, each ``[N, 3]``, in which :func:`jet_operator` writes
+    derivatives at unit vectors ``pos [N, 3]``: right-handed with the outward normal
+    (``e1 x e2 = p``). The choice is arbitrary; equivariant quantities built from the jet
+    are expressed back in 3D with it."""
+    ref = torch.zeros_like(pos)
+    ref[:, 2] = (pos[:, 2].abs() < 0.9).to(pos.dtype)
+    ref[:, 0] = 1 - ref[:, 2]
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(ref, pos), dim=1)
+    return e1, torch.linalg.cross(pos, e1)
+
+
 def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor,
                  sigma: float, rows: int = 5) -> torch.Tensor:
     r"""Sparse least-squares operator ``[rows N, N]`` giving, at every point p, the gradient
@@ -31,11 +43,7 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     pos = pos.double()
     j, i = edge_index
     n = len(pos)
-    ref = torch.zeros_like(pos)
-    ref[:, 2] = (pos[:, 2].abs() < 0.9).double()
-    ref[:, 0] = 1 - ref[:, 2]
-    e1 = torch.nn.functional.normalize(torch.linalg.cross(ref, pos), dim=1)
-    e2 = torch.linalg.cross(pos, e1)
+    e1, e2 = tangent_frame(pos)
     d = edge_weight.double()
     t = pos[j] - (pos[j] * pos[i]).sum(1, keepdim=True) * pos[i]
     t = t / t.norm(dim=1, keepdim=True).clamp_min(1e-300) * d[:, None]  # log map; 0 at q=p
@@ -86,6 +94,9 @@ class _Derivatives(nn.Module):
         flat = xs.permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
         return sparse_apply(op, op_t, flat).view(n, r, -1), xs, form
 
+    def extra_repr(self) -> str:
+        return f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g}"
+
     @staticmethod
     def _unflatten(y: torch.Tensor, xs: torch.Tensor, form: str, c: int) -> torch.Tensor:
         """``[N, F, B*C]`` -> the input's form with ``F*C`` channels (F blocks of C)."""
@@ -125,8 +136,30 @@ class LocalJet(_Derivatives):
                            h ** 4 * (h11 * h22 - h12 * h12)], 1)  # [N, 3, B*C]
         return torch.cat([x, self._unflatten(inv, xs, form, x.shape[-1])], -1)
 
-    def extra_repr(self) -> str:
-        return f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g}"
+
+class SurfaceJet(_Derivatives):
+    r"""The raw jet of every channel: gradient and Hessian in the tangent frame of each
+    point (:func:`tangent_frame`, stored as the buffer ``frame [N, 2, 3]``), from the
+    quadratic fit of :func:`jet_operator`.
+
+    The components depend on the arbitrary frame, but vectors and tensors rebuilt in 3D
+    with it (:math:`\nabla f = g_1 e_1 + g_2 e_2`) rotate exactly with the signal under
+    any rotation that maps the grid onto itself: the layer to get directions (a box's
+    offset, its axes) out of scalar fields that an isotropic network predicts.
+
+    Shapes: ``[B, N, C]`` -> ``[B, N, C, 5]`` (``g1, g2, h11, h12, h22``, in radians).
+    """
+
+    def __init__(self, pos, edge_index, edge_weight, spacing: float,
+                 sigma: float | None = None):
+        super().__init__(pos, edge_index, edge_weight, spacing, sigma, rows=5)
+        e1, e2 = tangent_frame(torch.as_tensor(pos).double())
+        self.register_buffer("frame", torch.stack([e1, e2], 1), persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        d, xs, _ = self._derivatives(x)  # [N, 5, B*C]
+        n, c = self.num_nodes, xs.shape[-1]
+        return d.view(n, 5, -1, c).permute(2, 0, 3, 1)
 
 
 class GradientPairs(_Derivatives):

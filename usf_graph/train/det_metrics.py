@@ -16,7 +16,7 @@ import torch
 
 from ..ops import pairwise_box_iou
 
-__all__ = ["coco_ap"]
+__all__ = ["coco_ap", "usf_map"]
 
 
 def _cocoeval():
@@ -79,3 +79,43 @@ def coco_ap(truth, detections, num_classes: int) -> dict:
         ev.accumulate()
         ev.summarize()
     return {"AP": float(ev.stats[0]), "AP50": float(ev.stats[1]), "AP75": float(ev.stats[2])}
+
+
+def _voc_ap(tp: np.ndarray, num_truth: int) -> float:
+    """Area under the precision envelope with the end points (recall 0 and 1) added."""
+    hits = np.cumsum(tp)
+    rec = np.r_[0.0, hits / num_truth, 1.0]
+    prec = np.r_[0.0, hits / np.arange(1, len(tp) + 1), 0.0]
+    prec = np.maximum.accumulate(prec[::-1])[::-1]
+    return float(np.sum((rec[1:] - rec[:-1]) * prec[1:]))
+
+
+def usf_map(truth, detections, num_classes: int, iou_threshold: float = 0.10) -> float:
+    """USF's "mAP@10" (``iou_threshold=0.10``): AP at one IoU threshold for every (image,
+    class) pair that has ground truth, from greedy matching by falling score and the
+    all-point precision envelope with end points added, then the mean over the pairs.
+
+    It is not COCO AP (which pools all images of a class and averages over thresholds)
+    and reads higher; it is here to compare with USF's published numbers. Arguments as
+    :func:`coco_ap`."""
+    aps = []
+    for (gb, gc), (db, dc, ds) in zip(truth, detections):
+        gb, gc = np.asarray(gb, np.float64).reshape(-1, 5), np.asarray(gc).reshape(-1)
+        db, dc = np.asarray(db, np.float64).reshape(-1, 5), np.asarray(dc).reshape(-1)
+        ds = np.asarray(ds, np.float64).reshape(-1)
+        for k in range(num_classes):
+            g = gb[gc == k]
+            if not len(g):
+                continue
+            d = db[dc == k][np.argsort(-ds[dc == k], kind="mergesort")]
+            if not len(d):
+                aps.append(0.0)
+                continue
+            iou = pairwise_box_iou(d, g, dtype=torch.float64).numpy()
+            free, tp = np.ones(len(g), bool), np.zeros(len(d))
+            for i in range(len(d)):
+                j = np.argmax(np.where(free, iou[i], -1.0))
+                if free[j] and iou[i, j] >= iou_threshold:
+                    free[j], tp[i] = False, 1.0
+            aps.append(_voc_ap(tp, len(g)))
+    return float(np.mean(aps)) if aps else -1.0

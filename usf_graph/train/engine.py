@@ -9,6 +9,7 @@ import os
 import random
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -18,6 +19,8 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
 from ..fileio import atomic_torch_save
+
+Step = Callable[[nn.Module, Any], tuple[torch.Tensor, dict, int]]
 
 
 def seed_everything(seed: int, deterministic: bool = True) -> None:
@@ -80,7 +83,8 @@ def load_checkpoint(path, model: nn.Module | None = None) -> dict:
     return blob
 
 
-def _batches(dataset: Dataset, batch_size: int, shuffle: bool, seed: int, epoch: int):
+def _batches(dataset: Dataset, batch_size: int, shuffle: bool, seed: int, epoch: int,
+             collate_fn=None):
     sampler = None
     if is_distributed():
         sampler = DistributedSampler(dataset, shuffle=shuffle, seed=seed, drop_last=False)
@@ -88,29 +92,57 @@ def _batches(dataset: Dataset, batch_size: int, shuffle: bool, seed: int, epoch:
         batch_size = batch_size // dist.get_world_size()
     g = torch.Generator().manual_seed(seed + epoch)
     return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None,
-                      sampler=sampler, generator=g)
+                      sampler=sampler, generator=g, collate_fn=collate_fn)
+
+
+def classification_step(model: nn.Module, batch) -> tuple[torch.Tensor, dict, int]:
+    """The default step: cross-entropy of a classifier on an ``(x, y)`` batch.
+
+    A step takes ``(model, batch)`` and returns ``(loss, stats, n)``: the loss to minimize,
+    batch means of anything worth logging (floats) and the number of samples."""
+    x, y = batch
+    out = model(x)
+    loss = nn.functional.cross_entropy(out, y)
+    return loss, {"acc": (out.argmax(-1) == y).double().mean().item()}, len(y)
+
+
+class _Mean:
+    """Sample-weighted running means of a step's loss and stats."""
+
+    def __init__(self):
+        self.sums, self.n = {}, 0
+
+    def add(self, loss: torch.Tensor, stats: dict, n: int) -> None:
+        for k, v in {"loss": loss.item(), **stats}.items():
+            self.sums[k] = self.sums.get(k, 0.0) + v * n
+        self.n += n
+
+    def means(self) -> dict:
+        return {k: v / max(self.n, 1) for k, v in self.sums.items()}
 
 
 @torch.no_grad()
 def evaluate(model: nn.Module, dataset: Dataset, batch_size: int = 256,
-             desc: str = "eval", progress: bool = True) -> dict:
-    """Loss and accuracy of a classifier over a dataset of (x, y) pairs."""
+             desc: str = "eval", progress: bool = True, step: Step = classification_step,
+             collate_fn=None) -> dict:
+    """Mean loss and stats of ``step`` over a dataset (for the default step, the loss and
+    accuracy of a classifier over ``(x, y)`` pairs)."""
     model.eval()
-    loss, correct, n = 0.0, 0, 0
-    loader = DataLoader(dataset, batch_size=batch_size)
-    for x, y in tqdm(loader, desc=desc, leave=False, disable=not progress):
-        out = model(x)
-        loss += nn.functional.cross_entropy(out, y, reduction="sum").item()
-        correct += (out.argmax(-1) == y).sum().item()
-        n += len(y)
-    return {"loss": loss / max(n, 1), "acc": correct / max(n, 1)}
+    mean = _Mean()
+    loader = DataLoader(dataset, batch_size=batch_size, collate_fn=collate_fn)
+    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+        mean.add(*step(model, batch))
+    return mean.means()
 
 
 def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: int = 10,
         batch_size: int = 32, lr: float = 3e-3, weight_decay: float = 1e-4, seed: int = 0,
         log_dir=None, config: dict | None = None, resume: bool = False, progress: bool = True,
-        name: str = "model", on_epoch: Callable[[int, dict], None] | None = None) -> dict:
-    """Train a classifier with AdamW and a cosine schedule.
+        name: str = "model", on_epoch: Callable[[int, dict], None] | None = None,
+        step: Step = classification_step, collate_fn=None) -> dict:
+    """Train a model with AdamW and a cosine schedule; ``step(model, batch) -> (loss,
+    stats, n)`` says what a batch's loss is (default: :func:`classification_step`), and
+    ``collate_fn`` how samples make a batch (the DataLoader's).
 
     Logs ``metrics.csv`` / ``metrics.json`` (and TensorBoard when installed) under
     ``log_dir`` and writes ``last.pt`` each epoch; ``resume=True`` continues from it.
@@ -135,25 +167,23 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     writer = _tensorboard(log_dir) if rank == 0 else None
     for epoch in range(start, epochs):
         model.train()
-        bar = tqdm(_batches(train, batch_size, True, seed, epoch), leave=False,
+        bar = tqdm(_batches(train, batch_size, True, seed, epoch, collate_fn), leave=False,
                    desc=f"{name} epoch {epoch + 1}/{epochs}", disable=not progress or rank != 0)
-        tot, correct, n = 0.0, 0, 0
-        for x, y in bar:
-            out = model(x)
-            loss = nn.functional.cross_entropy(out, y)
+        mean = _Mean()
+        for batch in bar:
+            loss, stats, n = step(model, batch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             sched.step()
-            tot += loss.item() * len(y)
-            correct += (out.argmax(-1) == y).sum().item()
-            n += len(y)
-            bar.set_postfix(loss=f"{tot / n:.3f}", acc=f"{correct / n:.3f}")
-        row = {"epoch": epoch + 1, "train_loss": tot / n, "train_acc": correct / n,
+            mean.add(loss.detach(), stats, n)
+            bar.set_postfix({k: f"{v:.3f}" for k, v in mean.means().items()})
+        row = {"epoch": epoch + 1, **{f"train_{k}": v for k, v in mean.means().items()},
                "lr": sched.get_last_lr()[0]}
         if val is not None and rank == 0:
-            v = evaluate(model.module if world > 1 else model, val, progress=False)
-            row.update(val_loss=v["loss"], val_acc=v["acc"])
+            v = evaluate(model.module if world > 1 else model, val, progress=False, step=step,
+                         collate_fn=collate_fn, batch_size=max(batch_size, 32))
+            row.update({f"val_{k}": x for k, x in v.items()})
         history.append(row)
         if rank == 0:
             if progress:

@@ -1,0 +1,135 @@
+r"""CenterNet pieces shared by the spherical detector and its planar baseline.
+
+A detector of this kind predicts, per class, a heatmap over a set of output points (grid
+points on S2, or pixel centres of a planar feature map) that peaks at box centres, and,
+at each peak, the box's shape. Both detectors here place the heatmap targets by
+geodesic distance on the sphere, so they learn the same targets from the same boxes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..geometry import from_latlon
+from ..ops import spherical_nms
+
+# A box's heatmap is a Gaussian of geodesic distance with this share of its size as sigma,
+# never narrower than half an output spacing (CenterNet ties it to the box size likewise).
+SIGMA_SHARE = 0.1
+
+
+def box_centres(boxes: torch.Tensor) -> torch.Tensor:
+    """Centre directions ``[K, 3]`` of boxes ``[K, 5]``."""
+    return from_latlon(boxes[:, 1], boxes[:, 0])
+
+
+def logmap(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Tangent vectors at unit ``p`` pointing to ``q`` with length their geodesic distance."""
+    cos = (p * q).sum(-1, keepdim=True)
+    t = q - cos * p
+    s = t.norm(dim=-1, keepdim=True)
+    return t * (torch.atan2(s, cos) / s.clamp_min(1e-300))
+
+
+def expmap(p: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """The unit vector reached from ``p`` along tangent ``v`` for the length ``|v|``."""
+    n = v.norm(dim=-1, keepdim=True)
+    return torch.cos(n) * p + torch.sin(n) * v / n.clamp_min(1e-300)
+
+
+def heatmap_targets(points: torch.Tensor, boxes: torch.Tensor, classes: torch.Tensor,
+                    image: torch.Tensor, num_images: int, num_classes: int,
+                    spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""CenterNet heatmap targets on output points, and each box's positive point.
+
+    For class k at point q: :math:`\max_b e^{-d(q, c_b)^2 / 2\sigma_b^2}` over the boxes
+    of class k in the image, :math:`\sigma_b = \max(0.1 \sqrt{f_x f_y}, h / 2)`; the point
+    nearest each centre is set to exactly 1 (the positives of :func:`focal_loss`).
+
+    Args:
+        points: ``[M, 3]`` unit vectors of the output points (the same for every image).
+        boxes: ``[K, 5]`` all boxes of the batch; classes ``[K]``; image ``[K]`` the image
+            each belongs to; spacing: h, the output points' spacing (radians).
+
+    Returns ``(target [num_images, M, num_classes], nearest [K])``.
+    """
+    M = len(points)
+    target = points.new_zeros(num_images * num_classes, M)
+    if len(boxes) == 0:
+        return target.view(num_images, num_classes, M).transpose(1, 2), classes.new_zeros(0)
+    c = box_centres(boxes).to(points.dtype)
+    cos = c @ points.T  # [K, M]
+    nearest = cos.argmax(1)
+    d = torch.atan2(torch.linalg.cross(c[:, None].expand(-1, M, -1), points[None].expand(len(c), -1, -1)).norm(dim=-1), cos)
+    sigma = torch.clamp(SIGMA_SHARE * (boxes[:, 2] * boxes[:, 3]).sqrt().to(points.dtype), min=spacing / 2)
+    g = torch.exp(-0.5 * (d / sigma[:, None]) ** 2)
+    g[torch.arange(len(c)), nearest] = 1.0
+    target.index_reduce_(0, image * num_classes + classes, g, "amax")
+    return target.view(num_images, num_classes, M).transpose(1, 2), nearest
+
+
+def focal_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
+               alpha: float = 2.0, beta: float = 4.0) -> torch.Tensor:
+    r"""CenterNet's penalty-reduced focal loss, summed and divided by the number of
+    positives (``target == 1``); ``mask [B, M]`` leaves hidden points out.
+
+    .. math::
+        -\frac{1}{N_+}\sum \begin{cases} (1-p)^\alpha \log p & y = 1\\
+        (1-y)^\beta p^\alpha \log(1-p) & \text{otherwise} \end{cases}
+    """
+    logp, log1mp = F.logsigmoid(logits), F.logsigmoid(-logits)
+    p = torch.sigmoid(logits)
+    pos = target >= 1.0
+    loss = torch.where(pos, (1 - p) ** alpha * logp, (1 - target) ** beta * p ** alpha * log1mp)
+    if mask is not None:
+        loss = loss * mask[..., None].to(loss.dtype)
+    return -loss.sum() / pos.sum().clamp_min(1)
+
+
+def peaks(prob: torch.Tensor, neighbours: torch.Tensor, k: int, threshold: float):
+    """The ``k`` highest local maxima of ``prob [M, C]`` above ``threshold``: a point is a
+    maximum of class c when no neighbour (``neighbours [2, E]``, row 0 the neighbour, row 1
+    the centre) is higher. Returns ``(point [D], class [D], score [D])`` by falling score."""
+    j, i = neighbours
+    M, C = prob.shape
+    top = prob.new_full((M, C), -math.inf).index_reduce_(0, i, prob[j], "amax", include_self=True)
+    keep = (prob >= top) & (prob > threshold)
+    score = torch.where(keep, prob, torch.zeros_like(prob)).flatten()
+    s, idx = score.topk(min(k, score.numel()))
+    ok = s > threshold
+    return idx[ok] // C, idx[ok] % C, s[ok]
+
+
+def detections(boxes: np.ndarray, cls: torch.Tensor, score: torch.Tensor,
+               nms: float | None) -> dict:
+    """One image's decoded peaks as ``{"boxes", "classes", "scores"}`` (numpy), after
+    class-wise spherical NMS at IoU ``nms`` (``None``: none), best first."""
+    keep = torch.arange(len(boxes))
+    if nms is not None and len(boxes):
+        kept = [torch.nonzero(cls == k).flatten() for k in cls.unique().tolist()]
+        keep = torch.cat([i[spherical_nms(torch.as_tensor(boxes[i.numpy()]), score[i], nms)]
+                          for i in kept])
+        keep = keep[score[keep].argsort(descending=True)]
+    keep = keep.numpy()
+    return {"boxes": boxes[keep], "classes": cls[keep].numpy(), "scores": score[keep].numpy()}
+
+
+class Detector(nn.Module):
+    """What both detectors share: ``detect(x, mask, **decode_kw)`` in evaluation mode."""
+
+    input_dims = 3  # x without its batch dimension
+
+    @torch.no_grad()
+    def detect(self, x: torch.Tensor, mask: torch.Tensor | None = None, **kw) -> list[dict]:
+        """``decode(forward(x, mask), **kw)`` in evaluation mode, for a batch or one sample."""
+        was = self.training
+        self.eval()
+        try:
+            return self.decode(self(x if x.dim() == self.input_dims else x[None], mask), **kw)
+        finally:
+            self.train(was)

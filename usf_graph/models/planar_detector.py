@@ -1,0 +1,148 @@
+"""The planar baseline: CenterNet on the equirectangular image, boxes from pixel coordinates."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..cameras import Equirectangular
+from ..geometry import to_latlon
+from .centernet import Detector, box_centres, detections, focal_loss, heatmap_targets, peaks
+from .detector import MAX_FOV
+
+
+def _block(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, padding=1, bias=False), nn.BatchNorm2d(c_out),
+                         nn.ReLU(inplace=True))
+
+
+class PlanarDetector(Detector):
+    r"""CenterNet on equirectangular images, the baseline of :class:`SphericalDetector`.
+
+    A plain Conv2d U-Net (max-pooling down, bilinear upsampling with skip connections)
+    from ``[B, in_channels, H, W]`` to a map at half resolution, where each pixel predicts
+    ``num_classes`` heatmap logits and the box at it as a panorama detector does: the
+    sub-pixel centre offset ``(du, dv)``, ``log fov_x``, ``log fov_y`` and the roll, all
+    read in the image's own terms. Boxes are decoded from pixel coordinates, so they are
+    tied to the panorama's latitude/longitude layout: the comparison the spherical head
+    is built to win under rotation.
+
+    Shapes: ``x [B, C, H, W]`` -> ``{"heat": [B, M, num_classes], "box": [B, M, 5],
+    "mask": [M] or None}`` with M = (H/2)(W/2) output pixels in raster order.
+    """
+
+    def __init__(self, num_classes: int = 12, in_channels: int = 3, height: int = 128,
+                 width: int = 256, channels=(32, 64, 128, 128)):
+        super().__init__()
+        self.input_dims = 4
+        depth = len(channels)
+        if height % 2 ** (depth - 1) or width % 2 ** (depth - 1):
+            raise ValueError(f"height and width must be divisible by {2 ** (depth - 1)}, got "
+                             f"{height}x{width}")
+        self.config = dict(num_classes=num_classes, in_channels=in_channels, height=height,
+                           width=width, channels=list(channels))
+        self.num_classes = num_classes
+        self.down, c_in = nn.ModuleList(), in_channels
+        for c in channels:
+            self.down.append(nn.Sequential(_block(c_in, c), _block(c, c)))
+            c_in = c
+        self.up = nn.ModuleList()
+        for c in reversed(channels[1:-1]):
+            self.up.append(_block(c_in + c, c))
+            c_in = c
+        self.head = nn.Sequential(_block(c_in, c_in), nn.Conv2d(c_in, num_classes + 5, 1))
+        self.out_camera = Equirectangular(width // 2, height // 2)
+        rays, _ = self.out_camera.lens_normal_map()
+        self.register_buffer("points", torch.as_tensor(rays.reshape(-1, 3)), persistent=False)
+        self.spacing = math.pi / (height // 2)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        for m in self.modules():
+            if isinstance(m, (nn.Conv2d, nn.BatchNorm2d)):
+                m.reset_parameters()
+        with torch.no_grad():
+            self.head[-1].bias[: self.num_classes].fill_(-4.6)
+
+    @classmethod
+    def from_config(cls, config: dict) -> PlanarDetector:
+        return cls(**config)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        H, W = self.config["height"], self.config["width"]
+        if x.dim() != 4 or tuple(x.shape[1:]) != (self.config["in_channels"], H, W):
+            raise ValueError(f"expected x [B, {self.config['in_channels']}, {H}, {W}], got "
+                             f"{tuple(x.shape)}")
+        skips = []
+        for i, block in enumerate(self.down):
+            x = block(x if i == 0 else nn.functional.max_pool2d(x, 2))
+            skips.append(x)
+        skips.pop()
+        for block in self.up:
+            skip = skips.pop()
+            x = nn.functional.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = block(torch.cat([x, skip], 1))
+        f = self.head(x).flatten(2).transpose(1, 2)  # [B, M, C + 5]
+        if mask is not None:
+            mask = nn.functional.max_pool2d(mask.view(1, 1, H, W).float(), 2).flatten().bool()
+        return {"heat": f[..., : self.num_classes], "box": f[..., self.num_classes:], "mask": mask}
+
+    def _pixels(self, points: torch.Tensor) -> torch.Tensor:
+        uv, _ = self.out_camera.project(points.double().numpy())
+        return torch.as_tensor(uv)
+
+    def loss(self, out: dict, boxes: torch.Tensor, classes: torch.Tensor,
+             image: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """Focal loss plus L1 on offset (pixels), log sizes and roll at each box's centre pixel."""
+        B, W = out["heat"].shape[0], self.out_camera.width
+        heat_t, near = heatmap_targets(self.points, boxes.double(), classes, image, B,
+                                       self.num_classes, self.spacing)
+        mask = None if out["mask"] is None else out["mask"].expand(B, -1)
+        heat = focal_loss(out["heat"], heat_t.to(out["heat"].dtype), mask)
+        if len(boxes) == 0:
+            return heat + out["box"].sum() * 0, {"heat": heat.item(), "box": 0.0}
+        uv = self._pixels(box_centres(boxes.double()))
+        off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
+        off[:, 0] = torch.remainder(off[:, 0] + W / 2, W) - W / 2  # across the seam
+        t = torch.cat([off, boxes[:, 2:4].double().log(), boxes[:, 4:5].double()], -1)
+        box = nn.functional.l1_loss(out["box"][image, near], t.to(out["box"].dtype))
+        return heat + box, {"heat": heat.item(), "box": box.item()}
+
+    def decode(self, out: dict, k: int = 100, threshold: float = 0.05,
+               nms: float | None = 0.5) -> list[dict]:
+        """Boxes per image, as :meth:`SphericalDetector.decode`: peaks over each pixel's
+        8 neighbours (wrapping around the seam), centres from pixel coordinates."""
+        prob = torch.sigmoid(out["heat"].detach().double())
+        if out["mask"] is not None:
+            prob = prob * out["mask"][:, None]
+        res = []
+        for b in range(prob.shape[0]):
+            pt, cls, score = peaks(prob[b], self._ring(), k, threshold)
+            W = self.out_camera.width
+            bx = out["box"][b, pt].detach().double()
+            uv = torch.stack([pt % W + bx[:, 0], pt // W + bx[:, 1]], -1).numpy()
+            rays, _ = self.out_camera.unproject(uv)
+            lat, lon = to_latlon(np.nan_to_num(rays, nan=1.0))
+            fov = bx[:, 2:4].exp().clamp(max=MAX_FOV).numpy()
+            roll = np.mod(bx[:, 4].numpy() + np.pi / 2, np.pi) - np.pi / 2
+            boxes = np.stack([lon, lat, fov[:, 0], fov[:, 1], roll], -1).reshape(-1, 5)
+            res.append(detections(boxes, cls, score, nms))
+        return res
+
+    def _ring(self) -> torch.Tensor:
+        if getattr(self, "_ring_cache", None) is None:
+            H, W = self.out_camera.height, self.out_camera.width
+            r, c = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+            centre = (r * W + c).ravel()
+            edges = []
+            for dr in (-1, 0, 1):
+                for dc in (-1, 0, 1):
+                    rr = r + dr
+                    ok = ((rr >= 0) & (rr < H)).ravel()
+                    nb = (np.clip(rr, 0, H - 1) * W + (c + dc) % W).ravel()
+                    edges.append(np.stack([nb[ok], centre[ok]]))
+            self._ring_cache = torch.as_tensor(np.concatenate(edges, 1))
+        return self._ring_cache
