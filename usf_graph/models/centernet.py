@@ -44,33 +44,45 @@ def expmap(p: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 def heatmap_targets(points: torch.Tensor, boxes: torch.Tensor, classes: torch.Tensor,
                     image: torch.Tensor, num_images: int, num_classes: int,
-                    spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
-    r"""CenterNet heatmap targets on output points, and each box's positive point.
+                    spacing: float, min_weight: float = 0.05):
+    r"""CenterNet heatmap targets on output points, and where each box's shape is learnt.
 
     For class k at point q: :math:`\max_b e^{-d(q, c_b)^2 / 2\sigma_b^2}` over the boxes
     of class k in the image, :math:`\sigma_b = \max(0.1 \sqrt{f_x f_y}, h / 2)`; the point
     nearest each centre is set to exactly 1 (the positives of :func:`focal_loss`).
+    Every point where some box's Gaussian reaches ``min_weight`` regresses the box whose
+    Gaussian is highest there, weighted by it (TTFNet's dense regression: many more
+    samples than the centre point alone, so the box head learns in few epochs).
 
     Args:
         points: ``[M, 3]`` unit vectors of the output points (the same for every image).
         boxes: ``[K, 5]`` all boxes of the batch; classes ``[K]``; image ``[K]`` the image
             each belongs to; spacing: h, the output points' spacing (radians).
 
-    Returns ``(target [num_images, M, num_classes], nearest [K])``.
+    Returns ``(target [num_images, M, num_classes], nearest [K], (point [R], box [R],
+    weight [R]))``: the heatmaps, each box's centre point, and the regression samples
+    (point index, index of its box, weight).
     """
     M = len(points)
     target = points.new_zeros(num_images * num_classes, M)
     if len(boxes) == 0:
-        return target.view(num_images, num_classes, M).transpose(1, 2), classes.new_zeros(0)
+        none = classes.new_zeros(0)
+        return (target.view(num_images, num_classes, M).transpose(1, 2), none,
+                (none, none, points.new_zeros(0)))
     c = box_centres(boxes).to(points.dtype)
-    cos = c @ points.T  # [K, M]
+    cos = (c @ points.T).clamp(-1, 1)  # [K, M]
     nearest = cos.argmax(1)
-    d = torch.atan2(torch.linalg.cross(c[:, None].expand(-1, M, -1), points[None].expand(len(c), -1, -1)).norm(dim=-1), cos)
+    sin = torch.linalg.cross(c[:, None].expand(-1, M, -1), points[None].expand(len(c), -1, -1)).norm(dim=-1)
+    d = torch.atan2(sin, cos)
     sigma = torch.clamp(SIGMA_SHARE * (boxes[:, 2] * boxes[:, 3]).sqrt().to(points.dtype), min=spacing / 2)
     g = torch.exp(-0.5 * (d / sigma[:, None]) ** 2)
     g[torch.arange(len(c)), nearest] = 1.0
-    target.index_reduce_(0, image * num_classes + classes, g, "amax")
-    return target.view(num_images, num_classes, M).transpose(1, 2), nearest
+    target.scatter_reduce_(0, (image * num_classes + classes)[:, None].expand(-1, M), g, "amax")
+    # per image and point, the box with the highest Gaussian
+    best = points.new_zeros(num_images, M).scatter_reduce(0, image[:, None].expand(-1, M), g, "amax")
+    own = (g >= best[image]) & (g >= min_weight)
+    box, point = torch.nonzero(own, as_tuple=True)
+    return target.view(num_images, num_classes, M).transpose(1, 2), nearest, (point, box, g[box, point])
 
 
 def focal_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
@@ -97,7 +109,7 @@ def peaks(prob: torch.Tensor, neighbours: torch.Tensor, k: int, threshold: float
     the centre) is higher. Returns ``(point [D], class [D], score [D])`` by falling score."""
     j, i = neighbours
     M, C = prob.shape
-    top = prob.new_full((M, C), -math.inf).index_reduce_(0, i, prob[j], "amax", include_self=True)
+    top = prob.new_full((M, C), -math.inf).scatter_reduce(0, i[:, None].expand(-1, C), prob[j], "amax")
     keep = (prob >= top) & (prob > threshold)
     score = torch.where(keep, prob, torch.zeros_like(prob)).flatten()
     s, idx = score.topk(min(k, score.numel()))

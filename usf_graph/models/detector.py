@@ -14,8 +14,14 @@ fixed north:
   r plus learned multiples of the traceless outer products of gradients of fields
   :math:`a_k`: :math:`\mathrm{dev}\,S = h^2\,\mathrm{dev}(\nabla^2 r) + \sum_k w_k h^2
   \mathrm{dev}(\nabla a_k \nabla a_k^\top)`. Its eigenvectors are the box's axes and
-  :math:`e^{\lambda}` its fields of view. A square box has no preferred axis, and this
-  form needs none: S is then a multiple of the identity.
+  :math:`e^{\lambda}` its fields of view;
+* S alone cannot orient a square box (it is then a multiple of the identity), yet a
+  square turned by 30 degrees is another region. The rectangle's axes, modulo 90
+  degrees, come from a spin-4 quantity: the square (as a complex number) of the
+  traceless Hessian of a field q plus learned multiples of the fourth powers of the
+  gradients :math:`\nabla a_k`, trained towards :math:`e^{4i\varphi}` for the box's
+  axis angle :math:`\varphi`. S then says which of the two axes is the long one, and
+  by how much.
 
 All of it is built from rotation-equivariant pieces, so for a rotation that maps the grid
 onto itself the boxes found in the rotated input are the rotated boxes, to rounding
@@ -57,6 +63,16 @@ class _Stage(nn.Module):
 def _blur(src, dst, sigma_spacings: float = 0.5):
     """Gaussian resampling from grid ``src`` to grid ``dst`` (pooling or upsampling)."""
     return GaussianPool(src.pos, dst.pos, sigma_spacings * max(src.spacing, dst.spacing), area=src.area)
+
+
+def _spin2(h: torch.Tensor) -> torch.Tensor:
+    """Hessians ``(h11, h12, h22)`` -> their traceless part ``((h11 - h22) / 2, h12)``."""
+    return torch.stack([(h[..., 0] - h[..., 2]) / 2, h[..., 1]], -1)
+
+
+def _square(z: torch.Tensor) -> torch.Tensor:
+    """``(a, b)`` as the complex number a + ib, squared (its spin doubles)."""
+    return torch.stack([z[..., 0] ** 2 - z[..., 1] ** 2, 2 * z[..., 0] * z[..., 1]], -1)
 
 
 class SphericalDetector(Detector):
@@ -124,7 +140,7 @@ class SphericalDetector(Detector):
             c_in = skip
         h = grids[head_level]
         self.head_stage = _Stage(h, c_in, c_in, radius_spacings, num_basis)
-        self.head = nn.Linear(c_in, num_classes + 3 + 2 * gradient_fields)
+        self.head = nn.Linear(c_in, num_classes + 4 + 3 * gradient_fields)
         e3, w3 = grid_graph(h, jet_spacings * h.spacing)
         self.surface = SurfaceJet(h.pos, e3, w3, h.spacing)
         self.register_buffer("head_pos", h.pos.double(), persistent=False)
@@ -178,42 +194,45 @@ class SphericalDetector(Detector):
 
     def _fields(self, f: torch.Tensor, mask) -> dict:
         """Per-point logits and box fields from the head's scalar outputs."""
-        C, K, h2 = self.num_classes, self.K, self.head_spacing ** 2
-        jet = self.surface(f[..., C + 1:C + 3 + K])  # [B, M, 2 + K, 5]: o, r, a_k
+        C, K, h = self.num_classes, self.K, self.head_spacing
+        jet = self.surface(f[..., C + 1:C + 4 + K])  # [B, M, 3 + K, 5]: o, r, q, a_k
         frame = self.surface.frame.to(f.dtype)  # [M, 2, 3]
         g_o = jet[..., 0, :2]
-        offset = h2 * (g_o[..., :1] * frame[:, 0] + g_o[..., 1:2] * frame[:, 1])
-        hr = jet[..., 1, 2:]  # h11, h12, h22 of r
-        dev = torch.stack([(hr[..., 0] - hr[..., 2]) / 2, hr[..., 1]], -1)
+        offset = h * h * (g_o[..., :1] * frame[:, 0] + g_o[..., 1:2] * frame[:, 1])
+        dev = _spin2(jet[..., 1, 2:]) * h * h
+        quad = _square(_spin2(jet[..., 2, 2:]) * h * h)
         if K:
-            g = jet[..., 2:, :2]  # [B, M, K, 2]
-            w = f[..., C + 3 + K:, None]
-            dev = dev + (w * torch.stack([(g[..., 0] ** 2 - g[..., 1] ** 2) / 2,
-                                          g[..., 0] * g[..., 1]], -1)).sum(-2)
-        return {"heat": f[..., :C], "s": f[..., C], "offset": offset, "dev": h2 * dev,
+            z = jet[..., 3:, :2] * h  # [B, M, K, 2] gradients as complex numbers
+            z2 = _square(z)
+            w, u = f[..., C + 4 + K:C + 4 + 2 * K, None], f[..., C + 4 + 2 * K:, None]
+            dev = dev + (w * torch.stack([z2[..., 0], z2[..., 1]], -1) / 2).sum(-2)
+            quad = quad + (u * _square(z2)).sum(-2)
+        return {"heat": f[..., :C], "s": f[..., C], "offset": offset, "dev": dev, "quad": quad,
                 "mask": mask}
 
     # -- training -----------------------------------------------------------------------
     def targets(self, boxes: torch.Tensor, classes: torch.Tensor, image: torch.Tensor,
                 num_images: int) -> dict:
-        """Heatmap targets and, per box, its positive point with the offset, size and
-        traceless shape that the fields must take there (float64)."""
+        """Heatmap targets and the regression samples (:func:`heatmap_targets`): for each,
+        its image, point and weight, and the offset, mean log size and traceless shape the
+        fields must take there (float64)."""
         P = self.head_pos
-        heat, near = heatmap_targets(P, boxes.double(), classes, image, num_images,
-                                     self.num_classes, self.head_spacing)
-        p = P[near]
-        c, e, _ = box_axes(boxes.double())
-        frame = self.surface.frame[near]  # [K, 2, 3]
+        heat, near, (pt, box, w) = heatmap_targets(P, boxes.double(), classes, image, num_images,
+                                                   self.num_classes, self.head_spacing)
+        c, e, _ = box_axes(boxes.double()[box])
+        frame = self.surface.frame[pt]  # [R, 2, 3]
         phi = torch.atan2((e * frame[:, 1]).sum(-1), (e * frame[:, 0]).sum(-1))
-        lx, ly = boxes[:, 2].double().log(), boxes[:, 3].double().log()
-        return {"heat": heat, "point": near, "offset": logmap(p, c), "s": (lx + ly) / 2,
-                "dev": ((lx - ly) / 2)[:, None] * torch.stack([torch.cos(2 * phi), torch.sin(2 * phi)], -1)}
+        lx, ly = boxes[box, 2].double().log(), boxes[box, 3].double().log()
+        return {"heat": heat, "nearest": near, "image": image[box], "point": pt, "box": box, "weight": w,
+                "offset": logmap(P[pt], c), "s": (lx + ly) / 2,
+                "dev": ((lx - ly) / 2)[:, None] * torch.stack([torch.cos(2 * phi), torch.sin(2 * phi)], -1),
+                "quad": torch.stack([torch.cos(4 * phi), torch.sin(4 * phi)], -1)}
 
     def loss(self, out: dict, boxes: torch.Tensor, classes: torch.Tensor,
              image: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        r"""Focal loss on the heatmaps plus, at each box's positive point, smooth-L1 losses
-        on the offset (in grid spacings), the mean log size and the traceless shape (their
-        norms, so the loss is the same in every tangent frame)."""
+        r"""Focal loss on the heatmaps plus weighted smooth-L1 losses on the offset (in
+        grid spacings), the mean log size and the traceless shape at the regression
+        samples (norms of differences, so the loss is the same in every tangent frame)."""
         B = out["heat"].shape[0]
         t = self.targets(boxes, classes, image, B)
         mask = None if out["mask"] is None else out["mask"].expand(B, -1)
@@ -221,13 +240,17 @@ class SphericalDetector(Detector):
         if len(boxes) == 0:
             zero = out["s"].sum() * 0
             return heat + zero, {"heat": heat.item(), "offset": 0.0, "size": 0.0, "shape": 0.0}
-        at = (image, t["point"])
-        dt = out["s"].dtype
-        off = ((out["offset"][at] - t["offset"].to(dt)).norm(dim=-1) / self.head_spacing)
-        off = nn.functional.smooth_l1_loss(off, torch.zeros_like(off))
-        size = nn.functional.smooth_l1_loss(out["s"][at], t["s"].to(dt), beta=0.1)
-        shape = (out["dev"][at] - t["dev"].to(dt)).norm(dim=-1)
-        shape = nn.functional.smooth_l1_loss(shape, torch.zeros_like(shape), beta=0.1)
+        at, dt = (t["image"], t["point"]), out["s"].dtype
+        w = (t["weight"] / t["weight"].sum()).to(dt)
+
+        def huber(err, beta):
+            return (w * nn.functional.smooth_l1_loss(err, torch.zeros_like(err), beta=beta,
+                                                     reduction="none")).sum()
+
+        off = huber((out["offset"][at] - t["offset"].to(dt)).norm(dim=-1) / self.head_spacing, 1.0)
+        size = huber(out["s"][at] - t["s"].to(dt), 0.1)
+        shape = huber((out["dev"][at] - t["dev"].to(dt)).norm(dim=-1), 0.1)
+        shape = shape + huber((out["quad"][at] - t["quad"].to(dt)).norm(dim=-1), 0.1)
         total = heat + off + size + shape
         return total, {"heat": heat.item(), "offset": off.item(), "size": size.item(),
                        "shape": shape.item()}
@@ -249,8 +272,13 @@ class SphericalDetector(Detector):
             p = self.head_pos[pt]
             c = expmap(p, out["offset"][b, pt].detach().double())
             s, dv = out["s"][b, pt].detach().double(), out["dev"][b, pt].detach().double()
-            r = dv.norm(dim=-1)
-            phi = torch.atan2(dv[:, 1], dv[:, 0]) / 2
+            q = out["quad"][b, pt].detach().double()
+            # the rectangle's axes (mod 90 degrees) from the spin-4 field; the long one, and
+            # the aspect along it, from the spin-2 traceless shape
+            phi = torch.atan2(q[:, 1], q[:, 0]) / 4
+            arg = torch.atan2(dv[:, 1], dv[:, 0])
+            phi = torch.where(torch.cos(2 * phi - arg) < 0, phi + torch.pi / 2, phi)
+            r = dv.norm(dim=-1) * torch.cos(2 * phi - arg)
             e = torch.cos(phi)[:, None] * frame[pt, 0] + torch.sin(phi)[:, None] * frame[pt, 1]
             fx, fy = (s + r).exp().clamp(max=MAX_FOV), (s - r).exp().clamp(max=MAX_FOV)
             boxes = boxes_from_axes(c.numpy(), e.numpy(), fx.numpy(), fy.numpy()).reshape(-1, 5)

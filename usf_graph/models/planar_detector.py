@@ -35,7 +35,7 @@ class PlanarDetector(Detector):
     """
 
     def __init__(self, num_classes: int = 12, in_channels: int = 3, height: int = 128,
-                 width: int = 256, channels=(32, 64, 128, 128)):
+                 width: int = 256, channels=(16, 32, 64, 128)):
         super().__init__()
         self.input_dims = 4
         depth = len(channels)
@@ -96,20 +96,22 @@ class PlanarDetector(Detector):
 
     def loss(self, out: dict, boxes: torch.Tensor, classes: torch.Tensor,
              image: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        """Focal loss plus L1 on offset (pixels), log sizes and roll at each box's centre pixel."""
+        """Focal loss plus weighted L1 on offset (pixels), log sizes and roll at the
+        regression samples of :func:`heatmap_targets`, as for the spherical detector."""
         B, W = out["heat"].shape[0], self.out_camera.width
-        heat_t, near = heatmap_targets(self.points, boxes.double(), classes, image, B,
-                                       self.num_classes, self.spacing)
+        heat_t, _, (pt, box, w) = heatmap_targets(self.points, boxes.double(), classes, image, B,
+                                                  self.num_classes, self.spacing)
         mask = None if out["mask"] is None else out["mask"].expand(B, -1)
         heat = focal_loss(out["heat"], heat_t.to(out["heat"].dtype), mask)
         if len(boxes) == 0:
             return heat + out["box"].sum() * 0, {"heat": heat.item(), "box": 0.0}
-        uv = self._pixels(box_centres(boxes.double()))
-        off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
+        uv = self._pixels(box_centres(boxes.double()))[box]
+        off = torch.stack([uv[:, 0] - pt % W, uv[:, 1] - pt // W], -1)
         off[:, 0] = torch.remainder(off[:, 0] + W / 2, W) - W / 2  # across the seam
-        t = torch.cat([off, boxes[:, 2:4].double().log(), boxes[:, 4:5].double()], -1)
-        box = nn.functional.l1_loss(out["box"][image, near], t.to(out["box"].dtype))
-        return heat + box, {"heat": heat.item(), "box": box.item()}
+        t = torch.cat([off, boxes[box, 2:4].double().log(), boxes[box, 4:5].double()], -1)
+        err = (out["box"][image[box], pt] - t.to(out["box"].dtype)).abs().sum(-1)
+        reg = (err * (w / w.sum()).to(err.dtype)).sum()
+        return heat + reg, {"heat": heat.item(), "box": reg.item()}
 
     def decode(self, out: dict, k: int = 100, threshold: float = 0.05,
                nms: float | None = 0.5) -> list[dict]:

@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 from ..cameras import Equirectangular
 from ..frontend import render
 from ..models import PlanarDetector, SphericalDetector
+from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed
 
@@ -50,10 +51,13 @@ class DetectionSet(Dataset):
     def spherical(cls, ds) -> DetectionSet:
         """From a :class:`~usf_graph.datasets.RoomsDetection` (or any split with ``x``,
         ``mask`` and packed boxes): the lifted signals."""
-        mask = ds.mask if ds.mask.dim() == 1 else ds.mask[0]
-        if ds.mask.dim() == 2 and not (ds.mask == mask).all():
-            raise ValueError("the samples have different fields of view; a batch shares one mask")
-        return cls(ds.x, ds.boxes, ds.box_class, ds.box_ptr, None if mask.all() else mask)
+        mask = getattr(ds, "mask", None)
+        if mask is not None and mask.dim() == 2:
+            if not (mask == mask[0]).all():
+                raise ValueError("the samples have different fields of view; a batch shares one mask")
+            mask = mask[0]
+        return cls(ds.x, ds.boxes, ds.box_class, ds.box_ptr,
+                   None if mask is None or mask.all() else mask)
 
     @classmethod
     def planar(cls, ds, width: int, height: int) -> DetectionSet:
@@ -123,14 +127,15 @@ def score(dets: list[dict], data: DetectionSet, num_classes: int) -> dict:
 
 def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train: int = 200,
                   num_test: int = 50, seed: int = 0, progress: bool = True) -> dict:
-    """The rooms splits of the protocol: ``{"train": ..., "a": ..., "b": ..., "c": ..., "d": ...}``."""
+    """The rooms splits of the protocol: ``{"train": ..., "a": ..., "b": ..., "c": ..., "d": ...}``
+    (no ``train`` when ``num_train`` is 0)."""
     from ..datasets import RoomsDetection
     from ..scenes.lenses import protocol_cameras
 
     cams = protocol_cameras(size)
     kw = dict(grid=grid, seed=seed, progress=progress)
-    sets = {"train": RoomsDetection(root, "train", camera=cams["equirectangular"],
-                                    num_scenes=num_train, **kw)}
+    sets = {} if not num_train else {"train": RoomsDetection(
+        root, "train", camera=cams["equirectangular"], num_scenes=num_train, **kw)}
     for k, (cam, rot) in PROTOCOL.items():
         sets[k] = RoomsDetection(root, "test", camera=cams[cam], rotate=rot, num_scenes=num_test, **kw)
     return sets
@@ -142,8 +147,6 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         progress: bool = True) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``."""
-    from ..scenes import DETECTION_CLASSES
-
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -185,6 +188,34 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     except Exception as e:  # noqa: BLE001 - a failed plot must not lose the results
         print(f"[usf-graph] could not draw the figure: {e}")
     return results
+
+
+def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
+                batch_size: int = 8, lr: float = 2e-3, seed: int = 0, grid: str = "icosahedral:5",
+                progress: bool = True) -> dict:
+    """Train the spherical detector on PANDORA's train split (unrotated, as released) and
+    score its test split: COCO AP/AP50/AP75 with the spherical IoU and USF's mAP@10.
+    Writes ``results.json`` and ``spherical.pt`` under ``out``."""
+    from ..datasets import Pandora
+
+    rank, _ = setup_distributed()
+    seed_everything(seed)
+    out, t0 = Path(out), time.time()
+    train = DetectionSet.spherical(Pandora(root, "train", grid=grid, progress=progress))
+    test = DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
+    C = len(PANDORA_CLASSES)
+    net = SphericalDetector(num_classes=C)
+    fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
+        log_dir=out / "spherical", config=net.config, progress=progress, name="spherical",
+        step=detection_step, collate_fn=train.collate)
+    if rank != 0:
+        return {}
+    res = {"samples": {"train": len(train), "test": len(test)},
+           "spherical": score(predict(net, test, progress=progress), test, C),
+           "seconds": round(time.time() - t0, 1)}
+    save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"])
+    (out / "results.json").write_text(json.dumps(res, indent=1))
+    return res
 
 
 def format_table(results: dict, metric: str = "AP50") -> str:

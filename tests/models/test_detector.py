@@ -1,0 +1,190 @@
+"""The detectors: exact equivariance of the spherical box head, targets that decode back to
+their boxes (spherical and planar), losses that train, bad inputs."""
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph import grids
+from usf_graph.geometry import rotation_from_axis_angle
+from usf_graph.models import PlanarDetector, SphericalDetector
+from usf_graph.models.centernet import heatmap_targets, logmap
+from usf_graph.nn import SurfaceJet, geodesic_radius_graph
+from usf_graph.ops import box_corners, box_iou, rotate_boxes
+from usf_graph.testing import smooth_signal, symmetry_permutation
+
+SMALL = dict(num_classes=3, input_level=3, head_level=2, min_level=1, channels=(4, 6, 8),
+             pairs=2, gradient_fields=2)
+# seam, pole, roll +-90, tall and wide boxes (radians)
+BOXES = torch.tensor(np.radians([[179.0, 10, 30, 20, 0], [-40, 84, 25, 40, 0],
+                                 [60, -20, 12, 50, 90], [-120, 5, 60, 15, -90],
+                                 [10, 30, 40, 40, 30], [100, -70, 20, 10, 0]]))
+
+
+def _icosahedral_symmetry(level):
+    pos = grids.icosahedral(level).pos
+    axis = pos[0] / pos[0].norm()  # an icosahedron vertex: a 5-fold axis
+    R = rotation_from_axis_angle(axis, torch.tensor(2 * np.pi / 5, dtype=torch.float64))
+    return R, symmetry_permutation(pos, R)
+
+
+def _same_boxes(a, b, tol):
+    """Largest corner distance between box sets matched in order (a box's corners can be
+    listed from another start after a roll wraps, so match each corner to the nearest)."""
+    ca, cb = box_corners(torch.as_tensor(a)), box_corners(torch.as_tensor(b))
+    d = torch.cdist(ca, cb).amin(-1).amax()
+    return float(d) <= tol
+
+
+def test_surface_jet_gives_tangent_gradients_of_linear_functions():
+    g = grids.icosahedral(4)  # the fit's truncation error (~|u|^2/6 relative) is ~0.6% here
+    ei, ew = geodesic_radius_graph(g.pos, 3.5 * g.spacing)
+    jet = SurfaceJet(g.pos, ei, ew, g.spacing).double()
+    a = torch.tensor([0.3, -0.8, 0.5], dtype=torch.float64)
+    d = jet((g.pos @ a)[None, :, None])[0, :, 0]  # [N, 5]
+    grad = d[:, :1] * jet.frame[:, 0] + d[:, 1:2] * jet.frame[:, 1]
+    want = a - (g.pos @ a)[:, None] * g.pos  # the surface gradient of p . a
+    assert (grad - want).abs().max() < 1e-2 * a.norm()
+    # Hessian of p . a on the sphere: -(p . a) I on the tangent plane
+    assert (d[:, 2] + g.pos @ a).abs().max() < 2e-2 and d[:, 3].abs().max() < 2e-2
+
+
+def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries():
+    torch.manual_seed(0)
+    m = SphericalDetector(**SMALL).double().eval()
+    with torch.no_grad():  # a rough head: many peaks of many shapes
+        m.head.weight.mul_(30)
+    R, sigma = _icosahedral_symmetry(3)
+    pos = grids.icosahedral(3).pos
+    x = torch.as_tensor(smooth_signal(pos.numpy()))[None] + torch.randn(1, len(pos), 3, dtype=torch.float64)
+    xr = torch.empty_like(x)
+    xr[:, sigma] = x
+    with torch.no_grad():
+        out, outr = m(x), m(xr)
+    # every field at every head point: scalars permute, the offset rotates
+    _, sh = _icosahedral_symmetry(SMALL["head_level"])
+    for f in ("heat", "s"):
+        assert (outr[f][:, sh] - out[f]).abs().max() < 1e-9
+    assert (outr["offset"][:, sh] - out["offset"] @ R.T).abs().max() < 1e-12
+    assert out["offset"].norm(dim=-1).max() > 1e-5  # not zero, so the check above bites
+    # spin-2 and spin-4 fields turn by 2 and 4 times the frame angle: compare frame-free
+    for f in ("dev", "quad"):
+        assert (outr[f][:, sh].norm(dim=-1) - out[f].norm(dim=-1)).abs().max() < 1e-12
+    kw = dict(k=100, threshold=0.0, nms=None)
+    d, dr = m.decode(out, **kw)[0], m.decode(outr, **kw)[0]
+    assert len(d["boxes"]) >= 3 and np.unique(d["scores"]).size == len(d["scores"])
+    np.testing.assert_allclose(dr["scores"], d["scores"], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(dr["classes"], d["classes"])
+    assert _same_boxes(dr["boxes"], rotate_boxes(d["boxes"], R.numpy()), 1e-6)
+    # the boxes are not trivial: different shapes and orientations
+    assert np.ptp(d["boxes"][:, 2]) > 1e-3 and np.ptp(d["boxes"][:, 4]) > 0.1
+
+
+def _perfect_fields(model, boxes, classes):
+    """The fields a perfect spherical detector would output: heat 1 at each box's centre
+    point, and at that point the targets the loss trains towards."""
+    t = model.targets(boxes, classes, torch.zeros(len(boxes), dtype=torch.long), 1)
+    M = len(model.head_pos)
+    heat = torch.full((1, M, model.num_classes), -20.0, dtype=torch.float64)
+    heat[0, t["nearest"], classes] = 20.0
+    out = {"heat": heat, "s": torch.zeros(1, M, dtype=torch.float64),
+           "offset": torch.zeros(1, M, 3, dtype=torch.float64),
+           "dev": torch.zeros(1, M, 2, dtype=torch.float64),
+           "quad": torch.zeros(1, M, 2, dtype=torch.float64), "mask": None}
+    for k, p in enumerate(t["nearest"].tolist()):
+        r = torch.nonzero((t["point"] == p) & (t["box"] == k)).flatten()[0]
+        for f in ("s", "offset", "dev", "quad"):
+            out[f][0, p] = t[f][r]
+    return out
+
+
+def test_spherical_targets_decode_back_to_their_boxes():
+    m = SphericalDetector(**SMALL).double()
+    classes = torch.tensor([0, 1, 2, 0, 1, 2])
+    det = m.decode(_perfect_fields(m, BOXES, classes), threshold=0.5)[0]
+    assert len(det["boxes"]) == len(BOXES)
+    order = np.argsort(det["boxes"][:, 0])
+    ref = np.argsort(BOXES[:, 0].numpy())
+    iou = box_iou(torch.as_tensor(det["boxes"][order]), BOXES[ref], dtype=torch.float64)
+    assert iou.min() > 0.97  # axes moved from the grid point to the centre by projection
+    np.testing.assert_array_equal(det["classes"][order], classes[ref].numpy())
+
+
+def test_offset_potential_gives_the_log_map():
+    """An offset field -d^2 / 2h^2 around a centre decodes to that centre from every point
+    near it (the jet's quadratic fit of the potential)."""
+    m = SphericalDetector(**SMALL).double()
+    P, h, C, K = m.head_pos, m.head_spacing, m.num_classes, m.K
+    c = torch.nn.functional.normalize(torch.tensor([[0.3, 0.5, 0.7]], dtype=torch.float64), dim=-1)
+    d = torch.atan2(torch.linalg.cross(P, c.expand_as(P)).norm(dim=-1), P @ c[0])
+    f = torch.zeros(1, len(P), m.head.out_features, dtype=torch.float64)
+    f[0, :, C + 1] = -d ** 2 / (2 * h * h)
+    near = torch.nonzero(d < 1.5 * h).flatten()
+    err = (m._fields(f, None)["offset"][0, near] - logmap(P[near], c)).norm(dim=-1)
+    assert len(near) >= 4 and err.max() < 0.02 * h
+
+
+def test_planar_targets_decode_back_to_their_boxes():
+    m = PlanarDetector(num_classes=3, height=64, width=128, channels=(4, 8)).double()
+    classes = torch.tensor([0, 1, 2, 0, 1, 2])
+    boxes = BOXES.clone()
+    boxes[:, 4] = torch.tensor([0.0, 0.0, 0.3, -0.4, 0.5, 0.0])  # rolls within [-pi/2, pi/2)
+    heat_t, near, _ = heatmap_targets(m.points, boxes, classes, torch.zeros(6, dtype=torch.long),
+                                      1, 3, m.spacing)
+    W = m.out_camera.width
+    uv = m._pixels(boxes[:, :2].new_tensor(
+        np.stack([np.cos(boxes[:, 1]) * np.cos(boxes[:, 0]), np.cos(boxes[:, 1]) * np.sin(boxes[:, 0]),
+                  np.sin(boxes[:, 1])], -1)))
+    off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
+    off[:, 0] = torch.remainder(off[:, 0] + W / 2, W) - W / 2
+    heat = torch.full((1, len(m.points), 3), -20.0, dtype=torch.float64)
+    heat[0, near, classes] = 20.0
+    box = torch.zeros(1, len(m.points), 5, dtype=torch.float64)
+    box[0, near] = torch.cat([off, boxes[:, 2:4].log(), boxes[:, 4:]], -1)
+    det = m.decode({"heat": heat, "box": box, "mask": None}, threshold=0.5)[0]
+    order, ref = np.argsort(det["boxes"][:, 0]), np.argsort(boxes[:, 0].numpy())
+    np.testing.assert_allclose(det["boxes"][order], boxes[ref].numpy(), atol=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["spherical", "planar"])
+def test_detectors_learn_a_batch(kind):
+    torch.manual_seed(0)
+    classes = torch.tensor([0, 1, 2, 0, 1, 2])
+    image = torch.tensor([0, 0, 0, 1, 1, 1])
+    if kind == "spherical":
+        m = SphericalDetector(**SMALL)
+        x = torch.randn(2, len(grids.icosahedral(3).pos), 3)
+    else:
+        m = PlanarDetector(num_classes=3, height=32, width=64, channels=(4, 8))
+        x = torch.randn(2, 3, 32, 64)
+    opt = torch.optim.Adam(m.parameters(), 1e-2)
+    losses = []
+    for _ in range(30):
+        loss, stats = m.loss(m(x), BOXES.float(), classes, image)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert all(np.isfinite(v) for v in stats.values())
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_detector_errors_and_masks():
+    m = SphericalDetector(**SMALL)
+    n = len(grids.icosahedral(3).pos)
+    with pytest.raises(ValueError, match=r"expected x \[B, 642, 3\]"):
+        m(torch.randn(1, 100, 3))
+    with pytest.raises(ValueError, match="NaN"):
+        m(torch.full((1, n, 3), float("nan")))
+    with pytest.raises(ValueError, match="some point visible"):
+        m(torch.randn(1, n, 3), torch.zeros(n, dtype=torch.bool))
+    with pytest.raises(ValueError, match="min_level <= head_level"):
+        SphericalDetector(input_level=3, head_level=4, min_level=1, channels=(4, 6, 8))
+    mask = grids.icosahedral(3).pos[:, 0] > 0  # a forward hemisphere
+    out = m(torch.randn(2, n, 3), mask)
+    hidden = ~out["mask"]
+    assert hidden.any() and out["mask"].any()
+    det = m.detect(torch.randn(n, 3), mask, threshold=0.0, k=50, nms=None)[0]
+    centres = m.head_pos[[int(np.argmax(m.head_pos.numpy() @ np.array(
+        [np.cos(b[1]) * np.cos(b[0]), np.cos(b[1]) * np.sin(b[0]), np.sin(b[1])]))) for b in det["boxes"]]]
+    assert len(det["boxes"]) and (centres[:, 0] > -0.5).all()  # peaks only where the camera sees
