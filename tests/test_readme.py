@@ -78,3 +78,15 @@ def test_scenes_section_runs(tmp_path, monkeypatch):
     cmd = re.findall(r"```bash\n(.*?)```", section, re.S)[0].split("#")[0].split()
     assert cmd[0].endswith("usf-graph") and main([*cmd[1:], "--num", "1", "--size", "64"]) == 0
     assert (tmp_path / "runs/scenes/contact_sheet.png").exists()
+
+
+def test_detection_section_runs(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Detection with spherical boxes", 1)[1].split("\n## ", 1)[0]
+    code = "\n".join(re.findall(r"```python\n(.*?)```", section, re.S))
+    scope = {}
+    exec(compile(code, "README detection", "exec"), scope)  # noqa: S102 - our own README
+    b = scope["found"][0]["boxes"]
+    assert 1 <= len(b) <= 5 and b.shape[1] == 5 and len(scope["found"]) == 2
+    assert "--dataset pandora" in section and "not run here" in section
