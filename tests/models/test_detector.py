@@ -114,7 +114,7 @@ def test_offset_potential_gives_the_log_map():
     """An offset field -d^2 / 2h^2 around a centre decodes to that centre from every point
     near it (the jet's quadratic fit of the potential)."""
     m = SphericalDetector(**SMALL).double()
-    P, h, C, K = m.head_pos, m.head_spacing, m.num_classes, m.K
+    P, h, C = m.head_pos, m.head_spacing, m.num_classes
     c = torch.nn.functional.normalize(torch.tensor([[0.3, 0.5, 0.7]], dtype=torch.float64), dim=-1)
     d = torch.atan2(torch.linalg.cross(P, c.expand_as(P)).norm(dim=-1), P @ c[0])
     f = torch.zeros(1, len(P), m.head.out_features, dtype=torch.float64)

@@ -24,7 +24,7 @@ from ..frontend import render
 from ..models import PlanarDetector, SphericalDetector
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
-from .engine import fit, save_checkpoint, seed_everything, setup_distributed
+from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -177,17 +177,10 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         save_checkpoint(out / f"{name}.pt", net, net.config, results[name])
     if rank != 0:
         return {}
-    results["seconds"] = round(time.time() - t0, 1)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    try:
-        from ..viz import plot_detections
+    from ..viz import plot_detections
 
-        plot_detections(sets, preds["spherical"], out / "det_results.png")
-        results["figure"] = str(out / "det_results.png")
-    except Exception as e:  # noqa: BLE001 - a failed plot must not lose the results
-        print(f"[usf-graph] could not draw the figure: {e}")
-    return results
+    return write_results(out, results, t0, "det_results.png",
+                         lambda p: plot_detections(sets, preds["spherical"], p))
 
 
 def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,

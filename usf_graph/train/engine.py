@@ -222,3 +222,21 @@ def _log(log_dir: Path, history: list[dict], writer) -> None:
         for k, v in history[-1].items():
             if k != "epoch":
                 writer.add_scalar(k, v, history[-1]["epoch"])
+
+
+def write_results(out, results: dict, t0: float, figure: str, plot: Callable[[Path], object]) -> dict:
+    """Finish a task's run: add its wall time, write ``results.json`` under ``out``, then
+    draw ``figure`` with ``plot(path)``. A failed plot is reported and must not lose the
+    results, which are already written."""
+    import time
+
+    out = Path(out)
+    results["seconds"] = round(time.time() - t0, 1)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    try:
+        plot(out / figure)
+        results["figure"] = str(out / figure)
+    except Exception as e:  # noqa: BLE001
+        print(f"[usf-graph] could not draw the figure: {e}")
+    return results

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -13,7 +12,14 @@ from ..cameras import Equirectangular
 from ..datasets import SphericalMNIST
 from ..frontend import SphericalFrontend
 from ..models import PlanarCNN, SphericalClassifier
-from .engine import evaluate, fit, save_checkpoint, seed_everything, setup_distributed
+from .engine import (
+    evaluate,
+    fit,
+    save_checkpoint,
+    seed_everything,
+    setup_distributed,
+    write_results,
+)
 
 
 def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
@@ -66,17 +72,10 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
         train_and_score("planar", PlanarCNN(), pl)
     if rank != 0:
         return {}
-    results["seconds"] = round(time.time() - t0, 1)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    try:
-        from ..viz import plot_mnist_results
+    from ..viz import plot_mnist_results
 
-        plot_mnist_results(results, model, test_r, out / "mnist_results.png")
-        results["figure"] = str(out / "mnist_results.png")
-    except Exception as e:  # noqa: BLE001 - a failed plot must not lose the results
-        print(f"[usf-graph] could not draw the figure: {e}")
-    return results
+    return write_results(out, results, t0, "mnist_results.png",
+                         lambda p: plot_mnist_results(results, model, test_r, p))
 
 
 def format_table(results: dict) -> str:
