@@ -60,7 +60,7 @@ class DetectionSet(Dataset):
                    None if mask is None or mask.all() else mask)
 
     @classmethod
-    def planar(cls, ds, width: int, height: int) -> DetectionSet:
+    def planar(cls, ds, width: int, height: int, progress: bool = True) -> DetectionSet:
         """The split's images as ``width x height`` panoramas: as they are when the camera is
         that panorama, re-imaged through the sphere otherwise."""
         pano = Equirectangular(width, height)
@@ -68,7 +68,7 @@ class DetectionSet(Dataset):
         if cam.key() == pano.key():
             return cls(ds.image, ds.boxes, ds.box_class, ds.box_ptr)
         imgs = np.stack([render(im.numpy(), cam, pano) for im in tqdm(
-            ds.image, desc="re-imaging as panoramas", leave=False)])
+            ds.image, desc="re-imaging as panoramas", leave=False, disable=not progress)])
         _, seen = cam.sees(pano.lens_normal_map()[0].reshape(-1, 3))
         return cls(torch.as_tensor(imgs), ds.boxes, ds.box_class, ds.box_ptr,
                    torch.as_tensor(seen.reshape(height, width)))
@@ -159,7 +159,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     if planar:
         w, h = 2 * size, size
         models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w),
-                            lambda ds: DetectionSet.planar(ds, w, h), planar_epochs or epochs)
+                            lambda ds: DetectionSet.planar(ds, w, h, progress), planar_epochs or epochs)
     preds = {}
     for name, (net, make, ep) in models.items():
         data = {k: make(d) for k, d in sets.items()}
