@@ -53,7 +53,7 @@ def cmd_eval_det(args) -> int:
     planar = "height" in cfg
     model = (PlanarDetector if planar else SphericalDetector).from_config(cfg)
     model.load_state_dict(blob["state_dict"])
-    sets = protocol_sets(args.root or "data/rooms", args.size, num_train=1,
+    sets = protocol_sets(args.root or "data/rooms", args.size, num_train=0,
                          num_test=args.num_test, seed=args.seed)
     for k in args.test or list(PROTOCOL):
         ds = sets[k]

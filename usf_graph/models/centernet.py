@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..geometry import from_latlon
+from ..geometry import from_latlon, geodesic_distance
 from ..ops import spherical_nms
 
 # A box's heatmap is a Gaussian of geodesic distance with this share of its size as sigma,
@@ -70,10 +70,8 @@ def heatmap_targets(points: torch.Tensor, boxes: torch.Tensor, classes: torch.Te
         return (target.view(num_images, num_classes, M).transpose(1, 2), none,
                 (none, none, points.new_zeros(0)))
     c = box_centres(boxes).to(points.dtype)
-    cos = (c @ points.T).clamp(-1, 1)  # [K, M]
-    nearest = cos.argmax(1)
-    sin = torch.linalg.cross(c[:, None].expand(-1, M, -1), points[None].expand(len(c), -1, -1)).norm(dim=-1)
-    d = torch.atan2(sin, cos)
+    nearest = (c @ points.T).argmax(1)
+    d = geodesic_distance(c[:, None], points[None])  # [K, M]
     sigma = torch.clamp(SIGMA_SHARE * (boxes[:, 2] * boxes[:, 3]).sqrt().to(points.dtype), min=spacing / 2)
     g = torch.exp(-0.5 * (d / sigma[:, None]) ** 2)
     g[torch.arange(len(c)), nearest] = 1.0

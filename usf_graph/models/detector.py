@@ -91,8 +91,9 @@ class SphericalDetector(Detector):
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(input_level)`` ->
     ``{"heat": [B, M, num_classes], "s": [B, M], "offset": [B, M, 3], "dev": [B, M, 2],
-    "mask": [M] or None}`` on ``icosahedral(head_level)`` (``offset`` in 3D, ``dev`` the
-    traceless shape in the head's :func:`~usf_graph.nn.tangent_frame`).
+    "quad": [B, M, 2], "mask": [M] or None}`` on ``icosahedral(head_level)`` (``offset``
+    in 3D; ``dev``, the traceless shape, and ``quad``, the spin-4 axis field, in the
+    head's :func:`~usf_graph.nn.tangent_frame`).
     """
 
     def __init__(self, num_classes: int = 12, in_channels: int = 3, input_level: int = 5,
@@ -205,7 +206,7 @@ class SphericalDetector(Detector):
             z = jet[..., 3:, :2] * h  # [B, M, K, 2] gradients as complex numbers
             z2 = _square(z)
             w, u = f[..., C + 4 + K:C + 4 + 2 * K, None], f[..., C + 4 + 2 * K:, None]
-            dev = dev + (w * torch.stack([z2[..., 0], z2[..., 1]], -1) / 2).sum(-2)
+            dev = dev + (w * z2 / 2).sum(-2)
             quad = quad + (u * _square(z2)).sum(-2)
         return {"heat": f[..., :C], "s": f[..., C], "offset": offset, "dev": dev, "quad": quad,
                 "mask": mask}
@@ -231,8 +232,9 @@ class SphericalDetector(Detector):
     def loss(self, out: dict, boxes: torch.Tensor, classes: torch.Tensor,
              image: torch.Tensor) -> tuple[torch.Tensor, dict]:
         r"""Focal loss on the heatmaps plus weighted smooth-L1 losses on the offset (in
-        grid spacings), the mean log size and the traceless shape at the regression
-        samples (norms of differences, so the loss is the same in every tangent frame)."""
+        grid spacings), the mean log size, the traceless shape and the spin-4 axis field at
+        the regression samples (norms of differences, so the loss is the same in every
+        tangent frame)."""
         B = out["heat"].shape[0]
         t = self.targets(boxes, classes, image, B)
         mask = None if out["mask"] is None else out["mask"].expand(B, -1)

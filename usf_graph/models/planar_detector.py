@@ -19,6 +19,21 @@ def _block(c_in: int, c_out: int) -> nn.Sequential:
                          nn.ReLU(inplace=True))
 
 
+def _ring(H: int, W: int) -> torch.Tensor:
+    """Edges ``[2, E]`` (neighbour, centre) from each pixel of an ``H x W`` panorama to
+    itself and its 8 neighbours, wrapping in longitude."""
+    r, c = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    centre = (r * W + c).ravel()
+    edges = []
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            rr = r + dr
+            ok = ((rr >= 0) & (rr < H)).ravel()
+            nb = (np.clip(rr, 0, H - 1) * W + (c + dc) % W).ravel()
+            edges.append(np.stack([nb[ok], centre[ok]]))
+    return torch.as_tensor(np.concatenate(edges, 1))
+
+
 class PlanarDetector(Detector):
     r"""CenterNet on equirectangular images, the baseline of :class:`SphericalDetector`.
 
@@ -58,6 +73,7 @@ class PlanarDetector(Detector):
         rays, _ = self.out_camera.lens_normal_map()
         self.register_buffer("points", torch.as_tensor(rays.reshape(-1, 3)), persistent=False)
         self.spacing = math.pi / (height // 2)
+        self.register_buffer("ring", _ring(height // 2, width // 2), persistent=False)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -122,7 +138,7 @@ class PlanarDetector(Detector):
             prob = prob * out["mask"][:, None]
         res = []
         for b in range(prob.shape[0]):
-            pt, cls, score = peaks(prob[b], self._ring(), k, threshold)
+            pt, cls, score = peaks(prob[b], self.ring, k, threshold)
             W = self.out_camera.width
             bx = out["box"][b, pt].detach().double()
             uv = torch.stack([pt % W + bx[:, 0], pt // W + bx[:, 1]], -1).numpy()
@@ -133,18 +149,3 @@ class PlanarDetector(Detector):
             boxes = np.stack([lon, lat, fov[:, 0], fov[:, 1], roll], -1).reshape(-1, 5)
             res.append(detections(boxes, cls, score, nms))
         return res
-
-    def _ring(self) -> torch.Tensor:
-        if getattr(self, "_ring_cache", None) is None:
-            H, W = self.out_camera.height, self.out_camera.width
-            r, c = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
-            centre = (r * W + c).ravel()
-            edges = []
-            for dr in (-1, 0, 1):
-                for dc in (-1, 0, 1):
-                    rr = r + dr
-                    ok = ((rr >= 0) & (rr < H)).ravel()
-                    nb = (np.clip(rr, 0, H - 1) * W + (c + dc) % W).ravel()
-                    edges.append(np.stack([nb[ok], centre[ok]]))
-            self._ring_cache = torch.as_tensor(np.concatenate(edges, 1))
-        return self._ring_cache
