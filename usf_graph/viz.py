@@ -239,3 +239,24 @@ def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_scor
             row.append((f"{title}: truth (green), detections (yellow)", img))
         rows.append(row)
     return contact_sheet(rows, path, titles=[f"test view {i}" for i in samples])
+
+
+def plot_segmentation(sets: dict, preds: dict, path=None, sample: int = 0):
+    """The segmentation protocol's figure: for one test view per protocol (rows), the
+    camera's image, the true labels and each model's prediction in the camera's pixels
+    (pixels the camera does not see are black). ``sets``: protocol key -> dataset;
+    ``preds``: model name -> protocol key -> ``[S, H, W]`` labels (see
+    :mod:`usf_graph.train.seg`)."""
+    from .scenes import PALETTE, SEMANTIC_CLASSES, colourize
+
+    keys = [k for k in sets if k != "train" and all(k in p for p in preds.values())]
+    rows = []
+    for k in keys:
+        ds = sets[k]
+        seen = ds.label_image[sample].numpy() != 255
+        row = [(f"({k}) image", ds.image[sample].numpy()),
+               (f"({k}) truth", colourize(ds.label_image[sample].numpy()))]
+        for name, p in preds.items():
+            row.append((f"({k}) {name}", colourize(np.where(seen, p[k][sample], 255))))
+        rows.append(row)
+    return contact_sheet(rows, path, legend=dict(zip(SEMANTIC_CLASSES, PALETTE)))

@@ -3,7 +3,11 @@
 from .classifier import PlanarCNN, SphericalClassifier, grid_graph
 from .detector import SphericalDetector
 from .planar_detector import PlanarDetector
+from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
+from .deeplab import SphericalDeepLabV3
+from .unet import SphericalBackbone, SphericalUNet
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",
-           "SphericalDetector", "PlanarDetector"]
+           "SphericalDetector", "PlanarDetector", "SphericalBackbone", "SphericalUNet",
+           "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3"]

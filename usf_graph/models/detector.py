@@ -35,34 +35,12 @@ import torch
 from torch import nn
 
 from ..frontend import grid_graph
-from ..grids import icosahedral
-from ..nn import GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv, SurfaceJet
+from ..nn import SurfaceJet
 from ..ops import box_axes, boxes_from_axes
 from .centernet import Detector, detections, expmap, focal_loss, heatmap_targets, logmap, peaks
+from .unet import ConvStage, SphericalBackbone
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
-
-
-class _Stage(nn.Module):
-    """conv -> masked BatchNorm -> ReLU on one grid (area-weighted, mask-aware)."""
-
-    def __init__(self, grid, c_in: int, c_out: int, radius_spacings: float, num_basis: int):
-        super().__init__()
-        r = radius_spacings * grid.spacing
-        ei, ew = grid_graph(grid, r)
-        self.register_buffer("area", grid.area.float(), persistent=False)
-        self.conv = SphericalConv(c_in, c_out, r, num_basis=num_basis, basis="gaussian").bind(
-            ei, ew.float(), node_weight=self.area)
-        self.norm = MaskedBatchNorm(c_out)
-
-    def forward(self, x, mask=None):
-        a = self.area.to(x.dtype)
-        return torch.relu(self.norm(self.conv(x, mask=mask), mask=mask, node_weight=a))
-
-
-def _blur(src, dst, sigma_spacings: float = 0.5):
-    """Gaussian resampling from grid ``src`` to grid ``dst`` (pooling or upsampling)."""
-    return GaussianPool(src.pos, dst.pos, sigma_spacings * max(src.spacing, dst.spacing), area=src.area)
 
 
 def _spin2(h: torch.Tensor) -> torch.Tensor:
@@ -104,43 +82,19 @@ class SphericalDetector(Detector):
         if not min_level <= head_level <= input_level:
             raise ValueError(f"need min_level <= head_level <= input_level, got {min_level}, "
                              f"{head_level}, {input_level}")
-        if len(channels) != input_level - min_level + 1:
-            raise ValueError(f"channels needs one entry per level {input_level}..{min_level} "
-                             f"({input_level - min_level + 1}), got {len(channels)}")
         self.config = dict(num_classes=num_classes, in_channels=in_channels,
                            input_level=input_level, head_level=head_level, min_level=min_level,
                            channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gradient_fields=gradient_fields)
         self.num_classes, self.K = num_classes, gradient_fields
-        grids = {lv: icosahedral(lv) for lv in range(min_level, input_level + 1)}
-        g = grids[input_level]
-        self.num_points = len(g)
-        ei, ew = grid_graph(g, jet_spacings * g.spacing)
-        self.jet = LocalJet(g.pos, ei, ew, g.spacing)
-        self.jet_norm = MaskedBatchNorm(4 * in_channels)
-        self.register_buffer("area_in", g.area.float(), persistent=False)
-        self.down, self.pairs, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
-        c_in, skips = 4 * in_channels, []
-        for s, lv in enumerate(range(input_level, min_level - 1, -1)):
-            g, c = grids[lv], channels[s]
-            self.down.append(_Stage(g, c_in, c, radius_spacings, num_basis))
-            c_in = c
-            if s < pair_stages and lv > min_level:
-                e2, w2 = grid_graph(g, jet_spacings * g.spacing)
-                self.pairs.append(GradientPairs(g.pos, e2, w2, g.spacing, c, pairs))
-                c_in = c + 2 * pairs
-            skips.append(c_in)
-            if lv > min_level:
-                self.pools.append(_blur(g, grids[lv - 1]))
-        self.ups, self.up = nn.ModuleList(), nn.ModuleList()
-        for lv in range(min_level + 1, head_level + 1):
-            skip = skips[input_level - lv]
-            self.ups.append(_blur(grids[lv - 1], grids[lv]))
-            self.up.append(_Stage(grids[lv], c_in + skip, skip, radius_spacings, num_basis))
-            c_in = skip
-        h = grids[head_level]
-        self.head_stage = _Stage(h, c_in, c_in, radius_spacings, num_basis)
+        self.backbone = SphericalBackbone(in_channels, input_level, head_level, min_level,
+                                          channels, num_basis, radius_spacings, jet_spacings,
+                                          pairs, pair_stages)
+        self.num_points = self.backbone.num_points
+        c_in = self.backbone.out_channels
+        h = self.backbone.grids[head_level]
+        self.head_stage = ConvStage(h, c_in, c_in, radius_spacings * h.spacing, num_basis)
         self.head = nn.Linear(c_in, num_classes + 4 + 3 * gradient_fields)
         e3, w3 = grid_graph(h, jet_spacings * h.spacing)
         self.surface = SurfaceJet(h.pos, e3, w3, h.spacing)
@@ -163,33 +117,7 @@ class SphericalDetector(Detector):
 
     # -- network ------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
-        n, c = self.num_points, self.config["in_channels"]
-        if x.dim() != 3 or tuple(x.shape[1:]) != (n, c):
-            raise ValueError(f"expected x [B, {n}, {c}] (a signal on icosahedral:"
-                             f"{self.config['input_level']}), got {tuple(x.shape)}")
-        if not torch.isfinite(x).all():
-            raise ValueError("x has NaN or inf; lift images with SphericalFrontend or clean them")
-        if mask is not None and (mask.shape != (n,) or not mask.any()):
-            raise ValueError(f"mask must be a bool [{n}] with some point visible, got "
-                             f"{tuple(mask.shape)}")
-        m = None if mask is None or mask.all() else mask.bool()
-        x = self.jet_norm(self.jet(x), mask=m, node_weight=self.area_in.to(x.dtype))
-        skips, masks = [], []
-        for s, stage in enumerate(self.down):
-            x = stage(x, m)
-            if s < len(self.pairs):
-                x = torch.cat([x, self.pairs[s](x)], -1)
-            skips.append(x)
-            masks.append(m)
-            if s < len(self.pools):
-                x, mp = self.pools[s](x, m)
-                m = None if m is None else mp
-        skips.pop()
-        masks.pop()
-        for up, stage in zip(self.ups, self.up):
-            x, _ = up(x)
-            m = masks.pop()
-            x = stage(torch.cat([x, skips.pop()], -1), m)
+        x, m = self.backbone(x, mask)
         f = self.head(self.head_stage(x, m))
         return self._fields(f, m)
 

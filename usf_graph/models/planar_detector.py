@@ -12,11 +12,7 @@ from ..cameras import Equirectangular
 from ..geometry import to_latlon
 from .centernet import Detector, box_centres, detections, focal_loss, heatmap_targets, peaks
 from .detector import MAX_FOV
-
-
-def _block(c_in: int, c_out: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, padding=1, bias=False), nn.BatchNorm2d(c_out),
-                         nn.ReLU(inplace=True))
+from .planar_seg import PlanarUNet
 
 
 def _ring(H: int, W: int) -> torch.Tensor:
@@ -60,15 +56,7 @@ class PlanarDetector(Detector):
         self.config = dict(num_classes=num_classes, in_channels=in_channels, height=height,
                            width=width, channels=list(channels))
         self.num_classes = num_classes
-        self.down, c_in = nn.ModuleList(), in_channels
-        for c in channels:
-            self.down.append(nn.Sequential(_block(c_in, c), _block(c, c)))
-            c_in = c
-        self.up = nn.ModuleList()
-        for c in reversed(channels[1:-1]):
-            self.up.append(_block(c_in + c, c))
-            c_in = c
-        self.head = nn.Sequential(_block(c_in, c_in), nn.Conv2d(c_in, num_classes + 5, 1))
+        self.body = PlanarUNet(num_classes + 5, in_channels, channels, out_stride=2)
         self.out_camera = Equirectangular(width // 2, height // 2)
         rays, _ = self.out_camera.lens_normal_map()
         self.register_buffer("points", torch.as_tensor(rays.reshape(-1, 3)), persistent=False)
@@ -77,11 +65,9 @@ class PlanarDetector(Detector):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        for m in self.modules():
-            if isinstance(m, (nn.Conv2d, nn.BatchNorm2d)):
-                m.reset_parameters()
+        self.body.reset_parameters()
         with torch.no_grad():
-            self.head[-1].bias[: self.num_classes].fill_(-4.6)
+            self.body.head[-1].bias[: self.num_classes].fill_(-4.6)
 
     @classmethod
     def from_config(cls, config: dict) -> PlanarDetector:
@@ -92,16 +78,7 @@ class PlanarDetector(Detector):
         if x.dim() != 4 or tuple(x.shape[1:]) != (self.config["in_channels"], H, W):
             raise ValueError(f"expected x [B, {self.config['in_channels']}, {H}, {W}], got "
                              f"{tuple(x.shape)}")
-        skips = []
-        for i, block in enumerate(self.down):
-            x = block(x if i == 0 else nn.functional.max_pool2d(x, 2))
-            skips.append(x)
-        skips.pop()
-        for block in self.up:
-            skip = skips.pop()
-            x = nn.functional.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-            x = block(torch.cat([x, skip], 1))
-        f = self.head(x).flatten(2).transpose(1, 2)  # [B, M, C + 5]
+        f = self.body(x).flatten(2).transpose(1, 2)  # [B, M, C + 5]
         if mask is not None:
             mask = nn.functional.max_pool2d(mask.view(1, 1, H, W).float(), 2).flatten().bool()
         return {"heat": f[..., : self.num_classes], "box": f[..., self.num_classes:], "mask": mask}

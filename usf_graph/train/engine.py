@@ -91,8 +91,20 @@ def _batches(dataset: Dataset, batch_size: int, shuffle: bool, seed: int, epoch:
         sampler.set_epoch(epoch)
         batch_size = batch_size // dist.get_world_size()
     g = torch.Generator().manual_seed(seed + epoch)
-    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None,
-                      sampler=sampler, generator=g, collate_fn=collate_fn)
+    return _loader(dataset, batch_size, collate_fn, shuffle=shuffle and sampler is None,
+                   sampler=sampler, generator=g)
+
+
+def _loader(dataset, batch_size: int, collate_fn, **kw) -> DataLoader:
+    """A DataLoader; PyG datasets (without a ``collate_fn`` of their own) get PyG's, whose
+    batches are :class:`torch_geometric.data.Batch` objects."""
+    from torch_geometric.data import Dataset as PyGDataset
+
+    if collate_fn is None and isinstance(dataset, PyGDataset):
+        from torch_geometric.loader import DataLoader as PyGLoader
+
+        return PyGLoader(dataset, batch_size=batch_size, **kw)
+    return DataLoader(dataset, batch_size=batch_size, collate_fn=collate_fn, **kw)
 
 
 def classification_step(model: nn.Module, batch) -> tuple[torch.Tensor, dict, int]:
@@ -129,7 +141,7 @@ def evaluate(model: nn.Module, dataset: Dataset, batch_size: int = 256,
     accuracy of a classifier over ``(x, y)`` pairs)."""
     model.eval()
     mean = _Mean()
-    loader = DataLoader(dataset, batch_size=batch_size, collate_fn=collate_fn)
+    loader = _loader(dataset, batch_size, collate_fn)
     for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
         mean.add(*step(model, batch))
     return mean.means()
@@ -142,7 +154,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         step: Step = classification_step, collate_fn=None) -> dict:
     """Train a model with AdamW and a cosine schedule; ``step(model, batch) -> (loss,
     stats, n)`` says what a batch's loss is (default: :func:`classification_step`), and
-    ``collate_fn`` how samples make a batch (the DataLoader's).
+    ``collate_fn`` how samples make a batch (the DataLoader's; PyG datasets are batched
+    by PyG's loader into :class:`~torch_geometric.data.Batch` objects by default).
 
     Logs ``metrics.csv`` / ``metrics.json`` (and TensorBoard when installed) under
     ``log_dir`` and writes ``last.pt`` each epoch; ``resume=True`` continues from it.

@@ -1,0 +1,252 @@
+r"""The spherical U-Net: a mask-aware encoder-decoder on the icosahedral hierarchy.
+
+:class:`SphericalBackbone` is shared by the segmentation models and the detector; it holds
+the pieces every dense spherical model needs: the invariant local features of the input
+(:class:`~usf_graph.nn.LocalJet`, :class:`~usf_graph.nn.GradientPairs`), conv stages that
+see only the camera's field of view, Gaussian pooling and upsampling between levels, and
+skip connections.
+
+**Resolution transfer.** Every radius (kernels, jet fits, pooling blurs) is fixed in
+radians from the grid levels the model was built for; ``refine=k`` runs the same network
+on grids ``k`` levels finer. A distance-kernel convolution with area weights is a
+quadrature of one continuous operator, so the refined network computes (a better
+approximation of) the same function and takes the trained weights unchanged
+(:meth:`SphericalUNet.refined`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+
+from ..frontend import grid_graph
+from ..grids import icosahedral
+from ..nn import GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv
+
+_SPACING: dict[int, float] = {}
+
+
+def level_spacing(level: int) -> float:
+    """Mean spacing (radians) of ``icosahedral(level)``, memoized."""
+    if level not in _SPACING:
+        _SPACING[level] = float(icosahedral(level).spacing)
+    return _SPACING[level]
+
+
+class ConvStage(nn.Module):
+    """conv -> masked BatchNorm -> ReLU on one grid (area-weighted, mask-aware);
+    ``radius`` in radians."""
+
+    def __init__(self, grid, c_in: int, c_out: int, radius: float, num_basis: int):
+        super().__init__()
+        ei, ew = grid_graph(grid, radius)
+        self.register_buffer("area", grid.area.float(), persistent=False)
+        self.conv = SphericalConv(c_in, c_out, radius, num_basis=num_basis, basis="gaussian").bind(
+            ei, ew.float(), node_weight=self.area)
+        self.norm = MaskedBatchNorm(c_out)
+
+    def forward(self, x, mask=None):
+        a = self.area.to(x.dtype)
+        return torch.relu(self.norm(self.conv(x, mask=mask), mask=mask, node_weight=a))
+
+
+def blur(src, dst, sigma: float) -> GaussianPool:
+    """Gaussian resampling from grid ``src`` to grid ``dst`` (pooling or upsampling),
+    ``sigma`` in radians."""
+    return GaussianPool(src.pos, dst.pos, sigma, area=src.area)
+
+
+class FillHidden(nn.Module):
+    """Copies to each hidden point the value of its nearest visible point.
+
+    Derivatives (the jet) of a signal that drops to 0 outside a lens's field of view see a
+    false edge along its border; extending the image by its nearest visible value removes
+    it. The index is built once per mask (a k-d tree query) and memoized."""
+
+    def __init__(self, pos: torch.Tensor):
+        super().__init__()
+        self.pos = pos.double().numpy()
+        self._index: dict[bytes, torch.Tensor] = {}
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        if mask is None:
+            return x
+        key = np.packbits(mask.cpu().numpy()).tobytes()
+        if key not in self._index:
+            m = mask.cpu().numpy()
+            vis = np.flatnonzero(m)
+            _, j = cKDTree(self.pos[vis]).query(self.pos[~m])
+            idx = np.arange(len(m))
+            idx[~m] = vis[j]
+            if len(self._index) > 16:
+                self._index.clear()
+            self._index[key] = torch.as_tensor(idx)
+        return x[:, self._index[key].to(x.device)]
+
+
+def check_input(x: torch.Tensor, mask, n: int, c: int, level: int):
+    """Validate ``x [B, n, c]`` and ``mask [n]``; returns the mask as bool, or ``None``
+    when everything is seen."""
+    if x.dim() != 3 or tuple(x.shape[1:]) != (n, c):
+        raise ValueError(f"expected x [B, {n}, {c}] (a signal on icosahedral:{level}), got "
+                         f"{tuple(x.shape)}")
+    if not torch.isfinite(x).all():
+        raise ValueError("x has NaN or inf; lift images with SphericalFrontend or clean them")
+    if mask is not None and (mask.shape != (n,) or not mask.any()):
+        raise ValueError(f"mask must be a bool [{n}] with some point visible, got "
+                         f"{tuple(mask.shape)}")
+    return None if mask is None or mask.all() else mask.bool()
+
+
+class SphericalBackbone(nn.Module):
+    r"""Jet features, conv stages down from ``input_level`` to ``min_level`` and back up
+    to ``out_level`` with skips.
+
+    Stage s works on level ``input_level - s``: :class:`ConvStage` (kernel radius
+    ``radius_spacings`` grid spacings), followed for the first ``pair_stages`` stages by
+    ``pairs`` :class:`GradientPairs`; Gaussian pooling (0.5 coarse spacings) between
+    levels. The decoder upsamples with the same Gaussian, concatenates the skip and runs
+    a :class:`ConvStage`. ``mask`` (one ``[N]`` for the batch) keeps hidden points out of
+    every convolution and normalization; the jet sees the image extended by its nearest
+    visible values (:class:`FillHidden`).
+
+    :meth:`encode` returns the ``(features, mask)`` of every level, :meth:`forward` the
+    decoder's output ``([B, M, out_channels], mask [M] or None)`` on ``out_level``.
+    """
+
+    def __init__(self, in_channels: int = 3, input_level: int = 5, out_level: int = 5,
+                 min_level: int = 2, channels=(32, 64, 128, 128), num_basis: int = 3,
+                 radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
+                 pair_stages: int = 2, refine: int = 0):
+        super().__init__()
+        if not min_level <= out_level <= input_level:
+            raise ValueError(f"need min_level <= out_level <= input_level, got {min_level}, "
+                             f"{out_level}, {input_level}")
+        if len(channels) != input_level - min_level + 1:
+            raise ValueError(f"channels needs one entry per level {input_level}..{min_level} "
+                             f"({input_level - min_level + 1}), got {len(channels)}")
+        if refine < 0:
+            raise ValueError(f"refine must be >= 0, got {refine}")
+        self.input_level, self.out_level, self.refine = input_level, out_level, refine
+        self.grids = {lv: icosahedral(lv + refine) for lv in range(min_level, input_level + 1)}
+        h = {lv: level_spacing(lv) for lv in self.grids}  # radii stay those of the base levels
+        g = self.grids[input_level]
+        self.num_points, self.in_channels = len(g), in_channels
+        self.fill = FillHidden(g.pos)
+        self.jet = LocalJet(g.pos, *grid_graph(g, jet_spacings * h[input_level]), h[input_level])
+        self.jet_norm = MaskedBatchNorm(4 * in_channels)
+        self.register_buffer("area_in", g.area.float(), persistent=False)
+        self.down, self.pairs, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        c_in, skips = 4 * in_channels, []
+        for s, lv in enumerate(range(input_level, min_level - 1, -1)):
+            g, c = self.grids[lv], channels[s]
+            self.down.append(ConvStage(g, c_in, c, radius_spacings * h[lv], num_basis))
+            c_in = c
+            if s < pair_stages and lv > min_level:
+                self.pairs.append(GradientPairs(g.pos, *grid_graph(g, jet_spacings * h[lv]), h[lv],
+                                                c, pairs))
+                c_in = c + 2 * pairs
+            skips.append(c_in)
+            if lv > min_level:
+                self.pools.append(blur(g, self.grids[lv - 1], 0.5 * h[lv - 1]))
+        self.skip_channels = skips
+        self.ups, self.up = nn.ModuleList(), nn.ModuleList()
+        for lv in range(min_level + 1, out_level + 1):
+            skip = skips[input_level - lv]
+            self.ups.append(blur(self.grids[lv - 1], self.grids[lv], 0.5 * h[lv - 1]))
+            self.up.append(ConvStage(self.grids[lv], c_in + skip, skip, radius_spacings * h[lv],
+                                     num_basis))
+            c_in = skip
+        self.out_channels = c_in
+
+    def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> list:
+        """``x [B, N, C]`` -> ``[(features, mask), ...]`` from ``input_level`` down."""
+        m = check_input(x, mask, self.num_points, self.in_channels, self.input_level + self.refine)
+        x = self.jet_norm(self.jet(self.fill(x, m)), mask=m, node_weight=self.area_in.to(x.dtype))
+        feats = []
+        for s, stage in enumerate(self.down):
+            x = stage(x, m)
+            if s < len(self.pairs):
+                x = torch.cat([x, self.pairs[s](x)], -1)
+            feats.append((x, m))
+            if s < len(self.pools):
+                x, mp = self.pools[s](x, m)
+                m = None if m is None else mp
+        return feats
+
+    def decode(self, feats: list) -> tuple[torch.Tensor, torch.Tensor | None]:
+        feats = list(feats)
+        x, m = feats.pop()
+        for up, stage in zip(self.ups, self.up):
+            x, _ = up(x)
+            skip, m = feats.pop()
+            x = stage(torch.cat([x, skip], -1), m)
+        return x, m
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None):
+        return self.decode(self.encode(x, mask))
+
+
+class _Segmenter(nn.Module):
+    """What the segmentation models share: config round trip and resolution transfer."""
+
+    config: dict
+
+    @classmethod
+    def from_config(cls, config: dict):
+        return cls(**config)
+
+    def refined(self, levels: int = 1):
+        """The same network on grids ``levels`` finer (module docstring), with these
+        weights: for inputs lifted to ``icosahedral(level + levels)``."""
+        net = type(self)(**{**self.config, "refine": self.config.get("refine", 0) + levels})
+        net.load_state_dict(self.state_dict())
+        return net.train(self.training)
+
+
+class SphericalUNet(_Segmenter):
+    r"""Semantic segmentation on the sphere: a :class:`SphericalBackbone` from
+    ``level`` down to ``min_level`` (default: one level per entry of ``channels``) and back, then a conv stage and a per-point linear map
+    to class logits.
+
+    Every layer is a function of geodesic distances (or of rotation-invariant jet
+    features), so the logits are SO(3)-equivariant: exactly for rotations that map the
+    grid onto itself, up to discretization for any other.
+
+    Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
+    ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]``.
+    """
+
+    def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
+                 min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
+                 radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
+                 pair_stages: int = 2, refine: int = 0):
+        super().__init__()
+        min_level = level - len(channels) + 1 if min_level is None else min_level
+        self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
+                           min_level=min_level, channels=list(channels), num_basis=num_basis,
+                           radius_spacings=radius_spacings, jet_spacings=jet_spacings,
+                           pairs=pairs, pair_stages=pair_stages, refine=refine)
+        self.backbone = SphericalBackbone(in_channels, level, level, min_level, channels,
+                                          num_basis, radius_spacings, jet_spacings, pairs,
+                                          pair_stages, refine)
+        c = self.backbone.out_channels
+        g = self.backbone.grids[level]
+        self.head_stage = ConvStage(g, c, c, radius_spacings * level_spacing(level), num_basis)
+        self.head = nn.Linear(c, num_classes)
+        self.num_points = self.backbone.num_points
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        for m in self.modules():
+            if m is not self and hasattr(m, "reset_parameters"):
+                m.reset_parameters()
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        f, m = self.backbone(x, mask)
+        return self.head(self.head_stage(f, m))
+
+
+__all__ = ["SphericalBackbone", "SphericalUNet", "ConvStage", "blur", "FillHidden", "level_spacing"]

@@ -1,0 +1,240 @@
+"""Semantic segmentation end to end: train on gravity-aligned panoramas, test rotated,
+through other lenses and on a finer grid.
+
+The protocol (:func:`run`) trains the spherical U-Net, the spherical DeepLab v3 and the
+planar U-Net on procedural rooms seen by an upright equirectangular camera, straight from
+the PyG dataset (:class:`~usf_graph.datasets.RoomsSegmentation`) through the shared
+engine, then scores them (:mod:`~usf_graph.train.seg_metrics`) on:
+
+(a) new rooms, same camera; (b) the same views under Haar-random rotations; (c) the same
+views through a 190-degree fisheye; (d) through a 90-degree pinhole, both zero-shot;
+(e) resolution transfer: panoramas at twice the size, lifted to the next finer grid (the
+spherical models run there with the same weights, :meth:`SphericalUNet.refined`; the
+planar one on the larger image).
+
+Scores are on each camera's own pixels at its size (spherical predictions are rendered
+back with :meth:`SphericalFrontend.to_image`, nearest), counting only the pixels it sees;
+the spherical models are also scored on the grid, area-weighted (``sphere_mIoU``). The
+planar model sees fisheye and pinhole images re-imaged as panoramas (black where the lens
+does not see), and its predictions are rendered back into their pixels.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm.auto import tqdm
+
+from ..cameras import Equirectangular
+from ..frontend import render
+from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
+from ..nn.batching import to_static
+from ..scenes import IGNORE, SEMANTIC_CLASSES
+from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .seg_metrics import confusion_matrix, per_image_miou, scores
+
+PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
+            "c": ("fisheye190", "none", 0), "d": ("pinhole90", "none", 0),
+            "e": ("equirectangular", "none", 1)}
+PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
+                  "d": "pinhole 90 (zero-shot)", "e": "finer grid (zero-shot)"}
+MODELS = {"spherical_unet": SphericalUNet, "spherical_deeplab": SphericalDeepLabV3,
+          "planar_unet": PlanarUNet}
+
+
+def is_planar(model: nn.Module) -> bool:
+    """Whether a model (or its DDP wrapper) takes images ``[B, C, H, W]``."""
+    return getattr(getattr(model, "module", model), "input_dims", 3) == 4
+
+
+def segmentation_loss(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE,
+                      class_weight: torch.Tensor | None = None,
+                      point_weight: torch.Tensor | None = None) -> torch.Tensor:
+    r"""Cross-entropy over the entries whose target is not ``ignore_index``, with optional
+    ``class_weight [C]`` (e.g. :func:`median_frequency_weights`) and ``point_weight``
+    (e.g. grid areas ``[N]``, broadcast to the target): :math:`\sum w_i \ell_i / \sum w_i`.
+
+    ``logits [B, N, C]`` (points) or ``[B, C, H, W]`` (pixels) with ``target [B, N]`` or
+    ``[B, H, W]``."""
+    if logits.dim() == 3:
+        logits = logits.transpose(1, 2)
+    if not torch.isfinite(logits).all():
+        raise ValueError("the model produced NaN or inf logits; lower the learning rate or "
+                         "check the inputs")
+    cw = None if class_weight is None else class_weight.to(logits.dtype)
+    loss = nn.functional.cross_entropy(logits, target, weight=cw, ignore_index=ignore_index,
+                                       reduction="none")
+    keep = (target != ignore_index).to(logits.dtype)
+    w = keep if cw is None else keep * cw[target.clamp(0, len(cw) - 1)]
+    if point_weight is not None:
+        w = w * point_weight.to(logits.dtype)
+    return (loss * w).sum() / w.sum().clamp_min(1e-12)
+
+
+def split_batch(batch):
+    """A PyG batch of :class:`~usf_graph.datasets.RoomsSegmentation` samples ->
+    ``(x [B, N, C], y [B, N], mask [N] or None, image [B, 3, H, W], label_image [B, H, W])``."""
+    B = batch.num_graphs
+    x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "segmentation batch")
+    y = batch.y.view(B, -1)
+    mask = batch.mask.view(B, -1)
+    if not (mask == mask[0]).all():
+        raise ValueError("the samples of a batch have different fields of view; batch one camera")
+    image = batch.image.permute(0, 3, 1, 2).float() / 255
+    return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
+
+
+def segmentation_step(model, batch):
+    """The engine's step for segmentation, on PyG batches: per-point cross-entropy for
+    spherical models, per-pixel for planar ones (which read the batch's ``image``)."""
+    x, y, mask, image, label = split_batch(batch)
+    if is_planar(model):
+        logits, target = model(image), label
+        pred = logits.argmax(1)
+    else:
+        logits, target = model(x, mask), y
+        pred = logits.argmax(-1)
+    loss = segmentation_loss(logits, target)
+    keep = target != IGNORE
+    acc = (pred[keep] == target[keep]).double().mean().item() if keep.any() else 0.0
+    return loss, {"acc": acc}, len(x)
+
+
+@torch.no_grad()
+def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "segment",
+            pano: Equirectangular | None = None):
+    """Per-pixel class predictions ``[S, H, W]`` (uint8) in ``ds.camera``'s pixels, and for
+    spherical models the per-point ones ``[S, N]`` (else ``None``). A planar model sees
+    other lenses re-imaged as ``pano`` (default: ``2 H x H`` for the camera's height H,
+    the protocol's training size)."""
+    model.eval()
+    cam, S = ds.camera, len(ds)
+    pixels, points = [], []
+    if is_planar(model):
+        if isinstance(cam, Equirectangular):
+            pano = cam
+        elif pano is None:
+            pano = Equirectangular(2 * cam.height, cam.height)
+        for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
+            imgs = ds.image[s:s + batch_size].numpy()
+            if pano is not cam:
+                imgs = np.stack([render(im, cam, pano) for im in imgs])
+            x = torch.as_tensor(imgs).permute(0, 3, 1, 2).float() / 255
+            pred = model(x).argmax(1).to(torch.uint8).numpy()
+            if pano is not cam:
+                pred = np.stack([render(p, pano, cam, interpolation="nearest") for p in pred])
+            pixels.append(pred)
+        return np.concatenate(pixels), None
+    mask = ds.mask[0]
+    mask = None if mask.all() else mask
+    for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
+        pred = model(ds.x[s:s + batch_size].float(), mask).argmax(-1).to(torch.uint8)
+        points.append(pred)
+        pixels += [ds.frontend.to_image(p, mode="nearest").numpy() for p in pred]
+    return np.stack(pixels), torch.cat(points).numpy()
+
+
+def score(pixels: np.ndarray, ds, points: np.ndarray | None = None) -> dict:
+    """mIoU/mAcc (confusion over the test set) on the camera's pixels; with ``points``,
+    also the area-weighted one on the grid (``sphere_mIoU``) and USF's per-image mean
+    (``per_image_mIoU``, on pixels)."""
+    C = len(SEMANTIC_CLASSES)
+    truth = ds.label_image.numpy()
+    confs = [confusion_matrix(p, t, C) for p, t in zip(pixels, truth)]
+    res = scores(sum(confs), SEMANTIC_CLASSES)
+    res["per_image_mIoU"] = per_image_miou(confs)
+    if points is not None:
+        sphere = confusion_matrix(points, ds.y.numpy(), C, weight=ds.grid.area.numpy()[None])
+        res["sphere_mIoU"] = scores(sphere)["mIoU"]
+    return res
+
+
+def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
+                  num_test: int = 50, seed: int = 0, tests=tuple(PROTOCOL),
+                  progress: bool = True) -> dict:
+    """The rooms splits of the protocol, ``{"train": ..., "a": ..., ..., "e": ...}``
+    (no ``train`` when ``num_train`` is 0): panoramas ``2 size x size`` on
+    ``icosahedral:level`` (twice the size and one level finer for (e))."""
+    from ..datasets import RoomsSegmentation
+    from ..scenes.lenses import protocol_cameras
+
+    kw = dict(seed=seed, progress=progress)
+    sets = {} if not num_train else {"train": RoomsSegmentation(
+        root, "train", camera=protocol_cameras(size)["equirectangular"],
+        grid=f"icosahedral:{level}", num_scenes=num_train, **kw)}
+    for k in tests:
+        cam, rot, finer = PROTOCOL[k]
+        sets[k] = RoomsSegmentation(root, "test", camera=protocol_cameras(size * 2 ** finer)[cam],
+                                    grid=f"icosahedral:{level + finer}", rotate=rot,
+                                    num_scenes=num_test, **kw)
+    return sets
+
+
+def make_model(name: str, level: int = 5) -> nn.Module:
+    """A protocol model by name (:data:`MODELS`), spherical ones on ``icosahedral:level``."""
+    if name not in MODELS:
+        raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
+    C = len(SEMANTIC_CLASSES)
+    return PlanarUNet(C) if name == "planar_unet" else MODELS[name](C, level=level)
+
+
+def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
+                      name: str = "model") -> tuple[dict, dict]:
+    """Scores and pixel predictions of one trained model on the protocol's test sets."""
+    res, preds = {}, {}
+    for k in tests:
+        model = net
+        if not is_planar(net) and PROTOCOL[k][2]:
+            model = net.refined(PROTOCOL[k][2])
+        pix, pts = predict(model, sets[k], progress=progress, desc=f"{name} ({k})")
+        res[k], preds[k] = score(pix, sets[k], pts), pix
+    return res, preds
+
+
+def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
+        num_train: int = 200, num_test: int = 50, epochs: int = 12, batch_size: int = 8,
+        lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True) -> dict:
+    """The segmentation protocol on procedural rooms (module docstring). Writes
+    ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``."""
+    rank, _ = setup_distributed()
+    seed_everything(seed)
+    out, t0 = Path(out), time.time()
+    sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
+    results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
+               "epochs": epochs}
+    preds = {}
+    for name in models:
+        net = make_model(name, level)
+        t = time.time()
+        fit(net, sets["train"], None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
+            log_dir=out / name, config=net.config, progress=progress, name=name,
+            step=segmentation_step)
+        if rank != 0:
+            continue
+        results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
+        results[name], preds[name] = evaluate_protocol(net, sets, progress=progress, name=name)
+        save_checkpoint(out / f"{name}.pt", net, {"model": name, "size": size, **net.config},
+                        results[name])
+    if rank != 0:
+        return {}
+    from ..viz import plot_segmentation
+
+    return write_results(out, results, t0, "seg_results.png",
+                         lambda p: plot_segmentation(sets, preds, p))
+
+
+def format_table(results: dict, metric: str = "mIoU") -> str:
+    """The protocol table in Markdown: ``metric`` (in points) per model and test."""
+    tests = [k for k in PROTOCOL if any(k in results.get(m, {}) for m in MODELS)]
+    rows = ["| model | " + " | ".join(f"({k}) {PROTOCOL_NAMES[k]}" for k in tests) + " |",
+            "|---" * (len(tests) + 1) + "|"]
+    for name in MODELS:
+        if name in results:
+            rows.append(f"| {name} | " + " | ".join(
+                f"{100 * results[name][k][metric]:.1f}" if k in results[name] else "-"
+                for k in tests) + " |")
+    return "\n".join(rows)

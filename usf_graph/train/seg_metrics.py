@@ -1,0 +1,79 @@
+r"""Segmentation metrics from a confusion matrix, and the loss's class weights.
+
+The standard protocol (and ours) accumulates one confusion matrix over the whole test set
+and reads per-class IoU and accuracy from it:
+
+.. math::
+    \mathrm{IoU}_c = \frac{M_{cc}}{\sum_k M_{ck} + \sum_k M_{kc} - M_{cc}}, \qquad
+    \mathrm{Acc}_c = \frac{M_{cc}}{\sum_k M_{ck}}
+
+(rows: truth, columns: prediction). mIoU averages the classes that occur in the truth or
+the predictions, mAcc the classes that occur in the truth. On the sphere, each point
+counts with its area (``weight``), which makes the numbers independent of the grid's
+density. USF's reference code instead averages a per-image mIoU
+(:func:`per_image_miou`); it is offered for comparison with its table only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def confusion_matrix(pred, target, num_classes: int, ignore_index: int = 255,
+                     weight=None) -> np.ndarray:
+    """``[num_classes, num_classes]`` float64 counts (or summed ``weight``) of
+    (truth, prediction) pairs over the entries whose target is a class (not
+    ``ignore_index``, not out of range). ``pred`` and ``target`` have one shape; ``weight``
+    broadcasts to it."""
+    p, t = np.asarray(pred).astype(np.int64).ravel(), np.asarray(target).astype(np.int64).ravel()
+    if p.shape != t.shape:
+        raise ValueError(f"pred and target differ in size: {np.shape(pred)} vs {np.shape(target)}")
+    w = None if weight is None else np.broadcast_to(np.asarray(weight, np.float64),
+                                                    np.shape(target)).ravel()
+    keep = (t != ignore_index) & (t >= 0) & (t < num_classes)
+    if ((p[keep] < 0) | (p[keep] >= num_classes)).any():
+        raise ValueError(f"predictions must be class indices in [0, {num_classes})")
+    idx = t[keep] * num_classes + p[keep]
+    conf = np.bincount(idx, weights=None if w is None else w[keep], minlength=num_classes ** 2)
+    return conf.reshape(num_classes, num_classes).astype(np.float64)
+
+
+def scores(conf: np.ndarray, names=None) -> dict:
+    """mIoU, mAcc and overall accuracy (fractions), and per-class IoU/accuracy (NaN for a
+    class absent from truth and predictions, or from the truth for accuracy)."""
+    conf = np.asarray(conf, np.float64)
+    tp = np.diag(conf)
+    truth, predicted = conf.sum(1), conf.sum(0)
+    union = truth + predicted - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(union > 0, tp / union, np.nan)
+        acc = np.where(truth > 0, tp / truth, np.nan)
+    names = list(names) if names is not None else [str(c) for c in range(len(conf))]
+    nan_mean = (lambda v: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan"))
+    return {"mIoU": nan_mean(iou), "mAcc": nan_mean(acc),
+            "acc": float(tp.sum() / max(conf.sum(), 1e-300)),
+            "IoU": {n: None if np.isnan(v) else float(v) for n, v in zip(names, iou)},
+            "Acc": {n: None if np.isnan(v) else float(v) for n, v in zip(names, acc)}}
+
+
+def per_image_miou(confusions) -> float:
+    """USF's variant: the mean over images of each image's mIoU (over the classes present
+    in that image's truth or prediction). Not the standard metric; see the module docstring."""
+    vals = [scores(c)["mIoU"] for c in confusions]
+    vals = [v for v in vals if np.isfinite(v)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def median_frequency_weights(counts) -> torch.Tensor:
+    """Median frequency balancing (Eigen & Fergus): ``median(f) / f_c`` for class
+    frequencies ``f``; classes never seen get weight 0 (they have no loss terms anyway)."""
+    f = torch.as_tensor(np.asarray(counts, np.float64))
+    if (f < 0).any() or f.sum() <= 0:
+        raise ValueError("class counts must be >= 0 with a positive total")
+    seen = f > 0
+    med = f[seen].median()
+    return torch.where(seen, med / f.clamp_min(1e-300), torch.zeros_like(f)).float()
+
+
+__all__ = ["confusion_matrix", "scores", "per_image_miou", "median_frequency_weights"]
