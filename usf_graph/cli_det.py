@@ -5,29 +5,49 @@ from __future__ import annotations
 import json
 
 
-def add_train_options(t, d: dict) -> None:
-    """Options of ``train det`` (``d``: the defaults of :func:`usf_graph.train.det.run`)."""
-    g = t.add_argument_group("det (the detection protocol)")
-    g.add_argument("--dataset", default="rooms", choices=["rooms", "pandora"],
-                   help="procedural rooms (rendered here) or PANDORA (download it first)")
-    g.add_argument("--size", type=int, default=d["size"],
-                   help="rooms: panorama height (width 2x; fisheye and pinhole size x size)")
-    g.add_argument("--num-train", type=int, default=d["num_train"], help="rooms: training views")
-    g.add_argument("--num-test", type=int, default=d["num_test"], help="rooms: views per test")
-    g.add_argument("--lr", type=float, default=d["lr"], help="AdamW learning rate")
+def add_train_options(t) -> None:
+    """Options of ``train det`` and ``train seg`` (their defaults: those of
+    :func:`usf_graph.train.det.run` and :func:`usf_graph.train.seg.run`)."""
+    g = t.add_argument_group("det and seg (the protocols on procedural rooms, or real data)")
+    g.add_argument("--dataset", default="rooms", choices=["rooms", "pandora", "stanford2d3ds"],
+                   help="procedural rooms (rendered here), or the real data: PANDORA (det) or "
+                        "Stanford 2D-3D-S (seg); download those first")
+    g.add_argument("--size", type=int, default=None,
+                   help="panorama height (width 2x; fisheye and pinhole size x size); default: "
+                        "det 128, seg 96 (stanford2d3ds: 256)")
+    g.add_argument("--num-train", type=int, default=None, help="rooms: training views (200)")
+    g.add_argument("--num-test", type=int, default=None, help="rooms: views per test (50)")
+    g.add_argument("--lr", type=float, default=None, help="AdamW learning rate (det 2e-3, seg 3e-3)")
+    g.add_argument("--fold", default="1", choices=["1", "2", "3", "all"],
+                   help="stanford2d3ds: the area-disjoint fold, or all three")
+    g.add_argument("--models", nargs="+", default=None,
+                   choices=["spherical_unet", "spherical_deeplab", "planar_unet"],
+                   help="seg: models to train (default: all three on rooms, the spherical U-Net "
+                        "on stanford2d3ds)")
+
+
+def run_kwargs(args, run) -> dict:
+    """The common options of ``train det|seg``, with ``run``'s defaults where not given."""
+    import inspect
+
+    d = {k: v.default for k, v in inspect.signature(run).parameters.items()}
+    return dict(epochs=args.epochs or d["epochs"], batch_size=args.batch_size or d["batch_size"],
+                seed=args.seed, progress=True, lr=args.lr or d["lr"])
 
 
 def cmd_train_det(args) -> int:
     from .train import teardown_distributed
     from .train.det import format_table, run, run_pandora
 
-    kw = dict(epochs=args.epochs or 24, batch_size=args.batch_size or 8, seed=args.seed,
-              progress=True, lr=args.lr)
+    if args.dataset == "stanford2d3ds":
+        raise ValueError("Stanford 2D-3D-S is a segmentation dataset: use 'usf-graph train seg'")
+    kw = run_kwargs(args, run)
     if args.dataset == "pandora":
         res = run_pandora(root=args.root or "data/pandora", out=args.out or "runs/det_pandora", **kw)
     else:
-        res = run(root=args.root or "data/rooms", out=args.out or "runs/det", size=args.size,
-                  num_train=args.num_train, num_test=args.num_test, planar=not args.no_planar, **kw)
+        res = run(root=args.root or "data/rooms", out=args.out or "runs/det", size=args.size or 128,
+                  num_train=args.num_train or 200, num_test=args.num_test or 50,
+                  planar=not args.no_planar, **kw)
     teardown_distributed()
     if not res:
         return 0
@@ -53,9 +73,11 @@ def cmd_eval_det(args) -> int:
     planar = "height" in cfg
     model = (PlanarDetector if planar else SphericalDetector).from_config(cfg)
     model.load_state_dict(blob["state_dict"])
-    sets = protocol_sets(args.root or "data/rooms", args.size, num_train=0,
+    sets = protocol_sets(args.root or "data/rooms", args.size or 128, num_train=0,
                          num_test=args.num_test, seed=args.seed)
     for k in args.test or list(PROTOCOL):
+        if k not in PROTOCOL:
+            raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {k!r}")
         ds = sets[k]
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
         r = score(predict(model, data), data, model.num_classes)

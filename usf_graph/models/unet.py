@@ -16,6 +16,8 @@ approximation of) the same function and takes the trained weights unchanged
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -37,10 +39,11 @@ def level_spacing(level: int) -> float:
 
 class ConvStage(nn.Module):
     """conv -> masked BatchNorm -> ReLU on one grid (area-weighted, mask-aware);
-    ``radius`` in radians."""
+    ``radius`` in radians (at most pi: the whole sphere)."""
 
     def __init__(self, grid, c_in: int, c_out: int, radius: float, num_basis: int):
         super().__init__()
+        radius = min(radius, math.pi)
         ei, ew = grid_graph(grid, radius)
         self.register_buffer("area", grid.area.float(), persistent=False)
         self.conv = SphericalConv(c_in, c_out, radius, num_basis=num_basis, basis="gaussian").bind(
@@ -202,6 +205,8 @@ class _Segmenter(nn.Module):
         """The same network on grids ``levels`` finer (module docstring), with these
         weights: for inputs lifted to ``icosahedral(level + levels)``."""
         net = type(self)(**{**self.config, "refine": self.config.get("refine", 0) + levels})
+        p = next(self.parameters())
+        net = net.to(device=p.device, dtype=p.dtype)
         net.load_state_dict(self.state_dict())
         return net.train(self.training)
 

@@ -1,0 +1,94 @@
+"""Segmentation models: equivariant per-point logits (exact under grid symmetries, in
+float64), resolution transfer, planar baselines, bad inputs."""
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph import grids
+from usf_graph.geometry import rotation_from_axis_angle
+from usf_graph.models import PlanarDeepLab, PlanarUNet, SphericalDeepLabV3, SphericalUNet
+from usf_graph.testing import assert_equivariant, smooth_signal
+
+UNET = dict(num_classes=5, level=3, channels=(4, 6, 8), pairs=2)
+DEEPLAB = dict(num_classes=5, level=3, channels=(4, 6), aspp_channels=8, rates=(2, 3),
+               low_channels=4, pairs=2)
+
+
+def _symmetry(level):
+    pos = grids.icosahedral(level).pos
+    axis = pos[0] / pos[0].norm()  # a 5-fold axis through a vertex
+    return pos, axis, rotation_from_axis_angle(axis, torch.tensor(2 * np.pi / 5, dtype=torch.float64))
+
+
+def _signal(pos, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.as_tensor(smooth_signal(pos.numpy()))[None] + \
+        0.3 * torch.randn(2, len(pos), 3, generator=g, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalDeepLabV3, DEEPLAB)])
+def test_logits_move_with_the_rotation(cls, kw):
+    torch.manual_seed(0)
+    m = cls(**kw).double().eval()
+    for mod in m.modules():  # non-trivial running statistics
+        if hasattr(mod, "running_var"):
+            mod.running_mean.uniform_(-0.2, 0.2)
+            mod.running_var.uniform_(0.5, 2.0)
+    pos, axis, R = _symmetry(3)
+    x = _signal(pos)
+    err = assert_equivariant(m, (x,), pos, R, atol=1e-10)
+    assert err < 1e-10
+    assert m(x).std() > 1e-3  # not a constant map
+    # a field of view symmetric about the axis (a cap): hidden points stay out exactly
+    mask = pos @ axis > -0.3
+    assert_equivariant(lambda x, mk: m(x, mk), (x, mask), pos, R, atol=1e-10)
+    # and the hidden part of the input does not matter
+    y = x.clone()
+    y[:, ~mask] = 5.0
+    assert torch.allclose(m(x, mask)[:, mask], m(y, mask)[:, mask], atol=1e-12)
+
+
+@pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalDeepLabV3, DEEPLAB)])
+def test_refined_model_computes_nearly_the_same_function(cls, kw):
+    torch.manual_seed(1)
+    m = cls(**{**kw, "level": 4}).double().eval()
+    fine = m.refined(1)
+    assert fine.num_points == len(grids.icosahedral(5)) and fine.config["refine"] == 1
+    coarse_pos, fine_pos = grids.icosahedral(4).pos, grids.icosahedral(5).pos
+    f = lambda p: torch.as_tensor(smooth_signal(p.numpy()))[None]  # noqa: E731
+    with torch.no_grad():
+        a, b = m(f(coarse_pos)), fine(f(fine_pos))[:, : len(coarse_pos)]  # nested grids
+    rel = (a - b).norm() / a.norm()
+    assert rel < 0.15, rel
+    # another network with the same architecture differs far more: the weights carried over
+    other = cls(**{**kw, "level": 4}).double().eval().refined(1)
+    with torch.no_grad():
+        c = other(f(fine_pos))[:, : len(coarse_pos)]
+    assert (a - c).norm() / a.norm() > 3 * rel
+
+
+def test_planar_models_shapes_and_errors():
+    x = torch.rand(2, 3, 32, 64)
+    assert PlanarUNet(5, channels=(4, 8, 8))(x).shape == (2, 5, 32, 64)
+    assert PlanarUNet(5, channels=(4, 8, 8), out_stride=2)(x).shape == (2, 5, 16, 32)
+    assert PlanarDeepLab(5, channels=(4, 8, 8), aspp_channels=8)(x).shape == (2, 5, 32, 64)
+    with pytest.raises(ValueError, match="divisible by 4"):
+        PlanarUNet(5, channels=(4, 8, 8))(torch.rand(1, 3, 30, 64))
+    with pytest.raises(ValueError, match="out_stride"):
+        PlanarUNet(5, channels=(4, 8), out_stride=4)
+
+
+def test_spherical_models_reject_bad_input():
+    m = SphericalUNet(**UNET)
+    n = m.num_points
+    with pytest.raises(ValueError, match=r"icosahedral:3"):
+        m(torch.zeros(1, n + 1, 3))
+    x = torch.zeros(1, n, 3)
+    x[0, 5, 1] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        m(x)
+    with pytest.raises(ValueError, match="some point visible"):
+        m(torch.zeros(1, n, 3), torch.zeros(n, dtype=torch.bool))
+    with pytest.raises(ValueError, match="channels needs one entry"):
+        SphericalUNet(level=3, min_level=2, channels=(4, 6, 8))

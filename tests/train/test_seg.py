@@ -1,0 +1,95 @@
+"""The segmentation protocol end to end on a few tiny rooms (through PyG batches), the loss,
+checkpoints read back by ``eval seg``, and the Stanford 2D-3D-S command on fixtures."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from torch_geometric.loader import DataLoader
+
+from tests.datasets.test_stanford import NAMES, _write_pano
+from usf_graph.cli import main
+from usf_graph.models import SphericalUNet
+from usf_graph.train.seg import (
+    PROTOCOL,
+    format_table,
+    protocol_sets,
+    run,
+    segmentation_loss,
+    segmentation_step,
+    split_batch,
+)
+
+
+def test_loss_ignores_and_weights():
+    torch.manual_seed(0)
+    logits = torch.randn(2, 5, 3, dtype=torch.float64)
+    target = torch.tensor([[0, 1, 255, 2, 1], [2, 255, 0, 0, 1]])
+    keep = target != 255
+    lp = torch.log_softmax(logits, -1)
+    nll = -lp.gather(-1, target.clamp(max=2)[..., None])[..., 0]
+    assert torch.allclose(segmentation_loss(logits, target), nll[keep].mean())
+    cw, pw = torch.tensor([1.0, 2.0, 0.5]), torch.rand(5, dtype=torch.float64)
+    w = cw.double()[target.clamp(max=2)] * pw * keep
+    assert torch.allclose(segmentation_loss(logits, target, class_weight=cw, point_weight=pw),
+                          (nll * w).sum() / w.sum())
+    # the pixel layout [B, C, H, W] gives the same numbers
+    assert torch.allclose(segmentation_loss(logits.transpose(1, 2)[..., None], target[..., None]),
+                          nll[keep].mean())
+    with pytest.raises(ValueError, match="NaN"):
+        segmentation_loss(torch.full((1, 2, 3), float("nan")), torch.zeros(1, 2, dtype=torch.long))
+
+
+def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
+    res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, level=3, num_train=3,
+              num_test=2, epochs=1, batch_size=2, progress=False)
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    for name in ("spherical_unet", "spherical_deeplab", "planar_unet"):
+        for k in PROTOCOL:
+            r = saved[name][k]
+            assert 0 <= r["mIoU"] <= 1 and 0 <= r["mAcc"] <= 1
+            assert ("sphere_mIoU" in r) == name.startswith("spherical")
+        assert (tmp_path / "out" / f"{name}.pt").is_file()
+    assert (tmp_path / "out" / "seg_results.png").is_file()
+    assert "(e) finer grid" in format_table(res) and "| planar_unet |" in format_table(res)
+    # eval seg reads a checkpoint back and reproduces the protocol's numbers
+    capsys.readouterr()
+    assert main(["eval", "seg", str(tmp_path / "out" / "spherical_unet.pt"), "--root",
+                 str(tmp_path / "rooms"), "--num-test", "2", "--test", "b", "e"]) == 0
+    out = capsys.readouterr().out
+    for k in ("b", "e"):
+        assert f"({k}) mIoU {100 * saved['spherical_unet'][k]['mIoU']:.2f}" in out
+
+
+def test_pyg_batches_feed_both_model_kinds(tmp_path):
+    sets = protocol_sets(tmp_path, size=32, level=3, num_train=0, num_test=2, tests=("c",),
+                         progress=False)
+    batch = next(iter(DataLoader(sets["c"], batch_size=2)))
+    x, y, mask, image, label = split_batch(batch)
+    ds = sets["c"]
+    assert torch.equal(x, ds.x.float()) and torch.equal(y, ds.y)
+    assert torch.equal(mask, ds.mask[0]) and 0 < mask.float().mean() < 0.7
+    assert image.shape == (2, 3, 32, 32) and torch.equal(label, ds.label_image.long())
+    torch.manual_seed(0)
+    m = SphericalUNet(level=3, channels=(8, 8, 8, 8))
+    loss, stats, n = segmentation_step(m, batch)
+    assert n == 2 and loss.item() > 0 and 0 <= stats["acc"] <= 1
+    loss.backward()
+    assert all(p.grad is not None for p in m.head.parameters())
+
+
+def test_stanford_command_on_fixtures(tmp_path):
+    root = tmp_path / "s2d3ds"
+    root.mkdir()
+    (root / "semantic_labels.json").write_text(json.dumps(NAMES))
+    for area, stem in (("1", "a"), ("2", "b"), ("3", "c"), ("4", "d"), ("6", "e"), ("5a", "f"),
+                       ("5b", "g")):
+        _write_pano(root, area, stem, W=64, H=32, seed=len(stem) + ord(stem))
+    assert main(["train", "seg", "--dataset", "stanford2d3ds", "--root", str(root), "--out",
+                 str(tmp_path / "out"), "--size", "16", "--epochs", "1", "--batch-size", "2"]) == 0
+    res = json.loads((tmp_path / "out" / "results.json").read_text())
+    r = res["spherical_unet"]["fold1"]
+    assert set(r) >= {"mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU"}
+    assert np.isfinite(r["mIoU"]) and res["spherical_unet"]["mean"]["mIoU"] == r["mIoU"]
+    assert (tmp_path / "out" / "fold1_spherical_unet.pt").is_file()

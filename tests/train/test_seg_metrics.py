@@ -1,0 +1,58 @@
+"""Segmentation metrics against hand-computed confusion matrices."""
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph.train.seg_metrics import (
+    confusion_matrix,
+    median_frequency_weights,
+    per_image_miou,
+    scores,
+)
+
+
+def test_confusion_and_scores_by_hand():
+    # 3 classes; 255 ignored; class 2 never in the truth but predicted once
+    target = np.array([[0, 0, 0, 1], [1, 1, 255, 0]])
+    pred = np.array([[0, 0, 1, 1], [1, 2, 2, 0]])
+    conf = confusion_matrix(pred, target, 3)
+    want = np.array([[3, 1, 0],   # truth 0: predicted 0, 0, 1, 0
+                     [0, 2, 1],   # truth 1: predicted 1, 1, 2
+                     [0, 0, 0]], float)
+    np.testing.assert_array_equal(conf, want)
+    s = scores(conf, ["a", "b", "c"])
+    # IoU_0 = 3 / (4 + 3 - 3) = 3/4; IoU_1 = 2 / (3 + 3 - 2) = 1/2; IoU_2 = 0 / (0 + 1 - 0) = 0
+    assert s["IoU"] == {"a": 0.75, "b": 0.5, "c": 0.0}
+    assert s["mIoU"] == pytest.approx((0.75 + 0.5 + 0.0) / 3)
+    # accuracy over the classes in the truth only: 3/4 and 2/3
+    assert s["Acc"] == {"a": 0.75, "b": pytest.approx(2 / 3), "c": None}
+    assert s["mAcc"] == pytest.approx((0.75 + 2 / 3) / 2)
+    assert s["acc"] == pytest.approx(5 / 7)
+
+
+def test_weighted_confusion_and_absent_classes():
+    target, pred = np.array([0, 1, 1]), np.array([0, 1, 0])
+    conf = confusion_matrix(pred, target, 4, weight=np.array([0.5, 2.0, 1.0]))
+    np.testing.assert_array_equal(conf[:2, :2], [[0.5, 0], [1.0, 2.0]])
+    s = scores(conf)
+    assert s["IoU"]["2"] is None and s["IoU"]["3"] is None  # neither true nor predicted
+    assert s["mIoU"] == pytest.approx((0.5 / 1.5 + 2 / 3) / 2)
+    with pytest.raises(ValueError, match="class indices"):
+        confusion_matrix(np.array([7]), np.array([0]), 4)
+    with pytest.raises(ValueError, match="differ in size"):
+        confusion_matrix(np.zeros(3), np.zeros(4), 4)
+
+
+def test_per_image_mean_differs_from_dataset_level():
+    a = confusion_matrix(np.array([0, 0]), np.array([0, 0]), 2)  # image 1: perfect, class 0 only
+    b = confusion_matrix(np.array([0, 1, 1, 1]), np.array([1, 1, 1, 1]), 2)  # image 2
+    assert per_image_miou([a, b]) == pytest.approx((1.0 + (0 + 0.75) / 2) / 2)
+    assert scores(a + b)["mIoU"] == pytest.approx((2 / 3 + 0.75) / 2)
+
+
+def test_median_frequency_weights():
+    w = median_frequency_weights([10, 30, 0, 20])
+    assert torch.allclose(w, torch.tensor([2.0, 2 / 3, 0.0, 1.0]))
+    with pytest.raises(ValueError, match="positive total"):
+        median_frequency_weights([0, 0])

@@ -1,0 +1,61 @@
+"""``usf-graph train seg`` and ``usf-graph eval seg``: the segmentation commands."""
+
+from __future__ import annotations
+
+import json
+
+from .cli_det import run_kwargs
+
+
+def cmd_train_seg(args) -> int:
+    from .train import teardown_distributed
+    from .train.seg import MODELS, format_table, run, run_stanford
+
+    if args.dataset == "pandora":
+        raise ValueError("PANDORA is a detection dataset: use 'usf-graph train det'")
+    kw = run_kwargs(args, run)
+    if args.dataset == "stanford2d3ds":
+        folds = (1, 2, 3) if args.fold == "all" else (int(args.fold),)
+        res = run_stanford(root=args.root or "data/stanford2d3ds", out=args.out or "runs/seg_stanford",
+                           folds=folds, models=tuple(args.models or ("spherical_unet",)),
+                           size=args.size or 256, **kw)
+    else:
+        res = run(root=args.root or "data/rooms", out=args.out or "runs/seg", size=args.size or 96,
+                  num_train=args.num_train or 200, num_test=args.num_test or 50,
+                  models=tuple(args.models or MODELS), **kw)
+    teardown_distributed()
+    if not res:
+        return 0
+    if args.dataset == "stanford2d3ds":
+        print(json.dumps({m: res[m]["mean"] for m in res if isinstance(res[m], dict) and "mean" in res[m]},
+                         indent=1))
+        return 0
+    print(f"\nSegmentation on procedural rooms, trained on upright panoramas ({res['samples']['train']} "
+          f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
+    for metric in ("mIoU", "mAcc"):
+        print(f"{metric} (camera pixels):\n{format_table(res, metric)}\n")
+    if "figure" in res:
+        print(f"figure: {res['figure']}")
+    return 0
+
+
+def cmd_eval_seg(args) -> int:
+    from .train import load_checkpoint
+    from .train.seg import MODELS, PROTOCOL, evaluate_protocol, protocol_sets
+
+    blob = load_checkpoint(args.checkpoint)
+    cfg = dict(blob["config"])
+    name, size = cfg.pop("model", None), cfg.pop("size", None)
+    if name not in MODELS:
+        raise ValueError(f"{args.checkpoint} is not a segmentation checkpoint of 'usf-graph train seg'")
+    model = MODELS[name].from_config(cfg)
+    model.load_state_dict(blob["state_dict"])
+    tests = args.test or list(PROTOCOL)
+    sets = protocol_sets(args.root or "data/rooms", args.size or size or 96,
+                         cfg.get("level", 5), num_train=0, num_test=args.num_test, seed=args.seed,
+                         tests=tests)
+    res, _ = evaluate_protocol(model, sets, tests, name=name)
+    for k, r in res.items():
+        print(f"({k}) " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
+                                    ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))
+    return 0
