@@ -8,7 +8,7 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .unet import ConvStage, SphericalBackbone, _Segmenter, blur, level_spacing
+from .unet import ConvStage, GravityHead, SphericalBackbone, _Segmenter, blur, level_spacing
 
 
 class Pointwise(nn.Module):
@@ -36,17 +36,18 @@ class SphericalDeepLabV3(_Segmenter):
       stage's features, a :class:`ConvStage` and a per-point linear map to logits.
 
     Every piece depends on distances only, so the logits are SO(3)-equivariant like
-    :class:`~usf_graph.models.SphericalUNet`'s.
+    :class:`~usf_graph.models.SphericalUNet`'s, whose ``gravity`` option (a
+    :class:`GravityHead` on the ASPP's input, feeding the decoder) it shares.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
-    ``mask [N]`` -> logits ``[B, N, num_classes]``.
+    ``mask [N]`` -> logits ``[B, N, num_classes]`` (and up ``[B, 3]`` with ``return_up``).
     """
 
     def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
                  aspp_level: int | None = None, channels=(32, 64, 128), aspp_channels: int = 128,
                  rates=(2, 4, 6), low_channels: int = 32, num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, refine: int = 0):
+                 pair_stages: int = 2, gravity: bool = True, refine: int = 0):
         super().__init__()
         aspp_level = level - len(channels) + 1 if aspp_level is None else aspp_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
@@ -54,7 +55,7 @@ class SphericalDeepLabV3(_Segmenter):
                            aspp_channels=aspp_channels, rates=list(rates),
                            low_channels=low_channels, num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
-                           pairs=pairs, pair_stages=pair_stages, refine=refine)
+                           pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine)
         self.backbone = SphericalBackbone(in_channels, level, aspp_level, aspp_level, channels,
                                           num_basis, radius_spacings, jet_spacings, pairs,
                                           pair_stages, refine)
@@ -70,7 +71,8 @@ class SphericalDeepLabV3(_Segmenter):
         self.fuse = Pointwise(a * (len(rates) + 2), a)
         self.up = blur(ga, gl, 0.5 * level_spacing(aspp_level))
         self.low = Pointwise(self.backbone.skip_channels[0], low_channels)
-        self.decoder = ConvStage(gl, a + low_channels, a // 2,
+        self.gravity = GravityHead(ga, gl, c) if gravity else None
+        self.decoder = ConvStage(gl, a + low_channels + int(gravity), a // 2,
                                  radius_spacings * level_spacing(level), num_basis)
         self.head = nn.Linear(a // 2, num_classes)
         self.reset_parameters()
@@ -80,7 +82,8 @@ class SphericalDeepLabV3(_Segmenter):
             if m is not self and hasattr(m, "reset_parameters"):
                 m.reset_parameters()
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                return_up: bool = False):
         feats = self.backbone.encode(x, mask)
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)
@@ -88,8 +91,12 @@ class SphericalDeepLabV3(_Segmenter):
         branches = [self.point(f, m, area)] + [s(f, m) for s in self.atrous]
         branches.append(g[:, None].expand(-1, f.shape[1], -1))
         y, _ = self.up(self.fuse(torch.cat(branches, -1), m, area), m)
-        low = self.low(low, m_low, self.area_out.to(f.dtype))
-        return self.head(self.decoder(torch.cat([y, low], -1), m_low))
+        parts, up = [y, self.low(low, m_low, self.area_out.to(f.dtype))], None
+        if self.gravity is not None:
+            up, u = self.gravity(f, m)
+            parts.append(u)
+        logits = self.head(self.decoder(torch.cat(parts, -1), m_low))
+        return (logits, up) if return_up else logits
 
 
 __all__ = ["SphericalDeepLabV3"]

@@ -192,10 +192,49 @@ class SphericalBackbone(nn.Module):
         return self.decode(self.encode(x, mask))
 
 
+class GravityHead(nn.Module):
+    r"""An SO(3)-equivariant estimate of the up direction, and each point's height
+    relative to it.
+
+    A small MLP turns the features on a coarse grid into a scalar field :math:`s`, and
+    :math:`v = \sum_i a_i m_i s_i p_i` (areas a, field of view m) is a vector that rotates
+    with the input; :math:`\hat v = v / \lVert v \rVert` estimates up, and
+    :math:`u_j = p_j \cdot \hat v` (the sine of each output point's elevation) is a
+    rotation-invariant feature. A planar network reads "ceiling above, floor below" from
+    pixel positions, which breaks under rotation; this head lets an equivariant one find
+    up from the image itself and keep that cue. It is trained end to end, plus an
+    auxiliary :math:`1 - \hat v \cdot g` towards the known gravity g of training views.
+
+    Shapes: features ``[B, M, C]`` on the coarse grid, ``mask [M]`` or ``None`` ->
+    ``(up [B, 3], u [B, N, 1])`` on the output grid.
+    """
+
+    def __init__(self, coarse, out, channels: int, hidden: int = 32):
+        super().__init__()
+        self.field = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+        self.register_buffer("pos", coarse.pos.float(), persistent=False)
+        self.register_buffer("area", coarse.area.float(), persistent=False)
+        self.register_buffer("out_pos", out.pos.float(), persistent=False)
+
+    def reset_parameters(self) -> None:
+        for m in self.field:
+            if hasattr(m, "reset_parameters"):
+                m.reset_parameters()
+
+    def forward(self, f: torch.Tensor, mask: torch.Tensor | None = None):
+        w = self.area.to(f.dtype) * (1 if mask is None else mask.to(f.dtype))
+        v = ((self.field(f)[..., 0] * w)[..., None] * self.pos.to(f.dtype)).sum(1)
+        up = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return up, (self.out_pos.to(f.dtype) @ up[..., None])
+
+
 class _Segmenter(nn.Module):
-    """What the segmentation models share: config round trip and resolution transfer."""
+    """What the segmentation models share: config round trip, resolution transfer and the
+    optional :class:`GravityHead` (``self.gravity``; ``forward(..., return_up=True)``
+    also returns its estimate)."""
 
     config: dict
+    gravity: GravityHead | None
 
     @classmethod
     def from_config(cls, config: dict):
@@ -220,26 +259,33 @@ class SphericalUNet(_Segmenter):
     features), so the logits are SO(3)-equivariant: exactly for rotations that map the
     grid onto itself, up to discretization for any other.
 
+    With ``gravity`` (default), a :class:`GravityHead` on the coarsest features gives the
+    head each point's height relative to an up direction estimated from the image, which
+    keeps the logits equivariant.
+
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
-    ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]``.
+    ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]`` (and the
+    estimated up ``[B, 3]`` with ``return_up=True``; ``None`` without ``gravity``).
     """
 
     def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
                  min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, refine: int = 0):
+                 pair_stages: int = 2, gravity: bool = True, refine: int = 0):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
                            min_level=min_level, channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
-                           pairs=pairs, pair_stages=pair_stages, refine=refine)
+                           pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine)
         self.backbone = SphericalBackbone(in_channels, level, level, min_level, channels,
                                           num_basis, radius_spacings, jet_spacings, pairs,
                                           pair_stages, refine)
         c = self.backbone.out_channels
         g = self.backbone.grids[level]
-        self.head_stage = ConvStage(g, c, c, radius_spacings * level_spacing(level), num_basis)
+        self.gravity = GravityHead(self.backbone.grids[min_level], g, channels[-1]) if gravity else None
+        self.head_stage = ConvStage(g, c + int(gravity), c, radius_spacings * level_spacing(level),
+                                    num_basis)
         self.head = nn.Linear(c, num_classes)
         self.num_points = self.backbone.num_points
         self.reset_parameters()
@@ -249,9 +295,16 @@ class SphericalUNet(_Segmenter):
             if m is not self and hasattr(m, "reset_parameters"):
                 m.reset_parameters()
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        f, m = self.backbone(x, mask)
-        return self.head(self.head_stage(f, m))
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                return_up: bool = False):
+        feats = self.backbone.encode(x, mask)
+        up = None
+        f, m = self.backbone.decode(feats)
+        if self.gravity is not None:
+            up, u = self.gravity(*feats[-1])
+            f = torch.cat([f, u], -1)
+        logits = self.head(self.head_stage(f, m))
+        return (logits, up) if return_up else logits
 
 
-__all__ = ["SphericalBackbone", "SphericalUNet", "ConvStage", "blur", "FillHidden", "level_spacing"]
+__all__ = ["SphericalBackbone", "SphericalUNet", "GravityHead", "ConvStage", "blur", "FillHidden", "level_spacing"]

@@ -88,20 +88,39 @@ def split_batch(batch):
     return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
 
 
+#: Weight of the gravity head's auxiliary loss.
+UP_WEIGHT = 0.1
+
+
 def segmentation_step(model, batch):
     """The engine's step for segmentation, on PyG batches: per-point cross-entropy for
-    spherical models, per-pixel for planar ones (which read the batch's ``image``)."""
+    spherical models, per-pixel for planar ones (which read the batch's ``image``).
+
+    A spherical model with a gravity head also learns up: ``UP_WEIGHT * (1 - up . g)``,
+    with g the batch's ``up [B, 3]`` when it has one, else +z (gravity-aligned views)."""
     x, y, mask, image, label = split_batch(batch)
+    core, up_loss = getattr(model, "module", model), None
     if is_planar(model):
         logits, target = model(image), label
         pred = logits.argmax(1)
+    elif getattr(core, "gravity", None) is not None:
+        (logits, up), target = model(x, mask, return_up=True), y
+        g = getattr(batch, "up", None)
+        g = torch.tensor([0.0, 0.0, 1.0], dtype=up.dtype) if g is None else g.view(-1, 3).to(up.dtype)
+        up_loss = (1 - (up * g).sum(-1)).mean()
+        pred = logits.argmax(-1)
     else:
         logits, target = model(x, mask), y
         pred = logits.argmax(-1)
     loss = segmentation_loss(logits, target)
+    stats = {}
+    if up_loss is not None:
+        loss = loss + UP_WEIGHT * up_loss
+        stats["up_err_deg"] = float(torch.rad2deg(torch.atan2(
+            torch.linalg.cross(up.detach(), g.expand_as(up)).norm(dim=-1), (up.detach() * g).sum(-1))).mean())
     keep = target != IGNORE
     acc = (pred[keep] == target[keep]).double().mean().item() if keep.any() else 0.0
-    return loss, {"acc": acc}, len(x)
+    return loss, {"acc": acc, **stats}, len(x)
 
 
 @torch.no_grad()
