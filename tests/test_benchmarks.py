@@ -36,3 +36,9 @@ def test_scenes_benchmark_runs():
 def test_boxes_benchmark_runs():
     out = run("benchmarks/boxes.py", "--pairs", "300")
     assert "| batched float32 (fast path) |" in out and "| sampling, 200k points |" in out
+
+
+def test_seg_step_benchmark_runs():
+    out = run("benchmarks/seg_step.py", "--batch", "1", "--level", "3", "--reps", "1")
+    assert "| SphericalUNet (icosahedral:3) | 642 |" in out and "| PlanarUNet (32x16) |" in out
+    assert "spherical / planar step time" in out

@@ -44,7 +44,9 @@ def test_logits_move_with_the_rotation(cls, kw):
     assert m(x).std() > 1e-3  # not a constant map
     # a field of view symmetric about the axis (a cap): hidden points stay out exactly
     mask = pos @ axis > -0.3
-    assert_equivariant(lambda x, mk: m(x, mk), (x, mask), pos, R, atol=1e-8)
+    # (masked normalizations of small sums amplify rounding to ~1e-8; a broken symmetry
+    # would show at the scale of the output)
+    assert_equivariant(lambda x, mk: m(x, mk), (x, mask), pos, R, atol=1e-7)
     # the estimated up rotates with the input
     _, up = m(x, mask, return_up=True)
     xr = torch.empty_like(x)

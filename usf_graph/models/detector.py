@@ -38,7 +38,7 @@ from ..frontend import grid_graph
 from ..nn import SurfaceJet
 from ..ops import box_axes, boxes_from_axes
 from .centernet import Detector, detections, expmap, focal_loss, heatmap_targets, logmap, peaks
-from .unet import ConvStage, SphericalBackbone
+from .unet import ConvStage, FillHidden, SphericalBackbone
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
 
@@ -98,6 +98,7 @@ class SphericalDetector(Detector):
         self.head = nn.Linear(c_in, num_classes + 4 + 3 * gradient_fields)
         e3, w3 = grid_graph(h, jet_spacings * h.spacing)
         self.surface = SurfaceJet(h.pos, e3, w3, h.spacing)
+        self.fill = FillHidden(h.pos)
         self.register_buffer("head_pos", h.pos.double(), persistent=False)
         self.head_spacing = float(h.spacing)
         n1, _ = grid_graph(h, 1.5 * h.spacing)
@@ -124,7 +125,9 @@ class SphericalDetector(Detector):
     def _fields(self, f: torch.Tensor, mask) -> dict:
         """Per-point logits and box fields from the head's scalar outputs."""
         C, K, h = self.num_classes, self.K, self.head_spacing
-        jet = self.surface(f[..., C + 1:C + 4 + K])  # [B, M, 3 + K, 5]: o, r, q, a_k
+        # [B, M, 3 + K, 5]: jets of o, r, q, a_k; hidden points take their nearest visible
+        # value, so the border of the field of view is not an edge
+        jet = self.surface(self.fill(f[..., C + 1:C + 4 + K], mask))
         frame = self.surface.frame.to(f.dtype)  # [M, 2, 3]
         g_o = jet[..., 0, :2]
         offset = h * h * (g_o[..., :1] * frame[:, 0] + g_o[..., 1:2] * frame[:, 1])

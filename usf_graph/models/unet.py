@@ -38,21 +38,27 @@ def level_spacing(level: int) -> float:
 
 
 class ConvStage(nn.Module):
-    """conv -> masked BatchNorm -> ReLU on one grid (area-weighted, mask-aware);
-    ``radius`` in radians (at most pi: the whole sphere)."""
+    """``depth`` times conv -> masked BatchNorm -> ReLU on one grid (area-weighted,
+    mask-aware); ``radius`` in radians (at most pi: the whole sphere)."""
 
-    def __init__(self, grid, c_in: int, c_out: int, radius: float, num_basis: int):
+    def __init__(self, grid, c_in: int, c_out: int, radius: float, num_basis: int,
+                 depth: int = 1):
         super().__init__()
         radius = min(radius, math.pi)
         ei, ew = grid_graph(grid, radius)
         self.register_buffer("area", grid.area.float(), persistent=False)
-        self.conv = SphericalConv(c_in, c_out, radius, num_basis=num_basis, basis="gaussian").bind(
-            ei, ew.float(), node_weight=self.area)
-        self.norm = MaskedBatchNorm(c_out)
+        self.convs, self.norms = nn.ModuleList(), nn.ModuleList()
+        for k in range(depth):
+            self.convs.append(SphericalConv(c_in if k == 0 else c_out, c_out, radius,
+                                            num_basis=num_basis, basis="gaussian")
+                              .bind(ei, ew.float(), node_weight=self.area))
+            self.norms.append(MaskedBatchNorm(c_out))
 
     def forward(self, x, mask=None):
         a = self.area.to(x.dtype)
-        return torch.relu(self.norm(self.conv(x, mask=mask), mask=mask, node_weight=a))
+        for conv, norm in zip(self.convs, self.norms):
+            x = torch.relu(norm(conv(x, mask=mask), mask=mask, node_weight=a))
+        return x
 
 
 def blur(src, dst, sigma: float) -> GaussianPool:
@@ -107,13 +113,14 @@ class SphericalBackbone(nn.Module):
     r"""Jet features, conv stages down from ``input_level`` to ``min_level`` and back up
     to ``out_level`` with skips.
 
-    Stage s works on level ``input_level - s``: :class:`ConvStage` (kernel radius
-    ``radius_spacings`` grid spacings), followed for the first ``pair_stages`` stages by
+    Stage s works on level ``input_level - s``: :class:`ConvStage` (``depth`` convolutions of
+    kernel radius ``radius_spacings`` grid spacings), followed for the first ``pair_stages`` stages by
     ``pairs`` :class:`GradientPairs`; Gaussian pooling (0.5 coarse spacings) between
     levels. The decoder upsamples with the same Gaussian, concatenates the skip and runs
     a :class:`ConvStage`. ``mask`` (one ``[N]`` for the batch) keeps hidden points out of
-    every convolution and normalization; the jet sees the image extended by its nearest
-    visible values (:class:`FillHidden`).
+    every convolution and normalization; the jet and the gradient pairs see their inputs
+    extended by the nearest visible values (:class:`FillHidden`), so the border of the
+    field of view is not an edge.
 
     :meth:`encode` returns the ``(features, mask)`` of every level, :meth:`forward` the
     decoder's output ``([B, M, out_channels], mask [M] or None)`` on ``out_level``.
@@ -122,7 +129,7 @@ class SphericalBackbone(nn.Module):
     def __init__(self, in_channels: int = 3, input_level: int = 5, out_level: int = 5,
                  min_level: int = 2, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, refine: int = 0):
+                 pair_stages: int = 2, refine: int = 0, depth: int = 1):
         super().__init__()
         if not min_level <= out_level <= input_level:
             raise ValueError(f"need min_level <= out_level <= input_level, got {min_level}, "
@@ -142,14 +149,16 @@ class SphericalBackbone(nn.Module):
         self.jet_norm = MaskedBatchNorm(4 * in_channels)
         self.register_buffer("area_in", g.area.float(), persistent=False)
         self.down, self.pairs, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        self.fills = nn.ModuleList()
         c_in, skips = 4 * in_channels, []
         for s, lv in enumerate(range(input_level, min_level - 1, -1)):
             g, c = self.grids[lv], channels[s]
-            self.down.append(ConvStage(g, c_in, c, radius_spacings * h[lv], num_basis))
+            self.down.append(ConvStage(g, c_in, c, radius_spacings * h[lv], num_basis, depth))
             c_in = c
             if s < pair_stages and lv > min_level:
                 self.pairs.append(GradientPairs(g.pos, *grid_graph(g, jet_spacings * h[lv]), h[lv],
                                                 c, pairs))
+                self.fills.append(FillHidden(g.pos))
                 c_in = c + 2 * pairs
             skips.append(c_in)
             if lv > min_level:
@@ -160,7 +169,7 @@ class SphericalBackbone(nn.Module):
             skip = skips[input_level - lv]
             self.ups.append(blur(self.grids[lv - 1], self.grids[lv], 0.5 * h[lv - 1]))
             self.up.append(ConvStage(self.grids[lv], c_in + skip, skip, radius_spacings * h[lv],
-                                     num_basis))
+                                     num_basis, depth))
             c_in = skip
         self.out_channels = c_in
 
@@ -172,7 +181,7 @@ class SphericalBackbone(nn.Module):
         for s, stage in enumerate(self.down):
             x = stage(x, m)
             if s < len(self.pairs):
-                x = torch.cat([x, self.pairs[s](x)], -1)
+                x = torch.cat([x, self.pairs[s](self.fills[s](x, m))], -1)
             feats.append((x, m))
             if s < len(self.pools):
                 x, mp = self.pools[s](x, m)
@@ -183,7 +192,7 @@ class SphericalBackbone(nn.Module):
         feats = list(feats)
         x, m = feats.pop()
         for up, stage in zip(self.ups, self.up):
-            x, _ = up(x)
+            x, _ = up(x, m)  # hidden coarse points hold no signal: keep them out
             skip, m = feats.pop()
             x = stage(torch.cat([x, skip], -1), m)
         return x, m
@@ -271,16 +280,17 @@ class SphericalUNet(_Segmenter):
     def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
                  min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, gravity: bool = True, refine: int = 0):
+                 pair_stages: int = 2, gravity: bool = True, depth: int = 1, refine: int = 0):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
                            min_level=min_level, channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
-                           pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine)
+                           pairs=pairs, pair_stages=pair_stages, gravity=gravity, depth=depth,
+                           refine=refine)
         self.backbone = SphericalBackbone(in_channels, level, level, min_level, channels,
                                           num_basis, radius_spacings, jet_spacings, pairs,
-                                          pair_stages, refine)
+                                          pair_stages, refine, depth)
         c = self.backbone.out_channels
         g = self.backbone.grids[level]
         self.gravity = GravityHead(self.backbone.grids[min_level], g, channels[-1]) if gravity else None

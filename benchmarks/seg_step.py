@@ -1,0 +1,67 @@
+"""Time one training step (forward, backward, Adam) of the spherical U-Net next to the planar
+U-Net at the same number of pixels and the same channels, on CPU or a GPU.
+
+    python benchmarks/seg_step.py [--device cuda] [--batch 8] [--level 5] [--reps 5]
+
+Spherical: :class:`SphericalUNet` as ``usf-graph train seg`` builds it (jet, gradient pairs,
+gravity head) on ``icosahedral:level`` (N points). Planar: :class:`PlanarUNet` with the same
+channels on an equirectangular image of H x 2H pixels, H the multiple of 8 nearest to
+sqrt(N / 2). Both with 13-class cross-entropy on random inputs and labels (the cost does not
+depend on them), in the static-graph form with one field of view for the batch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import torch
+from timing import best_time
+
+from usf_graph.models import PlanarUNet, SphericalUNet
+from usf_graph.train.seg import segmentation_loss
+
+
+def step_time(model, x, y, reps: int, dev) -> float:
+    opt = torch.optim.Adam(model.parameters(), 1e-3)
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        segmentation_loss(model(x), y).backward()
+        opt.step()
+
+    return best_time(step, reps, dev, warmup=2)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--level", type=int, default=5)
+    p.add_argument("--reps", type=int, default=5)
+    p.add_argument("--threads", type=int, default=2, help="CPU threads")
+    a = p.parse_args()
+    torch.set_num_threads(a.threads)
+    dev = torch.device(a.device)
+    torch.manual_seed(0)
+    sph = SphericalUNet(level=a.level).to(dev)
+    planar = PlanarUNet(channels=sph.config["channels"]).to(dev)
+    N, B = sph.num_points, a.batch
+    H = max(8, 8 * round(math.sqrt(N / 2) / 8))
+    xs, ys = torch.rand(B, N, 3, device=dev), torch.randint(0, 13, (B, N), device=dev)
+    xp, yp = torch.rand(B, 3, H, 2 * H, device=dev), torch.randint(0, 13, (B, H, 2 * H), device=dev)
+    ts = step_time(sph, xs, ys, a.reps, dev)
+    tp = step_time(planar, xp, yp, a.reps, dev)
+    where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {a.threads} threads"
+    print(f"{where}, batch {B}, best of {a.reps} steps, channels {sph.config['channels']}")
+    print("| model | points | parameters | step (ms) | samples/s |")
+    print("|---|---|---|---|---|")
+    for name, m, n, t in ((f"SphericalUNet (icosahedral:{a.level})", sph, N, ts),
+                          (f"PlanarUNet ({2 * H}x{H})", planar, 2 * H * H, tp)):
+        params = sum(q.numel() for q in m.parameters())
+        print(f"| {name} | {n} | {params} | {1e3 * t:.1f} | {B / t:.0f} |")
+    print(f"\nspherical / planar step time: {ts / tp:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
