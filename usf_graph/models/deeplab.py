@@ -47,7 +47,7 @@ class SphericalDeepLabV3(_Segmenter):
                  aspp_level: int | None = None, channels=(32, 64, 128), aspp_channels: int = 128,
                  rates=(2, 4, 6), low_channels: int = 32, num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, gravity: bool = True, refine: int = 0):
+                 pair_stages: int = 2, gravity: bool = False, refine: int = 0):
         super().__init__()
         aspp_level = level - len(channels) + 1 if aspp_level is None else aspp_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,

@@ -206,8 +206,8 @@ class GravityHead(nn.Module):
     relative to it.
 
     A small MLP turns the features on a coarse grid into a scalar field :math:`s`, and
-    :math:`v = \sum_i a_i m_i s_i p_i` (areas a, field of view m) is a vector that rotates
-    with the input; :math:`\hat v = v / \lVert v \rVert` estimates up, and
+    :math:`v = \sum_i a_i m_i (s_i - \bar s) p_i` (areas a, field of view m, :math:`\bar s`
+    the visible mean) is a vector that rotates with the input; :math:`\hat v = v / \lVert v \rVert` estimates up, and
     :math:`u_j = p_j \cdot \hat v` (the sine of each output point's elevation) is a
     rotation-invariant feature. A planar network reads "ceiling above, floor below" from
     pixel positions, which breaks under rotation; this head lets an equivariant one find
@@ -221,9 +221,10 @@ class GravityHead(nn.Module):
     def __init__(self, coarse, out, channels: int, hidden: int = 32):
         super().__init__()
         self.field = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, 1))
-        self.register_buffer("pos", coarse.pos.float(), persistent=False)
-        self.register_buffer("area", coarse.area.float(), persistent=False)
-        self.register_buffer("out_pos", out.pos.float(), persistent=False)
+        # float64 (cast at use): float32 positions are not exactly symmetric
+        self.register_buffer("pos", coarse.pos.double(), persistent=False)
+        self.register_buffer("area", coarse.area.double(), persistent=False)
+        self.register_buffer("out_pos", out.pos.double(), persistent=False)
 
     def reset_parameters(self) -> None:
         for m in self.field:
@@ -232,7 +233,11 @@ class GravityHead(nn.Module):
 
     def forward(self, f: torch.Tensor, mask: torch.Tensor | None = None):
         w = self.area.to(f.dtype) * (1 if mask is None else mask.to(f.dtype))
-        v = ((self.field(f)[..., 0] * w)[..., None] * self.pos.to(f.dtype)).sum(1)
+        s = self.field(f)[..., 0]
+        # centred on its visible mean: a constant field gives no direction, even when only
+        # part of the sphere is seen (else up would lean towards the view direction)
+        s = s - (s * w).sum(-1, keepdim=True) / w.sum()
+        v = ((s * w)[..., None] * self.pos.to(f.dtype)).sum(1)
         up = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         return up, (self.out_pos.to(f.dtype) @ up[..., None])
 
@@ -268,9 +273,10 @@ class SphericalUNet(_Segmenter):
     features), so the logits are SO(3)-equivariant: exactly for rotations that map the
     grid onto itself, up to discretization for any other.
 
-    With ``gravity`` (default), a :class:`GravityHead` on the coarsest features gives the
-    head each point's height relative to an up direction estimated from the image, which
-    keeps the logits equivariant.
+    With ``gravity=True``, a :class:`GravityHead` on the coarsest features gives the head
+    each point's height relative to an up direction estimated from the image, which keeps
+    the logits equivariant (off by default: in the rooms protocol it did not raise mIoU at
+    20 epochs, README).
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]`` (and the
@@ -280,7 +286,7 @@ class SphericalUNet(_Segmenter):
     def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
                  min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, gravity: bool = True, depth: int = 1, refine: int = 0):
+                 pair_stages: int = 2, gravity: bool = False, depth: int = 1, refine: int = 0):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,

@@ -215,7 +215,7 @@ def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = T
 
 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
-        num_train: int = 200, num_test: int = 50, epochs: int = 12, batch_size: int = 8,
+        num_train: int = 200, num_test: int = 50, epochs: int = 16, batch_size: int = 8,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``."""
