@@ -2,7 +2,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo demo-det info test test-slow lint bench clean
+.PHONY: setup demo demo-det demo-seg info test test-slow lint bench clean
 setup:
 	@bash scripts/bootstrap.sh
 
@@ -15,6 +15,9 @@ demo: setup
 # the detection protocol on procedural rooms (README, "Detection"): about 15 minutes on 2 cores
 demo-det: setup
 	@$(VENV)/bin/usf-graph train det --out runs/det
+
+demo-seg: setup
+	@$(VENV)/bin/usf-graph train seg --out runs/seg
 
 test: setup
 	@$(VENV)/bin/ruff check usf_graph tests examples benchmarks

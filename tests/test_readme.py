@@ -90,3 +90,15 @@ def test_detection_section_runs(tmp_path, monkeypatch):
     b = scope["found"][0]["boxes"]
     assert 1 <= len(b) <= 5 and b.shape[1] == 5 and len(scope["found"]) == 2
     assert "--dataset pandora" in section and "not run here" in section
+
+
+def test_segmentation_section_runs(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Semantic segmentation on the sphere", 1)[1].split("\n## ", 1)[0]
+    code = "\n".join(re.findall(r"```python\n(.*?)```", section, re.S))
+    scope = {}
+    exec(compile(code, "README segmentation", "exec"), scope)  # noqa: S102 - our own README
+    assert tuple(scope["logits"].shape) == (2, 10242, 13)
+    assert tuple(scope["pixels"].shape) == (128, 256) and int(scope["pixels"].max()) < 13
+    assert "--fold all" in section and "not run here" in section

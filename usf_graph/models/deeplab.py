@@ -77,11 +77,6 @@ class SphericalDeepLabV3(_Segmenter):
         self.head = nn.Linear(a // 2, num_classes)
         self.reset_parameters()
 
-    def reset_parameters(self) -> None:
-        for m in self.modules():
-            if m is not self and hasattr(m, "reset_parameters"):
-                m.reset_parameters()
-
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 return_up: bool = False):
         feats = self.backbone.encode(x, mask)

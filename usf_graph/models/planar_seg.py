@@ -14,6 +14,24 @@ def conv_block(c_in: int, c_out: int, dilation: int = 1) -> nn.Sequential:
                          nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
 
 
+def _encoder(c_in: int, channels) -> nn.ModuleList:
+    """Two conv blocks per level (the first level at full resolution)."""
+    down = nn.ModuleList()
+    for c in channels:
+        down.append(nn.Sequential(conv_block(c_in, c), conv_block(c, c)))
+        c_in = c
+    return down
+
+
+def _encode(down: nn.ModuleList, x: torch.Tensor) -> list:
+    """Each level's features, max-pooling 2x between levels."""
+    feats = []
+    for i, block in enumerate(down):
+        x = block(x if i == 0 else F.max_pool2d(x, 2))
+        feats.append(x)
+    return feats
+
+
 def _check_image(x: torch.Tensor, c: int, multiple: int) -> None:
     if x.dim() != 4 or x.shape[1] != c or x.shape[2] % multiple or x.shape[3] % multiple:
         raise ValueError(f"expected x [B, {c}, H, W] with H and W divisible by {multiple}, got "
@@ -42,10 +60,7 @@ class PlanarUNet(nn.Module):
                            channels=list(channels), out_stride=out_stride)
         self.input_dims, self.in_channels = 4, in_channels
         self.multiple = 2 ** (len(channels) - 1)
-        self.down, c_in = nn.ModuleList(), in_channels
-        for c in channels:
-            self.down.append(nn.Sequential(conv_block(c_in, c), conv_block(c, c)))
-            c_in = c
+        self.down, c_in = _encoder(in_channels, channels), channels[-1]
         self.up = nn.ModuleList()
         for c in reversed(channels[k:-1]):
             self.up.append(conv_block(c_in + c, c))
@@ -63,11 +78,8 @@ class PlanarUNet(nn.Module):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         _check_image(x, self.in_channels, self.multiple)
-        skips = []
-        for i, block in enumerate(self.down):
-            x = block(x if i == 0 else F.max_pool2d(x, 2))
-            skips.append(x)
-        skips.pop()
+        skips = _encode(self.down, x)
+        x = skips.pop()
         for block in self.up:
             skip = skips.pop()
             x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
@@ -108,10 +120,7 @@ class PlanarDeepLab(nn.Module):
                            channels=list(channels), aspp_channels=aspp_channels, rates=list(rates))
         self.input_dims, self.in_channels = 4, in_channels
         self.multiple = 2 ** (len(channels) - 1)
-        self.down, c_in = nn.ModuleList(), in_channels
-        for c in channels:
-            self.down.append(nn.Sequential(conv_block(c_in, c), conv_block(c, c)))
-            c_in = c
+        self.down, c_in = _encoder(in_channels, channels), channels[-1]
         self.aspp = _ASPP(c_in, aspp_channels, rates)
         low = channels[0]
         self.decoder = conv_block(aspp_channels + low, low)
@@ -123,10 +132,8 @@ class PlanarDeepLab(nn.Module):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         _check_image(x, self.in_channels, self.multiple)
-        low = None
-        for i, block in enumerate(self.down):
-            x = block(x if i == 0 else F.max_pool2d(x, 2))
-            low = x if i == 0 else low
+        feats = _encode(self.down, x)
+        low, x = feats[0], feats[-1]
         x = F.interpolate(self.aspp(x), size=low.shape[-2:], mode="bilinear", align_corners=False)
         return self.head(self.decoder(torch.cat([x, low], 1)))
 

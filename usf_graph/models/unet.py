@@ -250,6 +250,11 @@ class _Segmenter(nn.Module):
     config: dict
     gravity: GravityHead | None
 
+    def reset_parameters(self) -> None:
+        for m in self.modules():
+            if m is not self and hasattr(m, "reset_parameters"):
+                m.reset_parameters()
+
     @classmethod
     def from_config(cls, config: dict):
         return cls(**config)
@@ -305,11 +310,6 @@ class SphericalUNet(_Segmenter):
         self.head = nn.Linear(c, num_classes)
         self.num_points = self.backbone.num_points
         self.reset_parameters()
-
-    def reset_parameters(self) -> None:
-        for m in self.modules():
-            if m is not self and hasattr(m, "reset_parameters"):
-                m.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 return_up: bool = False):
