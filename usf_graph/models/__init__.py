@@ -1,11 +1,11 @@
 """Models built from usf_graph.nn layers, and planar baselines."""
 
 from .classifier import PlanarCNN, SphericalClassifier, grid_graph
+from .deeplab import SphericalDeepLabV3
 from .detector import SphericalDetector
 from .planar_detector import PlanarDetector
 from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
-from .deeplab import SphericalDeepLabV3
 from .unet import SphericalBackbone, SphericalUNet
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",

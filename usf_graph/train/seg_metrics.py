@@ -39,6 +39,10 @@ def confusion_matrix(pred, target, num_classes: int, ignore_index: int = 255,
     return conf.reshape(num_classes, num_classes).astype(np.float64)
 
 
+def _nan_mean(v: np.ndarray) -> float:
+    return float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+
+
 def scores(conf: np.ndarray, names=None) -> dict:
     """mIoU, mAcc and overall accuracy (fractions), and per-class IoU/accuracy (NaN for a
     class absent from truth and predictions, or from the truth for accuracy)."""
@@ -50,8 +54,7 @@ def scores(conf: np.ndarray, names=None) -> dict:
         iou = np.where(union > 0, tp / union, np.nan)
         acc = np.where(truth > 0, tp / truth, np.nan)
     names = list(names) if names is not None else [str(c) for c in range(len(conf))]
-    nan_mean = (lambda v: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan"))
-    return {"mIoU": nan_mean(iou), "mAcc": nan_mean(acc),
+    return {"mIoU": _nan_mean(iou), "mAcc": _nan_mean(acc),
             "acc": float(tp.sum() / max(conf.sum(), 1e-300)),
             "IoU": {n: None if np.isnan(v) else float(v) for n, v in zip(names, iou)},
             "Acc": {n: None if np.isnan(v) else float(v) for n, v in zip(names, acc)}}
