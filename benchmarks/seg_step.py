@@ -16,21 +16,10 @@ import argparse
 import math
 
 import torch
-from timing import best_time
+from timing import step_time
 
 from usf_graph.models import PlanarUNet, SphericalUNet
 from usf_graph.train.seg import segmentation_loss
-
-
-def step_time(model, x, y, reps: int, dev) -> float:
-    opt = torch.optim.Adam(model.parameters(), 1e-3)
-
-    def step():
-        opt.zero_grad(set_to_none=True)
-        segmentation_loss(model(x), y).backward()
-        opt.step()
-
-    return best_time(step, reps, dev, warmup=2)
 
 
 def main():
@@ -50,8 +39,8 @@ def main():
     H = max(8, 8 * round(math.sqrt(N / 2) / 8))
     xs, ys = torch.rand(B, N, 3, device=dev), torch.randint(0, 13, (B, N), device=dev)
     xp, yp = torch.rand(B, 3, H, 2 * H, device=dev), torch.randint(0, 13, (B, H, 2 * H), device=dev)
-    ts = step_time(sph, xs, ys, a.reps, dev)
-    tp = step_time(planar, xp, yp, a.reps, dev)
+    ts = step_time(sph, xs, ys, segmentation_loss, a.reps, dev, warmup=2)
+    tp = step_time(planar, xp, yp, segmentation_loss, a.reps, dev, warmup=2)
     where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {a.threads} threads"
     print(f"{where}, batch {B}, best of {a.reps} steps, channels {sph.config['channels']}")
     print("| model | points | parameters | step (ms) | samples/s |")

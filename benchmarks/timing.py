@@ -27,3 +27,16 @@ def best_time(fn, reps: int, device: torch.device | str = "cpu", warmup: int = 1
         sync()
         best = min(best, time.perf_counter() - t)
     return best
+
+
+def step_time(model, x, y, loss_fn, reps: int, device, warmup: int = 3) -> float:
+    """:func:`best_time` of one training step: forward, ``loss_fn(model(x), y)``, backward
+    and an Adam update (warm-up: lazy structures, the allocator, cuDNN)."""
+    opt = torch.optim.Adam(model.parameters(), 1e-3)
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        loss_fn(model(x), y).backward()
+        opt.step()
+
+    return best_time(step, reps, device, warmup=warmup)

@@ -82,9 +82,9 @@ class FillHidden(nn.Module):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         if mask is None:
             return x
-        key = np.packbits(mask.cpu().numpy()).tobytes()
+        m = mask.cpu().numpy()
+        key = np.packbits(m).tobytes()
         if key not in self._index:
-            m = mask.cpu().numpy()
             vis = np.flatnonzero(m)
             _, j = cKDTree(self.pos[vis]).query(self.pos[~m])
             idx = np.arange(len(m))
@@ -271,8 +271,8 @@ class _Segmenter(nn.Module):
 
 class SphericalUNet(_Segmenter):
     r"""Semantic segmentation on the sphere: a :class:`SphericalBackbone` from
-    ``level`` down to ``min_level`` (default: one level per entry of ``channels``) and back, then a conv stage and a per-point linear map
-    to class logits.
+    ``level`` down to ``min_level`` (default: one level per entry of ``channels``) and
+    back, then a conv stage and a per-point linear map to class logits.
 
     Every layer is a function of geodesic distances (or of rotation-invariant jet
     features), so the logits are SO(3)-equivariant: exactly for rotations that map the

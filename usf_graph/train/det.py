@@ -10,7 +10,6 @@ sees (c) and (d) re-imaged as panoramas (black where the lens does not see).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -204,11 +203,9 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
     if rank != 0:
         return {}
     res = {"samples": {"train": len(train), "test": len(test)},
-           "spherical": score(predict(net, test, progress=progress), test, C),
-           "seconds": round(time.time() - t0, 1)}
+           "spherical": score(predict(net, test, progress=progress), test, C)}
     save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"])
-    (out / "results.json").write_text(json.dumps(res, indent=1))
-    return res
+    return write_results(out, res, t0)
 
 
 def format_table(results: dict, metric: str = "AP50") -> str:

@@ -237,16 +237,19 @@ def _log(log_dir: Path, history: list[dict], writer) -> None:
                 writer.add_scalar(k, v, history[-1]["epoch"])
 
 
-def write_results(out, results: dict, t0: float, figure: str, plot: Callable[[Path], object]) -> dict:
+def write_results(out, results: dict, t0: float, figure: str | None = None,
+                  plot: Callable[[Path], object] | None = None) -> dict:
     """Finish a task's run: add its wall time, write ``results.json`` under ``out``, then
-    draw ``figure`` with ``plot(path)``. A failed plot is reported and must not lose the
-    results, which are already written."""
+    draw ``figure`` with ``plot(path)`` when given. A failed plot is reported and must not
+    lose the results, which are already written."""
     import time
 
     out = Path(out)
     results["seconds"] = round(time.time() - t0, 1)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(results, indent=1))
+    if figure is None:
+        return results
     try:
         plot(out / figure)
         results["figure"] = str(out / figure)

@@ -21,7 +21,6 @@ does not see), and its predictions are rendered back into their pixels.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from tqdm.auto import tqdm
 
 from ..cameras import Equirectangular
 from ..frontend import render
+from ..geometry import geodesic_distance
 from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
@@ -99,25 +99,21 @@ def segmentation_step(model, batch):
     A spherical model with a gravity head also learns up: ``UP_WEIGHT * (1 - up . g)``,
     with g the batch's ``up [B, 3]`` when it has one, else +z (gravity-aligned views)."""
     x, y, mask, image, label = split_batch(batch)
-    core, up_loss = getattr(model, "module", model), None
-    if is_planar(model):
+    planar, stats = is_planar(model), {}
+    if planar:
         logits, target = model(image), label
-        pred = logits.argmax(1)
-    elif getattr(core, "gravity", None) is not None:
+    elif getattr(getattr(model, "module", model), "gravity", None) is not None:
         (logits, up), target = model(x, mask, return_up=True), y
         g = getattr(batch, "up", None)
         g = torch.tensor([0.0, 0.0, 1.0], dtype=up.dtype) if g is None else g.view(-1, 3).to(up.dtype)
         up_loss = (1 - (up * g).sum(-1)).mean()
-        pred = logits.argmax(-1)
+        stats["up_err_deg"] = float(torch.rad2deg(geodesic_distance(up.detach(), g)).mean())
     else:
         logits, target = model(x, mask), y
-        pred = logits.argmax(-1)
     loss = segmentation_loss(logits, target)
-    stats = {}
-    if up_loss is not None:
+    if "up_err_deg" in stats:
         loss = loss + UP_WEIGHT * up_loss
-        stats["up_err_deg"] = float(torch.rad2deg(torch.atan2(
-            torch.linalg.cross(up.detach(), g.expand_as(up)).norm(dim=-1), (up.detach() * g).sum(-1))).mean())
+    pred = logits.argmax(1 if planar else -1)
     keep = target != IGNORE
     acc = (pred[keep] == target[keep]).double().mean().item() if keep.any() else 0.0
     return loss, {"acc": acc, **stats}, len(x)
@@ -296,7 +292,4 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
         results[name]["mean"] = {m: float(np.mean([r[m] for r in per]))
                                  for m in ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU")
                                  if all(m in r for r in per)}
-    results["seconds"] = round(time.time() - t0, 1)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    return results
+    return write_results(out, results, t0)
