@@ -48,10 +48,10 @@ def test_logits_move_with_the_rotation(cls, kw):
     # cap, amplify rounding to ~1e-6; a broken symmetry shows at the output's scale)
     assert_equivariant(lambda x, mk: m(x, mk), (x, mask), pos, R, atol=1e-5)
     # the estimated up rotates with the input
-    _, up = m(x, mask, return_up=True)
+    up = m(x, mask, return_gravity=True)[1]["up"]
     xr = torch.empty_like(x)
     xr[:, symmetry_permutation(pos, R)] = x
-    _, up_r = m(xr, mask, return_up=True)
+    up_r = m(xr, mask, return_gravity=True)[1]["up"]
     assert torch.allclose(up_r, up @ R.T, atol=1e-9) and torch.allclose(up.norm(dim=-1), torch.ones(2, dtype=torch.float64))
     # and the hidden part of the input does not matter
     y = x.clone()
@@ -102,3 +102,32 @@ def test_spherical_models_reject_bad_input():
         m(torch.zeros(1, n, 3), torch.zeros(n, dtype=torch.bool))
     with pytest.raises(ValueError, match="channels needs one entry"):
         SphericalUNet(level=3, min_level=2, channels=(4, 6, 8))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gravity_head_fits_up_from_exact_heights(seed):
+    """Heights that are exactly p . g give back g, whatever part of the sphere is seen,
+    and a zero loss; noisy heights give a nearby direction."""
+    from usf_graph.models import GravityHead
+
+    gen = torch.Generator().manual_seed(seed)
+    grid = grids.icosahedral(2)
+    g = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen, dtype=torch.float64), dim=-1)
+    head = GravityHead(grid, channels=3, hidden=2, ridge=0.0).double()
+    with torch.no_grad():  # h = relu(p . g) - relu(-p . g) = p . g, per sample via its input
+        head.field[0].weight.copy_(torch.tensor([[1.0, 0, 0], [-1.0, 0, 0]]))
+        head.field[0].bias.zero_()
+        head.field[2].weight.copy_(torch.tensor([[1.0, -1.0]]))
+        head.field[2].bias.zero_()
+    h_true = g @ grid.pos.T  # [2, M]
+    f = torch.cat([h_true[..., None], torch.zeros(2, len(grid), 2, dtype=torch.float64)], -1)
+    view = torch.randn(3, generator=gen, dtype=torch.float64)
+    for mask in (None, grid.pos @ (view / view.norm()) > 0.5):  # whole sphere, a 120-degree cap
+        up, h = head(f, mask)
+        assert torch.allclose(h, h_true, atol=1e-12)
+        assert torch.allclose(up, g, atol=1e-9)
+        assert head.loss(up, h, g, mask).abs() < 1e-9
+        noisy = head(f + 0.05 * torch.randn(f.shape, generator=gen, dtype=torch.float64), mask)[0]
+        cos = (noisy * g).sum(-1)
+        assert (cos > 0.95).all() and (cos < 1 - 1e-6).all()
+        assert head.loss(up, h, -g, mask) > 1.0  # the wrong way up costs

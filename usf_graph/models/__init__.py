@@ -6,8 +6,8 @@ from .detector import SphericalDetector
 from .planar_detector import PlanarDetector
 from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
-from .unet import SphericalBackbone, SphericalUNet
+from .unet import GravityHead, SphericalBackbone, SphericalUNet
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",
            "SphericalDetector", "PlanarDetector", "SphericalBackbone", "SphericalUNet",
-           "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3"]
+           "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3", "GravityHead"]

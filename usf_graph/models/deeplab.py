@@ -8,7 +8,7 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .unet import ConvStage, GravityHead, SphericalBackbone, _Segmenter, blur, level_spacing
+from .unet import ConvStage, GravityHead, SphericalBackbone, _Segmenter, blur, heights, level_spacing
 
 
 class Pointwise(nn.Module):
@@ -40,7 +40,8 @@ class SphericalDeepLabV3(_Segmenter):
     :class:`GravityHead` on the ASPP's input, feeding the decoder) it shares.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
-    ``mask [N]`` -> logits ``[B, N, num_classes]`` (and up ``[B, 3]`` with ``return_up``).
+    ``mask [N]`` -> logits ``[B, N, num_classes]`` (and the gravity estimate with
+    ``return_gravity``).
     """
 
     def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
@@ -71,14 +72,15 @@ class SphericalDeepLabV3(_Segmenter):
         self.fuse = Pointwise(a * (len(rates) + 2), a)
         self.up = blur(ga, gl, 0.5 * level_spacing(aspp_level))
         self.low = Pointwise(self.backbone.skip_channels[0], low_channels)
-        self.gravity = GravityHead(ga, gl, c) if gravity else None
+        self.gravity = GravityHead(ga, c) if gravity else None
+        self.register_buffer("out_pos", gl.pos.double(), persistent=False)
         self.decoder = ConvStage(gl, a + low_channels + int(gravity), a // 2,
                                  radius_spacings * level_spacing(level), num_basis)
         self.head = nn.Linear(a // 2, num_classes)
         self.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
-                return_up: bool = False):
+                return_gravity: bool = False):
         feats = self.backbone.encode(x, mask)
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)
@@ -86,12 +88,11 @@ class SphericalDeepLabV3(_Segmenter):
         branches = [self.point(f, m, area)] + [s(f, m) for s in self.atrous]
         branches.append(g[:, None].expand(-1, f.shape[1], -1))
         y, _ = self.up(self.fuse(torch.cat(branches, -1), m, area), m)
-        parts, up = [y, self.low(low, m_low, self.area_out.to(f.dtype))], None
-        if self.gravity is not None:
-            up, u = self.gravity(f, m)
-            parts.append(u)
+        parts, grav = [y, self.low(low, m_low, self.area_out.to(f.dtype))], self._gravity(f, m)
+        if grav:
+            parts.append(heights(self.out_pos, grav["up"]))
         logits = self.head(self.decoder(torch.cat(parts, -1), m_low))
-        return (logits, up) if return_up else logits
+        return (logits, grav) if return_gravity else logits
 
 
 __all__ = ["SphericalDeepLabV3"]

@@ -129,7 +129,7 @@ class SphericalBackbone(nn.Module):
     def __init__(self, in_channels: int = 3, input_level: int = 5, out_level: int = 5,
                  min_level: int = 2, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, refine: int = 0, depth: int = 1):
+                 pair_stages: int = 2, refine: int = 0, depth: int = 1, gravity: bool = False):
         super().__init__()
         if not min_level <= out_level <= input_level:
             raise ValueError(f"need min_level <= out_level <= input_level, got {min_level}, "
@@ -165,11 +165,14 @@ class SphericalBackbone(nn.Module):
                 self.pools.append(blur(g, self.grids[lv - 1], 0.5 * h[lv - 1]))
         self.skip_channels = skips
         self.ups, self.up = nn.ModuleList(), nn.ModuleList()
-        for lv in range(min_level + 1, out_level + 1):
+        self.gravity = gravity
+        for k, lv in enumerate(range(min_level + 1, out_level + 1)):
             skip = skips[input_level - lv]
             self.ups.append(blur(self.grids[lv - 1], self.grids[lv], 0.5 * h[lv - 1]))
-            self.up.append(ConvStage(self.grids[lv], c_in + skip, skip, radius_spacings * h[lv],
-                                     num_basis, depth))
+            self.up.append(ConvStage(self.grids[lv], c_in + skip + int(gravity), skip,
+                                     radius_spacings * h[lv], num_basis, depth))
+            if gravity:
+                self.register_buffer(f"up_pos{k}", self.grids[lv].pos.double(), persistent=False)
             c_in = skip
         self.out_channels = c_in
 
@@ -188,13 +191,19 @@ class SphericalBackbone(nn.Module):
                 m = None if m is None else mp
         return feats
 
-    def decode(self, feats: list) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def decode(self, feats: list, up: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Decoder over :meth:`encode`'s output; with ``gravity``, every stage also reads
+        each point's height along ``up [B, 3]`` (:class:`GravityHead`)."""
+        if self.gravity and up is None:
+            raise ValueError("this backbone was built with gravity=True: pass up [B, 3]")
         feats = list(feats)
         x, m = feats.pop()
-        for up, stage in zip(self.ups, self.up):
-            x, _ = up(x, m)  # hidden coarse points hold no signal: keep them out
+        for k, (ups, stage) in enumerate(zip(self.ups, self.up)):
+            x, _ = ups(x, m)  # hidden coarse points hold no signal: keep them out
             skip, m = feats.pop()
-            x = stage(torch.cat([x, skip], -1), m)
+            parts = [x, skip] + ([heights(getattr(self, f"up_pos{k}"), up)] if self.gravity else [])
+            x = stage(torch.cat(parts, -1), m)
         return x, m
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None):
@@ -202,50 +211,70 @@ class SphericalBackbone(nn.Module):
 
 
 class GravityHead(nn.Module):
-    r"""An SO(3)-equivariant estimate of the up direction, and each point's height
-    relative to it.
+    r"""An SO(3)-equivariant estimate of the up direction from the image.
 
-    A small MLP turns the features on a coarse grid into a scalar field :math:`s`, and
-    :math:`v = \sum_i a_i m_i (s_i - \bar s) p_i` (areas a, field of view m, :math:`\bar s`
-    the visible mean) is a vector that rotates with the input; :math:`\hat v = v / \lVert v \rVert` estimates up, and
-    :math:`u_j = p_j \cdot \hat v` (the sine of each output point's elevation) is a
-    rotation-invariant feature. A planar network reads "ceiling above, floor below" from
-    pixel positions, which breaks under rotation; this head lets an equivariant one find
-    up from the image itself and keep that cue. It is trained end to end, plus an
-    auxiliary :math:`1 - \hat v \cdot g` towards the known gravity g of training views.
+    A small MLP regresses, at every point :math:`p_i` of a coarse grid, its height
+    :math:`h_i \approx p_i \cdot g` (the sine of its elevation, an invariant target:
+    it rotates with the image), and up is the least-squares fit of all of them,
+
+    .. math::
+        u = \Big(\sum_i w_i p_i p_i^\top + \epsilon I\Big)^{-1} \sum_i w_i h_i p_i,
+        \qquad \hat u = u / \lVert u \rVert,
+
+    with w the grid's areas times the field of view. Every point votes, so no part of the
+    room has to be recognised on its own, and the normal equations account for the part of
+    the sphere a lens does not see. :math:`\hat u` rotates with the input, so each point's
+    height :math:`p \cdot \hat u` (:func:`heights`) is a rotation-invariant feature: the
+    cue "ceiling above, floor below" that a planar network reads from pixel rows, kept
+    under any rotation. Trained with :meth:`loss` on views of known gravity g.
 
     Shapes: features ``[B, M, C]`` on the coarse grid, ``mask [M]`` or ``None`` ->
-    ``(up [B, 3], u [B, N, 1])`` on the output grid.
+    ``(up [B, 3], h [B, M])``.
     """
 
-    def __init__(self, coarse, out, channels: int, hidden: int = 32):
+    def __init__(self, coarse, channels: int, hidden: int = 32, ridge: float = 1e-2):
         super().__init__()
         self.field = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+        self.ridge = ridge
         # float64 (cast at use): float32 positions are not exactly symmetric
         self.register_buffer("pos", coarse.pos.double(), persistent=False)
         self.register_buffer("area", coarse.area.double(), persistent=False)
-        self.register_buffer("out_pos", out.pos.double(), persistent=False)
 
     def reset_parameters(self) -> None:
         for m in self.field:
             if hasattr(m, "reset_parameters"):
                 m.reset_parameters()
 
+    def _weight(self, mask, dtype):
+        return self.area.to(dtype) * (1 if mask is None else mask.to(dtype))
+
     def forward(self, f: torch.Tensor, mask: torch.Tensor | None = None):
-        w = self.area.to(f.dtype) * (1 if mask is None else mask.to(f.dtype))
-        s = self.field(f)[..., 0]
-        # centred on its visible mean: a constant field gives no direction, even when only
-        # part of the sphere is seen (else up would lean towards the view direction)
-        s = s - (s * w).sum(-1, keepdim=True) / w.sum()
-        v = ((s * w)[..., None] * self.pos.to(f.dtype)).sum(1)
-        up = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        return up, (self.out_pos.to(f.dtype) @ up[..., None])
+        w, p = self._weight(mask, f.dtype), self.pos.to(f.dtype)
+        h = self.field(f)[..., 0]
+        A = (p * w[:, None]).T @ p
+        A = A + self.ridge * w.sum() * torch.eye(3, dtype=f.dtype, device=f.device)
+        u = torch.linalg.solve(A, ((h * w) @ p).T).T
+        return u / u.norm(dim=-1, keepdim=True).clamp_min(1e-12), h
+
+    def loss(self, up: torch.Tensor, h: torch.Tensor, g: torch.Tensor,
+             mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Area-weighted squared error of the heights against ``p . g`` plus
+        ``1 - up . g``, for the true up ``g [B, 3]``."""
+        w = self._weight(mask, h.dtype)
+        mse = ((h - g.to(h.dtype) @ self.pos.to(h.dtype).T) ** 2 * w).sum(-1) / w.sum()
+        return (mse + 1 - (up * g).sum(-1)).mean()
+
+
+def heights(pos: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """``p . up`` for points ``pos [N, 3]`` and directions ``up [B, 3]`` -> ``[B, N, 1]``."""
+    return (pos.to(up.dtype) @ up.T).T[..., None]
 
 
 class _Segmenter(nn.Module):
     """What the segmentation models share: config round trip, resolution transfer and the
-    optional :class:`GravityHead` (``self.gravity``; ``forward(..., return_up=True)``
-    also returns its estimate)."""
+    optional :class:`GravityHead` (``self.gravity``; ``forward(..., return_gravity=True)``
+    also returns ``{"up": [B, 3], "height": [B, M], "mask": [M] or None}``, the estimate
+    and the coarse heights it was fitted to, for :meth:`GravityHead.loss`)."""
 
     config: dict
     gravity: GravityHead | None
@@ -254,6 +283,12 @@ class _Segmenter(nn.Module):
         for m in self.modules():
             if m is not self and hasattr(m, "reset_parameters"):
                 m.reset_parameters()
+
+    def _gravity(self, f: torch.Tensor, mask: torch.Tensor | None) -> dict | None:
+        if self.gravity is None:
+            return None
+        up, h = self.gravity(f, mask)
+        return {"up": up, "height": h, "mask": mask}
 
     @classmethod
     def from_config(cls, config: dict):
@@ -278,14 +313,14 @@ class SphericalUNet(_Segmenter):
     features), so the logits are SO(3)-equivariant: exactly for rotations that map the
     grid onto itself, up to discretization for any other.
 
-    With ``gravity=True``, a :class:`GravityHead` on the coarsest features gives the head
-    each point's height relative to an up direction estimated from the image, which keeps
-    the logits equivariant (off by default: in the rooms protocol it did not raise mIoU at
-    20 epochs, README).
+    With ``gravity=True`` (the default), a :class:`GravityHead` on the coarsest features
+    estimates up from the image, and every decoder stage and the head also read each
+    point's height along it; the logits stay equivariant, since the estimate rotates with
+    the input.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]`` (and the
-    estimated up ``[B, 3]`` with ``return_up=True``; ``None`` without ``gravity``).
+    gravity estimate with ``return_gravity=True``, ``None`` without ``gravity``).
     """
 
     def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
@@ -301,10 +336,11 @@ class SphericalUNet(_Segmenter):
                            refine=refine)
         self.backbone = SphericalBackbone(in_channels, level, level, min_level, channels,
                                           num_basis, radius_spacings, jet_spacings, pairs,
-                                          pair_stages, refine, depth)
+                                          pair_stages, refine, depth, gravity)
         c = self.backbone.out_channels
         g = self.backbone.grids[level]
-        self.gravity = GravityHead(self.backbone.grids[min_level], g, channels[-1]) if gravity else None
+        self.gravity = GravityHead(self.backbone.grids[min_level], channels[-1]) if gravity else None
+        self.register_buffer("out_pos", g.pos.double(), persistent=False)
         self.head_stage = ConvStage(g, c + int(gravity), c, radius_spacings * level_spacing(level),
                                     num_basis)
         self.head = nn.Linear(c, num_classes)
@@ -312,15 +348,14 @@ class SphericalUNet(_Segmenter):
         self.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
-                return_up: bool = False):
+                return_gravity: bool = False):
         feats = self.backbone.encode(x, mask)
-        up = None
-        f, m = self.backbone.decode(feats)
-        if self.gravity is not None:
-            up, u = self.gravity(*feats[-1])
-            f = torch.cat([f, u], -1)
-        logits = self.head(self.head_stage(f, m))
-        return (logits, up) if return_up else logits
+        grav, parts = self._gravity(*feats[-1]), []
+        f, m = self.backbone.decode(feats, grav and grav["up"])
+        if grav:
+            parts.append(heights(self.out_pos, grav["up"]))
+        logits = self.head(self.head_stage(torch.cat([f] + parts, -1), m))
+        return (logits, grav) if return_gravity else logits
 
 
-__all__ = ["SphericalBackbone", "SphericalUNet", "GravityHead", "ConvStage", "blur", "FillHidden", "level_spacing"]
+__all__ = ["SphericalBackbone", "SphericalUNet", "GravityHead", "heights", "ConvStage", "blur", "FillHidden", "level_spacing"]

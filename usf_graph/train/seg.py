@@ -88,31 +88,32 @@ def split_batch(batch):
     return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
 
 
-#: Weight of the gravity head's auxiliary loss.
-UP_WEIGHT = 0.1
+#: Weight of the gravity head's auxiliary loss (:meth:`GravityHead.loss`).
+UP_WEIGHT = 0.5
 
 
 def segmentation_step(model, batch):
     """The engine's step for segmentation, on PyG batches: per-point cross-entropy for
     spherical models, per-pixel for planar ones (which read the batch's ``image``).
 
-    A spherical model with a gravity head also learns up: ``UP_WEIGHT * (1 - up . g)``,
-    with g the batch's ``up [B, 3]`` when it has one, else +z (gravity-aligned views)."""
+    A spherical model with a gravity head also learns up: ``UP_WEIGHT`` times
+    :meth:`GravityHead.loss`, with g the batch's ``up [B, 3]`` when it has one, else +z
+    (gravity-aligned views)."""
     x, y, mask, image, label = split_batch(batch)
-    planar, stats = is_planar(model), {}
+    planar, stats, aux = is_planar(model), {}, 0.0
+    net = getattr(model, "module", model)
     if planar:
         logits, target = model(image), label
-    elif getattr(getattr(model, "module", model), "gravity", None) is not None:
-        (logits, up), target = model(x, mask, return_up=True), y
+    elif getattr(net, "gravity", None) is not None:
+        (logits, grav), target = model(x, mask, return_gravity=True), y
+        up = grav["up"]
         g = getattr(batch, "up", None)
-        g = torch.tensor([0.0, 0.0, 1.0], dtype=up.dtype) if g is None else g.view(-1, 3).to(up.dtype)
-        up_loss = (1 - (up * g).sum(-1)).mean()
+        g = torch.tensor([0.0, 0.0, 1.0], dtype=up.dtype).expand_as(up) if g is None else g.view(-1, 3).to(up.dtype)
+        aux = UP_WEIGHT * net.gravity.loss(up, grav["height"], g, grav["mask"])
         stats["up_err_deg"] = float(torch.rad2deg(geodesic_distance(up.detach(), g)).mean())
     else:
         logits, target = model(x, mask), y
-    loss = segmentation_loss(logits, target)
-    if "up_err_deg" in stats:
-        loss = loss + UP_WEIGHT * up_loss
+    loss = segmentation_loss(logits, target) + aux
     pred = logits.argmax(1 if planar else -1)
     keep = target != IGNORE
     acc = (pred[keep] == target[keep]).double().mean().item() if keep.any() else 0.0
