@@ -46,3 +46,28 @@ def test_masked_batchnorm_pyg_batch_equals_static_form_and_each_graph_in_eval():
         torch.testing.assert_close(y[b.batch == i], bn(d.x, d.mask, d.area))
     with pytest.raises(ValueError, match="one value per point"):
         bn(b.x, torch.ones(3, dtype=torch.bool))
+
+
+def test_masked_batchnorm_matches_torch_batchnorm_with_gradients():
+    """Without mask and weights it is torch's BatchNorm (biased variance in the output,
+    running statistics aside): outputs and gradients, in training and evaluation."""
+    gen = torch.Generator().manual_seed(3)
+    x = (torch.randn(4, 30, 5, generator=gen, dtype=torch.float64) * 3 + 1).requires_grad_()
+    ours, ref = MaskedBatchNorm(5).double(), torch.nn.BatchNorm1d(5).double()
+    with torch.no_grad():
+        for m in (ours, ref):
+            m.weight.copy_(torch.linspace(0.5, 2, 5))
+            m.bias.copy_(torch.linspace(-1, 1, 5))
+    up = torch.randn(4, 30, 5, generator=gen, dtype=torch.float64)
+    for train in (True, False):
+        ours.train(train), ref.train(train)
+        if not train:  # the same running statistics
+            ours.running_mean.copy_(ref.running_mean)
+            ours.running_var.copy_(ref.running_var)
+        y = ours(x)
+        y_ref = ref(x.transpose(1, 2)).transpose(1, 2)
+        torch.testing.assert_close(y, y_ref, rtol=1e-12, atol=1e-12)
+        g, g_ref = (torch.autograd.grad((t * up).sum(), [x, ours.weight if t is y else ref.weight])
+                    for t in (y, y_ref))
+        for a, b in zip(g, g_ref):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)

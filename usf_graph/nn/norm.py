@@ -57,17 +57,21 @@ class MaskedBatchNorm(nn.Module):
                 else node_weight.to(x.dtype)
             if mask is not None:
                 w = w * mask.to(x.dtype)
-            w = w.expand(x.shape[:-1])[..., None]
+            # weighted sums as matrix-vector products: no [B, N, C] temporaries for x * w
+            w = w.expand(x.shape[:-1]).reshape(-1)
             w = w / w.sum().clamp_min(1e-30)
-            dims = tuple(range(x.dim() - 1))
-            mean = (x * w).sum(dims)
-            var = (((x - mean) ** 2) * w).sum(dims)
+            flat = x.reshape(-1, x.shape[-1])
+            mean = w @ flat
+            xc = flat - mean
+            var = w @ (xc * xc)
             with torch.no_grad():
                 self.running_mean.lerp_(mean.detach().to(self.running_mean.dtype), self.momentum)
                 self.running_var.lerp_(var.detach().to(self.running_var.dtype), self.momentum)
-        else:
-            mean, var = self.running_mean.to(x.dtype), self.running_var.to(x.dtype)
-        return (x - mean) / torch.sqrt(var + self.eps) * self.weight + self.bias
+            scale = self.weight * torch.rsqrt(var + self.eps)
+            return torch.addcmul(self.bias, xc, scale).view_as(x)
+        mean, var = self.running_mean.to(x.dtype), self.running_var.to(x.dtype)
+        scale = self.weight * torch.rsqrt(var + self.eps)
+        return torch.addcmul(self.bias - mean * scale, x, scale)
 
     def extra_repr(self) -> str:
         return f"{self.channels}, eps={self.eps}, momentum={self.momentum}"
