@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 
 from tests.helpers import load_script
 
@@ -39,3 +40,16 @@ def test_pointcloud_example_full_table(tmp_path):
     pc, pn = res["PointCloudNet"], res["PointNet (raw xyz)"]
     assert pc["unmoved"] >= 0.9 and pc["unmoved"] - pc["rigidly moved"] < 0.01
     assert pn["unmoved"] >= 0.9 and pn["unmoved"] - pn["rigidly moved"] > 0.5
+
+
+def test_seg_height_cue_example_small_run(tmp_path):
+    ex = load("seg_height_cue")
+    pos = torch.nn.functional.normalize(torch.randn(7, 3, dtype=torch.float64), dim=-1)
+    x = torch.rand(2, 7, 3, dtype=torch.float64)
+    h = ex.with_true_height(x, pos)
+    assert torch.equal(h[..., :3], x) and torch.equal(h[0, :, 3], pos[:, 2])
+    res = ex.main(["--root", str(tmp_path), "--epochs", "1", "--size", "16", "--level", "3",
+                   "--num-train", "8", "--num-test", "2", "--no-progress"])
+    assert set(res) == {"plain", "gravity", "true_height"}
+    assert all(0 <= r["sphere_mIoU"] <= 1 for r in res.values())
+    assert 0 <= res["gravity"]["up_err_median_deg"] <= 180

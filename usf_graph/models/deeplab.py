@@ -8,7 +8,15 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .unet import ConvStage, GravityHead, SphericalBackbone, _Segmenter, blur, heights, level_spacing
+from .unet import (
+    ConvStage,
+    GravityHead,
+    SphericalBackbone,
+    _Segmenter,
+    blur,
+    heights,
+    level_spacing,
+)
 
 
 class Pointwise(nn.Module):
