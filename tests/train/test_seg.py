@@ -13,6 +13,7 @@ from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
 from usf_graph.train.seg import (
     PROTOCOL,
+    UP_WEIGHT,
     format_table,
     protocol_sets,
     run,
@@ -77,6 +78,16 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
     assert n == 2 and loss.item() > 0 and 0 <= stats["acc"] <= 1
     loss.backward()
     assert all(p.grad is not None for p in m.head.parameters())
+    # with a gravity head: its loss (on the masked coarse grid) is added and trains it
+    torch.manual_seed(0)
+    g = SphericalUNet(level=3, channels=(8, 8, 8, 8), gravity=True)
+    loss_g, stats_g, _ = segmentation_step(g, batch)
+    logits, grav = g(x, mask, return_gravity=True)
+    aux = g.gravity.loss(grav["up"], grav["height"], torch.tensor([[0.0, 0, 1]] * 2), grav["mask"])
+    torch.testing.assert_close(loss_g, segmentation_loss(logits, y) + UP_WEIGHT * aux)
+    assert 0 <= stats_g["up_err_deg"] <= 180 and aux > 0
+    loss_g.backward()
+    assert all(p.grad is not None for p in g.gravity.parameters())
 
 
 def test_stanford_command_on_fixtures(tmp_path):

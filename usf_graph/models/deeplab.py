@@ -81,7 +81,8 @@ class SphericalDeepLabV3(_Segmenter):
         self.up = blur(ga, gl, 0.5 * level_spacing(aspp_level))
         self.low = Pointwise(self.backbone.skip_channels[0], low_channels)
         self.gravity = GravityHead(ga, c) if gravity else None
-        self.register_buffer("out_pos", gl.pos.double(), persistent=False)
+        if gravity:
+            self.register_buffer("out_pos", gl.pos.double(), persistent=False)
         self.decoder = ConvStage(gl, a + low_channels + int(gravity), a // 2,
                                  radius_spacings * level_spacing(level), num_basis)
         self.head = nn.Linear(a // 2, num_classes)

@@ -342,7 +342,8 @@ class SphericalUNet(_Segmenter):
         c = self.backbone.out_channels
         g = self.backbone.grids[level]
         self.gravity = GravityHead(self.backbone.grids[min_level], channels[-1]) if gravity else None
-        self.register_buffer("out_pos", g.pos.double(), persistent=False)
+        if gravity:
+            self.register_buffer("out_pos", g.pos.double(), persistent=False)
         self.head_stage = ConvStage(g, c + int(gravity), c, radius_spacings * level_spacing(level),
                                     num_basis)
         self.head = nn.Linear(c, num_classes)
@@ -352,11 +353,12 @@ class SphericalUNet(_Segmenter):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 return_gravity: bool = False):
         feats = self.backbone.encode(x, mask)
-        grav, parts = self._gravity(*feats[-1]), []
-        f, m = self.backbone.decode(feats, grav and grav["up"])
-        if grav:
-            parts.append(heights(self.out_pos, grav["up"]))
-        logits = self.head(self.head_stage(torch.cat([f] + parts, -1), m))
+        grav = self._gravity(*feats[-1])
+        up = None if grav is None else grav["up"]
+        f, m = self.backbone.decode(feats, up)
+        if up is not None:
+            f = torch.cat([f, heights(self.out_pos, up)], -1)
+        logits = self.head(self.head_stage(f, m))
         return (logits, grav) if return_gravity else logits
 
 
