@@ -27,7 +27,8 @@ def _signal(pos, seed=0):
         0.3 * torch.randn(2, len(pos), 3, generator=g, dtype=torch.float64)
 
 
-@pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalDeepLabV3, DEEPLAB)])
+@pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalUNet, {**UNET, "head_depth": 1}),
+                                    (SphericalDeepLabV3, DEEPLAB)])
 def test_logits_move_with_the_rotation(cls, kw):
     torch.manual_seed(0)
     m = cls(**kw).double().eval()

@@ -307,7 +307,8 @@ class _Segmenter(nn.Module):
 class SphericalUNet(_Segmenter):
     r"""Semantic segmentation on the sphere: a :class:`SphericalBackbone` from
     ``level`` down to ``min_level`` (default: one level per entry of ``channels``) and
-    back, then a conv stage and a per-point linear map to class logits.
+    back, then ``head_depth`` conv stages on the finest level (0: none) and a per-point
+    linear map to class logits.
 
     Every layer is a function of geodesic distances (or of rotation-invariant jet
     features), so the logits are SO(3)-equivariant: exactly for rotations that map the
@@ -328,14 +329,15 @@ class SphericalUNet(_Segmenter):
     def __init__(self, num_classes: int = 13, in_channels: int = 3, level: int = 5,
                  min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, gravity: bool = False, depth: int = 1, refine: int = 0):
+                 pair_stages: int = 2, gravity: bool = False, depth: int = 1,
+                 head_depth: int = 0, refine: int = 0):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
                            min_level=min_level, channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, depth=depth,
-                           refine=refine)
+                           head_depth=head_depth, refine=refine)
         self.backbone = SphericalBackbone(in_channels, level, level, min_level, channels,
                                           num_basis, radius_spacings, jet_spacings, pairs,
                                           pair_stages, refine, depth, gravity)
@@ -345,8 +347,8 @@ class SphericalUNet(_Segmenter):
         if gravity:
             self.register_buffer("out_pos", g.pos.double(), persistent=False)
         self.head_stage = ConvStage(g, c + int(gravity), c, radius_spacings * level_spacing(level),
-                                    num_basis)
-        self.head = nn.Linear(c, num_classes)
+                                    num_basis, head_depth) if head_depth else None
+        self.head = nn.Linear(c if head_depth else c + int(gravity), num_classes)
         self.num_points = self.backbone.num_points
         self.reset_parameters()
 
@@ -358,7 +360,7 @@ class SphericalUNet(_Segmenter):
         f, m = self.backbone.decode(feats, up)
         if up is not None:
             f = torch.cat([f, heights(self.out_pos, up)], -1)
-        logits = self.head(self.head_stage(f, m))
+        logits = self.head(f if self.head_stage is None else self.head_stage(f, m))
         return (logits, grav) if return_gravity else logits
 
 
