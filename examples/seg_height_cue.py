@@ -21,17 +21,29 @@ import argparse
 
 import numpy as np
 import torch
+from torch import nn
 
 from usf_graph.geometry import geodesic_distance
 from usf_graph.models import SphericalUNet
 from usf_graph.train.engine import fit
-from usf_graph.train.seg import protocol_sets, segmentation_loss, segmentation_step, split_batch
+from usf_graph.train.seg import protocol_sets, segmentation_step
 from usf_graph.train.seg_metrics import confusion_matrix, scores
 
 
 def with_true_height(x: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
     """``[B, N, 3]`` RGB -> ``[B, N, 4]`` with the grid's z (upright views: the height)."""
     return torch.cat([x, pos[None, :, 2:].to(x.dtype).expand(len(x), -1, 1)], -1)
+
+
+class WithTrueHeight(nn.Module):
+    """A 4-channel model that reads RGB ``[B, N, 3]`` and is given the true height."""
+
+    def __init__(self, net: nn.Module, pos: torch.Tensor):
+        super().__init__()
+        self.net, self.pos = net, pos
+
+    def forward(self, x, mask=None, return_gravity=False):
+        return self.net(with_true_height(x, self.pos), mask, return_gravity=return_gravity)
 
 
 def main(argv=None) -> dict:
@@ -51,24 +63,16 @@ def main(argv=None) -> dict:
     train, test = sets["train"], sets["a"]
     pos = train.grid.pos
 
-    def height_step(model, batch):
-        x, y, mask, _, _ = split_batch(batch)
-        logits = model(with_true_height(x, pos), mask)
-        keep = y != 255
-        acc = (logits.argmax(-1)[keep] == y[keep]).double().mean().item()
-        return segmentation_loss(logits, y), {"acc": acc}, len(x)
-
     results = {}
     for name in a.variants:
         net = SphericalUNet(13, in_channels=4 if name == "true_height" else 3, level=a.level,
                             gravity=name == "gravity")
+        net = WithTrueHeight(net, pos) if name == "true_height" else net
         fit(net, train, None, epochs=a.epochs, batch_size=8, lr=3e-3, seed=0, name=name,
-            step=height_step if name == "true_height" else segmentation_step,
-            progress=not a.no_progress)
+            step=segmentation_step, progress=not a.no_progress)
         net.eval()
         with torch.no_grad():
             x = test.x.float()
-            x = with_true_height(x, pos) if name == "true_height" else x
             out = [net(x[i:i + 8], return_gravity=True) for i in range(0, len(x), 8)]
         pred = torch.cat([o[0] for o in out]).argmax(-1).numpy()
         conf = confusion_matrix(pred, test.y.numpy(), 13, weight=test.grid.area.numpy()[None])
