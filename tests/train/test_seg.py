@@ -13,7 +13,7 @@ from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
 from usf_graph.train.seg import (
     PROTOCOL,
-    UP_WEIGHT,
+    UP_JITTER, UP_WEIGHT,
     format_table,
     protocol_sets,
     run,
@@ -78,16 +78,26 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
     assert n == 2 and loss.item() > 0 and 0 <= stats["acc"] <= 1
     loss.backward()
     assert all(p.grad is not None for p in m.head.parameters())
-    # with a gravity head: its loss (on the masked coarse grid) is added and trains it
+    # with a gravity head: the decoder reads the jittered true up, the head's loss is added
     torch.manual_seed(0)
     g = SphericalUNet(level=3, channels=(8, 8, 8, 8), gravity=True)
+    torch.manual_seed(5)
     loss_g, stats_g, _ = segmentation_step(g, batch)
-    logits, grav = g(x, mask, return_gravity=True)
-    aux = g.gravity.loss(grav["up"], grav["height"], torch.tensor([[0.0, 0, 1]] * 2), grav["mask"])
+    torch.manual_seed(5)
+    z = torch.tensor([[0.0, 0, 1]] * 2)
+    noisy = z + UP_JITTER * torch.randn(2, 3)
+    logits, grav = g(x, mask, up=noisy, return_gravity=True)
+    aux = g.gravity.loss(grav, z)
     torch.testing.assert_close(loss_g, segmentation_loss(logits, y) + UP_WEIGHT * aux)
     assert 0 <= stats_g["up_err_deg"] <= 180 and aux > 0
     loss_g.backward()
     assert all(p.grad is not None for p in g.gravity.parameters())
+    # the decoder reads the given up, and without one the head's estimate
+    with torch.no_grad():
+        assert not torch.allclose(g(x, mask, up=-noisy), logits)
+        torch.testing.assert_close(g(x, mask), g(x, mask, up=grav["up"]))
+    with pytest.raises(ValueError, match="gravity=True"):
+        m(x, mask, up=noisy)
 
 
 def test_stanford_command_on_fixtures(tmp_path):

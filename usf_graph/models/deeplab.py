@@ -8,15 +8,8 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .unet import (
-    ConvStage,
-    GravityHead,
-    SphericalBackbone,
-    _Segmenter,
-    blur,
-    heights,
-    level_spacing,
-)
+from .gravity import GravityHead, heights
+from .unet import ConvStage, SphericalBackbone, _Segmenter, blur, level_spacing
 
 
 class Pointwise(nn.Module):
@@ -89,7 +82,7 @@ class SphericalDeepLabV3(_Segmenter):
         self.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
-                return_gravity: bool = False):
+                up: torch.Tensor | None = None, return_gravity: bool = False):
         feats = self.backbone.encode(x, mask)
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)
@@ -97,9 +90,9 @@ class SphericalDeepLabV3(_Segmenter):
         branches = [self.point(f, m, area)] + [s(f, m) for s in self.atrous]
         branches.append(g[:, None].expand(-1, f.shape[1], -1))
         y, _ = self.up(self.fuse(torch.cat(branches, -1), m, area), m)
-        parts, grav = [y, self.low(low, m_low, self.area_out.to(f.dtype))], self._gravity(f, m)
-        if grav:
-            parts.append(heights(self.out_pos, grav["up"]))
+        parts, (grav, up) = [y, self.low(low, m_low, self.area_out.to(f.dtype))], self._gravity(f, m, up)
+        if up is not None:
+            parts.append(heights(self.out_pos, up))
         logits = self.head(self.decoder(torch.cat(parts, -1), m_low))
         return (logits, grav) if return_gravity else logits
 

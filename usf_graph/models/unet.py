@@ -26,6 +26,7 @@ from torch import nn
 from ..frontend import grid_graph
 from ..grids import icosahedral
 from ..nn import GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv
+from .gravity import GravityHead, heights
 
 _SPACING: dict[int, float] = {}
 
@@ -210,71 +211,15 @@ class SphericalBackbone(nn.Module):
         return self.decode(self.encode(x, mask))
 
 
-class GravityHead(nn.Module):
-    r"""An SO(3)-equivariant estimate of the up direction from the image.
-
-    A small MLP regresses, at every point :math:`p_i` of a coarse grid, its height
-    :math:`h_i \approx p_i \cdot g` (the sine of its elevation, an invariant target:
-    it rotates with the image), and up is the least-squares fit of all of them,
-
-    .. math::
-        u = \Big(\sum_i w_i p_i p_i^\top + \epsilon I\Big)^{-1} \sum_i w_i h_i p_i,
-        \qquad \hat u = u / \lVert u \rVert,
-
-    with w the grid's areas times the field of view. Every point votes, so no part of the
-    room has to be recognised on its own, and the normal equations account for the part of
-    the sphere a lens does not see. :math:`\hat u` rotates with the input, so each point's
-    height :math:`p \cdot \hat u` (:func:`heights`) is a rotation-invariant feature: the
-    cue "ceiling above, floor below" that a planar network reads from pixel rows, kept
-    under any rotation. Trained with :meth:`loss` on views of known gravity g.
-
-    Shapes: features ``[B, M, C]`` on the coarse grid, ``mask [M]`` or ``None`` ->
-    ``(up [B, 3], h [B, M])``.
-    """
-
-    def __init__(self, coarse, channels: int, hidden: int = 32, ridge: float = 1e-2):
-        super().__init__()
-        self.field = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, 1))
-        self.ridge = ridge
-        # float64 (cast at use): float32 positions are not exactly symmetric
-        self.register_buffer("pos", coarse.pos.double(), persistent=False)
-        self.register_buffer("area", coarse.area.double(), persistent=False)
-
-    def reset_parameters(self) -> None:
-        for m in self.field:
-            if hasattr(m, "reset_parameters"):
-                m.reset_parameters()
-
-    def _weight(self, mask, dtype):
-        return self.area.to(dtype) * (1 if mask is None else mask.to(dtype))
-
-    def forward(self, f: torch.Tensor, mask: torch.Tensor | None = None):
-        w, p = self._weight(mask, f.dtype), self.pos.to(f.dtype)
-        h = self.field(f)[..., 0]
-        A = (p * w[:, None]).T @ p
-        A = A + self.ridge * w.sum() * torch.eye(3, dtype=f.dtype, device=f.device)
-        u = torch.linalg.solve(A, ((h * w) @ p).T).T
-        return u / u.norm(dim=-1, keepdim=True).clamp_min(1e-12), h
-
-    def loss(self, up: torch.Tensor, h: torch.Tensor, g: torch.Tensor,
-             mask: torch.Tensor | None = None) -> torch.Tensor:
-        """Area-weighted squared error of the heights against ``p . g`` plus
-        ``1 - up . g``, for the true up ``g [B, 3]``."""
-        w = self._weight(mask, h.dtype)
-        mse = ((h - g.to(h.dtype) @ self.pos.to(h.dtype).T) ** 2 * w).sum(-1) / w.sum()
-        return (mse + 1 - (up * g).sum(-1)).mean()
-
-
-def heights(pos: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
-    """``p . up`` for points ``pos [N, 3]`` and directions ``up [B, 3]`` -> ``[B, N, 1]``."""
-    return (pos.to(up.dtype) @ up.T).T[..., None]
-
-
 class _Segmenter(nn.Module):
     """What the segmentation models share: config round trip, resolution transfer and the
-    optional :class:`GravityHead` (``self.gravity``; ``forward(..., return_gravity=True)``
-    also returns ``{"up": [B, 3], "height": [B, M], "mask": [M] or None}``, the estimate
-    and the coarse heights it was fitted to, for :meth:`GravityHead.loss`)."""
+    optional :class:`GravityHead` (``self.gravity``).
+
+    With a gravity head, ``forward(x, mask, up=None, return_gravity=False)``: the decoder
+    reads each point's height along ``up [B, 3]`` when given (a known gravity: an IMU, or
+    the training views' labels), else along the head's estimate; ``return_gravity=True``
+    also returns the head's output ``{"up": [B, 3], "logits": [B, Nc]}`` (for
+    :meth:`GravityHead.loss`)."""
 
     config: dict
     gravity: GravityHead | None
@@ -284,11 +229,20 @@ class _Segmenter(nn.Module):
             if m is not self and hasattr(m, "reset_parameters"):
                 m.reset_parameters()
 
-    def _gravity(self, f: torch.Tensor, mask: torch.Tensor | None) -> dict | None:
+    def _gravity(self, f: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor | None
+                 ) -> tuple[dict | None, torch.Tensor | None]:
+        """``(head output or None, the up the decoder reads or None)``."""
         if self.gravity is None:
-            return None
-        up, h = self.gravity(f, mask)
-        return {"up": up, "height": h, "mask": mask}
+            if up is not None:
+                raise ValueError("up is only read by models built with gravity=True")
+            return None, None
+        grav = self.gravity(f, mask)
+        if up is None:
+            return grav, grav["up"]
+        if up.shape != grav["up"].shape or not torch.isfinite(up).all():
+            raise ValueError(f"up must be finite [B, 3] = {tuple(grav['up'].shape)}, got "
+                             f"{tuple(up.shape)}")
+        return grav, up.to(f.dtype) / up.norm(dim=-1, keepdim=True).to(f.dtype)
 
     @classmethod
     def from_config(cls, config: dict):
@@ -353,10 +307,9 @@ class SphericalUNet(_Segmenter):
         self.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
-                return_gravity: bool = False):
+                up: torch.Tensor | None = None, return_gravity: bool = False):
         feats = self.backbone.encode(x, mask)
-        grav = self._gravity(*feats[-1])
-        up = None if grav is None else grav["up"]
+        grav, up = self._gravity(*feats[-1], up)
         f, m = self.backbone.decode(feats, up)
         if up is not None:
             f = torch.cat([f, heights(self.out_pos, up)], -1)

@@ -1,0 +1,83 @@
+"""The gravity head: its scores are a whole-sphere distance-kernel convolution that a
+hand-set field turns into an exact up detector; its loss and its errors."""
+
+import math
+
+import pytest
+import torch
+
+from usf_graph import grids
+from usf_graph.models import GravityHead
+from usf_graph.models.gravity import heights
+
+
+def _set_cosine_detector(head: GravityHead, gain: float):
+    """Weights that make the score ``gain * sum_m w_m f_m K(theta_nm)`` with a kernel
+    decreasing in theta (the bumps weighted by cos of their centres), for a 1-channel f."""
+    K, H = head.num_basis, head.hidden
+    centers = torch.linspace(0, math.pi, K, dtype=torch.float64)
+    with torch.no_grad():
+        head.field.weight.zero_()
+        head.field.bias.zero_()
+        head.field.weight.view(K, H, 1)[:, 0, 0] = torch.cos(centers)
+        head.bias.fill_(10.0)  # keeps the ReLU linear
+        head.score.weight.zero_()
+        head.score.weight[0, 0] = gain
+        head.score.bias.zero_()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_up_is_found_from_a_field_that_is_high_up_and_low_down(seed):
+    """A field f = p . g (a "height" image) makes the hand-set head point at g: the scores
+    peak at the candidate nearest g and the soft-argmax lands within a degree of it."""
+    gen = torch.Generator().manual_seed(seed)
+    coarse = grids.icosahedral(2)
+    head = GravityHead(coarse, channels=1).double()
+    _set_cosine_detector(head, gain=400.0)
+    g = torch.nn.functional.normalize(torch.randn(3, 3, generator=gen, dtype=torch.float64), dim=-1)
+    f = (g @ coarse.pos.double().T)[..., None]  # [B, M, 1]
+    out = head(f)
+    cand = head.candidates
+    nearest = (g @ cand.T).argmax(-1)
+    assert (out["logits"].argmax(-1) == nearest).all()
+    err = torch.rad2deg(torch.arccos((out["up"] * g).sum(-1).clamp(-1, 1)))
+    assert (err < 1.5).all(), err
+    assert torch.allclose(out["up"].norm(dim=-1), torch.ones(3, dtype=torch.float64))
+    # the same field upside down points the other way
+    down = head(-f)["up"]
+    assert ((down * g).sum(-1) < -0.99).all()
+    # heights along the estimate are each point's elevation
+    torch.testing.assert_close(heights(coarse.pos, out["up"])[..., 0], (out["up"] @ coarse.pos.double().T))
+
+
+def test_hidden_points_do_not_vote():
+    coarse = grids.icosahedral(2)
+    head = GravityHead(coarse, channels=1).double()
+    _set_cosine_detector(head, gain=400.0)
+    g = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    mask = coarse.pos[:, 0] > -0.2
+    f = (g @ coarse.pos.double().T)[..., None]
+    junk = f.clone()
+    junk[:, ~mask] = 100.0
+    a, b = head(f, mask), head(junk, mask)
+    torch.testing.assert_close(a["logits"], b["logits"])
+    assert not torch.allclose(head(junk)["logits"], a["logits"])
+
+
+def test_loss_prefers_scores_peaked_at_the_true_up():
+    coarse = grids.icosahedral(1)
+    head = GravityHead(coarse, channels=1).double()
+    g = torch.nn.functional.normalize(torch.tensor([[0.3, -0.2, 1.0]], dtype=torch.float64), dim=-1)
+    q = head.target(g)
+    assert torch.allclose(q.sum(-1), torch.ones(1, dtype=torch.float64))
+    assert q.argmax(-1) == (g @ head.candidates.T).argmax(-1)
+    right = head.loss({"logits": torch.log(q)}, g)
+    wrong = head.loss({"logits": torch.log(head.target(-g))}, g)
+    flat = head.loss({"logits": torch.zeros_like(q)}, g)
+    # cross-entropy: the entropy of the target at its minimum
+    torch.testing.assert_close(right, -(q * q.log()).sum())
+    assert right < flat < wrong
+    # and it trains the head's parameters
+    f = torch.randn(2, len(coarse), 1, dtype=torch.float64)
+    head.loss(head(f), g.expand(2, 3)).backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
