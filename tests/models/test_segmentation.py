@@ -37,7 +37,7 @@ def test_logits_move_with_the_rotation(cls, kw):
             mod.running_mean.uniform_(-0.2, 0.2)
             mod.running_var.uniform_(0.5, 2.0)
     with torch.no_grad():  # peaked up scores, so that the estimate is well defined
-        m.gravity.score.weight.mul_(50)
+        m.gravity.head.score.weight.mul_(50)
     pos, axis, R = _symmetry(3)
     x = _signal(pos)
     err = assert_equivariant(m, (x,), pos, R, atol=1e-9)

@@ -87,7 +87,7 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
     z = torch.tensor([[0.0, 0, 1]] * 2)
     noisy = z + UP_JITTER * torch.randn(2, 3)
     logits, grav = g(x, mask, up=noisy, return_gravity=True)
-    aux = g.gravity.loss(grav, z)
+    aux = g.gravity.head.loss(grav, z)
     torch.testing.assert_close(loss_g, segmentation_loss(logits, y) + UP_WEIGHT * aux)
     assert 0 <= stats_g["up_err_deg"] <= 180 and aux > 0
     loss_g.backward()

@@ -6,8 +6,9 @@ from .detector import SphericalDetector
 from .planar_detector import PlanarDetector
 from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
-from .unet import GravityHead, SphericalBackbone, SphericalUNet
+from .gravity import GravityHead
+from .unet import SphericalBackbone, SphericalUNet, UpNet
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",
            "SphericalDetector", "PlanarDetector", "SphericalBackbone", "SphericalUNet",
-           "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3", "GravityHead"]
+           "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3", "GravityHead", "UpNet"]

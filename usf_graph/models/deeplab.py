@@ -8,7 +8,6 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .gravity import GravityHead, heights
 from .unet import ConvStage, SphericalBackbone, _Segmenter, blur, level_spacing
 
 
@@ -58,9 +57,9 @@ class SphericalDeepLabV3(_Segmenter):
                            low_channels=low_channels, num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine)
-        self.backbone = SphericalBackbone(in_channels, level, aspp_level, aspp_level, channels,
-                                          num_basis, radius_spacings, jet_spacings, pairs,
-                                          pair_stages, refine)
+        self.backbone = SphericalBackbone(in_channels + int(gravity), level, aspp_level,
+                                          aspp_level, channels, num_basis, radius_spacings,
+                                          jet_spacings, pairs, pair_stages, refine)
         self.num_points = self.backbone.num_points
         ga, gl = self.backbone.grids[aspp_level], self.backbone.grids[level]
         c, a = self.backbone.out_channels, aspp_channels
@@ -73,16 +72,15 @@ class SphericalDeepLabV3(_Segmenter):
         self.fuse = Pointwise(a * (len(rates) + 2), a)
         self.up = blur(ga, gl, 0.5 * level_spacing(aspp_level))
         self.low = Pointwise(self.backbone.skip_channels[0], low_channels)
-        self.gravity = GravityHead(ga, c) if gravity else None
-        if gravity:
-            self.register_buffer("out_pos", gl.pos.double(), persistent=False)
-        self.decoder = ConvStage(gl, a + low_channels + int(gravity), a // 2,
+        self._gravity_net(gravity)
+        self.decoder = ConvStage(gl, a + low_channels, a // 2,
                                  radius_spacings * level_spacing(level), num_basis)
         self.head = nn.Linear(a // 2, num_classes)
         self.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
+        x, grav = self._with_height(x, mask, up)
         feats = self.backbone.encode(x, mask)
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)
@@ -90,9 +88,7 @@ class SphericalDeepLabV3(_Segmenter):
         branches = [self.point(f, m, area)] + [s(f, m) for s in self.atrous]
         branches.append(g[:, None].expand(-1, f.shape[1], -1))
         y, _ = self.up(self.fuse(torch.cat(branches, -1), m, area), m)
-        parts, (grav, up) = [y, self.low(low, m_low, self.area_out.to(f.dtype))], self._gravity(f, m, up)
-        if up is not None:
-            parts.append(heights(self.out_pos, up))
+        parts = [y, self.low(low, m_low, self.area_out.to(f.dtype))]
         logits = self.head(self.decoder(torch.cat(parts, -1), m_low))
         return (logits, grav) if return_gravity else logits
 

@@ -69,16 +69,26 @@ def blur(src, dst, sigma: float) -> GaussianPool:
 
 
 class FillHidden(nn.Module):
-    """Copies to each hidden point the value of its nearest visible point.
+    """Copies to each hidden point the value of its nearest visible point (the mean of
+    the nearest ones when several are equally near, so that symmetric inputs stay
+    symmetric).
 
     Derivatives (the jet) of a signal that drops to 0 outside a lens's field of view see a
     false edge along its border; extending the image by its nearest visible value removes
     it. The index is built once per mask (a k-d tree query) and memoized."""
 
-    def __init__(self, pos: torch.Tensor):
+    def __init__(self, pos: torch.Tensor, ties: int = 6):
         super().__init__()
-        self.pos = pos.double().numpy()
-        self._index: dict[bytes, torch.Tensor] = {}
+        self.pos, self.ties = pos.double().numpy(), ties
+        self._index: dict[bytes, tuple] = {}
+
+    def _build(self, m: np.ndarray) -> tuple:
+        vis, hid = np.flatnonzero(m), np.flatnonzero(~m)
+        d, j = cKDTree(self.pos[vis]).query(self.pos[hid], k=min(self.ties, len(vis)))
+        d, j = d.reshape(len(hid), -1), j.reshape(len(hid), -1)
+        w = (d <= d[:, :1] * (1 + 1e-9) + 1e-12).astype(np.float64)
+        return (torch.as_tensor(hid), torch.as_tensor(vis[j]),
+                torch.as_tensor(w / w.sum(1, keepdims=True)))
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         if mask is None:
@@ -86,14 +96,13 @@ class FillHidden(nn.Module):
         m = mask.cpu().numpy()
         key = np.packbits(m).tobytes()
         if key not in self._index:
-            vis = np.flatnonzero(m)
-            _, j = cKDTree(self.pos[vis]).query(self.pos[~m])
-            idx = np.arange(len(m))
-            idx[~m] = vis[j]
             if len(self._index) > 16:
                 self._index.clear()
-            self._index[key] = torch.as_tensor(idx)
-        return x[:, self._index[key].to(x.device)]
+            self._index[key] = self._build(m)
+        hid, src, w = (t.to(x.device) for t in self._index[key])
+        out = x.clone()
+        out[:, hid] = (x[:, src] * w.to(x.dtype)[..., None]).sum(-2)
+        return out
 
 
 def check_input(x: torch.Tensor, mask, n: int, c: int, level: int):
@@ -130,7 +139,7 @@ class SphericalBackbone(nn.Module):
     def __init__(self, in_channels: int = 3, input_level: int = 5, out_level: int = 5,
                  min_level: int = 2, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, refine: int = 0, depth: int = 1, gravity: bool = False):
+                 pair_stages: int = 2, refine: int = 0, depth: int = 1):
         super().__init__()
         if not min_level <= out_level <= input_level:
             raise ValueError(f"need min_level <= out_level <= input_level, got {min_level}, "
@@ -166,14 +175,11 @@ class SphericalBackbone(nn.Module):
                 self.pools.append(blur(g, self.grids[lv - 1], 0.5 * h[lv - 1]))
         self.skip_channels = skips
         self.ups, self.up = nn.ModuleList(), nn.ModuleList()
-        self.gravity = gravity
-        for k, lv in enumerate(range(min_level + 1, out_level + 1)):
+        for lv in range(min_level + 1, out_level + 1):
             skip = skips[input_level - lv]
             self.ups.append(blur(self.grids[lv - 1], self.grids[lv], 0.5 * h[lv - 1]))
-            self.up.append(ConvStage(self.grids[lv], c_in + skip + int(gravity), skip,
-                                     radius_spacings * h[lv], num_basis, depth))
-            if gravity:
-                self.register_buffer(f"up_pos{k}", self.grids[lv].pos.double(), persistent=False)
+            self.up.append(ConvStage(self.grids[lv], c_in + skip, skip, radius_spacings * h[lv],
+                                     num_basis, depth))
             c_in = skip
         self.out_channels = c_in
 
@@ -192,57 +198,111 @@ class SphericalBackbone(nn.Module):
                 m = None if m is None else mp
         return feats
 
-    def decode(self, feats: list, up: torch.Tensor | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Decoder over :meth:`encode`'s output; with ``gravity``, every stage also reads
-        each point's height along ``up [B, 3]`` (:class:`GravityHead`)."""
-        if self.gravity and up is None:
-            raise ValueError("this backbone was built with gravity=True: pass up [B, 3]")
+    def decode(self, feats: list) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Decoder over :meth:`encode`'s output."""
         feats = list(feats)
         x, m = feats.pop()
-        for k, (ups, stage) in enumerate(zip(self.ups, self.up)):
+        for ups, stage in zip(self.ups, self.up):
             x, _ = ups(x, m)  # hidden coarse points hold no signal: keep them out
             skip, m = feats.pop()
-            parts = [x, skip] + ([heights(getattr(self, f"up_pos{k}"), up)] if self.gravity else [])
-            x = stage(torch.cat(parts, -1), m)
+            x = stage(torch.cat([x, skip], -1), m)
         return x, m
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None):
         return self.decode(self.encode(x, mask))
 
 
+class UpNet(nn.Module):
+    r"""The image's up direction, estimated SO(3)-equivariantly at low resolution.
+
+    The input is pooled one level down (Gaussian, mask-aware), extended past the field of
+    view (:class:`FillHidden`), described by its :class:`~usf_graph.nn.LocalJet`, passed
+    through one :class:`ConvStage` per entry of ``channels`` on successively coarser levels,
+    and read by a :class:`GravityHead`. It is small and separate from the segmenter, so
+    that the segmenter's first layer can already read each point's height.
+
+    Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, ``mask [N]`` or
+    ``None`` -> :class:`GravityHead`'s ``{"up": [B, 3], "logits": [B, Nc]}``.
+    """
+
+    def __init__(self, in_channels: int, level: int, channels=(32, 64, 64), num_basis: int = 3,
+                 radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0):
+        super().__init__()
+        levels = list(range(level - 1, level - 1 - len(channels), -1))
+        if not channels or levels[-1] < 0:
+            raise ValueError(f"UpNet needs 1 to {level} channel entries below level {level}, "
+                             f"got {len(channels)}")
+        grids = {lv: icosahedral(lv + refine) for lv in [level, *levels]}
+        h = {lv: level_spacing(lv) for lv in grids}
+        top = grids[levels[0]]
+        self.pools = nn.ModuleList([blur(grids[lv + 1], grids[lv], 0.5 * h[lv]) for lv in levels])
+        self.fill = FillHidden(top.pos)
+        self.jet = LocalJet(top.pos, *grid_graph(top, jet_spacings * h[levels[0]]), h[levels[0]])
+        self.jet_norm = MaskedBatchNorm(4 * in_channels)
+        self.register_buffer("area", top.area.float(), persistent=False)
+        c_in, self.stages = 4 * in_channels, nn.ModuleList()
+        for lv, c in zip(levels, channels):
+            self.stages.append(ConvStage(grids[lv], c_in, c, radius_spacings * h[lv], num_basis))
+            c_in = c
+        self.head = GravityHead(grids[levels[-1]], c_in)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        x, m = self.pools[0](x, mask)
+        m = None if mask is None else m
+        x = self.jet_norm(self.jet(self.fill(x, m)), mask=m, node_weight=self.area.to(x.dtype))
+        for s, stage in enumerate(self.stages):
+            if s:
+                x, mp = self.pools[s](x, m)
+                m = None if m is None else mp
+            x = stage(x, m)
+        return self.head(x, m)
+
+
 class _Segmenter(nn.Module):
     """What the segmentation models share: config round trip, resolution transfer and the
-    optional :class:`GravityHead` (``self.gravity``).
+    optional up estimate (``self.gravity``, an :class:`UpNet`).
 
-    With a gravity head, ``forward(x, mask, up=None, return_gravity=False)``: the decoder
-    reads each point's height along ``up [B, 3]`` when given (a known gravity: an IMU, or
-    the training views' labels), else along the head's estimate; ``return_gravity=True``
-    also returns the head's output ``{"up": [B, 3], "logits": [B, Nc]}`` (for
-    :meth:`GravityHead.loss`)."""
+    With ``gravity=True`` the network reads, besides the image, each point's height
+    :math:`p \cdot u` as one more input channel: ``forward(x, mask, up=None,
+    return_gravity=False)`` takes u from ``up [B, 3]`` when given (a known gravity: an
+    IMU, or the training views' labels), else from the :class:`UpNet`'s estimate;
+    ``return_gravity=True`` also returns the estimate ``{"up": [B, 3], "logits": [B, Nc]}``
+    (for :meth:`GravityHead.loss`). The estimate rotates with the image, so the heights
+    are invariant and the logits stay equivariant."""
 
     config: dict
-    gravity: GravityHead | None
+    gravity: UpNet | None
 
     def reset_parameters(self) -> None:
         for m in self.modules():
             if m is not self and hasattr(m, "reset_parameters"):
                 m.reset_parameters()
 
-    def _gravity(self, f: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor | None
-                 ) -> tuple[dict | None, torch.Tensor | None]:
-        """``(head output or None, the up the decoder reads or None)``."""
+    def _with_height(self, x: torch.Tensor, mask: torch.Tensor | None,
+                     up: torch.Tensor | None) -> tuple[torch.Tensor, dict | None]:
+        """``(x with the height channel when there is a gravity estimate, the estimate)``."""
         if self.gravity is None:
             if up is not None:
                 raise ValueError("up is only read by models built with gravity=True")
-            return None, None
-        grav = self.gravity(f, mask)
+            return x, None
+        m = check_input(x, mask, self.num_points, self.config["in_channels"],
+                        self.config["level"] + self.config["refine"])
+        grav = self.gravity(x, m)
         if up is None:
-            return grav, grav["up"]
-        if up.shape != grav["up"].shape or not torch.isfinite(up).all():
+            up = grav["up"]
+        elif up.shape != grav["up"].shape or not torch.isfinite(up).all():
             raise ValueError(f"up must be finite [B, 3] = {tuple(grav['up'].shape)}, got "
                              f"{tuple(up.shape)}")
-        return grav, up.to(f.dtype) / up.norm(dim=-1, keepdim=True).to(f.dtype)
+        up = up.to(x.dtype) / up.norm(dim=-1, keepdim=True).to(x.dtype)
+        return torch.cat([x, heights(self.in_pos, up)], -1), grav
+
+    def _gravity_net(self, gravity: bool):
+        """Builds ``self.gravity`` (and the input positions) from ``self.config``."""
+        cfg = self.config
+        self.gravity = UpNet(cfg["in_channels"], cfg["level"], refine=cfg["refine"]) if gravity else None
+        if gravity:
+            pos = icosahedral(cfg["level"] + cfg["refine"]).pos
+            self.register_buffer("in_pos", pos.double(), persistent=False)
 
     @classmethod
     def from_config(cls, config: dict):
@@ -292,29 +352,24 @@ class SphericalUNet(_Segmenter):
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, depth=depth,
                            head_depth=head_depth, refine=refine)
-        self.backbone = SphericalBackbone(in_channels, level, level, min_level, channels,
-                                          num_basis, radius_spacings, jet_spacings, pairs,
-                                          pair_stages, refine, depth, gravity)
+        self.backbone = SphericalBackbone(in_channels + int(gravity), level, level, min_level,
+                                          channels, num_basis, radius_spacings, jet_spacings,
+                                          pairs, pair_stages, refine, depth)
         c = self.backbone.out_channels
-        g = self.backbone.grids[level]
-        self.gravity = GravityHead(self.backbone.grids[min_level], channels[-1]) if gravity else None
-        if gravity:
-            self.register_buffer("out_pos", g.pos.double(), persistent=False)
-        self.head_stage = ConvStage(g, c + int(gravity), c, radius_spacings * level_spacing(level),
-                                    num_basis, head_depth) if head_depth else None
-        self.head = nn.Linear(c if head_depth else c + int(gravity), num_classes)
+        self._gravity_net(gravity)
+        self.head_stage = ConvStage(self.backbone.grids[level], c, c,
+                                    radius_spacings * level_spacing(level), num_basis,
+                                    head_depth) if head_depth else None
+        self.head = nn.Linear(c, num_classes)
         self.num_points = self.backbone.num_points
         self.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
-        feats = self.backbone.encode(x, mask)
-        grav, up = self._gravity(*feats[-1], up)
-        f, m = self.backbone.decode(feats, up)
-        if up is not None:
-            f = torch.cat([f, heights(self.out_pos, up)], -1)
+        x, grav = self._with_height(x, mask, up)
+        f, m = self.backbone(x, mask)
         logits = self.head(f if self.head_stage is None else self.head_stage(f, m))
         return (logits, grav) if return_gravity else logits
 
 
-__all__ = ["SphericalBackbone", "SphericalUNet", "GravityHead", "heights", "ConvStage", "blur", "FillHidden", "level_spacing"]
+__all__ = ["SphericalBackbone", "SphericalUNet", "UpNet", "ConvStage", "blur", "FillHidden", "level_spacing"]

@@ -115,7 +115,7 @@ def segmentation_step(model, batch):
         g = g.to(x.dtype)
         noisy = g + UP_JITTER * torch.randn_like(g)
         (logits, grav), target = model(x, mask, up=noisy, return_gravity=True), y
-        aux = UP_WEIGHT * net.gravity.loss(grav, g)
+        aux = UP_WEIGHT * net.gravity.head.loss(grav, g)
         stats["up_err_deg"] = float(torch.rad2deg(geodesic_distance(grav["up"].detach(), g)).mean())
     else:
         logits, target = model(x, mask), y
