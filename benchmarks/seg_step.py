@@ -4,7 +4,7 @@ U-Net at the same number of pixels and the same channels, on CPU or a GPU.
     python benchmarks/seg_step.py [--device cuda] [--batch 8] [--level 5] [--reps 5]
 
 Spherical: :class:`SphericalUNet` as ``usf-graph train seg`` builds it (jet, gradient pairs,
-gravity head) on ``icosahedral:level`` (N points). Planar: :class:`PlanarUNet` with the same
+up estimate) on ``icosahedral:level`` (N points). Planar: :class:`PlanarUNet` with the same
 channels on an equirectangular image of H x 2H pixels, H the multiple of 8 nearest to
 sqrt(N / 2). Both with 13-class cross-entropy on random inputs and labels (the cost does not
 depend on them), in the static-graph form with one field of view for the batch.
@@ -18,8 +18,8 @@ import math
 import torch
 from timing import step_time
 
-from usf_graph.models import PlanarUNet, SphericalUNet
-from usf_graph.train.seg import segmentation_loss
+from usf_graph.models import PlanarUNet
+from usf_graph.train.seg import make_model, segmentation_loss
 
 
 def main():
@@ -33,7 +33,7 @@ def main():
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
     torch.manual_seed(0)
-    sph = SphericalUNet(level=a.level).to(dev)
+    sph = make_model("spherical_unet", a.level).to(dev)
     planar = PlanarUNet(channels=sph.config["channels"]).to(dev)
     N, B = sph.num_points, a.batch
     H = max(8, 8 * round(math.sqrt(N / 2) / 8))

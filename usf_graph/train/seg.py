@@ -197,11 +197,13 @@ def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
 
 
 def make_model(name: str, level: int = 5) -> nn.Module:
-    """A protocol model by name (:data:`MODELS`), spherical ones on ``icosahedral:level``."""
+    """A protocol model by name (:data:`MODELS`), spherical ones on ``icosahedral:level``
+    with their up estimate (``gravity=True``: trained on the views' known gravity, it
+    gives the network each point's height, which a planar network reads from its rows)."""
     if name not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
     C = len(SEMANTIC_CLASSES)
-    return PlanarUNet(C) if name == "planar_unet" else MODELS[name](C, level=level)
+    return PlanarUNet(C) if name == "planar_unet" else MODELS[name](C, level=level, gravity=True)
 
 
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
