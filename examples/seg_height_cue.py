@@ -3,9 +3,10 @@
 Trains the spherical U-Net of ``usf-graph train seg`` three ways on the same upright
 panoramas (200 rooms, icosahedral:5, 16 epochs, seed 0) and scores new rooms (test (a)):
 
-* ``plain``: the protocol's model (RGB only);
-* ``gravity``: ``SphericalUNet(gravity=True)``, which estimates up equivariantly
-  (:class:`~usf_graph.models.GravityHead`) and feeds each point's height to the decoder;
+* ``plain``: RGB only (the protocol's model before its up estimate);
+* ``gravity``: ``SphericalUNet(gravity=True)``, the protocol's model, which estimates up
+  equivariantly (:class:`~usf_graph.models.UpNet`) and reads each point's height along it
+  as a fourth input channel;
 * ``true_height``: RGB plus each point's true height ``p . z`` as a fourth channel. This is
   an upper bound, not a usable model: a rotated camera does not know its height.
 

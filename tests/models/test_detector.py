@@ -49,11 +49,14 @@ def test_surface_jet_gives_tangent_gradients_of_linear_functions():
     assert (d[:, 2] + g.pos @ a).abs().max() < 2e-2 and d[:, 3].abs().max() < 2e-2
 
 
-def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries():
+@pytest.mark.parametrize("gravity", [False, True])
+def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries(gravity):
     torch.manual_seed(0)
-    m = SphericalDetector(**SMALL).double().eval()
+    m = SphericalDetector(**SMALL, gravity=gravity).double().eval()
     with torch.no_grad():  # a rough head: many peaks of many shapes
         m.head.weight.mul_(30)
+        if gravity:  # peaked up scores, so that the estimate is well defined
+            m.gravity.head.score.weight.mul_(50)
     R, sigma = _icosahedral_symmetry(3)
     pos = grids.icosahedral(3).pos
     x = torch.as_tensor(smooth_signal(pos.numpy()))[None] + torch.randn(1, len(pos), 3, dtype=torch.float64)
@@ -67,6 +70,8 @@ def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries():
         assert (outr[f][:, sh] - out[f]).abs().max() < 1e-9
     assert (outr["offset"][:, sh] - out["offset"] @ R.T).abs().max() < 1e-12
     assert out["offset"].norm(dim=-1).max() > 1e-5  # not zero, so the check above bites
+    if gravity:  # the up estimate rotates with the input
+        assert (outr["gravity"]["up"] - out["gravity"]["up"] @ R.T).abs().max() < 1e-9
     # spin-2 and spin-4 fields turn by 2 and 4 times the frame angle: compare frame-free
     for f in ("dev", "quad"):
         assert (outr[f][:, sh].norm(dim=-1) - out[f].norm(dim=-1)).abs().max() < 1e-12

@@ -11,9 +11,9 @@ from torch_geometric.loader import DataLoader
 from tests.datasets.test_stanford import NAMES, _write_pano
 from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
+from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT
 from usf_graph.train.seg import (
     PROTOCOL,
-    UP_JITTER, UP_WEIGHT,
     format_table,
     protocol_sets,
     run,

@@ -36,8 +36,9 @@ class SphericalDeepLabV3(_Segmenter):
       stage's features, a :class:`ConvStage` and a per-point linear map to logits.
 
     Every piece depends on distances only, so the logits are SO(3)-equivariant like
-    :class:`~usf_graph.models.SphericalUNet`'s, whose ``gravity`` option (a
-    :class:`GravityHead` on the ASPP's input, feeding the decoder) it shares.
+    :class:`~usf_graph.models.SphericalUNet`'s, whose ``gravity`` option (an
+    :class:`~usf_graph.models.UpNet` whose estimate gives every point its height as one more
+    input channel; ``forward(x, mask, up=...)`` takes a known up) it shares.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` -> logits ``[B, N, num_classes]`` (and the gravity estimate with
@@ -72,7 +73,7 @@ class SphericalDeepLabV3(_Segmenter):
         self.fuse = Pointwise(a * (len(rates) + 2), a)
         self.up = blur(ga, gl, 0.5 * level_spacing(aspp_level))
         self.low = Pointwise(self.backbone.skip_channels[0], low_channels)
-        self._gravity_net(gravity)
+        self._gravity_net(gravity, in_channels, level, refine)
         self.decoder = ConvStage(gl, a + low_channels, a // 2,
                                  radius_spacings * level_spacing(level), num_basis)
         self.head = nn.Linear(a // 2, num_classes)

@@ -38,7 +38,7 @@ from ..frontend import grid_graph
 from ..nn import SurfaceJet
 from ..ops import box_axes, boxes_from_axes
 from .centernet import Detector, detections, expmap, focal_loss, heatmap_targets, logmap, peaks
-from .unet import ConvStage, FillHidden, SphericalBackbone
+from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
 
@@ -53,7 +53,7 @@ def _square(z: torch.Tensor) -> torch.Tensor:
     return torch.stack([z[..., 0] ** 2 - z[..., 1] ** 2, 2 * z[..., 0] * z[..., 1]], -1)
 
 
-class SphericalDetector(Detector):
+class SphericalDetector(Detector, WithUp):
     r"""CenterNet on the icosahedral hierarchy, with an SO(3)-equivariant box head.
 
     Backbone: a :class:`LocalJet` of the input, then conv stages down from
@@ -62,6 +62,11 @@ class SphericalDetector(Detector):
     ``head_level`` with Gaussian upsampling and skip connections (a U-Net). The head is a
     per-point linear map to ``num_classes`` heatmap logits and the scalar fields
     ``(s, o, r, a_1..a_K, w_1..w_K)`` of the module docstring (``K = gradient_fields``).
+
+    With ``gravity=True`` it also reads each point's height along an equivariant up
+    estimate, as :class:`~usf_graph.models.unet.WithUp` describes (``forward(x, mask,
+    up=None)``; the estimate is returned as ``"gravity"``): PANDORA boxes are upright in
+    the world, and objects stand on the floor.
 
     ``forward(x, mask)`` returns those fields; :meth:`loss` trains them against boxes and
     :meth:`detect` decodes boxes. ``mask [N]`` (a camera's field of view, one for the
@@ -77,7 +82,8 @@ class SphericalDetector(Detector):
     def __init__(self, num_classes: int = 12, in_channels: int = 3, input_level: int = 5,
                  head_level: int = 4, min_level: int = 2, channels=(32, 64, 128, 128),
                  num_basis: int = 3, radius_spacings: float = 3.0, jet_spacings: float = 3.5,
-                 pairs: int = 8, pair_stages: int = 2, gradient_fields: int = 4):
+                 pairs: int = 8, pair_stages: int = 2, gradient_fields: int = 4,
+                 gravity: bool = False):
         super().__init__()
         if not min_level <= head_level <= input_level:
             raise ValueError(f"need min_level <= head_level <= input_level, got {min_level}, "
@@ -86,9 +92,11 @@ class SphericalDetector(Detector):
                            input_level=input_level, head_level=head_level, min_level=min_level,
                            channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
-                           pairs=pairs, pair_stages=pair_stages, gradient_fields=gradient_fields)
+                           pairs=pairs, pair_stages=pair_stages, gradient_fields=gradient_fields,
+                           gravity=gravity)
         self.num_classes, self.K = num_classes, gradient_fields
-        self.backbone = SphericalBackbone(in_channels, input_level, head_level, min_level,
+        self._gravity_net(gravity, in_channels, input_level)
+        self.backbone = SphericalBackbone(in_channels + int(gravity), input_level, head_level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
                                           pairs, pair_stages)
         self.num_points = self.backbone.num_points
@@ -117,10 +125,15 @@ class SphericalDetector(Detector):
         return cls(**config)
 
     # -- network ------------------------------------------------------------------------
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                up: torch.Tensor | None = None) -> dict:
+        x, grav = self._with_height(x, mask, up)
         x, m = self.backbone(x, mask)
         f = self.head(self.head_stage(x, m))
-        return self._fields(f, m)
+        out = self._fields(f, m)
+        if grav is not None:
+            out["gravity"] = grav
+        return out
 
     def _fields(self, f: torch.Tensor, mask) -> dict:
         """Per-point logits and box fields from the head's scalar outputs."""

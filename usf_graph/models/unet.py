@@ -258,25 +258,27 @@ class UpNet(nn.Module):
         return self.head(x, m)
 
 
-class _Segmenter(nn.Module):
-    """What the segmentation models share: config round trip, resolution transfer and the
-    optional up estimate (``self.gravity``, an :class:`UpNet`).
+class WithUp(nn.Module):
+    """The optional up estimate of the dense spherical models (``self.gravity``, an
+    :class:`UpNet`).
 
-    With ``gravity=True`` the network reads, besides the image, each point's height
-    :math:`p \cdot u` as one more input channel: ``forward(x, mask, up=None,
-    return_gravity=False)`` takes u from ``up [B, 3]`` when given (a known gravity: an
-    IMU, or the training views' labels), else from the :class:`UpNet`'s estimate;
-    ``return_gravity=True`` also returns the estimate ``{"up": [B, 3], "logits": [B, Nc]}``
-    (for :meth:`GravityHead.loss`). The estimate rotates with the image, so the heights
-    are invariant and the logits stay equivariant."""
+    With it the network reads, besides the image, each point's height
+    :math:`p \cdot u` as one more input channel: ``forward(x, mask, up=None, ...)`` takes u
+    from ``up [B, 3]`` when given (a known gravity: an IMU, or the training views' labels),
+    else from the :class:`UpNet`'s estimate ``{"up": [B, 3], "logits": [B, Nc]}`` (trained
+    by :meth:`GravityHead.loss`). The estimate rotates with the image, so the heights are
+    invariant and the outputs stay equivariant."""
 
-    config: dict
     gravity: UpNet | None
 
-    def reset_parameters(self) -> None:
-        for m in self.modules():
-            if m is not self and hasattr(m, "reset_parameters"):
-                m.reset_parameters()
+    def _gravity_net(self, gravity: bool, in_channels: int, level: int, refine: int = 0):
+        """Builds ``self.gravity`` for inputs ``[B, N, in_channels]`` on
+        ``icosahedral(level + refine)``."""
+        self.gravity = UpNet(in_channels, level, refine=refine) if gravity else None
+        self._input = (in_channels, level + refine)
+        if gravity:
+            pos = icosahedral(level + refine).pos
+            self.register_buffer("in_pos", pos.double(), persistent=False)
 
     def _with_height(self, x: torch.Tensor, mask: torch.Tensor | None,
                      up: torch.Tensor | None) -> tuple[torch.Tensor, dict | None]:
@@ -285,8 +287,7 @@ class _Segmenter(nn.Module):
             if up is not None:
                 raise ValueError("up is only read by models built with gravity=True")
             return x, None
-        m = check_input(x, mask, self.num_points, self.config["in_channels"],
-                        self.config["level"] + self.config["refine"])
+        m = check_input(x, mask, len(self.in_pos), *self._input)
         grav = self.gravity(x, m)
         if up is None:
             up = grav["up"]
@@ -296,13 +297,18 @@ class _Segmenter(nn.Module):
         up = up.to(x.dtype) / up.norm(dim=-1, keepdim=True).to(x.dtype)
         return torch.cat([x, heights(self.in_pos, up)], -1), grav
 
-    def _gravity_net(self, gravity: bool):
-        """Builds ``self.gravity`` (and the input positions) from ``self.config``."""
-        cfg = self.config
-        self.gravity = UpNet(cfg["in_channels"], cfg["level"], refine=cfg["refine"]) if gravity else None
-        if gravity:
-            pos = icosahedral(cfg["level"] + cfg["refine"]).pos
-            self.register_buffer("in_pos", pos.double(), persistent=False)
+
+class _Segmenter(WithUp):
+    """What the segmentation models share: config round trip, resolution transfer and the
+    optional up estimate (:class:`WithUp`; ``forward(x, mask, up=None,
+    return_gravity=False)``, ``return_gravity=True`` also returning the estimate)."""
+
+    config: dict
+
+    def reset_parameters(self) -> None:
+        for m in self.modules():
+            if m is not self and hasattr(m, "reset_parameters"):
+                m.reset_parameters()
 
     @classmethod
     def from_config(cls, config: dict):
@@ -328,12 +334,12 @@ class SphericalUNet(_Segmenter):
     features), so the logits are SO(3)-equivariant: exactly for rotations that map the
     grid onto itself, up to discretization for any other.
 
-    With ``gravity=True``, a :class:`GravityHead` on the coarsest features estimates up
-    from the image, and every decoder stage and the head also read each point's height
-    along it; the logits stay equivariant, since the estimate rotates with the input. Off
-    by default: on the rooms protocol the estimate is still 27 degrees off (median) after 16
-    epochs, and such noisy heights barely raise mIoU, while the true heights would (README,
-    ``examples/seg_height_cue.py``).
+    With ``gravity=True`` (what ``usf-graph train seg`` builds), a small :class:`UpNet`
+    estimates up from the image, and the network reads each point's height along it as
+    one more input channel (the cue "ceiling above, floor below" that a planar network
+    reads from its rows); the logits stay equivariant, since the estimate rotates with
+    the input. Training needs views of known gravity (:func:`~usf_graph.train.seg.segmentation_step`);
+    ``forward(x, mask, up=...)`` takes a known up instead of the estimate.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]`` (and the
@@ -356,7 +362,7 @@ class SphericalUNet(_Segmenter):
                                           channels, num_basis, radius_spacings, jet_spacings,
                                           pairs, pair_stages, refine, depth)
         c = self.backbone.out_channels
-        self._gravity_net(gravity)
+        self._gravity_net(gravity, in_channels, level, refine)
         self.head_stage = ConvStage(self.backbone.grids[level], c, c,
                                     radius_spacings * level_spacing(level), num_basis,
                                     head_depth) if head_depth else None
@@ -372,4 +378,4 @@ class SphericalUNet(_Segmenter):
         return (logits, grav) if return_gravity else logits
 
 
-__all__ = ["SphericalBackbone", "SphericalUNet", "UpNet", "ConvStage", "blur", "FillHidden", "level_spacing"]
+__all__ = ["SphericalBackbone", "SphericalUNet", "UpNet", "WithUp", "ConvStage", "blur", "FillHidden", "level_spacing"]

@@ -24,6 +24,7 @@ from ..models import PlanarDetector, SphericalDetector
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .gravity import known_up, up_loss
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -95,11 +96,18 @@ class DetectionSet(Dataset):
 
 
 def detection_step(model, batch):
-    """The engine's step for detectors: their own ``loss`` on a :meth:`DetectionSet.collate` batch."""
+    """The engine's step for detectors: their own ``loss`` on a :meth:`DetectionSet.collate`
+    batch; a spherical detector with an up estimate learns it as the segmenters do
+    (:mod:`~usf_graph.train.gravity`), on gravity-aligned views."""
     x, mask, boxes, classes, image = batch
     core = getattr(model, "module", model)  # under DistributedDataParallel
-    loss, stats = core.loss(model(x, mask), boxes, classes, image)
-    return loss, stats, len(x)
+    if getattr(core, "gravity", None) is None:
+        loss, stats = core.loss(model(x, mask), boxes, classes, image)
+        return loss, stats, len(x)
+    g, noisy = known_up(batch, len(x), x.dtype)  # views of the rooms protocol are upright
+    out = model(x, mask, up=noisy)
+    loss, stats = core.loss(out, boxes, classes, image)
+    return loss + up_loss(core, out["gravity"], g, stats), stats, len(x)
 
 
 @torch.no_grad()

@@ -31,10 +31,10 @@ from tqdm.auto import tqdm
 
 from ..cameras import Equirectangular
 from ..frontend import render
-from ..geometry import geodesic_distance
 from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
+from .gravity import known_up, up_loss
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
 from .seg_metrics import confusion_matrix, per_image_miou, scores
 
@@ -88,35 +88,24 @@ def split_batch(batch):
     return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
 
 
-#: Weight of the gravity head's loss (:meth:`GravityHead.loss`) in the segmentation step.
-UP_WEIGHT = 0.5
-#: Noise (radians, per axis) on the true up that the decoder reads in training, so that it
-#: learns to tolerate the head's error at test time.
-UP_JITTER = 0.05
-
-
 def segmentation_step(model, batch):
     """The engine's step for segmentation, on PyG batches: per-point cross-entropy for
     spherical models, per-pixel for planar ones (which read the batch's ``image``).
 
     A spherical model with a gravity head learns up from the views' known gravity g (the
     batch's ``up [B, 3]`` when it has one, else +z: gravity-aligned views): its head is
-    trained by ``UP_WEIGHT`` times :meth:`GravityHead.loss`, while the decoder reads the
-    heights along g (jittered by ``UP_JITTER``), so that the two learn independently. At
-    test time the decoder reads the head's estimate."""
+    trained by :func:`~usf_graph.train.gravity.up_loss`, while the network reads the heights
+    along g, jittered (:func:`~usf_graph.train.gravity.known_up`), so that the two learn
+    independently. At test time the network reads the estimate."""
     x, y, mask, image, label = split_batch(batch)
     planar, stats, aux = is_planar(model), {}, 0.0
     net = getattr(model, "module", model)
     if planar:
         logits, target = model(image), label
     elif getattr(net, "gravity", None) is not None:
-        g = getattr(batch, "up", None)
-        g = torch.tensor([0.0, 0.0, 1.0]).expand(len(x), 3) if g is None else g.view(-1, 3)
-        g = g.to(x.dtype)
-        noisy = g + UP_JITTER * torch.randn_like(g)
+        g, noisy = known_up(batch, len(x), x.dtype)
         (logits, grav), target = model(x, mask, up=noisy, return_gravity=True), y
-        aux = UP_WEIGHT * net.gravity.head.loss(grav, g)
-        stats["up_err_deg"] = float(torch.rad2deg(geodesic_distance(grav["up"].detach(), g)).mean())
+        aux = up_loss(net, grav, g, stats)
     else:
         logits, target = model(x, mask), y
     loss = segmentation_loss(logits, target) + aux
