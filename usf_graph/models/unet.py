@@ -221,13 +221,19 @@ class UpNet(nn.Module):
     and read by a :class:`GravityHead`. It is small and separate from the segmenter, so
     that the segmenter's first layer can already read each point's height.
 
+    In training, with probability ``view_dropout`` a batch is seen only through a random
+    cap of 45 to 120 degrees (radius) of its field of view, like dropout: up must also be
+    found from what a narrow lens sees, often with up itself out of view.
+
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, ``mask [N]`` or
     ``None`` -> :class:`GravityHead`'s ``{"up": [B, 3], "logits": [B, Nc]}``.
     """
 
     def __init__(self, in_channels: int, level: int, channels=(32, 64, 64), num_basis: int = 3,
-                 radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0):
+                 radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0,
+                 view_dropout: float = 0.5):
         super().__init__()
+        self.view_dropout = view_dropout
         levels = list(range(level - 1, level - 1 - len(channels), -1))
         if not channels or levels[-1] < 0:
             raise ValueError(f"UpNet needs 1 to {level} channel entries below level {level}, "
@@ -235,6 +241,7 @@ class UpNet(nn.Module):
         grids = {lv: icosahedral(lv + refine) for lv in [level, *levels]}
         h = {lv: level_spacing(lv) for lv in grids}
         top = grids[levels[0]]
+        self.register_buffer("in_pos", grids[level].pos.float(), persistent=False)
         self.pools = nn.ModuleList([blur(grids[lv + 1], grids[lv], 0.5 * h[lv]) for lv in levels])
         self.fill = FillHidden(top.pos)
         self.jet = LocalJet(top.pos, *grid_graph(top, jet_spacings * h[levels[0]]), h[levels[0]])
@@ -246,7 +253,17 @@ class UpNet(nn.Module):
             c_in = c
         self.head = GravityHead(grids[levels[-1]], c_in)
 
+    def _random_view(self, mask: torch.Tensor | None) -> torch.Tensor | None:
+        if not self.training or torch.rand(()) >= self.view_dropout:
+            return mask
+        c = torch.nn.functional.normalize(torch.randn(3), dim=0)
+        radius = math.radians(45 + 75 * float(torch.rand(())))
+        cap = self.in_pos @ c.to(self.in_pos) > math.cos(radius)
+        cap = cap if mask is None else cap & mask
+        return cap if cap.any() else mask
+
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        mask = self._random_view(mask)
         x, m = self.pools[0](x, mask)
         m = None if mask is None else m
         x = self.jet_norm(self.jet(self.fill(x, m)), mask=m, node_weight=self.area.to(x.dtype))
