@@ -3,10 +3,10 @@
 from .classifier import PlanarCNN, SphericalClassifier, grid_graph
 from .deeplab import SphericalDeepLabV3
 from .detector import SphericalDetector
+from .gravity import GravityHead
 from .planar_detector import PlanarDetector
 from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
-from .gravity import GravityHead
 from .unet import SphericalBackbone, SphericalUNet, UpNet
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",

@@ -276,7 +276,7 @@ class UpNet(nn.Module):
 
 
 class WithUp(nn.Module):
-    """The optional up estimate of the dense spherical models (``self.gravity``, an
+    r"""The optional up estimate of the dense spherical models (``self.gravity``, an
     :class:`UpNet`).
 
     With it the network reads, besides the image, each point's height

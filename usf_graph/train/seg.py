@@ -34,8 +34,8 @@ from ..frontend import render
 from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
-from .gravity import known_up, up_loss
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .gravity import known_up, up_loss
 from .seg_metrics import confusion_matrix, per_image_miou, scores
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
