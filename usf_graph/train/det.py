@@ -162,7 +162,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     C = len(DETECTION_CLASSES)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items()}}
-    models = {"spherical": (SphericalDetector(num_classes=C, gravity=True), DetectionSet.spherical, epochs)}
+    models = {"spherical": (SphericalDetector(num_classes=C), DetectionSet.spherical, epochs)}
     if planar:
         w, h = 2 * size, size
         models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w),
@@ -204,7 +204,7 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
     train = DetectionSet.spherical(Pandora(root, "train", grid=grid, progress=progress))
     test = DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
     C = len(PANDORA_CLASSES)
-    net = SphericalDetector(num_classes=C, gravity=True)
+    net = SphericalDetector(num_classes=C)
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=out / "spherical", config=net.config, progress=progress, name="spherical",
         step=detection_step, collate_fn=train.collate)
