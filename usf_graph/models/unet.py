@@ -215,7 +215,7 @@ class SphericalBackbone(nn.Module):
 class UpNet(nn.Module):
     r"""The image's up direction, estimated SO(3)-equivariantly at low resolution.
 
-    The input is pooled one level down (Gaussian, mask-aware), extended past the field of
+    The input is pooled ``coarsen`` levels down (Gaussian, mask-aware), extended past the field of
     view (:class:`FillHidden`), described by its :class:`~usf_graph.nn.LocalJet`, passed
     through one :class:`ConvStage` per entry of ``channels`` on successively coarser levels,
     and read by a :class:`GravityHead`. It is small and separate from the segmenter, so
@@ -231,18 +231,19 @@ class UpNet(nn.Module):
 
     def __init__(self, in_channels: int, level: int, channels=(32, 64, 64), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0,
-                 view_dropout: float = 0.5):
+                 view_dropout: float = 0.5, coarsen: int = 1):
         super().__init__()
         self.view_dropout = view_dropout
-        levels = list(range(level - 1, level - 1 - len(channels), -1))
-        if not channels or levels[-1] < 0:
-            raise ValueError(f"UpNet needs 1 to {level} channel entries below level {level}, "
-                             f"got {len(channels)}")
-        grids = {lv: icosahedral(lv + refine) for lv in [level, *levels]}
+        levels = list(range(level - coarsen, level - coarsen - len(channels), -1))
+        if not channels or coarsen < 0 or levels[-1] < 0:
+            raise ValueError(f"UpNet needs coarsen >= 0 and 1 to {level - coarsen + 1} channel "
+                             f"entries, got {coarsen} and {len(channels)}")
+        grids = {lv: icosahedral(lv + refine) for lv in {level, *levels}}
         h = {lv: level_spacing(lv) for lv in grids}
         top = grids[levels[0]]
         self.register_buffer("in_pos", grids[level].pos.float(), persistent=False)
-        self.pools = nn.ModuleList([blur(grids[lv + 1], grids[lv], 0.5 * h[lv]) for lv in levels])
+        self.pre = blur(grids[level], top, 0.5 * h[levels[0]]) if coarsen else None
+        self.pools = nn.ModuleList([blur(grids[lv + 1], grids[lv], 0.5 * h[lv]) for lv in levels[1:]])
         self.fill = FillHidden(top.pos)
         self.jet = LocalJet(top.pos, *grid_graph(top, jet_spacings * h[levels[0]]), h[levels[0]])
         self.jet_norm = MaskedBatchNorm(4 * in_channels)
@@ -263,13 +264,14 @@ class UpNet(nn.Module):
         return cap if cap.any() else mask
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
-        mask = self._random_view(mask)
-        x, m = self.pools[0](x, mask)
-        m = None if mask is None else m
+        m = self._random_view(mask)
+        if self.pre is not None:
+            x, mp = self.pre(x, m)
+            m = None if m is None else mp
         x = self.jet_norm(self.jet(self.fill(x, m)), mask=m, node_weight=self.area.to(x.dtype))
         for s, stage in enumerate(self.stages):
             if s:
-                x, mp = self.pools[s](x, m)
+                x, mp = self.pools[s - 1](x, m)
                 m = None if m is None else mp
             x = stage(x, m)
         return self.head(x, m)
