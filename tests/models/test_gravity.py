@@ -100,3 +100,17 @@ def test_upnet_view_dropout_only_in_training_and_inside_the_view():
     with pytest.raises(ValueError, match="coarsen"):
         UpNet(3, 3, channels=(4, 4, 4, 4))
     assert UpNet(3, 3, channels=(4, 4), coarsen=0).pre is None
+
+
+def test_loss_adds_the_area_weighted_height_error_of_the_visible_points():
+    coarse = grids.icosahedral(1)
+    head = GravityHead(coarse, channels=2).double()
+    g = torch.tensor([[0.0, 0.6, 0.8]], dtype=torch.float64)
+    mask = coarse.pos[:, 0] > -0.3
+    out = head(torch.randn(1, len(coarse), 2, dtype=torch.float64), mask)
+    ce = head.loss({"logits": out["logits"]}, g)
+    w = coarse.area.double() * mask
+    mse = ((out["height"] - g @ coarse.pos.double().T) ** 2 * w).sum() / w.sum()
+    torch.testing.assert_close(head.loss(out, g), ce + mse)
+    exact = {**out, "height": g @ coarse.pos.double().T}
+    torch.testing.assert_close(head.loss(exact, g), ce)

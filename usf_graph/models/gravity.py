@@ -64,13 +64,16 @@ class GravityHead(nn.Module):
         self.register_buffer("phi", phi, persistent=False)  # [K, Nc, M]
         self.register_buffer("candidates", cand, persistent=False)
         self.register_buffer("area", coarse.area.double(), persistent=False)
+        self.register_buffer("pos", coarse.pos.double(), persistent=False)
         self.field = nn.Linear(channels, num_basis * hidden)
+        self.height = nn.Linear(channels, 1)
         self.bias = nn.Parameter(torch.zeros(hidden))
         self.score = nn.Linear(hidden, 1)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
         self.field.reset_parameters()
+        self.height.reset_parameters()
         self.score.reset_parameters()
         nn.init.zeros_(self.bias)
 
@@ -85,7 +88,8 @@ class GravityHead(nn.Module):
         near = best @ cand.T > math.cos(self.window)
         p = torch.softmax(logits.masked_fill(~near, float("-inf")), -1)
         up = p @ cand
-        return {"up": up / up.norm(dim=-1, keepdim=True).clamp_min(1e-12), "logits": logits}
+        return {"up": up / up.norm(dim=-1, keepdim=True).clamp_min(1e-12), "logits": logits,
+                "height": self.height(f)[..., 0], "weight": w}
 
     def target(self, g: torch.Tensor) -> torch.Tensor:
         r"""The distribution over candidates the scores are trained towards for the true up
@@ -96,8 +100,14 @@ class GravityHead(nn.Module):
     def loss(self, out: dict, g: torch.Tensor) -> torch.Tensor:
         """Cross-entropy of the scores (:meth:`forward`'s ``out``) against :meth:`target`."""
         logits = out["logits"]
-        q = self.target(g.to(logits.dtype))
-        return -(q * torch.log_softmax(logits, -1)).sum(-1).mean()
+        g = g.to(logits.dtype)
+        q = self.target(g)
+        ce = -(q * torch.log_softmax(logits, -1)).sum(-1).mean()
+        if "height" not in out:
+            return ce
+        w = out["weight"]
+        h = g @ self.pos.to(g.dtype).T
+        return ce + ((out["height"] - h) ** 2 * w).sum(-1).mean() / w.sum()
 
 
 __all__ = ["GravityHead", "heights"]
