@@ -93,7 +93,7 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
     loss_g.backward()
     assert all(p.grad is not None for p in g.gravity.parameters())
     # the network reads the given up, and without one the estimate
-    g.eval()  # (in training, the up estimate sees random parts of the view)
+    g.eval()
     with torch.no_grad():
         est = g(x, mask, return_gravity=True)[1]["up"]
         assert not torch.allclose(g(x, mask, up=-est), g(x, mask))

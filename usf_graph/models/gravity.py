@@ -43,10 +43,13 @@ class GravityHead(nn.Module):
     within ``window`` radians of the best one, :math:`\hat u = \mathrm{normalize}(\sum_n
     \pi_n a_n)`. It rotates with the input (exactly for rotations of the grids onto
     themselves); candidates cover the whole sphere, so up may lie outside the lens's field
-    of view. Trained by :meth:`loss` on views of known gravity.
+    of view. Trained by :meth:`loss` on views of known gravity, which also asks a linear map
+    of the features for each point's height :math:`p_m \cdot g` (a dense, invariant
+    target that the 200 up directions of a small training set alone do not give).
 
     Shapes: features ``[B, M, C]`` on ``coarse``, ``mask [M]`` or ``None`` ->
-    ``{"up": [B, 3], "logits": [B, Nc]}``.
+    ``{"up": [B, 3], "logits": [B, Nc], "height": [B, M], "weight": [M]}`` (``weight``: the
+    visible areas).
     """
 
     def __init__(self, coarse, channels: int, hidden: int = 16, num_basis: int = 8,
@@ -98,7 +101,9 @@ class GravityHead(nn.Module):
         return torch.softmax(self.concentration * g @ self.candidates.to(g.dtype).T, -1)
 
     def loss(self, out: dict, g: torch.Tensor) -> torch.Tensor:
-        """Cross-entropy of the scores (:meth:`forward`'s ``out``) against :meth:`target`."""
+        """Cross-entropy of the scores (:meth:`forward`'s ``out``) against :meth:`target`,
+        plus (when ``out`` has ``height``) the area-weighted squared error of the heights
+        over the visible points."""
         logits = out["logits"]
         g = g.to(logits.dtype)
         q = self.target(g)

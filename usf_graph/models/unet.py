@@ -84,8 +84,9 @@ class FillHidden(nn.Module):
 
     def _build(self, m: np.ndarray) -> tuple:
         vis, hid = np.flatnonzero(m), np.flatnonzero(~m)
-        d, j = cKDTree(self.pos[vis]).query(self.pos[hid], k=min(self.ties, len(vis)))
-        d, j = d.reshape(len(hid), -1), j.reshape(len(hid), -1)
+        k = min(self.ties, len(vis))
+        d, j = cKDTree(self.pos[vis]).query(self.pos[hid], k=k)
+        d, j = d.reshape(len(hid), k), j.reshape(len(hid), k)
         w = (d <= d[:, :1] * (1 + 1e-9) + 1e-12).astype(np.float64)
         return (torch.as_tensor(hid), torch.as_tensor(vis[j]),
                 torch.as_tensor(w / w.sum(1, keepdims=True)))
@@ -221,19 +222,14 @@ class UpNet(nn.Module):
     and read by a :class:`GravityHead`. It is small and separate from the segmenter, so
     that the segmenter's first layer can already read each point's height.
 
-    In training, with probability ``view_dropout`` a batch is seen only through a random
-    cap of 45 to 120 degrees (radius) of its field of view, like dropout: up must also be
-    found from what a narrow lens sees, often with up itself out of view.
-
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, ``mask [N]`` or
     ``None`` -> :class:`GravityHead`'s ``{"up": [B, 3], "logits": [B, Nc]}``.
     """
 
     def __init__(self, in_channels: int, level: int, channels=(32, 64, 64), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0,
-                 view_dropout: float = 0.5, coarsen: int = 1):
+                 coarsen: int = 1):
         super().__init__()
-        self.view_dropout = view_dropout
         levels = list(range(level - coarsen, level - coarsen - len(channels), -1))
         if not channels or coarsen < 0 or levels[-1] < 0:
             raise ValueError(f"UpNet needs coarsen >= 0 and 1 to {level - coarsen + 1} channel "
@@ -241,7 +237,6 @@ class UpNet(nn.Module):
         grids = {lv: icosahedral(lv + refine) for lv in {level, *levels}}
         h = {lv: level_spacing(lv) for lv in grids}
         top = grids[levels[0]]
-        self.register_buffer("in_pos", grids[level].pos.float(), persistent=False)
         self.pre = blur(grids[level], top, 0.5 * h[levels[0]]) if coarsen else None
         self.pools = nn.ModuleList([blur(grids[lv + 1], grids[lv], 0.5 * h[lv]) for lv in levels[1:]])
         self.fill = FillHidden(top.pos)
@@ -254,17 +249,8 @@ class UpNet(nn.Module):
             c_in = c
         self.head = GravityHead(grids[levels[-1]], c_in)
 
-    def _random_view(self, mask: torch.Tensor | None) -> torch.Tensor | None:
-        if not self.training or torch.rand(()) >= self.view_dropout:
-            return mask
-        c = torch.nn.functional.normalize(torch.randn(3), dim=0)
-        radius = math.radians(45 + 75 * float(torch.rand(())))
-        cap = self.in_pos @ c.to(self.in_pos) > math.cos(radius)
-        cap = cap if mask is None else cap & mask
-        return cap if cap.any() else mask
-
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
-        m = self._random_view(mask)
+        m = mask
         if self.pre is not None:
             x, mp = self.pre(x, m)
             m = None if m is None else mp
