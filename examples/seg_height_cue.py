@@ -47,6 +47,38 @@ class WithTrueHeight(nn.Module):
         return self.net(with_true_height(x, self.pos), mask, return_gravity=return_gravity)
 
 
+def sphere_miou(logits: torch.Tensor, test) -> float:
+    """Area-weighted mIoU on the sphere of per-point ``logits [S, N, 13]``."""
+    conf = confusion_matrix(logits.argmax(-1).numpy(), test.y.numpy(), 13,
+                            weight=test.grid.area.numpy()[None])
+    return scores(conf)["mIoU"]
+
+
+@torch.no_grad()
+def evaluate(net, test, name: str) -> tuple[dict, str]:
+    """Scores on the test views, and for the gravity variant its up error and the score
+    of the same network given the true up."""
+    x = test.x.float()
+    out = [net(x[i:i + 8], return_gravity=True) for i in range(0, len(x), 8)]
+    res = {"sphere_mIoU": sphere_miou(torch.cat([o[0] for o in out]), test)}
+    line = f"{name}: sphere mIoU {100 * res['sphere_mIoU']:.1f}"
+    if name == "gravity":
+        up = torch.cat([o[1]["up"] for o in out])
+        err = torch.rad2deg(geodesic_distance(up, torch.tensor([0.0, 0, 1]).expand_as(up)))
+        res["up_err_median_deg"] = float(np.median(err.numpy()))
+        res["up_err_mean_deg"] = float(err.mean())
+        res["up_err_over_60deg"] = int((err > 60).sum())
+        # the same network reading the true up instead of its estimate
+        z = torch.tensor([[0.0, 0.0, 1.0]])
+        true = torch.cat([net(x[i:i + 8], up=z.expand(len(x[i:i + 8]), 3))
+                          for i in range(0, len(x), 8)])
+        res["sphere_mIoU_true_up"] = sphere_miou(true, test)
+        line += (f", up error median {res['up_err_median_deg']:.1f} deg, mean "
+                 f"{res['up_err_mean_deg']:.1f} deg, {res['up_err_over_60deg']} views over "
+                 f"60 deg; with the true up: {100 * res['sphere_mIoU_true_up']:.1f}")
+    return res, line
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--root", default="data/rooms")
@@ -71,21 +103,7 @@ def main(argv=None) -> dict:
         net = WithTrueHeight(net, pos) if name == "true_height" else net
         fit(net, train, None, epochs=a.epochs, batch_size=8, lr=3e-3, seed=0, name=name,
             step=segmentation_step, progress=not a.no_progress)
-        net.eval()
-        with torch.no_grad():
-            x = test.x.float()
-            out = [net(x[i:i + 8], return_gravity=True) for i in range(0, len(x), 8)]
-        pred = torch.cat([o[0] for o in out]).argmax(-1).numpy()
-        conf = confusion_matrix(pred, test.y.numpy(), 13, weight=test.grid.area.numpy()[None])
-        res = results[name] = {"sphere_mIoU": scores(conf)["mIoU"]}
-        line = f"{name}: sphere mIoU {100 * res['sphere_mIoU']:.1f}"
-        if name == "gravity":
-            up = torch.cat([o[1]["up"] for o in out])
-            err = torch.rad2deg(geodesic_distance(up, torch.tensor([0.0, 0, 1]).expand_as(up)))
-            res["up_err_median_deg"] = float(np.median(err.numpy()))
-            res["up_err_mean_deg"] = float(err.mean())
-            line += (f", up error median {res['up_err_median_deg']:.1f} deg, "
-                     f"mean {res['up_err_mean_deg']:.1f} deg")
+        results[name], line = evaluate(net.eval(), test, name)
         print(line, flush=True)
     return results
 

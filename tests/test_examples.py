@@ -53,3 +53,4 @@ def test_seg_height_cue_example_small_run(tmp_path):
     assert set(res) == {"plain", "gravity", "true_height"}
     assert all(0 <= r["sphere_mIoU"] <= 1 for r in res.values())
     assert 0 <= res["gravity"]["up_err_median_deg"] <= 180
+    assert 0 <= res["gravity"]["sphere_mIoU_true_up"] <= 1
