@@ -10,7 +10,7 @@ panoramas (200 rooms, icosahedral:5, 16 epochs, seed 0) and scores new rooms (te
 * ``true_height``: RGB plus each point's true height ``p . z`` as a fourth channel. This is
   an upper bound, not a usable model: a rotated camera does not know its height.
 
-    .venv/bin/python examples/seg_height_cue.py [--epochs 16] [--variants plain gravity true_height]
+    .venv/bin/python examples/seg_height_cue.py [--epochs 16] [--variants plain gravity true_height] [--tests a d]
 
 Prints the area-weighted mIoU on the sphere (and the up error of the gravity variant).
 About 5 minutes per variant on 2 cores, after the rooms are rendered (``data/rooms``).
@@ -58,8 +58,9 @@ def sphere_miou(logits: torch.Tensor, test) -> float:
 def evaluate(net, test, name: str) -> tuple[dict, str]:
     """Scores on the test views, and for the gravity variant its up error and the score
     of the same network given the true up."""
-    x = test.x.float()
-    out = [net(x[i:i + 8], return_gravity=True) for i in range(0, len(x), 8)]
+    x, mask = test.x.float(), test.mask[0]
+    mask = None if mask.all() else mask
+    out = [net(x[i:i + 8], mask, return_gravity=True) for i in range(0, len(x), 8)]
     res = {"sphere_mIoU": sphere_miou(torch.cat([o[0] for o in out]), test)}
     line = f"{name}: sphere mIoU {100 * res['sphere_mIoU']:.1f}"
     if name == "gravity":
@@ -70,7 +71,7 @@ def evaluate(net, test, name: str) -> tuple[dict, str]:
         res["up_err_over_60deg"] = int((err > 60).sum())
         # the same network reading the true up instead of its estimate
         z = torch.tensor([[0.0, 0.0, 1.0]])
-        true = torch.cat([net(x[i:i + 8], up=z.expand(len(x[i:i + 8]), 3))
+        true = torch.cat([net(x[i:i + 8], mask, up=z.expand(len(x[i:i + 8]), 3))
                           for i in range(0, len(x), 8)])
         res["sphere_mIoU_true_up"] = sphere_miou(true, test)
         line += (f", up error median {res['up_err_median_deg']:.1f} deg, mean "
@@ -89,12 +90,13 @@ def main(argv=None) -> dict:
     p.add_argument("--level", type=int, default=5)
     p.add_argument("--num-train", type=int, default=200)
     p.add_argument("--num-test", type=int, default=50)
+    p.add_argument("--tests", nargs="+", default=["a"], choices=["a", "c", "d"],
+                   help="upright protocol tests to score (c, d: other lenses, on what they see)")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
-    sets = protocol_sets(a.root, a.size, a.level, a.num_train, a.num_test, tests=("a",),
+    sets = protocol_sets(a.root, a.size, a.level, a.num_train, a.num_test, tests=a.tests,
                          progress=not a.no_progress)
-    train, test = sets["train"], sets["a"]
-    pos = train.grid.pos
+    train, pos = sets["train"], sets["train"].grid.pos
 
     results = {}
     for name in a.variants:
@@ -103,8 +105,10 @@ def main(argv=None) -> dict:
         net = WithTrueHeight(net, pos) if name == "true_height" else net
         fit(net, train, None, epochs=a.epochs, batch_size=8, lr=3e-3, seed=0, name=name,
             step=segmentation_step, progress=not a.no_progress)
-        results[name], line = evaluate(net.eval(), test, name)
-        print(line, flush=True)
+        for k in a.tests:
+            res, line = evaluate(net.eval(), sets[k], name)
+            results[name] = res if len(a.tests) == 1 else {**results.get(name, {}), k: res}
+            print(f"({k}) {line}", flush=True)
     return results
 
 
