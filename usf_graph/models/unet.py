@@ -223,7 +223,7 @@ class UpNet(nn.Module):
     that the segmenter's first layer can already read each point's height.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, ``mask [N]`` or
-    ``None`` -> :class:`GravityHead`'s ``{"up": [B, 3], "logits": [B, Nc]}``.
+    ``None`` -> :class:`GravityHead`'s output ``{"up": [B, 3], "logits": [B, Nc], ...}``.
     """
 
     def __init__(self, in_channels: int, level: int, channels=(32, 64, 64), num_basis: int = 3,
