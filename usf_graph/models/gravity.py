@@ -52,7 +52,7 @@ class GravityHead(nn.Module):
     visible areas).
     """
 
-    def __init__(self, coarse, channels: int, hidden: int = 16, num_basis: int = 8,
+    def __init__(self, coarse, channels: int, hidden: int = 32, num_basis: int = 8,
                  candidate_level: int = 3, window: float = math.radians(20),
                  concentration: float = 100.0):
         super().__init__()

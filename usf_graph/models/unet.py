@@ -226,7 +226,7 @@ class UpNet(nn.Module):
     ``None`` -> :class:`GravityHead`'s output ``{"up": [B, 3], "logits": [B, Nc], ...}``.
     """
 
-    def __init__(self, in_channels: int, level: int, channels=(32, 64, 64), num_basis: int = 3,
+    def __init__(self, in_channels: int, level: int, channels=(32, 64, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0,
                  coarsen: int = 1):
         super().__init__()
