@@ -15,6 +15,7 @@ import math
 import torch
 from torch import nn
 
+from ..geometry import geodesic_distance
 from ..grids import icosahedral
 
 
@@ -59,7 +60,7 @@ class GravityHead(nn.Module):
         self.hidden, self.num_basis = hidden, num_basis
         self.window, self.concentration = window, concentration
         cand = icosahedral(candidate_level).pos.double()
-        theta = torch.arccos((cand @ coarse.pos.double().T).clamp(-1, 1))  # [Nc, M]
+        theta = geodesic_distance(cand[:, None], coarse.pos.double()[None])  # [Nc, M]
         centers = torch.linspace(0, math.pi, num_basis, dtype=torch.float64)
         width = math.pi / (num_basis - 1)
         phi = torch.exp(-0.5 * ((theta[None] - centers[:, None, None]) / width) ** 2)
