@@ -98,6 +98,13 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
         est = g(x, mask, return_gravity=True)[1]["up"]
         assert not torch.allclose(g(x, mask, up=-est), g(x, mask))
         torch.testing.assert_close(g(x, mask), g(x, mask, up=est))
+        # a given up spares the estimate in evaluation, unless it is asked for
+        calls = []
+        hook = g.gravity.register_forward_hook(lambda *a: calls.append(1))
+        g(x, mask, up=est)
+        assert calls == []
+        assert g(x, mask, up=est, return_gravity=True)[1] is not None and calls == [1]
+        hook.remove()
     with pytest.raises(ValueError, match="gravity=True"):
         m(x, mask, up=noisy)
 

@@ -81,7 +81,7 @@ class SphericalDeepLabV3(_Segmenter):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
-        x, grav = self._with_height(x, mask, up)
+        x, grav = self._with_height(x, mask, up, return_gravity)
         feats = self.backbone.encode(x, mask)
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)

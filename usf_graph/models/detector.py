@@ -65,7 +65,7 @@ class SphericalDetector(Detector, WithUp):
 
     With ``gravity=True`` it also reads each point's height along an equivariant up
     estimate, as :class:`~usf_graph.models.unet.WithUp` describes (``forward(x, mask,
-    up=None)``; the estimate is returned as ``"gravity"``): PANDORA boxes are upright in
+    up=None)``; the estimate, when it runs, is returned as ``"gravity"``): PANDORA boxes are upright in
     the world, and objects stand on the floor.
 
     ``forward(x, mask)`` returns those fields; :meth:`loss` trains them against boxes and

@@ -112,7 +112,7 @@ class GravityHead(nn.Module):
         if "height" not in out:
             return ce
         w = out["weight"]
-        h = g @ self.pos.to(g.dtype).T
+        h = heights(self.pos, g)[..., 0]
         return ce + ((out["height"] - h) ** 2 * w).sum(-1).mean() / w.sum()
 
 

@@ -286,20 +286,21 @@ class WithUp(nn.Module):
             self.register_buffer("in_pos", pos.double(), persistent=False)
 
     def _with_height(self, x: torch.Tensor, mask: torch.Tensor | None,
-                     up: torch.Tensor | None) -> tuple[torch.Tensor, dict | None]:
-        """``(x with the height channel when there is a gravity estimate, the estimate)``."""
+                     up: torch.Tensor | None, estimate: bool = False
+                     ) -> tuple[torch.Tensor, dict | None]:
+        """``(x with the height channel when there is a gravity estimate, the estimate)``.
+        The :class:`UpNet` runs when ``up`` is not given, in training (its loss needs the
+        estimate) or when ``estimate`` asks for it; else the estimate is ``None``."""
         if self.gravity is None:
             if up is not None:
                 raise ValueError("up is only read by models built with gravity=True")
             return x, None
         m = check_input(x, mask, len(self.in_pos), *self._input)
-        grav = self.gravity(x, m)
-        if up is None:
-            up = grav["up"]
-        elif up.shape != grav["up"].shape or not torch.isfinite(up).all():
-            raise ValueError(f"up must be finite [B, 3] = {tuple(grav['up'].shape)}, got "
-                             f"{tuple(up.shape)}")
-        up = up.to(x.dtype) / up.norm(dim=-1, keepdim=True).to(x.dtype)
+        if up is not None and (up.shape != (len(x), 3) or not torch.isfinite(up).all()):
+            raise ValueError(f"up must be finite [B, 3] = {(len(x), 3)}, got {tuple(up.shape)}")
+        grav = self.gravity(x, m) if up is None or self.training or estimate else None
+        up = grav["up"] if up is None else up.to(x.dtype)
+        up = up / up.norm(dim=-1, keepdim=True)
         return torch.cat([x, heights(self.in_pos, up)], -1), grav
 
 
@@ -377,7 +378,7 @@ class SphericalUNet(_Segmenter):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
-        x, grav = self._with_height(x, mask, up)
+        x, grav = self._with_height(x, mask, up, return_gravity)
         f, m = self.backbone(x, mask)
         logits = self.head(f if self.head_stage is None else self.head_stage(f, m))
         return (logits, grav) if return_gravity else logits
