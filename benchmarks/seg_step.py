@@ -3,9 +3,12 @@ U-Net at the same number of pixels and the same channels, on CPU or a GPU.
 
     python benchmarks/seg_step.py [--device cuda] [--batch 8] [--level 5] [--reps 5]
 
-Spherical: :class:`SphericalUNet` as ``usf-graph train seg`` builds it (jet, gradient pairs,
-up estimate) on ``icosahedral:level`` (N points). Planar: :class:`PlanarUNet` with the same
-channels on an equirectangular image of H x 2H pixels, H the multiple of 8 nearest to
+Spherical: :class:`SphericalUNet` as ``usf-graph train seg`` builds and trains it (jet,
+gradient pairs, up estimate) on ``icosahedral:level`` (N points): its up estimate is
+trained beforehand and frozen, so the step reads the known up and never runs it. The up
+estimate's own step (:func:`~usf_graph.train.gravity.up_step`, run ``up_epochs`` times per
+view before) is timed on its own line. Planar: :class:`PlanarUNet` with the same channels
+on an equirectangular image of H x 2H pixels, H the multiple of 8 nearest to
 sqrt(N / 2). Both with 13-class cross-entropy on random inputs and labels (the cost does not
 depend on them), in the static-graph form with one field of view for the batch.
 """
@@ -39,7 +42,11 @@ def main():
     H = max(8, 8 * round(math.sqrt(N / 2) / 8))
     xs, ys = torch.rand(B, N, 3, device=dev), torch.randint(0, 13, (B, N), device=dev)
     xp, yp = torch.rand(B, 3, H, 2 * H, device=dev), torch.randint(0, 13, (B, H, 2 * H), device=dev)
-    ts = step_time(sph, xs, ys, segmentation_loss, a.reps, dev, warmup=2)
+    g = torch.tensor([[0.0, 0.0, 1.0]], device=dev).expand(B, 3)
+    tu = step_time(sph.gravity, xs, g, lambda out, g: sph.gravity.head.loss(out, g), a.reps, dev,
+                   warmup=2)
+    sph.gravity.requires_grad_(False)
+    ts = step_time(GivenUp(sph, g), xs, ys, segmentation_loss, a.reps, dev, warmup=2)
     tp = step_time(planar, xp, yp, segmentation_loss, a.reps, dev, warmup=2)
     where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {a.threads} threads"
     print(f"{where}, batch {B}, best of {a.reps} steps, channels {sph.config['channels']}")
@@ -50,6 +57,18 @@ def main():
         params = sum(q.numel() for q in m.parameters())
         print(f"| {name} | {n} | {params} | {1e3 * t:.1f} | {B / t:.0f} |")
     print(f"\nspherical / planar step time: {ts / tp:.2f}x")
+    print(f"up estimate alone (UpNet + GravityHead.loss): {1e3 * tu:.1f} ms")
+
+
+class GivenUp(torch.nn.Module):
+    """The segmenter as a training step calls it: reading the known up."""
+
+    def __init__(self, net, up):
+        super().__init__()
+        self.net, self.up = net, up
+
+    def forward(self, x):
+        return self.net(x, up=self.up)
 
 
 if __name__ == "__main__":

@@ -405,7 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="level the digits are lifted to and the jet is taken on")
     t.add_argument("--min-level", type=int, default=d["min_level"],
                    help="coarsest level pooled to")
-    t.add_argument("--epochs", type=int, default=None, help="training epochs (default: mnist 12, det 24, seg 16)")
+    t.add_argument("--epochs", type=int, default=None, help="training epochs (default: mnist 12, det 24, seg 8)")
     t.add_argument("--batch-size", type=int, default=None, help="global batch (default: mnist 32, det/seg 8)")
     t.add_argument("--seed", type=int, default=d["seed"],
                    help="training seed and test rotations")

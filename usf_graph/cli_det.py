@@ -15,7 +15,7 @@ def add_train_options(t) -> None:
     g.add_argument("--size", type=int, default=None,
                    help="panorama height (width 2x; fisheye and pinhole size x size); default: "
                         "det 128, seg 96 (stanford2d3ds: 256)")
-    g.add_argument("--num-train", type=int, default=None, help="rooms: training views (200)")
+    g.add_argument("--num-train", type=int, default=None, help="rooms: training views (det 200, seg 400)")
     g.add_argument("--num-test", type=int, default=None, help="rooms: views per test (50)")
     g.add_argument("--lr", type=float, default=None, help="AdamW learning rate (det 2e-3, seg 3e-3)")
     g.add_argument("--fold", default="1", choices=["1", "2", "3", "all"],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import json
 
 from .cli_det import run_kwargs
@@ -21,7 +22,8 @@ def cmd_train_seg(args) -> int:
                            size=args.size or 256, **kw)
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/seg", size=args.size or 96,
-                  num_train=args.num_train or 200, num_test=args.num_test or 50,
+                  num_train=args.num_train or inspect.signature(run).parameters["num_train"].default,
+                  num_test=args.num_test or 50,
                   models=tuple(args.models or MODELS), **kw)
     teardown_distributed()
     if not res:

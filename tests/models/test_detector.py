@@ -51,7 +51,7 @@ def test_surface_jet_gives_tangent_gradients_of_linear_functions():
 
 @pytest.mark.parametrize("gravity", [False, True])
 def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries(gravity):
-    torch.manual_seed(2)  # a seed whose random boxes differ in size and roll (checked below)
+    torch.manual_seed(4)  # a seed whose random boxes differ in size and roll (checked below)
     m = SphericalDetector(**SMALL, gravity=gravity).double().eval()
     with torch.no_grad():  # a rough head: many peaks of many shapes
         m.head.weight.mul_(30)

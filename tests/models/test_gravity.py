@@ -106,3 +106,51 @@ def test_loss_adds_the_area_weighted_height_error_of_the_visible_points():
     torch.testing.assert_close(head.loss(out, g), ce + mse)
     exact = {**out, "height": g @ coarse.pos.double().T}
     torch.testing.assert_close(head.loss(exact, g), ce)
+
+
+def _edge_votes(level=4):
+    from usf_graph.models.gravity import EdgeVotes
+    from usf_graph.models.unet import level_spacing
+
+    g = grids.icosahedral(level)
+    ev = EdgeVotes(g, grids.icosahedral(3).pos, features=1, spacing=level_spacing(level)).double()
+    with torch.no_grad():  # the same weight for every edge
+        ev.weight.weight.zero_()
+        ev.weight.bias.fill_(1.0)
+    return g, ev
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_edge_votes_point_at_the_axis_all_edges_run_through(seed):
+    """Stripes along the meridians of an axis a (a function of the longitude about a only)
+    have every edge on a great circle through +-a: the votes peak at +-a, and nowhere near
+    the directions the edges run across."""
+    gen = torch.Generator().manual_seed(seed)
+    g, ev = _edge_votes()
+    a = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0)
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(a, torch.randn(3, generator=gen, dtype=torch.float64)), dim=0)
+    e2 = torch.linalg.cross(a, e1)
+    p = g.pos.double()
+    lon = torch.atan2(p @ e2, p @ e1)
+    x = torch.stack([torch.sin(5 * lon), torch.cos(3 * lon)], -1)[None]  # [1, N, 2]
+    v = ev(x, torch.zeros(1, len(p), 1, dtype=torch.float64))[0]
+    best = ev.candidates[v.argmax()]
+    assert math.degrees(math.acos(min(1.0, abs(float(best @ a))))) < 8
+    # candidates at 90 degrees from a get the votes of one meridian at most, not of all
+    side = (ev.candidates @ a).abs() < 0.2
+    assert v[side].max() < 0.65 * v.max()
+
+
+def test_edge_votes_ignore_hidden_points():
+    """Edges outside the field of view do not vote: changing the image far inside the
+    hidden part changes nothing."""
+    g, ev = _edge_votes()
+    p = g.pos.double()
+    mask = p[:, 0] > 0.3  # a cap
+    x = torch.randn(1, len(p), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    f = torch.randn(1, len(p), 1, dtype=torch.float64)
+    x2 = x.clone()
+    far = p[:, 0] < -0.2  # beyond the jet's reach from every visible point
+    x2[:, far] = 10 * torch.randn(1, int(far.sum()), 3, dtype=torch.float64)
+    assert torch.allclose(ev(x, f, mask), ev(x2, f, mask), rtol=0, atol=1e-12)
+    assert not torch.allclose(ev(x, f), ev(x2, f))  # without the mask they do vote

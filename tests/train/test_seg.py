@@ -11,7 +11,7 @@ from torch_geometric.loader import DataLoader
 from tests.datasets.test_stanford import NAMES, _write_pano
 from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
-from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT
+from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
     PROTOCOL,
     format_table,
@@ -107,6 +107,34 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
         hook.remove()
     with pytest.raises(ValueError, match="gravity=True"):
         m(x, mask, up=noisy)
+
+
+def test_pretrained_up_estimate_is_frozen_and_spared_in_training(tmp_path):
+    """pretrain_up trains the UpNet alone (its loss falls) and freezes it; the segmenter's
+    step then reads the jittered known up, never runs the UpNet, and adds no up loss."""
+    sets = protocol_sets(tmp_path, size=32, level=3, num_train=4, num_test=0, tests=(),
+                         progress=False)
+    torch.manual_seed(0)
+    g = SphericalUNet(level=3, channels=(8, 8, 8, 8), gravity=True)
+    before = {k: v.clone() for k, v in g.gravity.state_dict().items()}
+    pretrain_up(g, sets["train"], epochs=3, batch_size=2, progress=False, log_dir=tmp_path / "up")
+    hist = json.loads((tmp_path / "up" / "metrics.json").read_text())
+    assert hist[-1]["train_loss"] < hist[0]["train_loss"]
+    assert not torch.equal(before["head.score.weight"], g.gravity.state_dict()["head.score.weight"])
+    assert not trains_up(g) and not any(p.requires_grad for p in g.gravity.parameters())
+    batch = next(iter(DataLoader(sets["train"], batch_size=2)))
+    x, y, mask, _, _ = split_batch(batch)
+    w = torch.rand(13)
+    g.train()
+    calls = []
+    hook = g.gravity.register_forward_hook(lambda *a: calls.append(1))
+    torch.manual_seed(5)
+    loss, stats, _ = segmentation_step(g, batch, class_weight=w)
+    torch.manual_seed(5)
+    noisy = torch.tensor([[0.0, 0, 1]] * 2) + UP_JITTER * torch.randn(2, 3)
+    torch.testing.assert_close(loss, segmentation_loss(g(x, mask, up=noisy), y, class_weight=w))
+    assert calls == [] and "up_err_deg" not in stats
+    hook.remove()
 
 
 def test_stanford_command_on_fixtures(tmp_path):

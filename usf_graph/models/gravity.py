@@ -15,8 +15,10 @@ import math
 import torch
 from torch import nn
 
+from ..frontend import grid_graph
 from ..geometry import geodesic_distance
 from ..grids import icosahedral
+from ..nn import SurfaceJet
 
 
 def heights(pos: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
@@ -81,12 +83,17 @@ class GravityHead(nn.Module):
         self.score.reset_parameters()
         nn.init.zeros_(self.bias)
 
-    def forward(self, f: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+    def forward(self, f: torch.Tensor, mask: torch.Tensor | None = None,
+                extra: torch.Tensor | None = None) -> dict:
+        """``extra [B, Nc]``: scores from elsewhere (:class:`EdgeVotes`), added to the
+        logits before the estimate."""
         B, M, _ = f.shape
         w = self.area.to(f.dtype) * (1 if mask is None else mask.to(f.dtype))
         z = self.field(f).view(B, M, self.num_basis, self.hidden) * (w / w.sum())[:, None, None]
         U = torch.einsum("knm,bmkh->bnh", self.phi.to(f.dtype), z)
         logits = self.score(torch.relu(U + self.bias))[..., 0]  # [B, Nc]
+        if extra is not None:
+            logits = logits + extra
         cand = self.candidates.to(f.dtype)
         best = cand[logits.argmax(-1)]  # [B, 3]
         near = best @ cand.T > math.cos(self.window)
@@ -116,4 +123,65 @@ class GravityHead(nn.Module):
         return ce + ((out["height"] - h) ** 2 * w).sum(-1).mean() / w.sum()
 
 
-__all__ = ["GravityHead", "heights"]
+class EdgeVotes(nn.Module):
+    r"""Vanishing-direction votes for the up direction from the image's edges.
+
+    Vertical lines (room corners, door frames, furniture legs) all lie on great circles
+    through the up direction, so at each such edge point :math:`p_m` the image gradient
+    is orthogonal to up. With the colour gradients :math:`g_{mc}` (:class:`SurfaceJet`,
+    exact 3D tangent vectors) and the structure tensor :math:`T_m = \sum_c g_{mc} g_{mc}^\top`,
+    a candidate :math:`a_n` gets
+
+    .. math::
+        V_n = \frac{\sum_m \omega_m s_{nm}^2 \exp(-\kappa\, e_{nm})}{\sum_m \omega_m},
+        \qquad e_{nm} = \frac{a_n^\top T_m a_n}{\operatorname{tr}(T_m)\, s_{nm}^2},
+        \quad s_{nm}^2 = 1 - (a_n \cdot p_m)^2,
+
+    :math:`e_{nm}` being the squared sine of the angle between the edge's great circle and
+    :math:`a_n`. The learned weights :math:`\omega_m = \mathrm{softplus}(u^\top f_m) \ge 0`
+    (invariant features) pick the edges that are vertical lines; votes come from the
+    ``topk`` strongest visible edges. Both :math:`a_n^\top T_m a_n` and the features
+    rotate with the input, so the votes are equivariant. Pointwise colour cues alone do not
+    fix up in a 200-room training set; this geometric cue sharpens the estimate (median
+    error 8.7 -> 5.9 degrees, 90th percentile 48 -> 13 on new rooms, README).
+
+    Shapes: ``x [B, N, C]`` (the image, hidden points filled), ``f [B, N, F]``,
+    ``mask [N]`` or ``None`` -> votes ``[B, Nc]`` (scaled by a learned factor).
+    """
+
+    def __init__(self, grid, candidates: torch.Tensor, features: int, spacing: float,
+                 kappa: float = 20.0, topk: int = 512):
+        super().__init__()
+        self.kappa, self.topk = kappa, topk
+        self.jet = SurfaceJet(grid.pos, *grid_graph(grid, 2.5 * spacing), spacing)
+        self.register_buffer("cos", candidates.double() @ grid.pos.double().T,
+                             persistent=False)  # [Nc, N]
+        self.register_buffer("candidates", candidates.double(), persistent=False)
+        self.weight = nn.Linear(features, 1)
+        self.scale = nn.Parameter(torch.tensor(10.0))
+
+    def reset_parameters(self) -> None:
+        self.weight.reset_parameters()
+        nn.init.constant_(self.scale, 10.0)
+
+    def forward(self, x: torch.Tensor, f: torch.Tensor, mask: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        frame = self.jet.frame.to(x.dtype)  # [N, 2, 3]
+        d = self.jet(x)  # [B, N, C, 5]
+        g = d[..., 0, None] * frame[:, None, 0] + d[..., 1, None] * frame[:, None, 1]
+        T = torch.einsum("bnci,bncj->bnij", g, g)  # [B, N, 3, 3]
+        tr = T.diagonal(dim1=-2, dim2=-1).sum(-1)
+        vis = tr.new_ones(tr.shape[1]) if mask is None else mask.to(x.dtype)
+        idx = (tr * vis).topk(min(self.topk, tr.shape[1]), dim=1).indices  # [B, K]
+        T = T.gather(1, idx[..., None, None].expand(-1, -1, 3, 3))
+        tr = tr.gather(1, idx)
+        om = nn.functional.softplus(self.weight(f.gather(1, idx[..., None].expand(
+            -1, -1, f.shape[-1]))))[..., 0] * vis[idx]  # hidden points never vote
+        a = self.candidates.to(x.dtype)
+        s2 = (1 - self.cos.to(x.dtype)[:, idx].permute(1, 0, 2) ** 2).clamp_min(0)  # [B, Nc, K]
+        e = torch.einsum("ni,bkij,nj->bnk", a, T, a) / (tr[:, None] * s2 + 1e-6)
+        votes = (om[:, None] * s2 * torch.exp(-self.kappa * e)).sum(-1)
+        return self.scale * votes / om.sum(-1, keepdim=True).clamp_min(1e-6)
+
+
+__all__ = ["GravityHead", "EdgeVotes", "heights"]

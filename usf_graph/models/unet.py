@@ -26,7 +26,7 @@ from torch import nn
 from ..frontend import grid_graph
 from ..grids import icosahedral
 from ..nn import GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv
-from .gravity import GravityHead, heights
+from .gravity import EdgeVotes, GravityHead, heights
 
 _SPACING: dict[int, float] = {}
 
@@ -219,8 +219,10 @@ class UpNet(nn.Module):
     The input is pooled ``coarsen`` levels down (Gaussian, mask-aware), extended past the field of
     view (:class:`FillHidden`), described by its :class:`~usf_graph.nn.LocalJet`, passed
     through one :class:`ConvStage` per entry of ``channels`` on successively coarser levels,
-    and read by a :class:`GravityHead`. It is small and separate from the segmenter, so
-    that the segmenter's first layer can already read each point's height.
+    and read by a :class:`GravityHead`, whose scores get the :class:`EdgeVotes` of the
+    pooled image's edges (``edge_votes``), weighted from the first stage's input and output.
+    It is small and separate from the segmenter, so that the segmenter's first layer can
+    already read each point's height.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, ``mask [N]`` or
     ``None`` -> :class:`GravityHead`'s output ``{"up": [B, 3], "logits": [B, Nc], ...}``.
@@ -228,7 +230,7 @@ class UpNet(nn.Module):
 
     def __init__(self, in_channels: int, level: int, channels=(32, 64, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0,
-                 coarsen: int = 1):
+                 coarsen: int = 1, edge_votes: bool = True):
         super().__init__()
         levels = list(range(level - coarsen, level - coarsen - len(channels), -1))
         if not channels or coarsen < 0 or levels[-1] < 0:
@@ -248,19 +250,26 @@ class UpNet(nn.Module):
             self.stages.append(ConvStage(grids[lv], c_in, c, radius_spacings * h[lv], num_basis))
             c_in = c
         self.head = GravityHead(grids[levels[-1]], c_in)
+        self.votes = EdgeVotes(top, self.head.candidates, 4 * in_channels + channels[0],
+                               h[levels[0]]) if edge_votes else None
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
         m = mask
         if self.pre is not None:
             x, mp = self.pre(x, m)
             m = None if m is None else mp
-        x = self.jet_norm(self.jet(self.fill(x, m)), mask=m, node_weight=self.area.to(x.dtype))
+        image = self.fill(x, m)
+        x = self.jet_norm(self.jet(image), mask=m, node_weight=self.area.to(x.dtype))
+        votes = None
         for s, stage in enumerate(self.stages):
             if s:
                 x, mp = self.pools[s - 1](x, m)
                 m = None if m is None else mp
-            x = stage(x, m)
-        return self.head(x, m)
+            y = stage(x, m)
+            if not s and self.votes is not None:  # edge weights from the first stage's in+out
+                votes = self.votes(image, torch.cat([y, x], -1), m)
+            x = y
+        return self.head(x, m, votes)
 
 
 class WithUp(nn.Module):
@@ -289,8 +298,9 @@ class WithUp(nn.Module):
                      up: torch.Tensor | None, estimate: bool = False
                      ) -> tuple[torch.Tensor, dict | None]:
         """``(x with the height channel when there is a gravity estimate, the estimate)``.
-        The :class:`UpNet` runs when ``up`` is not given, in training (its loss needs the
-        estimate) or when ``estimate`` asks for it; else the estimate is ``None``."""
+        The :class:`UpNet` runs when ``up`` is not given, in training while it is trainable
+        (its loss needs the estimate) or when ``estimate`` asks for it; else the estimate
+        is ``None``."""
         if self.gravity is None:
             if up is not None:
                 raise ValueError("up is only read by models built with gravity=True")
@@ -298,7 +308,8 @@ class WithUp(nn.Module):
         m = check_input(x, mask, len(self.in_pos), *self._input)
         if up is not None and (up.shape != (len(x), 3) or not torch.isfinite(up).all()):
             raise ValueError(f"up must be finite [B, 3] = {(len(x), 3)}, got {tuple(up.shape)}")
-        grav = self.gravity(x, m) if up is None or self.training or estimate else None
+        trained = self.training and any(p.requires_grad for p in self.gravity.parameters())
+        grav = self.gravity(x, m) if up is None or trained or estimate else None
         up = grav["up"] if up is None else up.to(x.dtype)
         up = up / up.norm(dim=-1, keepdim=True)
         return torch.cat([x, heights(self.in_pos, up)], -1), grav

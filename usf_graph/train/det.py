@@ -107,7 +107,7 @@ def detection_step(model, batch):
     g, noisy = known_up(batch, len(x), x.dtype)  # views of the rooms protocol are upright
     out = model(x, mask, up=noisy)
     loss, stats = core.loss(out, boxes, classes, image)
-    return loss + up_loss(core, out["gravity"], g, stats), stats, len(x)
+    return loss + up_loss(core.gravity.head, out["gravity"], g, stats), stats, len(x)
 
 
 @torch.no_grad()

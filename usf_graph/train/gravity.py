@@ -1,12 +1,14 @@
 """How dense spherical models with an up estimate (``gravity=True``) are trained: the
 network reads the heights along the views' known gravity, slightly jittered, while its
-:class:`~usf_graph.models.UpNet` learns to estimate that gravity from the image."""
+:class:`~usf_graph.models.UpNet` learns to estimate that gravity from the image, either
+in the same steps or beforehand and alone (:func:`pretrain_up`, then frozen)."""
 
 from __future__ import annotations
 
 import torch
 
 from ..geometry import geodesic_distance
+from ..nn.batching import to_static
 
 #: Weight of the up estimate's loss (:meth:`GravityHead.loss`) in a training step.
 UP_WEIGHT = 0.5
@@ -24,10 +26,43 @@ def known_up(batch, n: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     return g, g + UP_JITTER * torch.randn_like(g)
 
 
-def up_loss(net, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
-    """``UP_WEIGHT`` times the up estimate's loss; records its mean error (degrees)."""
+def up_loss(head, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
+    """``UP_WEIGHT`` times the up estimate's loss (``head``: its
+    :class:`~usf_graph.models.GravityHead`); records its mean error (degrees)."""
     stats["up_err_deg"] = float(torch.rad2deg(geodesic_distance(grav["up"].detach(), g)).mean())
-    return UP_WEIGHT * net.gravity.head.loss(grav, g)
+    return UP_WEIGHT * head.loss(grav, g)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "up_loss"]
+def trains_up(net) -> bool:
+    """Whether ``net`` (or its DDP wrapper) has an up estimate that is still being trained."""
+    grav = getattr(getattr(net, "module", net), "gravity", None)
+    return grav is not None and any(p.requires_grad for p in grav.parameters())
+
+
+def up_step(model, batch):
+    """The engine's step for an :class:`~usf_graph.models.UpNet` alone, on PyG batches of
+    views of known gravity (:func:`known_up`): :meth:`GravityHead.loss`."""
+    B = batch.num_graphs
+    x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
+    mask = batch.mask.view(B, -1)[0]
+    g, _ = known_up(batch, B, x.dtype)
+    out = model(x, None if mask.all() else mask)
+    stats = {}
+    loss = up_loss(getattr(model, "module", model).head, out, g, stats)
+    return loss, stats, B
+
+
+def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
+                progress: bool = True, log_dir=None) -> None:
+    """Trains ``net.gravity`` alone on ``train`` (views of known gravity) for ``epochs``,
+    then freezes it: the segmenter's own training then reads the known gravity and never
+    runs it. The up estimate is small (tens of ms a step), so it can see the views many
+    more times than the segmenter at little cost, which it needs (README)."""
+    from .engine import fit
+
+    fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
+        log_dir=log_dir, progress=progress, name="up estimate", step=up_step)
+    net.gravity.requires_grad_(False)
+
+
+__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "up_loss", "up_step", "pretrain_up", "trains_up"]

@@ -22,6 +22,7 @@ does not see), and its predictions are rendered back into their pixels.
 from __future__ import annotations
 
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -35,8 +36,8 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import known_up, up_loss
-from .seg_metrics import confusion_matrix, per_image_miou, scores
+from .gravity import known_up, pretrain_up, trains_up, up_loss
+from .seg_metrics import confusion_matrix, median_frequency_weights, per_image_miou, scores
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
             "c": ("fisheye190", "none", 0), "d": ("pinhole90", "none", 0),
@@ -88,7 +89,7 @@ def split_batch(batch):
     return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
 
 
-def segmentation_step(model, batch):
+def segmentation_step(model, batch, class_weight: torch.Tensor | None = None):
     """The engine's step for segmentation, on PyG batches: per-point cross-entropy for
     spherical models, per-pixel for planar ones (which read the batch's ``image``).
 
@@ -96,19 +97,24 @@ def segmentation_step(model, batch):
     batch's ``up [B, 3]`` when it has one, else +z: gravity-aligned views): its head is
     trained by :func:`~usf_graph.train.gravity.up_loss`, while the network reads the heights
     along g, jittered (:func:`~usf_graph.train.gravity.known_up`), so that the two learn
-    independently. At test time the network reads the estimate."""
+    independently; once :func:`~usf_graph.train.gravity.pretrain_up` has trained and
+    frozen the up estimate, the step only reads the jittered g. At test time the network
+    reads the estimate. ``class_weight [C]``: as :func:`segmentation_loss`'s (bind it with
+    ``functools.partial``)."""
     x, y, mask, image, label = split_batch(batch)
     planar, stats, aux = is_planar(model), {}, 0.0
     net = getattr(model, "module", model)
     if planar:
         logits, target = model(image), label
-    elif getattr(net, "gravity", None) is not None:
+    elif trains_up(model):
         g, noisy = known_up(batch, len(x), x.dtype)
         (logits, grav), target = model(x, mask, up=noisy, return_gravity=True), y
-        aux = up_loss(net, grav, g, stats)
+        aux = up_loss(net.gravity.head, grav, g, stats)
+    elif getattr(net, "gravity", None) is not None:
+        logits, target = model(x, mask, up=known_up(batch, len(x), x.dtype)[1]), y
     else:
         logits, target = model(x, mask), y
-    loss = segmentation_loss(logits, target) + aux
+    loss = segmentation_loss(logits, target, class_weight=class_weight) + aux
     pred = logits.argmax(1 if planar else -1)
     keep = target != IGNORE
     acc = (pred[keep] == target[keep]).double().mean().item() if keep.any() else 0.0
@@ -208,24 +214,48 @@ def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = T
     return res, preds
 
 
+def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_CLASSES)):
+    """Class weights from a training set's labels: median-frequency balancing
+    (:func:`median_frequency_weights`) raised to ``power`` (0: none, 1: full); ``None``
+    for power 0."""
+    if not power:
+        return None
+    y = train.y.reshape(-1).numpy()
+    counts = np.bincount(y[y < num_classes], minlength=num_classes)
+    return median_frequency_weights(counts) ** power
+
+
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
-        num_train: int = 200, num_test: int = 50, epochs: int = 16, batch_size: int = 8,
-        lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True) -> dict:
+        num_train: int = 400, num_test: int = 50, epochs: int = 8, batch_size: int = 8,
+        lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
+        balance: float = 0.5, up_epochs: int = 24) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
-    ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``."""
+    ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
+
+    ``balance``: the class weights' power (:func:`balanced_weights`), for every model.
+    ``up_epochs``: epochs of the spherical models' up estimate, trained once alone
+    (:func:`~usf_graph.train.gravity.pretrain_up`) and shared (0: trained with the
+    segmenter instead)."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
     sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
-               "epochs": epochs}
-    preds = {}
+               "epochs": epochs, "up_epochs": up_epochs, "balance": balance}
+    preds, up_state = {}, None
+    step = partial(segmentation_step, class_weight=balanced_weights(sets["train"], balance))
     for name in models:
         net = make_model(name, level)
         t = time.time()
+        if getattr(net, "gravity", None) is not None and up_epochs:
+            if up_state is None:
+                pretrain_up(net, sets["train"], up_epochs, batch_size, lr, seed, progress,
+                            log_dir=out / "up_estimate")
+                up_state = net.gravity.state_dict()
+            net.gravity.load_state_dict(up_state)
+            net.gravity.requires_grad_(False)
         fit(net, sets["train"], None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-            log_dir=out / name, config=net.config, progress=progress, name=name,
-            step=segmentation_step)
+            log_dir=out / name, config=net.config, progress=progress, name=name, step=step)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
