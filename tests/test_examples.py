@@ -54,3 +54,18 @@ def test_seg_height_cue_example_small_run(tmp_path):
     assert all(0 <= r["sphere_mIoU"] <= 1 for r in res.values())
     assert 0 <= res["gravity"]["up_err_median_deg"] <= 180
     assert 0 <= res["gravity"]["sphere_mIoU_true_up"] <= 1
+
+
+def test_up_estimate_example_small_run(tmp_path):
+    ex = load("up_estimate")
+    res = ex.main(["--root", str(tmp_path), "--epochs", "1", "--size", "16", "--level", "3",
+                   "--num-train", "4", "--num-test", "2", "--caps", "0.5", "--no-progress"])
+    assert set(res) == {"seconds", "train", "a", "c", "d"}
+    for k in ("train", "a", "c", "d"):
+        r = res[k]
+        assert r["views"] == (4 if k == "train" else 2)
+        assert 0 <= r["median_deg"] <= r["p90_deg"] <= 180 and 0 <= r["over_60deg"] <= r["views"]
+    # the errors are the angles to +z of what the estimate returns
+    err = ex.up_errors(lambda x, m: {"up": torch.tensor([[0.0, 1.0, 0.0]]).expand(len(x), 3)},
+                       type("DS", (), {"x": torch.zeros(3, 5, 3), "mask": torch.ones(3, 5, dtype=torch.bool)}))
+    assert err.shape == (3,) and abs(err - 90).max() < 1e-4

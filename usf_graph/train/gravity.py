@@ -5,6 +5,9 @@ in the same steps or beforehand and alone (:func:`pretrain_up`, then frozen)."""
 
 from __future__ import annotations
 
+import math
+from functools import partial
+
 import torch
 
 from ..geometry import geodesic_distance
@@ -39,12 +42,25 @@ def trains_up(net) -> bool:
     return grav is not None and any(p.requires_grad for p in grav.parameters())
 
 
-def up_step(model, batch):
+def random_cap(pos: torch.Tensor, min_deg: float = 45.0, max_deg: float = 100.0,
+               generator: torch.Generator | None = None) -> torch.Tensor:
+    """A field of view ``[N]`` (bool) over points ``pos [N, 3]``: a cap of uniform random
+    angular radius in ``[min_deg, max_deg]`` about a uniform random direction."""
+    c = torch.nn.functional.normalize(torch.randn(3, generator=generator, dtype=torch.float64), dim=0)
+    r = math.radians(min_deg + (max_deg - min_deg) * float(torch.rand((), generator=generator)))
+    return pos.double() @ c > math.cos(r)
+
+
+def up_step(model, batch, caps: float = 0.0):
     """The engine's step for an :class:`~usf_graph.models.UpNet` alone, on PyG batches of
-    views of known gravity (:func:`known_up`): :meth:`GravityHead.loss`."""
+    views of known gravity (:func:`known_up`): :meth:`GravityHead.loss`. With probability
+    ``caps`` the batch is seen through a :func:`random_cap` only (a smaller lens)."""
     B = batch.num_graphs
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
     mask = batch.mask.view(B, -1)[0]
+    if caps and float(torch.rand(())) < caps:
+        cap = random_cap(batch.pos[: x.shape[1]])
+        mask = mask & cap if (mask & cap).any() else mask
     g, _ = known_up(batch, B, x.dtype)
     out = model(x, None if mask.all() else mask)
     stats = {}
@@ -53,16 +69,19 @@ def up_step(model, batch):
 
 
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
-                progress: bool = True, log_dir=None) -> None:
+                progress: bool = True, log_dir=None, caps: float = 0.0) -> None:
     """Trains ``net.gravity`` alone on ``train`` (views of known gravity) for ``epochs``,
     then freezes it: the segmenter's own training then reads the known gravity and never
     runs it. The up estimate is small (tens of ms a step), so it can see the views many
-    more times than the segmenter at little cost, which it needs (README)."""
+    more times than the segmenter at little cost, which it needs (README). ``caps``: see
+    :func:`up_step`."""
     from .engine import fit
 
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-        log_dir=log_dir, progress=progress, name="up estimate", step=up_step)
+        log_dir=log_dir, progress=progress, name="up estimate",
+        step=partial(up_step, caps=caps) if caps else up_step)
     net.gravity.requires_grad_(False)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "up_loss", "up_step", "pretrain_up", "trains_up"]
+__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "up_loss", "up_step", "pretrain_up", "trains_up",
+           "random_cap"]
