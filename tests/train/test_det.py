@@ -57,3 +57,35 @@ def test_pandora_command_on_the_fixture(tmp_path, capsys):
     res = json.loads((tmp_path / "out" / "results.json").read_text())
     assert set(res["spherical"]) >= {"AP", "AP50", "usf_mAP@10"}
     assert np.isfinite(res["spherical"]["AP50"])
+
+
+def test_detection_step_with_an_up_estimate_joint_or_frozen(tmp_path):
+    """A gravity detector reads the jittered known up; its up loss is added while the
+    estimate trains, and once frozen the estimate is not run and adds nothing."""
+    import torch
+
+    from usf_graph.models import SphericalDetector
+    from usf_graph.train.det import detection_step
+    from usf_graph.train.gravity import UP_JITTER, up_loss
+
+    sets = protocol_sets(tmp_path, size=32, num_train=0, num_test=2, progress=False)
+    data = DetectionSet.spherical(sets["a"])
+    batch = data.collate([0, 1])
+    x, mask, boxes, classes, image = batch
+    torch.manual_seed(0)
+    m = SphericalDetector(num_classes=12, gravity=True).train()
+    z = torch.tensor([[0.0, 0, 1]] * 2)
+    for frozen in (False, True):
+        m.gravity.requires_grad_(not frozen)
+        calls = []
+        hook = m.gravity.register_forward_hook(lambda *a: calls.append(1))
+        torch.manual_seed(5)
+        loss, stats, n = detection_step(m, batch)
+        hook.remove()
+        torch.manual_seed(5)
+        out = m(x, mask, up=z + UP_JITTER * torch.randn(2, 3))
+        want = m.loss(out, boxes, classes, image)[0]
+        if not frozen:
+            want = want + up_loss(m.gravity.head, out["gravity"], z, {})
+        torch.testing.assert_close(loss, want)
+        assert n == 2 and (calls == []) == frozen and ("up_err_deg" in stats) != frozen

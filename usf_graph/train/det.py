@@ -24,7 +24,7 @@ from ..models import PlanarDetector, SphericalDetector
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import known_up, up_loss
+from .gravity import known_up, trains_up, up_loss
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -106,6 +106,9 @@ def detection_step(model, batch):
         return loss, stats, len(x)
     g, noisy = known_up(batch, len(x), x.dtype)  # views of the rooms protocol are upright
     out = model(x, mask, up=noisy)
+    if not trains_up(model):  # pretrained and frozen: not run, no loss of its own
+        loss, stats = core.loss(out, boxes, classes, image)
+        return loss, stats, len(x)
     loss, stats = core.loss(out, boxes, classes, image)
     return loss + up_loss(core.gravity.head, out["gravity"], g, stats), stats, len(x)
 
