@@ -78,7 +78,7 @@ def test_detection_step_with_an_up_estimate_joint_or_frozen(tmp_path):
     for frozen in (False, True):
         m.gravity.requires_grad_(not frozen)
         calls = []
-        hook = m.gravity.register_forward_hook(lambda *a: calls.append(1))
+        hook = m.gravity.register_forward_hook(lambda *a, calls=calls: calls.append(1))
         torch.manual_seed(5)
         loss, stats, n = detection_step(m, batch)
         hook.remove()
