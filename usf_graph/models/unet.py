@@ -294,6 +294,11 @@ class WithUp(nn.Module):
             pos = icosahedral(level + refine).pos
             self.register_buffer("in_pos", pos.double(), persistent=False)
 
+    @property
+    def trains_up(self) -> bool:
+        """Whether the up estimate exists and is trainable (not frozen)."""
+        return self.gravity is not None and any(p.requires_grad for p in self.gravity.parameters())
+
     def _with_height(self, x: torch.Tensor, mask: torch.Tensor | None,
                      up: torch.Tensor | None, estimate: bool = False
                      ) -> tuple[torch.Tensor, dict | None]:
@@ -308,7 +313,7 @@ class WithUp(nn.Module):
         m = check_input(x, mask, len(self.in_pos), *self._input)
         if up is not None and (up.shape != (len(x), 3) or not torch.isfinite(up).all()):
             raise ValueError(f"up must be finite [B, 3] = {(len(x), 3)}, got {tuple(up.shape)}")
-        trained = self.training and any(p.requires_grad for p in self.gravity.parameters())
+        trained = self.training and self.trains_up
         grav = self.gravity(x, m) if up is None or trained or estimate else None
         up = grav["up"] if up is None else up.to(x.dtype)
         up = up / up.norm(dim=-1, keepdim=True)

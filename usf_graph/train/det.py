@@ -106,11 +106,10 @@ def detection_step(model, batch):
         return loss, stats, len(x)
     g, noisy = known_up(batch, len(x), x.dtype)  # views of the rooms protocol are upright
     out = model(x, mask, up=noisy)
-    if not trains_up(model):  # pretrained and frozen: not run, no loss of its own
-        loss, stats = core.loss(out, boxes, classes, image)
-        return loss, stats, len(x)
     loss, stats = core.loss(out, boxes, classes, image)
-    return loss + up_loss(core.gravity.head, out["gravity"], g, stats), stats, len(x)
+    if trains_up(model):  # else pretrained and frozen: not run, no loss of its own
+        loss = loss + up_loss(core.gravity.head, out["gravity"], g, stats)
+    return loss, stats, len(x)
 
 
 @torch.no_grad()

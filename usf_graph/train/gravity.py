@@ -38,8 +38,7 @@ def up_loss(head, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
 
 def trains_up(net) -> bool:
     """Whether ``net`` (or its DDP wrapper) has an up estimate that is still being trained."""
-    grav = getattr(getattr(net, "module", net), "gravity", None)
-    return grav is not None and any(p.requires_grad for p in grav.parameters())
+    return bool(getattr(getattr(net, "module", net), "trains_up", False))
 
 
 def random_cap(pos: torch.Tensor, min_deg: float = 45.0, max_deg: float = 100.0,
