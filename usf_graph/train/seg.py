@@ -225,6 +225,26 @@ def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_
     return median_frequency_weights(counts) ** power
 
 
+def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, lr: float,
+                seed: int, progress: bool, balance: float, up_epochs: int, shared: dict) -> None:
+    """The protocols' recipe for one model on ``train``, logging under ``out / name``:
+    class weights ``balance`` (:func:`balanced_weights`); for a spherical model first the up
+    estimate, trained alone for ``up_epochs`` on the first use (under ``out /
+    "up_estimate"``), kept in ``shared`` for the next models and frozen
+    (:func:`~usf_graph.train.gravity.pretrain_up`; ``up_epochs=0``: trained with the
+    segmenter instead)."""
+    if getattr(net, "gravity", None) is not None and up_epochs:
+        if "up" not in shared:
+            pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
+                        log_dir=out / "up_estimate")
+            shared["up"] = net.gravity.state_dict()
+        net.gravity.load_state_dict(shared["up"])
+        net.gravity.requires_grad_(False)
+    step = partial(segmentation_step, class_weight=balanced_weights(train, balance))
+    fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
+        log_dir=out / name, config=net.config, progress=progress, name=name, step=step)
+
+
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         num_train: int = 400, num_test: int = 50, epochs: int = 8, batch_size: int = 8,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
@@ -242,20 +262,12 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance}
-    preds, up_state = {}, None
-    step = partial(segmentation_step, class_weight=balanced_weights(sets["train"], balance))
+    preds, shared = {}, {}
     for name in models:
         net = make_model(name, level)
         t = time.time()
-        if getattr(net, "gravity", None) is not None and up_epochs:
-            if up_state is None:
-                pretrain_up(net, sets["train"], up_epochs, batch_size, lr, seed, progress,
-                            log_dir=out / "up_estimate")
-                up_state = net.gravity.state_dict()
-            net.gravity.load_state_dict(up_state)
-            net.gravity.requires_grad_(False)
-        fit(net, sets["train"], None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-            log_dir=out / name, config=net.config, progress=progress, name=name, step=step)
+        train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
+                    balance, up_epochs, shared)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
@@ -286,27 +298,30 @@ def format_table(results: dict, metric: str = "mIoU") -> str:
 def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                  models=("spherical_unet",), level: int = 5, size: int = 256, epochs: int = 12,
                  batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, balance: float = 0.5, up_epochs: int = 24) -> dict:
     """Train on each fold's training areas of Stanford 2D-3D-S (RGB, unrotated as released)
     and score its test areas: mIoU and mAcc from the fold's confusion matrix on the
     ``2 size x size`` panoramas' pixels, the sphere's area-weighted mIoU, and USF's per-image
     mean. With several folds, also their mean (the usual 3-fold number). Writes
-    ``results.json`` and one checkpoint per fold and model under ``out``."""
+    ``results.json`` and one checkpoint per fold and model under ``out``. Each model is
+    trained as in the rooms protocol (:func:`train_model`: class weights, the up estimate
+    first, per fold)."""
     from ..datasets import Stanford2D3DS
 
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
     kw = dict(grid=f"icosahedral:{level}", size=size, progress=progress)
-    results = {"folds": list(folds), "level": level, "size": size, "epochs": epochs}
+    results = {"folds": list(folds), "level": level, "size": size, "epochs": epochs,
+               "balance": balance, "up_epochs": up_epochs}
     for fold in folds:
         train = Stanford2D3DS(root, fold, "train", **kw)
         test = Stanford2D3DS(root, fold, "test", **kw)
+        shared = {}
         for name in models:
             net = make_model(name, level)
-            fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-                log_dir=out / f"fold{fold}" / name, config=net.config, progress=progress,
-                name=f"{name} fold {fold}", step=segmentation_step)
+            train_model(net, train, out / f"fold{fold}", name, epochs, batch_size, lr, seed,
+                        progress, balance, up_epochs, shared)
             if rank != 0:
                 continue
             pix, pts = predict(net, test, progress=progress, desc=f"{name} fold {fold}")
