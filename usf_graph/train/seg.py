@@ -226,13 +226,14 @@ def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_
 
 
 def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, lr: float,
-                seed: int, progress: bool, balance: float, up_epochs: int, shared: dict) -> None:
+                seed: int, progress: bool, balance: float, up_epochs: int, shared: dict,
+                label: str | None = None) -> None:
     """The protocols' recipe for one model on ``train``, logging under ``out / name``:
     class weights ``balance`` (:func:`balanced_weights`); for a spherical model first the up
     estimate, trained alone for ``up_epochs`` on the first use (under ``out /
     "up_estimate"``), kept in ``shared`` for the next models and frozen
     (:func:`~usf_graph.train.gravity.pretrain_up`; ``up_epochs=0``: trained with the
-    segmenter instead)."""
+    segmenter instead). ``label``: the progress bars' name (default ``name``)."""
     if getattr(net, "gravity", None) is not None and up_epochs:
         if "up" not in shared:
             pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
@@ -242,7 +243,7 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
         net.gravity.requires_grad_(False)
     step = partial(segmentation_step, class_weight=balanced_weights(train, balance))
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-        log_dir=out / name, config=net.config, progress=progress, name=name, step=step)
+        log_dir=out / name, config=net.config, progress=progress, name=label or name, step=step)
 
 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
@@ -321,7 +322,7 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
         for name in models:
             net = make_model(name, level)
             train_model(net, train, out / f"fold{fold}", name, epochs, batch_size, lr, seed,
-                        progress, balance, up_epochs, shared)
+                        progress, balance, up_epochs, shared, label=f"{name} fold {fold}")
             if rank != 0:
                 continue
             pix, pts = predict(net, test, progress=progress, desc=f"{name} fold {fold}")
