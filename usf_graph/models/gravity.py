@@ -178,7 +178,7 @@ class EdgeVotes(nn.Module):
         om = nn.functional.softplus(self.weight(f.gather(1, idx[..., None].expand(
             -1, -1, f.shape[-1]))))[..., 0] * vis[idx]  # hidden points never vote
         a = self.candidates.to(x.dtype)
-        s2 = (1 - self.cos.to(x.dtype)[:, idx].permute(1, 0, 2) ** 2).clamp_min(0)  # [B, Nc, K]
+        s2 = (1 - self.cos[:, idx].permute(1, 0, 2).to(x.dtype) ** 2).clamp_min(0)  # [B, Nc, K]
         e = torch.einsum("ni,bkij,nj->bnk", a, T, a) / (tr[:, None] * s2 + 1e-6)
         votes = (om[:, None] * s2 * torch.exp(-self.kappa * e)).sum(-1)
         return self.scale * votes / om.sum(-1, keepdim=True).clamp_min(1e-6)

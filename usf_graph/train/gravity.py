@@ -58,8 +58,8 @@ def up_step(model, batch, caps: float = 0.0):
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
     mask = batch.mask.view(B, -1)[0]
     if caps and float(torch.rand(())) < caps:
-        cap = random_cap(batch.pos[: x.shape[1]])
-        mask = mask & cap if (mask & cap).any() else mask
+        both = mask & random_cap(batch.pos[: x.shape[1]])
+        mask = both if both.any() else mask
     g, _ = known_up(batch, B, x.dtype)
     out = model(x, None if mask.all() else mask)
     stats = {}
@@ -78,7 +78,7 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
 
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=log_dir, progress=progress, name="up estimate",
-        step=partial(up_step, caps=caps) if caps else up_step)
+        step=partial(up_step, caps=caps))
     net.gravity.requires_grad_(False)
 
 
