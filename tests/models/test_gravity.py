@@ -154,3 +154,98 @@ def test_edge_votes_ignore_hidden_points():
     x2[:, far] = 10 * torch.randn(1, int(far.sum()), 3, dtype=torch.float64)
     assert torch.allclose(ev(x, f, mask), ev(x2, f, mask), rtol=0, atol=1e-12)
     assert not torch.allclose(ev(x, f), ev(x2, f))  # without the mask they do vote
+
+
+def _polish(level=4, **kw):
+    from usf_graph.models.gravity import UpPolish
+    from usf_graph.models.unet import level_spacing
+
+    g = grids.icosahedral(level)
+    return g, UpPolish(g, level_spacing(level), **kw)
+
+
+def _meridian_stripes(p: torch.Tensor, a: torch.Tensor, gen) -> torch.Tensor:
+    """A colour image that depends on the longitude about ``a`` only: every edge lies on
+    a great circle through +-a (as vertical lines do through up)."""
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(a, torch.randn(3, generator=gen, dtype=torch.float64)), dim=0)
+    lon = torch.atan2(p @ torch.linalg.cross(a, e1), p @ e1)
+    return torch.stack([torch.sin(5 * lon), torch.cos(3 * lon), torch.sin(7 * lon + 1)], -1)[None]
+
+
+def _tilt(a: torch.Tensor, deg: float, gen) -> torch.Tensor:
+    v = torch.nn.functional.normalize(torch.linalg.cross(a, torch.randn(3, generator=gen, dtype=torch.float64)), dim=0)
+    return math.cos(math.radians(deg)) * a + math.sin(math.radians(deg)) * v
+
+
+def _deg(u: torch.Tensor, v: torch.Tensor) -> float:
+    return math.degrees(math.acos(min(1.0, float(u @ v))))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_polish_pulls_an_estimate_onto_the_axis_the_edges_run_through(seed):
+    gen = torch.Generator().manual_seed(seed)
+    g, polish = _polish()
+    p = g.pos.double()
+    a = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0)
+    x = _meridian_stripes(p, a, gen)
+    for sign in (1, -1):  # up or down: the fit keeps the estimate's hemisphere
+        u0 = _tilt(sign * a, 15.0, gen)
+        u = polish(x, None, u0[None])[0]
+        assert _deg(u, sign * a) < 0.5 < 14 < _deg(u0, sign * a)
+        assert abs(float(u.norm()) - 1) < 1e-12
+
+
+def test_polish_never_moves_far_and_keeps_the_estimate_without_edges():
+    gen = torch.Generator().manual_seed(3)
+    g, polish = _polish()
+    p = g.pos.double()
+    a = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    x = _meridian_stripes(p, a, gen)
+    u0 = _tilt(a, 50.0, gen)[None]  # beyond max_step (30 degrees) of the axis
+    assert _deg(polish(x, None, u0)[0], u0[0]) <= 30 + 1e-9
+    flat = torch.ones(1, len(p), 3, dtype=torch.float64)  # no edges: nothing to fit
+    assert torch.equal(polish(flat, None, u0), u0)
+    # a field of view that misses every edge: the same
+    mask = p[:, 0] > 0.5
+    x2 = x.clone()
+    x2[:, mask] = 0.5
+    assert torch.equal(polish(x2, mask, u0), u0)
+
+
+def test_polish_rotates_with_the_input_and_ignores_hidden_points():
+    from usf_graph.testing import symmetry_permutation
+
+    gen = torch.Generator().manual_seed(4)
+    g, polish = _polish(level=3, topk=256)
+    p = g.pos.double()
+    a = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), dim=0)
+    x = _meridian_stripes(p, a, gen) + 0.05 * torch.randn(1, len(p), 3, generator=gen, dtype=torch.float64)
+    u0 = _tilt(a, 10.0, gen)[None]
+    # a rotation that maps the grid onto itself: 72 degrees about a vertex
+    axis = p[0]
+    K = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    t = 2 * math.pi / 5
+    R = torch.eye(3, dtype=torch.float64) + math.sin(t) * K + (1 - math.cos(t)) * K @ K
+    mask = p @ axis > -0.4  # symmetric about the rotation axis
+    xr = torch.empty_like(x)
+    xr[:, symmetry_permutation(p, R)] = x
+    u, ur = polish(x, mask, u0), polish(xr, mask, u0 @ R.T)
+    assert _deg(u[0], u0[0]) > 2  # it did move
+    assert torch.allclose(ur, u @ R.T, atol=1e-9)
+    y = x.clone()
+    y[:, ~mask] = torch.randn(1, int((~mask).sum()), 3, generator=gen, dtype=torch.float64)
+    assert torch.equal(polish(y, mask, u0), u)
+
+
+def test_polish_survives_an_edge_right_at_the_estimate_in_float32():
+    """At an edge point p = u the squared sine e = u^T T u / (1 - (u.p)^2) is 0 / 0, and
+    float32 rounding makes the numerator slightly negative: that must not blow up."""
+    gen = torch.Generator().manual_seed(5)
+    g, polish = _polish()
+    p = g.pos.double()
+    x = _meridian_stripes(p, torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64), gen).float()
+    x = x + 0.3 * torch.randn(x.shape, generator=gen)
+    u0 = g.pos[torch.randperm(len(p), generator=gen)[:64]].float()  # estimates on edge points
+    u = polish(x.expand(64, -1, -1), None, u0)
+    assert u.dtype == torch.float32 and torch.isfinite(u).all()
+    assert torch.allclose(u.norm(dim=-1), torch.ones(64), atol=1e-6)

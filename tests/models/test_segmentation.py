@@ -103,18 +103,3 @@ def test_spherical_models_reject_bad_input():
         m(torch.zeros(1, n, 3), torch.zeros(n, dtype=torch.bool))
     with pytest.raises(ValueError, match="channels needs one entry"):
         SphericalUNet(level=3, min_level=2, channels=(4, 6, 8))
-
-
-def test_fill_hidden_takes_the_nearest_visible_values_and_averages_ties():
-    from usf_graph.models.unet import FillHidden
-
-    pos = torch.tensor([[1.0, 0, 0], [0, 1, 0], [-1, 0, 0], [0, 0, 1], [0.6, 0.8, 0]])
-    fill = FillHidden(pos)
-    x = torch.tensor([[[1.0], [2.0], [3.0], [4.0], [5.0]]])
-    mask = torch.tensor([True, False, True, False, False])
-    # point 1 (0,1,0) is nearest to nothing visible but equally far from 0 and 2: the mean;
-    # point 3 (0,0,1) too; point 4 is nearest to point 0
-    torch.testing.assert_close(fill(x, mask)[0, :, 0], torch.tensor([1.0, 2.0, 3.0, 2.0, 1.0]))
-    assert fill(x, None) is x
-    everything = torch.ones(5, dtype=torch.bool)  # nothing hidden: unchanged
-    torch.testing.assert_close(fill(x, everything), x)

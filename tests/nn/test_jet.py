@@ -5,7 +5,7 @@ import torch
 
 from usf_graph import grids
 from usf_graph.geometry import normalize, random_rotation, rotate
-from usf_graph.nn import GradientPairs, LocalJet, geodesic_radius_graph
+from usf_graph.nn import FillHidden, GradientPairs, LocalJet, geodesic_radius_graph
 
 
 def _jet(pos, radius, h):
@@ -115,3 +115,16 @@ def test_jets_on_a_pyg_batch_equal_each_graph_alone():
         torch.testing.assert_close(layer(x.view(2, len(g), 2)).reshape(y.shape), y)
         with pytest.raises(ValueError, match=f"grid of {len(g)}"):
             layer(x[:10])
+
+
+def test_fill_hidden_takes_the_nearest_visible_values_and_averages_ties():
+    pos = torch.tensor([[1.0, 0, 0], [0, 1, 0], [-1, 0, 0], [0, 0, 1], [0.6, 0.8, 0]])
+    fill = FillHidden(pos)
+    x = torch.tensor([[[1.0], [2.0], [3.0], [4.0], [5.0]]])
+    mask = torch.tensor([True, False, True, False, False])
+    # point 1 (0,1,0) is nearest to nothing visible but equally far from 0 and 2: the mean;
+    # point 3 (0,0,1) too; point 4 is nearest to point 0
+    torch.testing.assert_close(fill(x, mask)[0, :, 0], torch.tensor([1.0, 2.0, 3.0, 2.0, 1.0]))
+    assert fill(x, None) is x
+    everything = torch.ones(5, dtype=torch.bool)  # nothing hidden: unchanged
+    torch.testing.assert_close(fill(x, everything), x)

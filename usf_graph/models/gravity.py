@@ -18,7 +18,7 @@ from torch import nn
 from ..frontend import grid_graph
 from ..geometry import geodesic_distance
 from ..grids import icosahedral
-from ..nn import SurfaceJet
+from ..nn import FillHidden, SurfaceJet
 
 
 def heights(pos: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
@@ -166,11 +166,7 @@ class EdgeVotes(nn.Module):
 
     def forward(self, x: torch.Tensor, f: torch.Tensor, mask: torch.Tensor | None = None
                 ) -> torch.Tensor:
-        frame = self.jet.frame.to(x.dtype)  # [N, 2, 3]
-        d = self.jet(x)  # [B, N, C, 5]
-        g = d[..., 0, None] * frame[:, None, 0] + d[..., 1, None] * frame[:, None, 1]
-        T = torch.einsum("bnci,bncj->bnij", g, g)  # [B, N, 3, 3]
-        tr = T.diagonal(dim1=-2, dim2=-1).sum(-1)
+        T, tr = structure_tensors(self.jet, x)
         vis = tr.new_ones(tr.shape[1]) if mask is None else mask.to(x.dtype)
         idx = (tr * vis).topk(min(self.topk, tr.shape[1]), dim=1).indices  # [B, K]
         T = T.gather(1, idx[..., None, None].expand(-1, -1, 3, 3))
@@ -184,4 +180,85 @@ class EdgeVotes(nn.Module):
         return self.scale * votes / om.sum(-1, keepdim=True).clamp_min(1e-6)
 
 
-__all__ = ["GravityHead", "EdgeVotes", "heights"]
+class UpPolish(nn.Module):
+    r"""Polishes an up estimate on the image's straight edges (vanishing-point refinement).
+
+    :class:`GravityHead` scores up on a coarse grid of candidates from coarse features,
+    which finds the right neighbourhood but is several degrees off. Vertical lines pin up
+    much more tightly: their great circles all run through it. Starting from the estimate
+    :math:`\hat u`, the polish takes the ``topk`` strongest visible edges of the image
+    (full resolution), their normalized structure tensors :math:`\hat T_m = T_m /
+    \operatorname{tr} T_m` (:func:`structure_tensors`) and coherences :math:`c_m =
+    \lambda_1 - \lambda_2` of :math:`\hat T_m` (1 for a straight edge, near 0 for a corner
+    or a texture), and repeats, for :math:`\kappa` over ``kappas``,
+
+    .. math::
+        u \leftarrow \operatorname*{arg\,min}_{|u| = 1}\; u^\top \Big(\sum_m c_m^2
+        e^{-\kappa e_m(u)} \hat T_m\Big) u, \qquad
+        e_m(u) = \frac{u^\top \hat T_m u}{1 - (u \cdot p_m)^2},
+
+    the eigenvector of the smallest eigenvalue, signed like the current u
+    (:math:`e_m` is the squared sine of the angle between edge m's great circle and u).
+    The rising :math:`\kappa` gives no weight to edges that run far from the current u
+    (horizontal lines, textures), an iteratively reweighted least-squares fit. It has no
+    parameters and no gradient (the estimate is trained through the head's scores), and
+    it rotates with the input. Where the image has no such edges (the fit is
+    degenerate) or the fit ends more than ``max_step`` radians from :math:`\hat u`, the
+    estimate is kept. Edges weaker than ``min_strength`` (:math:`\operatorname{tr} T_m`,
+    squared colour change per radian) are rounding noise and do not count. On the rooms
+    protocol's new panoramas it takes the median error from 7.6 to 1.6 degrees (README).
+
+    Shapes: ``x [B, N, C]`` (the image; hidden points are filled with their nearest
+    visible value first, :class:`~usf_graph.nn.FillHidden`), ``mask [N]`` or
+    ``None``, ``up [B, 3]`` -> ``[B, 3]``.
+    """
+
+    def __init__(self, grid, spacing: float, topk: int = 2048,
+                 kappas=(20.0, 20.0, 50.0, 50.0, 200.0, 200.0, 800.0),
+                 max_step: float = math.radians(30), min_strength: float = 1e-10):
+        super().__init__()
+        self.topk, self.kappas = topk, tuple(kappas)
+        self.max_step, self.min_strength = max_step, min_strength
+        self.fill = FillHidden(grid.pos)
+        self.jet = SurfaceJet(grid.pos, *grid_graph(grid, 2.5 * spacing), spacing)
+        self.register_buffer("pos", grid.pos.double(), persistent=False)
+
+    @torch.no_grad()
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
+        T, tr = structure_tensors(self.jet, self.fill(x, mask))
+        vis = (tr > self.min_strength).to(tr.dtype)
+        if mask is not None:
+            vis = vis * mask.to(tr.dtype)
+        idx = (tr * vis).topk(min(self.topk, tr.shape[1]), dim=1).indices  # [B, K]
+        T = T.gather(1, idx[..., None, None].expand(-1, -1, 3, 3)).double()
+        T = T / tr.gather(1, idx).double().clamp_min(1e-300)[..., None, None]
+        ev = torch.linalg.eigvalsh(T)  # ascending; the first is 0 (gradients are tangent)
+        w = (ev[..., 2] - ev[..., 1]).clamp_min(0) ** 2 * vis.gather(1, idx).double()
+        p, u0 = self.pos[idx], up.double()
+        u, ok = u0, torch.ones(len(up), dtype=torch.bool, device=up.device)
+        for kappa in self.kappas:
+            s2 = (1 - (p * u[:, None]).sum(-1) ** 2).clamp_min(1e-12)
+            # a squared sine: >= 0 up to the rounding of T, which an edge at u would blow up
+            e = (torch.einsum("bi,bkij,bj->bk", u, T, u) / s2).clamp_min(0)
+            a = w * torch.exp(-kappa * e)
+            val, vec = torch.linalg.eigh(torch.einsum("bk,bkij->bij", a, T))
+            # a fit is only defined with edges and a unique smallest eigenvalue
+            ok = ok & (a.sum(-1) > 1e-9) & (val[:, 1] - val[:, 0] > 1e-9 * val[:, 2])
+            new = vec[..., 0] * torch.where((vec[..., 0] * u).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+            u = torch.where(ok[:, None], new, u)
+        ok = ok & ((u * u0).sum(-1) > math.cos(self.max_step))
+        return torch.where(ok[:, None], u, u0).to(up.dtype)
+
+
+def structure_tensors(jet: SurfaceJet, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""Colour structure tensors :math:`T_m = \sum_c g_{mc} g_{mc}^\top` of ``x [B, N, C]``,
+    the gradients :math:`g_{mc}` rebuilt in 3D from ``jet`` (a :class:`SurfaceJet` on the
+    same grid) -> ``(T [B, N, 3, 3], trace [B, N])``."""
+    frame = jet.frame.to(x.dtype)  # [N, 2, 3]
+    d = jet(x)  # [B, N, C, 5]
+    g = d[..., 0, None] * frame[:, None, 0] + d[..., 1, None] * frame[:, None, 1]
+    T = torch.einsum("bnci,bncj->bnij", g, g)
+    return T, T.diagonal(dim1=-2, dim2=-1).sum(-1)
+
+
+__all__ = ["GravityHead", "EdgeVotes", "UpPolish", "heights", "structure_tensors"]

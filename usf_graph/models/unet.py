@@ -18,15 +18,13 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import nn
 
 from ..frontend import grid_graph
 from ..grids import icosahedral
-from ..nn import GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv
-from .gravity import EdgeVotes, GravityHead, heights
+from ..nn import FillHidden, GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv
+from .gravity import EdgeVotes, GravityHead, UpPolish, heights
 
 _SPACING: dict[int, float] = {}
 
@@ -66,44 +64,6 @@ def blur(src, dst, sigma: float) -> GaussianPool:
     """Gaussian resampling from grid ``src`` to grid ``dst`` (pooling or upsampling),
     ``sigma`` in radians."""
     return GaussianPool(src.pos, dst.pos, sigma, area=src.area)
-
-
-class FillHidden(nn.Module):
-    """Copies to each hidden point the value of its nearest visible point (the mean of
-    the nearest ones when several are equally near, so that symmetric inputs stay
-    symmetric).
-
-    Derivatives (the jet) of a signal that drops to 0 outside a lens's field of view see a
-    false edge along its border; extending the image by its nearest visible value removes
-    it. The index is built once per mask (a k-d tree query) and memoized."""
-
-    def __init__(self, pos: torch.Tensor, ties: int = 6):
-        super().__init__()
-        self.pos, self.ties = pos.double().numpy(), ties
-        self._index: dict[bytes, tuple] = {}
-
-    def _build(self, m: np.ndarray) -> tuple:
-        vis, hid = np.flatnonzero(m), np.flatnonzero(~m)
-        k = min(self.ties, len(vis))
-        d, j = cKDTree(self.pos[vis]).query(self.pos[hid], k=k)
-        d, j = d.reshape(len(hid), k), j.reshape(len(hid), k)
-        w = (d <= d[:, :1] * (1 + 1e-9) + 1e-12).astype(np.float64)
-        return (torch.as_tensor(hid), torch.as_tensor(vis[j]),
-                torch.as_tensor(w / w.sum(1, keepdims=True)))
-
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-        if mask is None:
-            return x
-        m = mask.cpu().numpy()
-        key = np.packbits(m).tobytes()
-        if key not in self._index:
-            if len(self._index) > 16:
-                self._index.clear()
-            self._index[key] = self._build(m)
-        hid, src, w = (t.to(x.device) for t in self._index[key])
-        out = x.clone()
-        out[:, hid] = (x[:, src] * w.to(x.dtype)[..., None]).sum(-2)
-        return out
 
 
 def check_input(x: torch.Tensor, mask, n: int, c: int, level: int):
@@ -221,6 +181,8 @@ class UpNet(nn.Module):
     through one :class:`ConvStage` per entry of ``channels`` on successively coarser levels,
     and read by a :class:`GravityHead`, whose scores get the :class:`EdgeVotes` of the
     pooled image's edges (``edge_votes``), weighted from the first stage's input and output.
+    With ``polish``, the estimate is then fitted to the straight edges of the input at
+    full resolution (:class:`UpPolish`; ``"up_head"`` keeps the head's own).
     It is small and separate from the segmenter, so that the segmenter's first layer can
     already read each point's height.
 
@@ -230,7 +192,7 @@ class UpNet(nn.Module):
 
     def __init__(self, in_channels: int, level: int, channels=(32, 64, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0,
-                 coarsen: int = 1, edge_votes: bool = True):
+                 coarsen: int = 1, edge_votes: bool = True, polish: bool = True):
         super().__init__()
         levels = list(range(level - coarsen, level - coarsen - len(channels), -1))
         if not channels or coarsen < 0 or levels[-1] < 0:
@@ -252,9 +214,10 @@ class UpNet(nn.Module):
         self.head = GravityHead(grids[levels[-1]], c_in)
         self.votes = EdgeVotes(top, self.head.candidates, 4 * in_channels + channels[0],
                                h[levels[0]]) if edge_votes else None
+        self.polish = UpPolish(grids[level], h[level]) if polish else None
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
-        m = mask
+        m, x_in = mask, x
         if self.pre is not None:
             x, mp = self.pre(x, m)
             m = None if m is None else mp
@@ -269,7 +232,11 @@ class UpNet(nn.Module):
             if not s and self.votes is not None:  # edge weights from the first stage's in+out
                 votes = self.votes(image, torch.cat([y, x], -1), m)
             x = y
-        return self.head(x, m, votes)
+        out = self.head(x, m, votes)
+        if self.polish is not None:
+            out["up_head"] = out["up"]
+            out["up"] = self.polish(x_in, mask, out["up"])
+        return out
 
 
 class WithUp(nn.Module):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import nn
 
 from ..sparse import csr, quiet_sparse, sparse_apply, transpose_csr
@@ -211,3 +213,41 @@ class GradientPairs(_Derivatives):
     def __repr__(self) -> str:
         return (f"{type(self).__name__}({self.in_channels}, pairs={self.pairs}, "
                 f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g})")
+
+
+class FillHidden(nn.Module):
+    """Copies to each hidden point the value of its nearest visible point (the mean of
+    the nearest ones when several are equally near, so that symmetric inputs stay
+    symmetric).
+
+    Derivatives (the jet) of a signal that drops to 0 outside a lens's field of view see a
+    false edge along its border; extending the image by its nearest visible value removes
+    it. The index is built once per mask (a k-d tree query) and memoized."""
+
+    def __init__(self, pos: torch.Tensor, ties: int = 6):
+        super().__init__()
+        self.pos, self.ties = pos.double().numpy(), ties
+        self._index: dict[bytes, tuple] = {}
+
+    def _build(self, m: np.ndarray) -> tuple:
+        vis, hid = np.flatnonzero(m), np.flatnonzero(~m)
+        k = min(self.ties, len(vis))
+        d, j = cKDTree(self.pos[vis]).query(self.pos[hid], k=k)
+        d, j = d.reshape(len(hid), k), j.reshape(len(hid), k)
+        w = (d <= d[:, :1] * (1 + 1e-9) + 1e-12).astype(np.float64)
+        return (torch.as_tensor(hid), torch.as_tensor(vis[j]),
+                torch.as_tensor(w / w.sum(1, keepdims=True)))
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        if mask is None:
+            return x
+        m = mask.cpu().numpy()
+        key = np.packbits(m).tobytes()
+        if key not in self._index:
+            if len(self._index) > 16:
+                self._index.clear()
+            self._index[key] = self._build(m)
+        hid, src, w = (t.to(x.device) for t in self._index[key])
+        out = x.clone()
+        out[:, hid] = (x[:, src] * w.to(x.dtype)[..., None]).sum(-2)
+        return out
