@@ -427,6 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="det, seg: protocol tests (default: all; (e) is seg's)")
     e.add_argument("--size", type=int, default=None, help="det, seg: rooms image size (as trained)")
     e.add_argument("--num-test", type=int, default=50, help="det, seg: views per test")
+    e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"],
                    help="test rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 
 def add_train_options(t) -> None:
     """Options of ``train det`` and ``train seg`` (their defaults: those of
@@ -66,7 +68,7 @@ def cmd_train_det(args) -> int:
 def cmd_eval_det(args) -> int:
     from .models import PlanarDetector, SphericalDetector
     from .train import load_checkpoint
-    from .train.det import PROTOCOL, DetectionSet, predict, protocol_sets, score
+    from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
 
     blob = load_checkpoint(args.checkpoint)
     cfg = blob["config"]
@@ -82,4 +84,10 @@ def cmd_eval_det(args) -> int:
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
         r = score(predict(model, data), data, model.num_classes)
         print(f"({k}) " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
+        if args.boxes:
+            q = box_quality(model, data)
+            print(f"({k}) each true box decoded at its centre point: IoU median "
+                  f"{np.median(q['iou']):.2f}, {100 * np.mean(q['iou'] >= 0.5):.0f}% at 0.5 or more; "
+                  f"errors (medians): centre {np.median(q['centre_deg']):.1f} deg, log size "
+                  f"{np.median(q['log_size_err']):.2f}, log aspect {np.median(q['log_aspect_err']):.2f}")
     return 0

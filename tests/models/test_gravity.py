@@ -94,6 +94,20 @@ def test_upnet_errors_and_where_it_starts():
     assert net(x)["up"].shape == (2, 3) and net.head.pos.shape == (len(grids.icosahedral(1)), 3)
 
 
+def test_upnet_polishes_its_estimate_in_evaluation_only():
+    from usf_graph.models import UpNet
+
+    torch.manual_seed(0)
+    net = UpNet(3, 3, channels=(4, 4)).double()
+    x = torch.rand(2, len(grids.icosahedral(3)), 3, dtype=torch.float64)
+    mask = grids.icosahedral(3).pos[:, 2] > -0.5
+    assert "up_head" not in net(x, mask)  # training: the head's estimate, which the loss trains
+    ev = net.eval()(x, mask)
+    torch.testing.assert_close(ev["up"], net.polish(x, mask, ev["up_head"]))
+    assert not torch.allclose(ev["up"], ev["up_head"])  # it did polish
+    assert UpNet(3, 3, channels=(4, 4), polish=False).polish is None
+
+
 def test_loss_adds_the_area_weighted_height_error_of_the_visible_points():
     coarse = grids.icosahedral(1)
     head = GravityHead(coarse, channels=2).double()

@@ -89,3 +89,58 @@ def test_detection_step_with_an_up_estimate_joint_or_frozen(tmp_path):
             want = want + up_loss(m.gravity.head, out["gravity"], z, {})
         torch.testing.assert_close(loss, want)
         assert n == 2 and (calls == []) == frozen and ("up_err_deg" in stats) != frozen
+
+
+class _Planted(__import__("usf_graph.models", fromlist=["PlanarDetector"]).PlanarDetector):
+    """A planar detector whose box fields hold, at each true box's nearest output point,
+    exactly what its loss trains them towards (and its size ``scale`` times), whatever the image."""
+
+    def __init__(self, boxes, image, scale=1.0):
+        super().__init__(num_classes=3, height=16, width=32, channels=(4, 8))
+        self.boxes, self.image, self.scale = boxes, image, scale
+
+    def forward(self, x, mask=None):
+        import torch
+
+        from usf_graph.models.centernet import box_centres
+
+        out = super().forward(x, mask)
+        W = self.out_camera.width
+        near = (box_centres(self.boxes) @ self.points.T).argmax(1)
+        uv = self._pixels(box_centres(self.boxes))
+        off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
+        t = torch.cat([off, (self.boxes[:, 2:4] * self.scale).log(), self.boxes[:, 4:5]], -1)
+        box = out["box"].detach().double().clone()
+        box[self.image, near] = t
+        return {**out, "box": box}
+
+
+def test_box_quality_decodes_each_true_box_at_its_own_centre_point():
+    import math
+
+    import torch
+
+    from usf_graph.ops import box_area
+    from usf_graph.train.det import box_quality
+
+    deg = math.radians
+    boxes = torch.tensor([[deg(10), deg(5), deg(30), deg(20), deg(10)],
+                          [deg(-100), deg(-20), deg(25), deg(25), 0.0],
+                          [deg(170), deg(30), deg(40), deg(20), deg(-30)]], dtype=torch.float64)
+    image = torch.tensor([0, 0, 1])
+    data = DetectionSet(torch.zeros(2, 16, 32, 3, dtype=torch.uint8), boxes,
+                        torch.tensor([0, 2, 1]), torch.tensor([0, 2, 3]))
+    q = box_quality(_Planted(boxes, image), data, progress=False)
+    # perfect fields: the decoded boxes are the true ones
+    np.testing.assert_allclose(q["iou"], 1.0, atol=1e-6)
+    np.testing.assert_allclose(q["centre_deg"], 0.0, atol=1e-5)
+    np.testing.assert_allclose(q["log_size_err"], 0.0, atol=1e-6)  # float32 boxes
+    # boxes 1.2 times too large on both axes: the size error is log 1.2, the aspect's none,
+    # and on its true centre the box holds the true one: the IoU is the ratio of their areas
+    q = box_quality(_Planted(boxes, image, scale=1.2), data, progress=False)
+    np.testing.assert_allclose(q["log_size_err"], math.log(1.2), atol=1e-6)
+    np.testing.assert_allclose(q["log_aspect_err"], 0.0, atol=1e-6)
+    big = boxes.clone()
+    big[:, 2:4] *= 1.2
+    np.testing.assert_allclose(q["iou_true_centre"], (box_area(boxes) / box_area(big)).numpy(), atol=1e-6)
+    assert (q["iou"] < q["iou_true_centre"] + 1e-6).all()

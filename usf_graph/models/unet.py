@@ -182,7 +182,8 @@ class UpNet(nn.Module):
     and read by a :class:`GravityHead`, whose scores get the :class:`EdgeVotes` of the
     pooled image's edges (``edge_votes``), weighted from the first stage's input and output.
     With ``polish``, the estimate is then fitted to the straight edges of the input at
-    full resolution (:class:`UpPolish`; ``"up_head"`` keeps the head's own).
+    full resolution in evaluation mode (:class:`UpPolish`; ``"up_head"`` keeps the head's
+    own; in training, where only the head's scores are trained, it is not run).
     It is small and separate from the segmenter, so that the segmenter's first layer can
     already read each point's height.
 
@@ -233,7 +234,7 @@ class UpNet(nn.Module):
                 votes = self.votes(image, torch.cat([y, x], -1), m)
             x = y
         out = self.head(x, m, votes)
-        if self.polish is not None:
+        if self.polish is not None and not self.training:  # training reads the head's scores only
             out["up_head"] = out["up"]
             out["up"] = self.polish(x_in, mask, out["up"])
         return out

@@ -124,6 +124,50 @@ def predict(model, data: DetectionSet, batch_size: int = 16, progress: bool = Tr
     return out
 
 
+@torch.no_grad()
+def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool = True) -> dict:
+    """How good a detector's boxes are where its heatmap is right: each true box is decoded
+    from the fields at the output point nearest its centre, as if the heatmap had its one
+    peak there (an oracle heatmap), and compared with the truth. This splits the AP's
+    losses into finding objects (the heatmap) and drawing their boxes.
+
+    Returns per true box (numpy): ``iou`` (with the predicted centre, size and axes),
+    ``iou_true_centre`` (the predicted box moved onto the true centre), ``centre_deg``
+    (the centre's error), ``log_size_err`` (of the mean log field of view
+    ``(log fov_x + log fov_y) / 2``, which no choice of axes changes) and
+    ``log_aspect_err`` (of ``|log fov_x - log fov_y| / 2``)."""
+    from ..geometry import from_latlon, geodesic_distance
+    from ..models.centernet import box_centres
+    from ..ops import box_iou
+
+    model.eval()
+    pts = getattr(model, "head_pos", None)
+    pts = model.points if pts is None else pts
+    res = {k: [] for k in ("iou", "iou_true_centre", "centre_deg", "log_size_err", "log_aspect_err")}
+    for s in tqdm(range(0, len(data), batch_size), desc="box quality", leave=False, disable=not progress):
+        x, mask, boxes, classes, image = data.collate(list(range(s, min(s + batch_size, len(data)))))
+        if not len(boxes):
+            continue
+        out = model(x, mask)
+        boxes = boxes.double()
+        near = (box_centres(boxes).to(pts.dtype) @ pts.T).argmax(1)
+        # one copy of the fields per true box, with a single peak at its centre point
+        one = {k: v[image] if torch.is_tensor(v) and v.dim() > 1 else v for k, v in out.items()}
+        heat = torch.full_like(one["heat"], -30.0)
+        heat[torch.arange(len(boxes)), near, classes] = 30.0
+        dec = model.decode({**one, "heat": heat, "mask": None}, k=1, threshold=0.5, nms=None)
+        pred = torch.as_tensor(np.stack([d["boxes"][0] for d in dec]))
+        moved = torch.cat([boxes[:, :2], pred[:, 2:]], 1)
+        res["iou"].append(box_iou(pred, boxes))
+        res["iou_true_centre"].append(box_iou(moved, boxes))
+        c = from_latlon(pred[:, 1], pred[:, 0])
+        res["centre_deg"].append(torch.rad2deg(geodesic_distance(c, box_centres(boxes))))
+        lp, lt = pred[:, 2:4].log(), boxes[:, 2:4].log()
+        res["log_size_err"].append((lp.mean(1) - lt.mean(1)).abs())
+        res["log_aspect_err"].append(((lp[:, 0] - lp[:, 1]).abs() - (lt[:, 0] - lt[:, 1]).abs()).abs() / 2)
+    return {k: torch.cat(v).numpy() if v else np.zeros(0) for k, v in res.items()}
+
+
 def score(dets: list[dict], data: DetectionSet, num_classes: int) -> dict:
     """COCO AP/AP50/AP75 (pycocotools, spherical IoU) and USF's mAP@10 and mAP@50."""
     truth = [data.truth(i) for i in range(len(data))]
