@@ -20,7 +20,10 @@ from tqdm.auto import tqdm
 
 from ..cameras import Equirectangular
 from ..frontend import render
+from ..geometry import geodesic_distance
 from ..models import PlanarDetector, SphericalDetector
+from ..models.centernet import box_centres
+from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
@@ -136,10 +139,6 @@ def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool 
     (the centre's error), ``log_size_err`` (of the mean log field of view
     ``(log fov_x + log fov_y) / 2``, which no choice of axes changes) and
     ``log_aspect_err`` (of ``|log fov_x - log fov_y| / 2``)."""
-    from ..geometry import from_latlon, geodesic_distance
-    from ..models.centernet import box_centres
-    from ..ops import box_iou
-
     model.eval()
     pts = getattr(model, "head_pos", None)
     pts = model.points if pts is None else pts
@@ -160,8 +159,7 @@ def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool 
         moved = torch.cat([boxes[:, :2], pred[:, 2:]], 1)
         res["iou"].append(box_iou(pred, boxes))
         res["iou_true_centre"].append(box_iou(moved, boxes))
-        c = from_latlon(pred[:, 1], pred[:, 0])
-        res["centre_deg"].append(torch.rad2deg(geodesic_distance(c, box_centres(boxes))))
+        res["centre_deg"].append(torch.rad2deg(geodesic_distance(box_centres(pred), box_centres(boxes))))
         lp, lt = pred[:, 2:4].log(), boxes[:, 2:4].log()
         res["log_size_err"].append((lp.mean(1) - lt.mean(1)).abs())
         res["log_aspect_err"].append(((lp[:, 0] - lp[:, 1]).abs() - (lt[:, 0] - lt[:, 1]).abs()).abs() / 2)
