@@ -3,7 +3,7 @@
 from .classifier import PlanarCNN, SphericalClassifier, grid_graph
 from .deeplab import SphericalDeepLabV3
 from .detector import SphericalDetector
-from .gravity import GravityHead
+from .gravity import EdgeVotes, GravityHead, UpPolish
 from .planar_detector import PlanarDetector
 from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
@@ -11,4 +11,4 @@ from .unet import SphericalBackbone, SphericalUNet, UpNet
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",
            "SphericalDetector", "PlanarDetector", "SphericalBackbone", "SphericalUNet",
-           "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3", "GravityHead", "UpNet"]
+           "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3", "GravityHead", "EdgeVotes", "UpPolish", "UpNet"]
