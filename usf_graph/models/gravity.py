@@ -166,13 +166,9 @@ class EdgeVotes(nn.Module):
 
     def forward(self, x: torch.Tensor, f: torch.Tensor, mask: torch.Tensor | None = None
                 ) -> torch.Tensor:
-        T, tr = structure_tensors(self.jet, x)
-        vis = tr.new_ones(tr.shape[1]) if mask is None else mask.to(x.dtype)
-        idx = (tr * vis).topk(min(self.topk, tr.shape[1]), dim=1).indices  # [B, K]
-        T = T.gather(1, idx[..., None, None].expand(-1, -1, 3, 3))
-        tr = tr.gather(1, idx)
+        idx, T, tr, vis = strongest_edges(self.jet, x, mask, self.topk)
         om = nn.functional.softplus(self.weight(f.gather(1, idx[..., None].expand(
-            -1, -1, f.shape[-1]))))[..., 0] * vis[idx]  # hidden points never vote
+            -1, -1, f.shape[-1]))))[..., 0] * vis  # hidden points never vote
         a = self.candidates.to(x.dtype)
         s2 = (1 - self.cos[:, idx].permute(1, 0, 2).to(x.dtype) ** 2).clamp_min(0)  # [B, Nc, K]
         e = torch.einsum("ni,bkij,nj->bnk", a, T, a) / (tr[:, None] * s2 + 1e-6)
@@ -225,15 +221,11 @@ class UpPolish(nn.Module):
 
     @torch.no_grad()
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
-        T, tr = structure_tensors(self.jet, self.fill(x, mask))
-        vis = (tr > self.min_strength).to(tr.dtype)
-        if mask is not None:
-            vis = vis * mask.to(tr.dtype)
-        idx = (tr * vis).topk(min(self.topk, tr.shape[1]), dim=1).indices  # [B, K]
-        T = T.gather(1, idx[..., None, None].expand(-1, -1, 3, 3)).double()
-        T = T / tr.gather(1, idx).double().clamp_min(1e-300)[..., None, None]
+        idx, T, tr, vis = strongest_edges(self.jet, self.fill(x, mask), mask, self.topk,
+                                          self.min_strength)
+        T = T.double() / tr.double().clamp_min(1e-300)[..., None, None]
         ev = torch.linalg.eigvalsh(T)  # ascending; the first is 0 (gradients are tangent)
-        w = (ev[..., 2] - ev[..., 1]).clamp_min(0) ** 2 * vis.gather(1, idx).double()
+        w = (ev[..., 2] - ev[..., 1]).clamp_min(0) ** 2 * vis.double()
         p, u0 = self.pos[idx], up.double()
         u, ok = u0, torch.ones(len(up), dtype=torch.bool, device=up.device)
         for kappa in self.kappas:
@@ -261,4 +253,20 @@ def structure_tensors(jet: SurfaceJet, x: torch.Tensor) -> tuple[torch.Tensor, t
     return T, T.diagonal(dim1=-2, dim2=-1).sum(-1)
 
 
-__all__ = ["GravityHead", "EdgeVotes", "UpPolish", "heights", "structure_tensors"]
+def strongest_edges(jet: SurfaceJet, x: torch.Tensor, mask: torch.Tensor | None, k: int,
+                    min_strength: float | None = None):
+    """The ``k`` strongest visible edges of ``x [B, N, C]`` (largest trace of their
+    :func:`structure_tensors`; ``mask [N]`` or ``None``; with ``min_strength``, edges no
+    stronger than it count as hidden) -> ``(index [B, K], T [B, K, 3, 3], trace [B, K],
+    visible [B, K])``, ``visible`` 1 or 0 in x's dtype."""
+    T, tr = structure_tensors(jet, x)
+    vis = tr.new_ones(tr.shape) if min_strength is None else (tr > min_strength).to(tr.dtype)
+    if mask is not None:
+        vis = vis * mask.to(tr.dtype)
+    idx = (tr * vis).topk(min(k, tr.shape[1]), dim=1).indices
+    return (idx, T.gather(1, idx[..., None, None].expand(-1, -1, 3, 3)), tr.gather(1, idx),
+            vis.gather(1, idx))
+
+
+__all__ = ["GravityHead", "EdgeVotes", "UpPolish", "heights", "structure_tensors",
+           "strongest_edges"]
