@@ -49,10 +49,10 @@ def test_surface_jet_gives_tangent_gradients_of_linear_functions():
     assert (d[:, 2] + g.pos @ a).abs().max() < 2e-2 and d[:, 3].abs().max() < 2e-2
 
 
-@pytest.mark.parametrize("gravity", [False, True])
-def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries(gravity):
+@pytest.mark.parametrize("gravity, upright", [(False, False), (True, False), (True, True)])
+def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries(gravity, upright):
     torch.manual_seed(4)  # a seed whose random boxes differ in size and roll (checked below)
-    m = SphericalDetector(**SMALL, gravity=gravity).double().eval()
+    m = SphericalDetector(**SMALL, gravity=gravity, upright=upright).double().eval()
     with torch.no_grad():  # a rough head: many peaks of many shapes
         m.head.weight.mul_(30)
         if gravity:  # peaked up scores, so that the estimate is well defined

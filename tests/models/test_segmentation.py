@@ -28,7 +28,9 @@ def _signal(pos, seed=0):
 
 
 @pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalUNet, {**UNET, "head_depth": 1}),
-                                    (SphericalDeepLabV3, DEEPLAB)])
+                                    (SphericalDeepLabV3, DEEPLAB),
+                                    (SphericalUNet, {**UNET, "upright": True}),
+                                    (SphericalDeepLabV3, {**DEEPLAB, "upright": True})])
 def test_logits_move_with_the_rotation(cls, kw):
     torch.manual_seed(0)
     m = cls(**kw).double().eval()
@@ -103,3 +105,7 @@ def test_spherical_models_reject_bad_input():
         m(torch.zeros(1, n, 3), torch.zeros(n, dtype=torch.bool))
     with pytest.raises(ValueError, match="channels needs one entry"):
         SphericalUNet(level=3, min_level=2, channels=(4, 6, 8))
+    with pytest.raises(ValueError, match="needs gravity=True"):
+        SphericalUNet(**{**UNET, "gravity": False, "upright": True})
+    with pytest.raises(ValueError, match="upright backbone needs up"):
+        SphericalUNet(**{**UNET, "upright": True}).backbone(torch.zeros(1, n, 4))

@@ -5,7 +5,7 @@ import torch
 
 from usf_graph import grids
 from usf_graph.geometry import normalize, random_rotation, rotate
-from usf_graph.nn import FillHidden, GradientPairs, LocalJet, geodesic_radius_graph
+from usf_graph.nn import FillHidden, GradientPairs, LocalJet, UpJet, geodesic_radius_graph
 
 
 def _jet(pos, radius, h):
@@ -100,6 +100,58 @@ def test_gradient_pairs_gradcheck():
     W = layer.lin.weight.detach().clone().requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda x, W: torch.func.functional_call(layer, {"lin.weight": W}, (x,)), (x, W))
+
+
+def _up_jet(pos, radius, h, c, fields=None):
+    ei, ew = geodesic_radius_graph(pos, radius)
+    return UpJet(pos, ei, ew, h, c, fields).double()
+
+
+def test_up_jet_is_exactly_invariant_when_up_turns_with_the_image():
+    gen = torch.Generator().manual_seed(0)
+    pos = normalize(torch.randn(400, 3, dtype=torch.float64, generator=gen))
+    x = torch.randn(2, 400, 3, dtype=torch.float64, generator=gen)
+    up = normalize(torch.randn(2, 3, dtype=torch.float64, generator=gen))
+    torch.manual_seed(0)
+    layer = _up_jet(pos, 0.5, 0.1, 3, fields=4)
+    y = layer(x, up)
+    assert y.shape == (2, 400, 20)
+    for seed in range(3):
+        R = random_rotation(seed=seed).double()
+        turned = _up_jet(rotate(pos, R), 0.5, 0.1, 3, fields=4)  # new graph, new frames
+        turned.load_state_dict(layer.state_dict())
+        assert (turned(x, rotate(up, R)) - y).abs().max() < 1e-10
+    # but it does read up: another up, other numbers
+    assert (layer(x, up.flip(0)) - y).abs().max() > 1e-2
+
+
+def test_up_jet_of_a_linear_function_matches_the_analytic_derivatives():
+    # f = p . a: surface gradient a - (a.p) p, Hessian -(a.p) I on the tangent plane
+    g = grids.icosahedral(5)
+    h, p = g.spacing, g.pos.double()
+    a = torch.tensor([0.3, -0.8, 0.5], dtype=torch.float64)
+    u = normalize(torch.tensor([[0.2, -0.3, 0.9]], dtype=torch.float64))
+    y = _up_jet(g.pos, 3.5 * h, h, 1)((p @ a)[None, :, None], u)[0]
+    t = u - (p @ u[0])[:, None] * p  # up's tangential part, |t| = sin(angle to up)
+    e = torch.linalg.cross(t, p)
+    ap, t2 = p @ a, (t * t).sum(1)
+    assert (y[:, 0] / h - t @ a).abs().max() < 2e-3
+    assert (y[:, 1] / h - e @ a).abs().max() < 2e-3
+    assert (y[:, 2] / h ** 2 + ap * t2).abs().max() < 2e-2
+    assert (y[:, 3] / h ** 2).abs().max() < 2e-2
+    assert (y[:, 4] / h ** 2 + ap * t2).abs().max() < 2e-2
+    assert (e @ a).abs().max() > 0.5 and (t @ a).abs().max() > 0.5  # both directions bite
+
+
+def test_up_jet_rejects_bad_shapes():
+    g = grids.icosahedral(2)
+    layer = _up_jet(g.pos, 3.5 * g.spacing, g.spacing, 3, fields=2)
+    x = torch.zeros(2, len(g.pos), 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"up \[B, 3\]"):
+        layer(x, torch.zeros(1, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="x"):
+        layer(x[..., :2], torch.zeros(2, 3, dtype=torch.float64))
+    assert repr(layer) == f"UpJet(3, fields=2, num_nodes=162, spacing={g.spacing:.4g})"
 
 
 def test_jets_on_a_pyg_batch_equal_each_graph_alone():

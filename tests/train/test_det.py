@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from usf_graph.cli import main
 from usf_graph.train.det import PROTOCOL, DetectionSet, format_table, protocol_sets, run
@@ -15,8 +16,12 @@ FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 
 def test_protocol_runs_and_scores_every_test(tmp_path):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, num_train=3, num_test=2,
-              epochs=1, batch_size=2, progress=False)
+              epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    # the up estimate trained alone on 4 views, then the upright detector on the first 3
+    assert saved["samples"] == {"train": 3, "test": 2, "up_train": 4} and saved["upright"]
+    assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 2
+    assert len((tmp_path / "out" / "spherical" / "metrics.csv").read_text().splitlines()) == 2
     for name in ("spherical", "planar"):
         for k in PROTOCOL:
             r = saved[name][k]
@@ -47,6 +52,10 @@ def test_detection_sets_batch_boxes_and_fields_of_view(tmp_path):
     # the re-imaged fisheye is black where the lens does not see
     assert float(xp[0][:, ~mp].abs().max()) == 0 and float(xp[0][:, mp].mean()) > 0.05
     assert DetectionSet.planar(sets["a"], 64, 32).mask is None
+    head = sph.first(1)  # the first sample, its boxes and the shared mask
+    assert len(head) == 1 and torch.equal(head.x, sph.x[:1]) and head.mask is sph.mask
+    assert torch.equal(head.boxes, sph.boxes[:n0]) and head.box_ptr.tolist() == [0, n0]
+    assert len(sph.first(5)) == 2
 
 
 def test_pandora_command_on_the_fixture(tmp_path, capsys):

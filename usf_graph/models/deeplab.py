@@ -8,7 +8,7 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .unet import ConvStage, SphericalBackbone, _Segmenter, blur, level_spacing
+from .unet import ConvStage, SphericalBackbone, _check_upright, _Segmenter, blur, level_spacing
 
 
 class Pointwise(nn.Module):
@@ -49,7 +49,8 @@ class SphericalDeepLabV3(_Segmenter):
                  aspp_level: int | None = None, channels=(32, 64, 128), aspp_channels: int = 128,
                  rates=(2, 4, 6), low_channels: int = 32, num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, gravity: bool = False, refine: int = 0):
+                 pair_stages: int = 2, gravity: bool = False, refine: int = 0,
+                 upright: bool = False):
         super().__init__()
         aspp_level = level - len(channels) + 1 if aspp_level is None else aspp_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
@@ -57,10 +58,12 @@ class SphericalDeepLabV3(_Segmenter):
                            aspp_channels=aspp_channels, rates=list(rates),
                            low_channels=low_channels, num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
-                           pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine)
+                           pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine,
+                           upright=upright)
+        _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, aspp_level,
                                           aspp_level, channels, num_basis, radius_spacings,
-                                          jet_spacings, pairs, pair_stages, refine)
+                                          jet_spacings, pairs, pair_stages, refine, upright=upright)
         self.num_points = self.backbone.num_points
         ga, gl = self.backbone.grids[aspp_level], self.backbone.grids[level]
         c, a = self.backbone.out_channels, aspp_channels
@@ -81,8 +84,8 @@ class SphericalDeepLabV3(_Segmenter):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
-        x, grav = self._with_height(x, mask, up, return_gravity)
-        feats = self.backbone.encode(x, mask)
+        x, grav, up = self._with_height(x, mask, up, return_gravity)
+        feats = self.backbone.encode(x, mask, up if self.backbone.upright else None)
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)
         g = torch.relu(self.image_pool(global_mean_pool_area(f, area, m)))

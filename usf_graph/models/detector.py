@@ -38,7 +38,7 @@ from ..frontend import grid_graph
 from ..nn import SurfaceJet
 from ..ops import box_axes, boxes_from_axes
 from .centernet import Detector, detections, expmap, focal_loss, heatmap_targets, logmap, peaks
-from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp
+from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp, _check_upright
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
 
@@ -83,7 +83,7 @@ class SphericalDetector(Detector, WithUp):
                  head_level: int = 4, min_level: int = 2, channels=(32, 64, 128, 128),
                  num_basis: int = 3, radius_spacings: float = 3.0, jet_spacings: float = 3.5,
                  pairs: int = 8, pair_stages: int = 2, gradient_fields: int = 4,
-                 gravity: bool = False):
+                 gravity: bool = False, upright: bool = False):
         super().__init__()
         if not min_level <= head_level <= input_level:
             raise ValueError(f"need min_level <= head_level <= input_level, got {min_level}, "
@@ -93,12 +93,13 @@ class SphericalDetector(Detector, WithUp):
                            channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gradient_fields=gradient_fields,
-                           gravity=gravity)
+                           gravity=gravity, upright=upright)
+        _check_upright(upright, gravity)
         self.num_classes, self.K = num_classes, gradient_fields
         self._gravity_net(gravity, in_channels, input_level)
         self.backbone = SphericalBackbone(in_channels + int(gravity), input_level, head_level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
-                                          pairs, pair_stages)
+                                          pairs, pair_stages, upright=upright)
         self.num_points = self.backbone.num_points
         c_in = self.backbone.out_channels
         h = self.backbone.grids[head_level]
@@ -127,8 +128,8 @@ class SphericalDetector(Detector, WithUp):
     # -- network ------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None) -> dict:
-        x, grav = self._with_height(x, mask, up)
-        x, m = self.backbone(x, mask)
+        x, grav, up = self._with_height(x, mask, up)
+        x, m = self.backbone(x, mask, up if self.backbone.upright else None)
         f = self.head(self.head_stage(x, m))
         out = self._fields(f, m)
         if grav is not None:

@@ -23,7 +23,7 @@ from torch import nn
 
 from ..frontend import grid_graph
 from ..grids import icosahedral
-from ..nn import FillHidden, GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv
+from ..nn import FillHidden, GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv, UpJet
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights
 
 _SPACING: dict[int, float] = {}
@@ -100,7 +100,7 @@ class SphericalBackbone(nn.Module):
     def __init__(self, in_channels: int = 3, input_level: int = 5, out_level: int = 5,
                  min_level: int = 2, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, refine: int = 0, depth: int = 1):
+                 pair_stages: int = 2, refine: int = 0, depth: int = 1, upright: bool = False):
         super().__init__()
         if not min_level <= out_level <= input_level:
             raise ValueError(f"need min_level <= out_level <= input_level, got {min_level}, "
@@ -116,21 +116,26 @@ class SphericalBackbone(nn.Module):
         g = self.grids[input_level]
         self.num_points, self.in_channels = len(g), in_channels
         self.fill = FillHidden(g.pos)
-        self.jet = LocalJet(g.pos, *grid_graph(g, jet_spacings * h[input_level]), h[input_level])
-        self.jet_norm = MaskedBatchNorm(4 * in_channels)
+        graph = grid_graph(g, jet_spacings * h[input_level])
+        self.jet = LocalJet(g.pos, *graph, h[input_level])
+        self.upright = upright
+        self.up_jet = UpJet(g.pos, *graph, h[input_level], in_channels) if upright else None
+        c_in, skips = (4 + 5 * upright) * in_channels, []
+        self.jet_norm = MaskedBatchNorm(c_in)
         self.register_buffer("area_in", g.area.float(), persistent=False)
         self.down, self.pairs, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
-        self.fills = nn.ModuleList()
-        c_in, skips = 4 * in_channels, []
+        self.fills, self.up_pairs = nn.ModuleList(), nn.ModuleList()
         for s, lv in enumerate(range(input_level, min_level - 1, -1)):
             g, c = self.grids[lv], channels[s]
             self.down.append(ConvStage(g, c_in, c, radius_spacings * h[lv], num_basis, depth))
             c_in = c
             if s < pair_stages and lv > min_level:
-                self.pairs.append(GradientPairs(g.pos, *grid_graph(g, jet_spacings * h[lv]), h[lv],
-                                                c, pairs))
+                graph = grid_graph(g, jet_spacings * h[lv])
+                self.pairs.append(GradientPairs(g.pos, *graph, h[lv], c, pairs))
                 self.fills.append(FillHidden(g.pos))
-                c_in = c + 2 * pairs
+                if upright:
+                    self.up_pairs.append(UpJet(g.pos, *graph, h[lv], c, pairs))
+                c_in = c + (2 + 5 * upright) * pairs
             skips.append(c_in)
             if lv > min_level:
                 self.pools.append(blur(g, self.grids[lv - 1], 0.5 * h[lv - 1]))
@@ -144,15 +149,23 @@ class SphericalBackbone(nn.Module):
             c_in = skip
         self.out_channels = c_in
 
-    def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> list:
-        """``x [B, N, C]`` -> ``[(features, mask), ...]`` from ``input_level`` down."""
+    def encode(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+               up: torch.Tensor | None = None) -> list:
+        """``x [B, N, C]`` -> ``[(features, mask), ...]`` from ``input_level`` down; ``up
+        [B, 3]`` (unit) is needed, and read, by an ``upright`` backbone only."""
         m = check_input(x, mask, self.num_points, self.in_channels, self.input_level + self.refine)
-        x = self.jet_norm(self.jet(self.fill(x, m)), mask=m, node_weight=self.area_in.to(x.dtype))
+        if self.upright != (up is not None):
+            raise ValueError("an upright backbone needs up [B, 3], and only it reads one")
+        x = self.fill(x, m)
+        x = self.jet(x) if up is None else torch.cat([self.jet(x), self.up_jet(x, up)], -1)
+        x = self.jet_norm(x, mask=m, node_weight=self.area_in.to(x.dtype))
         feats = []
         for s, stage in enumerate(self.down):
             x = stage(x, m)
             if s < len(self.pairs):
-                x = torch.cat([x, self.pairs[s](self.fills[s](x, m))], -1)
+                xf = self.fills[s](x, m)
+                extra = [self.up_pairs[s](xf, up)] if self.upright else []
+                x = torch.cat([x, self.pairs[s](xf), *extra], -1)
             feats.append((x, m))
             if s < len(self.pools):
                 x, mp = self.pools[s](x, m)
@@ -169,8 +182,9 @@ class SphericalBackbone(nn.Module):
             x = stage(torch.cat([x, skip], -1), m)
         return x, m
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None):
-        return self.decode(self.encode(x, mask))
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
+                up: torch.Tensor | None = None):
+        return self.decode(self.encode(x, mask, up))
 
 
 class UpNet(nn.Module):
@@ -240,6 +254,11 @@ class UpNet(nn.Module):
         return out
 
 
+def _check_upright(upright: bool, gravity: bool) -> None:
+    if upright and not gravity:
+        raise ValueError("upright=True reads the up estimate: it needs gravity=True")
+
+
 class WithUp(nn.Module):
     r"""The optional up estimate of the dense spherical models (``self.gravity``, an
     :class:`UpNet`).
@@ -269,15 +288,16 @@ class WithUp(nn.Module):
 
     def _with_height(self, x: torch.Tensor, mask: torch.Tensor | None,
                      up: torch.Tensor | None, estimate: bool = False
-                     ) -> tuple[torch.Tensor, dict | None]:
-        """``(x with the height channel when there is a gravity estimate, the estimate)``.
+                     ) -> tuple[torch.Tensor, dict | None, torch.Tensor | None]:
+        """``(x with the height channel when there is a gravity estimate, the estimate, the
+        unit up read)``.
         The :class:`UpNet` runs when ``up`` is not given, in training while it is trainable
         (its loss needs the estimate) or when ``estimate`` asks for it; else the estimate
         is ``None``."""
         if self.gravity is None:
             if up is not None:
                 raise ValueError("up is only read by models built with gravity=True")
-            return x, None
+            return x, None, None
         m = check_input(x, mask, len(self.in_pos), *self._input)
         if up is not None and (up.shape != (len(x), 3) or not torch.isfinite(up).all()):
             raise ValueError(f"up must be finite [B, 3] = {(len(x), 3)}, got {tuple(up.shape)}")
@@ -285,7 +305,7 @@ class WithUp(nn.Module):
         grav = self.gravity(x, m) if up is None or trained or estimate else None
         up = grav["up"] if up is None else up.to(x.dtype)
         up = up / up.norm(dim=-1, keepdim=True)
-        return torch.cat([x, heights(self.in_pos, up)], -1), grav
+        return torch.cat([x, heights(self.in_pos, up)], -1), grav, up
 
 
 class _Segmenter(WithUp):
@@ -340,17 +360,18 @@ class SphericalUNet(_Segmenter):
                  min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, gravity: bool = False, depth: int = 1,
-                 head_depth: int = 0, refine: int = 0):
+                 head_depth: int = 0, refine: int = 0, upright: bool = False):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
                            min_level=min_level, channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, depth=depth,
-                           head_depth=head_depth, refine=refine)
+                           head_depth=head_depth, refine=refine, upright=upright)
+        _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
-                                          pairs, pair_stages, refine, depth)
+                                          pairs, pair_stages, refine, depth, upright)
         c = self.backbone.out_channels
         self._gravity_net(gravity, in_channels, level, refine)
         self.head_stage = ConvStage(self.backbone.grids[level], c, c,
@@ -362,8 +383,8 @@ class SphericalUNet(_Segmenter):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
-        x, grav = self._with_height(x, mask, up, return_gravity)
-        f, m = self.backbone(x, mask)
+        x, grav, up = self._with_height(x, mask, up, return_gravity)
+        f, m = self.backbone(x, mask, up if self.backbone.upright else None)
         logits = self.head(f if self.head_stage is None else self.head_stage(f, m))
         return (logits, grav) if return_gravity else logits
 

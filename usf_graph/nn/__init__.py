@@ -10,7 +10,7 @@ from ..graph import (
 )
 from .aggregate import EdgePlan, basis_aggregate
 from .conv import DistanceConv, PointConv, SphericalConv
-from .jet import FillHidden, GradientPairs, LocalJet, SurfaceJet, jet_operator, tangent_frame
+from .jet import FillHidden, GradientPairs, LocalJet, SurfaceJet, UpJet, jet_operator, tangent_frame, up_frame
 from .kernel import DistanceKernel
 from .norm import MaskedBatchNorm
 from .pool import (
@@ -23,7 +23,7 @@ from .pool import (
     global_mean_pool_area,
 )
 
-__all__ = ["FillHidden", "LocalJet", "GradientPairs", "SurfaceJet", "jet_operator", "tangent_frame", "DistanceKernel", "DistanceConv",
+__all__ = ["FillHidden", "LocalJet", "GradientPairs", "SurfaceJet", "UpJet", "jet_operator", "tangent_frame", "up_frame", "DistanceKernel", "DistanceConv",
            "SphericalConv", "PointConv", "EdgePlan", "basis_aggregate", "GridPool",
            "GaussianPool", "GridUnpool", "FPSPool", "farthest_point_sampling",
            "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",

@@ -215,6 +215,74 @@ class GradientPairs(_Derivatives):
                 f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g})")
 
 
+def up_frame(frame: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tangential part of ``up [B, 3]`` at every point, in the tangent frames
+    ``frame [N, 2, 3]``: ``(c, s)``, each ``[N, B]`` (length the sine of the angle to up,
+    so it fades to 0 where up is the normal, at the zenith and the nadir)."""
+    cs = frame.to(up.dtype) @ up.T  # [N, 2, B]
+    return cs[:, 0], cs[:, 1]
+
+
+class UpJet(_Derivatives):
+    r"""Derivatives of learned fields along and across a given up direction.
+
+    With up's tangential part :math:`\mathbf{t}` at each point (length :math:`\sin	heta`,
+    :math:`	heta` the angle to up) and :math:`\mathbf{e} = \mathbf{t} 	imes \mathbf{n}`,
+    for each field :math:`a = \mathbf{x}\mathbf{W}` (``fields`` of them; the identity when
+    ``fields`` is ``None``):
+
+    .. math::
+        ig(h\,\mathbf{t}^	op
+abla a,\; h\,\mathbf{e}^	op
+abla a,\;
+        h^2\,\mathbf{t}^	op
+abla^2 a\,\mathbf{t},\; h^2\,\mathbf{t}^	op
+abla^2 a\,\mathbf{e},\;
+        h^2\,\mathbf{e}^	op
+abla^2 a\,\mathbf{e}ig)
+
+    A distance-only kernel cannot tell a vertical edge from a horizontal one; with a
+    known or estimated up these five numbers can, like a planar network's oriented
+    filters on an upright image. When up rotates with the image (an IMU, or an
+    equivariant estimate), they are invariant, so the network stays SO(3)-equivariant.
+    Where up is the normal (straight up or down) they fade to 0 with :math:`\sin	heta`.
+
+    Shapes: ``x [B, N, C]``, ``up [B, 3]`` (unit) -> ``[B, N, 5 F]`` (five blocks of F,
+    ``F = fields`` or C, in the order above).
+    """
+
+    def __init__(self, pos, edge_index, edge_weight, spacing: float, in_channels: int,
+                 fields: int | None = None, sigma: float | None = None):
+        super().__init__(pos, edge_index, edge_weight, spacing, sigma, rows=5)
+        e1, e2 = tangent_frame(torch.as_tensor(pos).double())
+        self.register_buffer("frame", torch.stack([e1, e2], 1), persistent=False)
+        self.in_channels, self.fields = in_channels, fields
+        self.lin = None if fields is None else nn.Linear(in_channels, fields, bias=False)
+
+    def reset_parameters(self) -> None:
+        if self.lin is not None:
+            self.lin.reset_parameters()
+
+    def forward(self, x: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+        if x.dim() != 3 or x.shape[-1] != self.in_channels or up.shape != (x.shape[0], 3):
+            raise ValueError(f"expected x [B, N, {self.in_channels}] and up [B, 3], got "
+                             f"{tuple(x.shape)} and {tuple(up.shape)}")
+        h = self.spacing
+        d, xs, form = self._derivatives(x if self.lin is None else self.lin(x))
+        n, f = self.num_nodes, xs.shape[-1]
+        g1, g2, h11, h12, h22 = d.view(n, 5, -1, f).unbind(1)  # each [N, B, F]
+        c, s = (v[..., None] for v in up_frame(self.frame, up.to(x.dtype)))
+        out = torch.stack([h * (g1 * c + g2 * s), h * (g1 * s - g2 * c),
+                           h * h * (c * c * h11 + 2 * c * s * h12 + s * s * h22),
+                           h * h * (c * s * (h11 - h22) + (s * s - c * c) * h12),
+                           h * h * (s * s * h11 - 2 * c * s * h12 + c * c * h22)], 1)
+        return self._unflatten(out.flatten(2), xs, form, f)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}({self.in_channels}, fields={self.fields}, "
+                f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g})")
+
+
 class FillHidden(nn.Module):
     """Copies to each hidden point the value of its nearest visible point (the mean of
     the nearest ones when several are equally near, so that symmetric inputs stay

@@ -27,7 +27,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import known_up, trains_up, up_loss
+from .gravity import known_up, pretrain_up, trains_up, up_loss
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -75,6 +75,13 @@ class DetectionSet(Dataset):
         _, seen = cam.sees(pano.lens_normal_map()[0].reshape(-1, 3))
         return cls(torch.as_tensor(imgs), ds.boxes, ds.box_class, ds.box_ptr,
                    torch.as_tensor(seen.reshape(height, width)))
+
+    def first(self, n: int) -> DetectionSet:
+        """The first ``n`` samples (all when there are fewer)."""
+        n = min(n, len(self.x))
+        end = int(self.box_ptr[n])
+        return DetectionSet(self.x[:n], self.boxes[:end], self.box_class[:end],
+                            self.box_ptr[: n + 1], self.mask)
 
     def __len__(self) -> int:
         return len(self.x)
@@ -195,18 +202,31 @@ def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train:
 def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200,
         num_test: int = 50, epochs: int = 24, planar_epochs: int | None = None,
         batch_size: int = 8, lr: float = 2e-3, seed: int = 0, planar: bool = True,
-        progress: bool = True) -> dict:
+        progress: bool = True, upright: bool = True, up_train: int = 400,
+        up_epochs: int = 24) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
-    ``results.json``, both checkpoints and ``det_results.png`` under ``out``."""
+    ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
+
+    ``upright``: the spherical detector reads directions along its up estimate
+    (``SphericalDetector(gravity=True, upright=True)``); the estimate is trained first,
+    alone, on the first ``up_train`` training views for ``up_epochs``, then frozen
+    (:func:`~usf_graph.train.gravity.pretrain_up`), and the detector trains on the first
+    ``num_train`` views, reading their known up."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
-    sets = protocol_sets(root, size, num_train=num_train, num_test=num_test, seed=seed,
-                         progress=progress)
+    sets = protocol_sets(root, size, num_train=max(num_train, up_train if upright else 0),
+                         num_test=num_test, seed=seed, progress=progress)
     C = len(DETECTION_CLASSES)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
-               "boxes": {k: int(len(d.boxes)) for k, d in sets.items()}}
-    models = {"spherical": (SphericalDetector(num_classes=C), DetectionSet.spherical, epochs)}
+               "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
+               "upright": upright}
+    spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright)
+    if upright:
+        results["samples"]["up_train"] = up_train
+        pretrain_up(spherical, sets["train"][:up_train], up_epochs, batch_size, seed=seed,
+                    progress=progress, log_dir=out / "up_estimate")
+    models = {"spherical": (spherical, DetectionSet.spherical, epochs)}
     if planar:
         w, h = 2 * size, size
         models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w),
@@ -214,6 +234,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     preds = {}
     for name, (net, make, ep) in models.items():
         data = {k: make(d) for k, d in sets.items()}
+        data["train"] = data["train"].first(num_train)
         t = time.time()
         fit(net, data["train"], None, epochs=ep, batch_size=batch_size, lr=lr, seed=seed,
             log_dir=out / name, config=net.config, progress=progress, name=name,
