@@ -35,7 +35,7 @@ import torch
 from torch import nn
 
 from ..frontend import grid_graph
-from ..nn import SurfaceJet
+from ..nn import SurfaceJet, up_frame
 from ..ops import box_axes, boxes_from_axes
 from .centernet import Detector, detections, expmap, focal_loss, heatmap_targets, logmap, peaks
 from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp, _check_upright
@@ -48,9 +48,15 @@ def _spin2(h: torch.Tensor) -> torch.Tensor:
     return torch.stack([(h[..., 0] - h[..., 2]) / 2, h[..., 1]], -1)
 
 
+def _mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The complex product of ``(re, im)`` pairs."""
+    return torch.stack([a[..., 0] * b[..., 0] - a[..., 1] * b[..., 1],
+                        a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0]], -1)
+
+
 def _square(z: torch.Tensor) -> torch.Tensor:
     """``(a, b)`` as the complex number a + ib, squared (its spin doubles)."""
-    return torch.stack([z[..., 0] ** 2 - z[..., 1] ** 2, 2 * z[..., 0] * z[..., 1]], -1)
+    return _mul(z, z)
 
 
 class SphericalDetector(Detector, WithUp):
@@ -104,7 +110,8 @@ class SphericalDetector(Detector, WithUp):
         c_in = self.backbone.out_channels
         h = self.backbone.grids[head_level]
         self.head_stage = ConvStage(h, c_in, c_in, radius_spacings * h.spacing, num_basis)
-        self.head = nn.Linear(c_in, num_classes + 4 + 3 * gradient_fields)
+        self.upright = upright  # then 4 more fields: the shape along up (module docstring)
+        self.head = nn.Linear(c_in, num_classes + 4 + 3 * gradient_fields + 4 * upright)
         e3, w3 = grid_graph(h, jet_spacings * h.spacing)
         self.surface = SurfaceJet(h.pos, e3, w3, h.spacing)
         self.fill = FillHidden(h.pos)
@@ -131,13 +138,14 @@ class SphericalDetector(Detector, WithUp):
         x, grav, up = self._with_height(x, mask, up)
         x, m = self.backbone(x, mask, up if self.backbone.upright else None)
         f = self.head(self.head_stage(x, m))
-        out = self._fields(f, m)
+        out = self._fields(f, m, up if self.upright else None)
         if grav is not None:
             out["gravity"] = grav
         return out
 
-    def _fields(self, f: torch.Tensor, mask) -> dict:
-        """Per-point logits and box fields from the head's scalar outputs."""
+    def _fields(self, f: torch.Tensor, mask, up: torch.Tensor | None = None) -> dict:
+        """Per-point logits and box fields from the head's scalar outputs (and, for an
+        upright detector, the unit ``up [B, 3]`` it read)."""
         C, K, h = self.num_classes, self.K, self.head_spacing
         # [B, M, 3 + K, 5]: jets of o, r, q, a_k; hidden points take their nearest visible
         # value, so the border of the field of view is not an edge
@@ -150,9 +158,17 @@ class SphericalDetector(Detector, WithUp):
         if K:
             z = jet[..., 3:, :2] * h  # [B, M, K, 2] gradients as complex numbers
             z2 = _square(z)
-            w, u = f[..., C + 4 + K:C + 4 + 2 * K, None], f[..., C + 4 + 2 * K:, None]
+            w, u = f[..., C + 4 + K:C + 4 + 2 * K, None], f[..., C + 4 + 2 * K:C + 4 + 3 * K, None]
             dev = dev + (w * z2 / 2).sum(-2)
             quad = quad + (u * _square(z2)).sum(-2)
+        if up is not None:  # shapes given in the frame of up's tangential part t:
+            c, s = up_frame(frame, up)  # t = c e1 + s e2, as a complex number, squared
+            t2 = _square(torch.stack([c.T, s.T], -1))  # [B, M, 2], |t|^2 = sin^2(angle to up)
+            # unit length, but fading within 30 degrees of the zenith and nadir, where t turns fast
+            t2 = t2 / t2.norm(dim=-1, keepdim=True).clamp_min(0.25)
+            a = f[..., C + 4 + 3 * K:]
+            dev = dev + _mul(a[..., :2], t2)
+            quad = quad + _mul(a[..., 2:], _square(t2))
         return {"heat": f[..., :C], "s": f[..., C], "offset": offset, "dev": dev, "quad": quad,
                 "mask": mask}
 

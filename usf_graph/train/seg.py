@@ -191,14 +191,18 @@ def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
     return sets
 
 
-def make_model(name: str, level: int = 5) -> nn.Module:
+def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
     """A protocol model by name (:data:`MODELS`), spherical ones on ``icosahedral:level``
     with their up estimate (``gravity=True``: trained on the views' known gravity, it
-    gives the network each point's height, which a planar network reads from its rows)."""
+    gives the network each point's height, which a planar network reads from its rows)
+    and, with ``upright``, derivatives along and across up (``upright=True``: the
+    orientation a planar network's filters see)."""
     if name not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
     C = len(SEMANTIC_CLASSES)
-    return PlanarUNet(C) if name == "planar_unet" else MODELS[name](C, level=level, gravity=True)
+    if name == "planar_unet":
+        return PlanarUNet(C)
+    return MODELS[name](C, level=level, gravity=True, upright=upright)
 
 
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
@@ -249,9 +253,10 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         num_train: int = 400, num_test: int = 50, epochs: int = 8, batch_size: int = 8,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
-        balance: float = 0.5, up_epochs: int = 24) -> dict:
+        balance: float = 0.5, up_epochs: int = 24, upright: bool = True) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
+    ``upright``: as :func:`make_model`'s.
 
     ``balance``: the class weights' power (:func:`balanced_weights`), for every model.
     ``up_epochs``: epochs of the spherical models' up estimate, trained once alone
@@ -262,10 +267,10 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     out, t0 = Path(out), time.time()
     sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
-               "epochs": epochs, "up_epochs": up_epochs, "balance": balance}
+               "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright}
     preds, shared = {}, {}
     for name in models:
-        net = make_model(name, level)
+        net = make_model(name, level, upright)
         t = time.time()
         train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
                     balance, up_epochs, shared)
@@ -299,14 +304,15 @@ def format_table(results: dict, metric: str = "mIoU") -> str:
 def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                  models=("spherical_unet",), level: int = 5, size: int = 256, epochs: int = 12,
                  batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
-                 progress: bool = True, balance: float = 0.5, up_epochs: int = 24) -> dict:
+                 progress: bool = True, balance: float = 0.5, up_epochs: int = 24,
+                 upright: bool = True) -> dict:
     """Train on each fold's training areas of Stanford 2D-3D-S (RGB, unrotated as released)
     and score its test areas: mIoU and mAcc from the fold's confusion matrix on the
     ``2 size x size`` panoramas' pixels, the sphere's area-weighted mIoU, and USF's per-image
     mean. With several folds, also their mean (the usual 3-fold number). Writes
     ``results.json`` and one checkpoint per fold and model under ``out``. Each model is
     trained as in the rooms protocol (:func:`train_model`: class weights, the up estimate
-    first, per fold)."""
+    first, per fold; ``upright`` as :func:`make_model`'s)."""
     from ..datasets import Stanford2D3DS
 
     rank, _ = setup_distributed()
@@ -314,13 +320,13 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
     out, t0 = Path(out), time.time()
     kw = dict(grid=f"icosahedral:{level}", size=size, progress=progress)
     results = {"folds": list(folds), "level": level, "size": size, "epochs": epochs,
-               "balance": balance, "up_epochs": up_epochs}
+               "balance": balance, "up_epochs": up_epochs, "upright": upright}
     for fold in folds:
         train = Stanford2D3DS(root, fold, "train", **kw)
         test = Stanford2D3DS(root, fold, "test", **kw)
         shared = {}
         for name in models:
-            net = make_model(name, level)
+            net = make_model(name, level, upright)
             train_model(net, train, out / f"fold{fold}", name, epochs, batch_size, lr, seed,
                         progress, balance, up_epochs, shared, label=f"{name} fold {fold}")
             if rank != 0:
