@@ -30,6 +30,7 @@ def _signal(pos, seed=0):
 @pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalUNet, {**UNET, "head_depth": 1}),
                                     (SphericalDeepLabV3, DEEPLAB),
                                     (SphericalUNet, {**UNET, "upright": True}),
+                                    (SphericalUNet, {**UNET, "upright": True, "pairs": 0, "up_fields": 2}),
                                     (SphericalDeepLabV3, {**DEEPLAB, "upright": True})])
 def test_logits_move_with_the_rotation(cls, kw):
     torch.manual_seed(0)

@@ -50,7 +50,7 @@ class SphericalDeepLabV3(_Segmenter):
                  rates=(2, 4, 6), low_channels: int = 32, num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, gravity: bool = False, refine: int = 0,
-                 upright: bool = False):
+                 upright: bool = False, up_fields: int = 8):
         super().__init__()
         aspp_level = level - len(channels) + 1 if aspp_level is None else aspp_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
@@ -59,11 +59,11 @@ class SphericalDeepLabV3(_Segmenter):
                            low_channels=low_channels, num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine,
-                           upright=upright)
+                           upright=upright, up_fields=up_fields)
         _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, aspp_level,
                                           aspp_level, channels, num_basis, radius_spacings,
-                                          jet_spacings, pairs, pair_stages, refine, upright=upright)
+                                          jet_spacings, pairs, pair_stages, refine, upright=upright, up_fields=up_fields)
         self.num_points = self.backbone.num_points
         ga, gl = self.backbone.grids[aspp_level], self.backbone.grids[level]
         c, a = self.backbone.out_channels, aspp_channels

@@ -89,7 +89,7 @@ class SphericalDetector(Detector, WithUp):
                  head_level: int = 4, min_level: int = 2, channels=(32, 64, 128, 128),
                  num_basis: int = 3, radius_spacings: float = 3.0, jet_spacings: float = 3.5,
                  pairs: int = 8, pair_stages: int = 2, gradient_fields: int = 4,
-                 gravity: bool = False, upright: bool = False):
+                 gravity: bool = False, upright: bool = False, up_fields: int = 8):
         super().__init__()
         if not min_level <= head_level <= input_level:
             raise ValueError(f"need min_level <= head_level <= input_level, got {min_level}, "
@@ -99,13 +99,13 @@ class SphericalDetector(Detector, WithUp):
                            channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gradient_fields=gradient_fields,
-                           gravity=gravity, upright=upright)
+                           gravity=gravity, upright=upright, up_fields=up_fields)
         _check_upright(upright, gravity)
         self.num_classes, self.K = num_classes, gradient_fields
         self._gravity_net(gravity, in_channels, input_level)
         self.backbone = SphericalBackbone(in_channels + int(gravity), input_level, head_level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
-                                          pairs, pair_stages, upright=upright)
+                                          pairs, pair_stages, upright=upright, up_fields=up_fields)
         self.num_points = self.backbone.num_points
         c_in = self.backbone.out_channels
         h = self.backbone.grids[head_level]

@@ -86,12 +86,18 @@ class SphericalBackbone(nn.Module):
 
     Stage s works on level ``input_level - s``: :class:`ConvStage` (``depth`` convolutions of
     kernel radius ``radius_spacings`` grid spacings), followed for the first ``pair_stages`` stages by
-    ``pairs`` :class:`GradientPairs`; Gaussian pooling (0.5 coarse spacings) between
+    ``pairs`` :class:`GradientPairs` (0: none) and, when ``upright``, an :class:`UpJet` of
+    ``up_fields`` learned fields; Gaussian pooling (0.5 coarse spacings) between
     levels. The decoder upsamples with the same Gaussian, concatenates the skip and runs
     a :class:`ConvStage`. ``mask`` (one ``[N]`` for the batch) keeps hidden points out of
     every convolution and normalization; the jet and the gradient pairs see their inputs
     extended by the nearest visible values (:class:`FillHidden`), so the border of the
     field of view is not an edge.
+
+    ``upright``: the backbone also reads a unit ``up [B, 3]`` (``encode(x, mask, up)``), a
+    known gravity or an equivariant estimate: the :class:`UpJet` of the input and of the
+    learned fields give it the orientation of edges relative to up, which distance-only
+    kernels cannot see. The features stay invariant when up rotates with the input.
 
     :meth:`encode` returns the ``(features, mask)`` of every level, :meth:`forward` the
     decoder's output ``([B, M, out_channels], mask [M] or None)`` on ``out_level``.
@@ -100,7 +106,8 @@ class SphericalBackbone(nn.Module):
     def __init__(self, in_channels: int = 3, input_level: int = 5, out_level: int = 5,
                  min_level: int = 2, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
-                 pair_stages: int = 2, refine: int = 0, depth: int = 1, upright: bool = False):
+                 pair_stages: int = 2, refine: int = 0, depth: int = 1, upright: bool = False,
+                 up_fields: int = 8):
         super().__init__()
         if not min_level <= out_level <= input_level:
             raise ValueError(f"need min_level <= out_level <= input_level, got {min_level}, "
@@ -129,13 +136,15 @@ class SphericalBackbone(nn.Module):
             g, c = self.grids[lv], channels[s]
             self.down.append(ConvStage(g, c_in, c, radius_spacings * h[lv], num_basis, depth))
             c_in = c
-            if s < pair_stages and lv > min_level:
+            if s < pair_stages and lv > min_level and (pairs or upright and up_fields):
                 graph = grid_graph(g, jet_spacings * h[lv])
-                self.pairs.append(GradientPairs(g.pos, *graph, h[lv], c, pairs))
                 self.fills.append(FillHidden(g.pos))
-                if upright:
-                    self.up_pairs.append(UpJet(g.pos, *graph, h[lv], c, pairs))
-                c_in = c + (2 + 5 * upright) * pairs
+                if pairs:
+                    self.pairs.append(GradientPairs(g.pos, *graph, h[lv], c, pairs))
+                    c_in += 2 * pairs
+                if upright and up_fields:
+                    self.up_pairs.append(UpJet(g.pos, *graph, h[lv], c, up_fields))
+                    c_in += 5 * up_fields
             skips.append(c_in)
             if lv > min_level:
                 self.pools.append(blur(g, self.grids[lv - 1], 0.5 * h[lv - 1]))
@@ -162,10 +171,13 @@ class SphericalBackbone(nn.Module):
         feats = []
         for s, stage in enumerate(self.down):
             x = stage(x, m)
-            if s < len(self.pairs):
-                xf = self.fills[s](x, m)
-                extra = [self.up_pairs[s](xf, up)] if self.upright else []
-                x = torch.cat([x, self.pairs[s](xf), *extra], -1)
+            if s < len(self.fills):
+                xf, parts = self.fills[s](x, m), [x]
+                if self.pairs:
+                    parts.append(self.pairs[s](xf))
+                if self.up_pairs:
+                    parts.append(self.up_pairs[s](xf, up))
+                x = torch.cat(parts, -1)
             feats.append((x, m))
             if s < len(self.pools):
                 x, mp = self.pools[s](x, m)
@@ -360,18 +372,18 @@ class SphericalUNet(_Segmenter):
                  min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, gravity: bool = False, depth: int = 1,
-                 head_depth: int = 0, refine: int = 0, upright: bool = False):
+                 head_depth: int = 0, refine: int = 0, upright: bool = False, up_fields: int = 8):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
                            min_level=min_level, channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, depth=depth,
-                           head_depth=head_depth, refine=refine, upright=upright)
+                           head_depth=head_depth, refine=refine, upright=upright, up_fields=up_fields)
         _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
-                                          pairs, pair_stages, refine, depth, upright)
+                                          pairs, pair_stages, refine, depth, upright, up_fields)
         c = self.backbone.out_channels
         self._gravity_net(gravity, in_channels, level, refine)
         self.head_stage = ConvStage(self.backbone.grids[level], c, c,

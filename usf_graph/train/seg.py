@@ -202,7 +202,9 @@ def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
     C = len(SEMANTIC_CLASSES)
     if name == "planar_unet":
         return PlanarUNet(C)
-    return MODELS[name](C, level=level, gravity=True, upright=upright)
+    # upright: oriented fields replace the gradient pairs, for the 2x step budget (README)
+    kw = dict(upright=True, pairs=0, up_fields=4) if upright else {}
+    return MODELS[name](C, level=level, gravity=True, **kw)
 
 
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
