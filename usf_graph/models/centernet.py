@@ -115,6 +115,12 @@ def peaks(prob: torch.Tensor, neighbours: torch.Tensor, k: int, threshold: float
     return idx[ok] // C, idx[ok] % C, s[ok]
 
 
+def fields_on_cpu(out: dict) -> dict:
+    """A detector's output fields, detached and on the CPU, where boxes are decoded (peaks,
+    NMS and cameras work per image, in numpy)."""
+    return {k: v.detach().cpu() if torch.is_tensor(v) else v for k, v in out.items()}
+
+
 def detections(boxes: np.ndarray, cls: torch.Tensor, score: torch.Tensor,
                nms: float | None) -> dict:
     """One image's decoded peaks as ``{"boxes", "classes", "scores"}`` (numpy), after

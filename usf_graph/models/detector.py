@@ -37,7 +37,8 @@ from torch import nn
 from ..frontend import grid_graph
 from ..nn import SurfaceJet, up_frame
 from ..ops import box_axes, boxes_from_axes
-from .centernet import Detector, detections, expmap, focal_loss, heatmap_targets, logmap, peaks
+from .centernet import (Detector, detections, expmap, fields_on_cpu, focal_loss, heatmap_targets,
+                        logmap, peaks)
 from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp, _check_upright
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
@@ -225,17 +226,18 @@ class SphericalDetector(Detector, WithUp):
         (float64 numpy, radians), "classes": [D], "scores": [D]}``, best first. Peaks are
         local maxima of a class's heatmap over the one-ring of the head grid, inside the
         mask; ``nms`` (an IoU, per class) drops overlapping peaks."""
-        prob = torch.sigmoid(out["heat"].detach().double())
+        out = fields_on_cpu(out)
+        prob = torch.sigmoid(out["heat"].double())
         if out["mask"] is not None:
             prob = prob * out["mask"][:, None]
-        frame = self.surface.frame
+        frame, ring, pos = self.surface.frame.cpu(), self.ring.cpu(), self.head_pos.cpu()
         res = []
         for b in range(prob.shape[0]):
-            pt, cls, score = peaks(prob[b], self.ring, k, threshold)
-            p = self.head_pos[pt]
-            c = expmap(p, out["offset"][b, pt].detach().double())
-            s, dv = out["s"][b, pt].detach().double(), out["dev"][b, pt].detach().double()
-            q = out["quad"][b, pt].detach().double()
+            pt, cls, score = peaks(prob[b], ring, k, threshold)
+            p = pos[pt]
+            c = expmap(p, out["offset"][b, pt].double())
+            s, dv = out["s"][b, pt].double(), out["dev"][b, pt].double()
+            q = out["quad"][b, pt].double()
             # the rectangle's axes (mod 90 degrees) from the spin-4 field; the long one, and
             # the aspect along it, from the spin-2 traceless shape
             phi = torch.atan2(q[:, 1], q[:, 0]) / 4

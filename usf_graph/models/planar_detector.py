@@ -10,7 +10,7 @@ from torch import nn
 
 from ..cameras import Equirectangular
 from ..geometry import to_latlon
-from .centernet import Detector, box_centres, detections, focal_loss, heatmap_targets, peaks
+from .centernet import Detector, box_centres, detections, fields_on_cpu, focal_loss, heatmap_targets, peaks
 from .detector import MAX_FOV
 from .planar_seg import PlanarUNet
 
@@ -84,8 +84,8 @@ class PlanarDetector(Detector):
         return {"heat": f[..., : self.num_classes], "box": f[..., self.num_classes:], "mask": mask}
 
     def _pixels(self, points: torch.Tensor) -> torch.Tensor:
-        uv, _ = self.out_camera.project(points.double().numpy())
-        return torch.as_tensor(uv)
+        uv, _ = self.out_camera.project(points.detach().double().cpu().numpy())
+        return torch.as_tensor(uv, device=points.device)
 
     def loss(self, out: dict, boxes: torch.Tensor, classes: torch.Tensor,
              image: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -110,14 +110,15 @@ class PlanarDetector(Detector):
                nms: float | None = 0.5) -> list[dict]:
         """Boxes per image, as :meth:`SphericalDetector.decode`: peaks over each pixel's
         8 neighbours (wrapping around the seam), centres from pixel coordinates."""
-        prob = torch.sigmoid(out["heat"].detach().double())
+        out = fields_on_cpu(out)
+        prob = torch.sigmoid(out["heat"].double())
         if out["mask"] is not None:
             prob = prob * out["mask"][:, None]
-        res = []
+        res, ring = [], self.ring.cpu()
         for b in range(prob.shape[0]):
-            pt, cls, score = peaks(prob[b], self.ring, k, threshold)
+            pt, cls, score = peaks(prob[b], ring, k, threshold)
             W = self.out_camera.width
-            bx = out["box"][b, pt].detach().double()
+            bx = out["box"][b, pt].double()
             uv = torch.stack([pt % W + bx[:, 0], pt // W + bx[:, 1]], -1).numpy()
             rays, _ = self.out_camera.unproject(uv)
             lat, lon = to_latlon(np.nan_to_num(rays, nan=1.0))
