@@ -50,15 +50,16 @@ def random_cap(pos: torch.Tensor, min_deg: float = 45.0, max_deg: float = 100.0,
     return pos.double() @ c > math.cos(r)
 
 
-def up_step(model, batch, caps: float = 0.0):
+def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = (45.0, 100.0)):
     """The engine's step for an :class:`~usf_graph.models.UpNet` alone, on PyG batches of
     views of known gravity (:func:`known_up`): :meth:`GravityHead.loss`. With probability
-    ``caps`` the batch is seen through a :func:`random_cap` only (a smaller lens)."""
+    ``caps`` the batch is seen through a :func:`random_cap` only (a smaller lens), of an
+    angular radius drawn from ``cap_degrees``."""
     B = batch.num_graphs
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
     mask = batch.mask.view(B, -1)[0]
     if caps and float(torch.rand(())) < caps:
-        both = mask & random_cap(batch.pos[: x.shape[1]])
+        both = mask & random_cap(batch.pos[: x.shape[1]], *cap_degrees)
         mask = both if both.any() else mask
     g, _ = known_up(batch, B, x.dtype)
     out = model(x, None if mask.all() else mask)
@@ -68,17 +69,18 @@ def up_step(model, batch, caps: float = 0.0):
 
 
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
-                progress: bool = True, log_dir=None, caps: float = 0.0) -> None:
+                progress: bool = True, log_dir=None, caps: float = 0.0,
+                cap_degrees: tuple[float, float] = (45.0, 100.0)) -> None:
     """Trains ``net.gravity`` alone on ``train`` (views of known gravity) for ``epochs``,
     then freezes it: the segmenter's own training then reads the known gravity and never
     runs it. The up estimate is small (tens of ms a step), so it can see the views many
-    more times than the segmenter at little cost, which it needs (README). ``caps``: see
-    :func:`up_step`."""
+    more times than the segmenter at little cost, which it needs (README). ``caps`` and
+    ``cap_degrees``: see :func:`up_step`."""
     from .engine import fit
 
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=log_dir, progress=progress, name="up estimate",
-        step=partial(up_step, caps=caps))
+        step=partial(up_step, caps=caps, cap_degrees=tuple(cap_degrees)))
     net.gravity.requires_grad_(False)
 
 
