@@ -66,6 +66,10 @@ def test_pandora_command_on_the_fixture(tmp_path, capsys):
     res = json.loads((tmp_path / "out" / "results.json").read_text())
     assert set(res["spherical"]) >= {"AP", "AP50", "usf_mAP@10"}
     assert np.isfinite(res["spherical"]["AP50"])
+    # the upright detector, its up estimate trained first on the same panoramas (no mask)
+    cfg = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)["config"]
+    assert cfg["upright"] and cfg["gravity"]
+    assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 25
 
 
 def test_detection_step_with_an_up_estimate_joint_or_frozen(tmp_path):

@@ -38,7 +38,8 @@ class SphericalDeepLabV3(_Segmenter):
     Every piece depends on distances only, so the logits are SO(3)-equivariant like
     :class:`~usf_graph.models.SphericalUNet`'s, whose ``gravity`` option (an
     :class:`~usf_graph.models.UpNet` whose estimate gives every point its height as one more
-    input channel; ``forward(x, mask, up=...)`` takes a known up) it shares.
+    input channel; ``forward(x, mask, up=...)`` takes a known up) and ``upright`` option
+    (:class:`~usf_graph.nn.UpJet` features in the backbone) it shares.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` -> logits ``[B, N, num_classes]`` (and the gravity estimate with

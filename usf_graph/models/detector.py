@@ -37,8 +37,16 @@ from torch import nn
 from ..frontend import grid_graph
 from ..nn import SurfaceJet, up_frame
 from ..ops import box_axes, boxes_from_axes
-from .centernet import (Detector, detections, expmap, fields_on_cpu, focal_loss, heatmap_targets,
-                        logmap, peaks)
+from .centernet import (
+    Detector,
+    detections,
+    expmap,
+    fields_on_cpu,
+    focal_loss,
+    heatmap_targets,
+    logmap,
+    peaks,
+)
 from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp, _check_upright
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
@@ -73,7 +81,12 @@ class SphericalDetector(Detector, WithUp):
     With ``gravity=True`` it also reads each point's height along an equivariant up
     estimate, as :class:`~usf_graph.models.unet.WithUp` describes (``forward(x, mask,
     up=None)``; the estimate, when it runs, is returned as ``"gravity"``): PANDORA boxes are upright in
-    the world, and objects stand on the floor.
+    the world, and objects stand on the floor. With ``upright=True`` as well, the backbone
+    reads :class:`~usf_graph.nn.UpJet` features (of the input and of ``up_fields``
+    learned fields) and four more head fields give the traceless shape and the spin-4
+    axis field in the frame of up's tangential part t (times :math:`t^2` and
+    :math:`t^4` as complex numbers, normalized, fading within 30 degrees of the zenith and
+    nadir), added to the jet-based ones: an upright box is then one number.
 
     ``forward(x, mask)`` returns those fields; :meth:`loss` trains them against boxes and
     :meth:`detect` decodes boxes. ``mask [N]`` (a camera's field of view, one for the

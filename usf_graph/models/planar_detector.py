@@ -10,7 +10,15 @@ from torch import nn
 
 from ..cameras import Equirectangular
 from ..geometry import to_latlon
-from .centernet import Detector, box_centres, detections, fields_on_cpu, focal_loss, heatmap_targets, peaks
+from .centernet import (
+    Detector,
+    box_centres,
+    detections,
+    fields_on_cpu,
+    focal_loss,
+    heatmap_targets,
+    peaks,
+)
 from .detector import MAX_FOV
 from .planar_seg import PlanarUNet
 

@@ -23,7 +23,15 @@ from torch import nn
 
 from ..frontend import grid_graph
 from ..grids import icosahedral
-from ..nn import FillHidden, GaussianPool, GradientPairs, LocalJet, MaskedBatchNorm, SphericalConv, UpJet
+from ..nn import (
+    FillHidden,
+    GaussianPool,
+    GradientPairs,
+    LocalJet,
+    MaskedBatchNorm,
+    SphericalConv,
+    UpJet,
+)
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights
 
 _SPACING: dict[int, float] = {}
@@ -361,7 +369,10 @@ class SphericalUNet(_Segmenter):
     one more input channel (the cue "ceiling above, floor below" that a planar network
     reads from its rows); the logits stay equivariant, since the estimate rotates with
     the input. Training needs views of known gravity (:func:`~usf_graph.train.seg.segmentation_step`);
-    ``forward(x, mask, up=...)`` takes a known up instead of the estimate.
+    ``forward(x, mask, up=...)`` takes a known up instead of the estimate. With
+    ``upright=True`` as well, the backbone also reads the orientation of the input and of
+    ``up_fields`` learned fields relative to up (:class:`~usf_graph.nn.UpJet`, see
+    :class:`SphericalBackbone`).
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]`` (and the

@@ -10,7 +10,16 @@ from ..graph import (
 )
 from .aggregate import EdgePlan, basis_aggregate
 from .conv import DistanceConv, PointConv, SphericalConv
-from .jet import FillHidden, GradientPairs, LocalJet, SurfaceJet, UpJet, jet_operator, tangent_frame, up_frame
+from .jet import (
+    FillHidden,
+    GradientPairs,
+    LocalJet,
+    SurfaceJet,
+    UpJet,
+    jet_operator,
+    tangent_frame,
+    up_frame,
+)
 from .kernel import DistanceKernel
 from .norm import MaskedBatchNorm
 from .pool import (

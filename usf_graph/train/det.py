@@ -257,19 +257,24 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
 
 def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
                 batch_size: int = 8, lr: float = 2e-3, seed: int = 0, grid: str = "icosahedral:5",
-                progress: bool = True) -> dict:
+                progress: bool = True, upright: bool = True, up_epochs: int = 24) -> dict:
     """Train the spherical detector on PANDORA's train split (unrotated, as released) and
     score its test split: COCO AP/AP50/AP75 with the spherical IoU and USF's mAP@10.
-    Writes ``results.json`` and ``spherical.pt`` under ``out``."""
+    Writes ``results.json`` and ``spherical.pt`` under ``out``. ``upright``: as in
+    :func:`run`, the up estimate trained first on the same panoramas."""
     from ..datasets import Pandora
 
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
-    train = DetectionSet.spherical(Pandora(root, "train", grid=grid, progress=progress))
+    train_set = Pandora(root, "train", grid=grid, progress=progress)
+    train = DetectionSet.spherical(train_set)
     test = DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
     C = len(PANDORA_CLASSES)
-    net = SphericalDetector(num_classes=C)
+    net = SphericalDetector(num_classes=C, gravity=upright, upright=upright)
+    if upright:
+        pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
+                    log_dir=out / "up_estimate")
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=out / "spherical", config=net.config, progress=progress, name="spherical",
         step=detection_step, collate_fn=train.collate)

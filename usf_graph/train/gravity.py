@@ -57,7 +57,8 @@ def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = 
     angular radius drawn from ``cap_degrees``."""
     B = batch.num_graphs
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
-    mask = batch.mask.view(B, -1)[0]
+    seen = getattr(batch, "mask", None)  # panoramas may come without one
+    mask = torch.ones(x.shape[1], dtype=torch.bool) if seen is None else seen.view(B, -1)[0]
     if caps and float(torch.rand(())) < caps:
         both = mask & random_cap(batch.pos[: x.shape[1]], *cap_degrees)
         mask = both if both.any() else mask
