@@ -223,7 +223,7 @@ def up_frame(frame: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch
     return cs[:, 0], cs[:, 1]
 
 
-class UpJet(_Derivatives):
+class UpJet(SurfaceJet):
     r"""Derivatives of learned fields along and across a given up direction.
 
     With up's tangential part :math:`\mathbf{t}` at each point (length :math:`\sin	heta`,
@@ -253,9 +253,7 @@ abla^2 a\,\mathbf{e}ig)
 
     def __init__(self, pos, edge_index, edge_weight, spacing: float, in_channels: int,
                  fields: int | None = None, sigma: float | None = None):
-        super().__init__(pos, edge_index, edge_weight, spacing, sigma, rows=5)
-        e1, e2 = tangent_frame(torch.as_tensor(pos).double())
-        self.register_buffer("frame", torch.stack([e1, e2], 1), persistent=False)
+        super().__init__(pos, edge_index, edge_weight, spacing, sigma)
         self.in_channels, self.fields = in_channels, fields
         self.lin = None if fields is None else nn.Linear(in_channels, fields, bias=False)
 
@@ -268,15 +266,14 @@ abla^2 a\,\mathbf{e}ig)
             raise ValueError(f"expected x [B, N, {self.in_channels}] and up [B, 3], got "
                              f"{tuple(x.shape)} and {tuple(up.shape)}")
         h = self.spacing
-        d, xs, form = self._derivatives(x if self.lin is None else self.lin(x))
-        n, f = self.num_nodes, xs.shape[-1]
-        g1, g2, h11, h12, h22 = d.view(n, 5, -1, f).unbind(1)  # each [N, B, F]
-        c, s = (v[..., None] for v in up_frame(self.frame, up.to(x.dtype)))
+        d = super().forward(x if self.lin is None else self.lin(x))  # [B, N, F, 5]
+        g1, g2, h11, h12, h22 = d.unbind(-1)
+        c, s = (v.T[..., None] for v in up_frame(self.frame, up.to(x.dtype)))  # [B, N, 1]
         out = torch.stack([h * (g1 * c + g2 * s), h * (g1 * s - g2 * c),
                            h * h * (c * c * h11 + 2 * c * s * h12 + s * s * h22),
                            h * h * (c * s * (h11 - h22) + (s * s - c * c) * h12),
-                           h * h * (s * s * h11 - 2 * c * s * h12 + c * c * h22)], 1)
-        return self._unflatten(out.flatten(2), xs, form, f)
+                           h * h * (s * s * h11 - 2 * c * s * h12 + c * c * h22)], -2)
+        return out.flatten(-2)  # [B, N, 5 F], five blocks of F
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}({self.in_channels}, fields={self.fields}, "
