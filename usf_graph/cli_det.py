@@ -69,6 +69,7 @@ def cmd_eval_det(args) -> int:
     from .models import PlanarDetector, SphericalDetector
     from .train import load_checkpoint
     from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
+    from .train.gravity import upright_views_up
 
     blob = load_checkpoint(args.checkpoint)
     cfg = blob["config"]
@@ -82,7 +83,8 @@ def cmd_eval_det(args) -> int:
             raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {k!r}")
         ds = sets[k]
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
-        r = score(predict(model, data), data, model.num_classes)
+        up = upright_views_up(PROTOCOL[k][1]) if args.known_up and not planar else None
+        r = score(predict(model, data, up=up), data, model.num_classes)
         print(f"({k}) " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
         if args.boxes:
             q = box_quality(model, data)

@@ -56,7 +56,7 @@ def cmd_eval_seg(args) -> int:
     sets = protocol_sets(args.root or "data/rooms", args.size or size or 96,
                          cfg.get("level", 5), num_train=0, num_test=args.num_test, seed=args.seed,
                          tests=tests)
-    res, _ = evaluate_protocol(model, sets, tests, name=name)
+    res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
     for k, r in res.items():
         print(f"({k}) " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
                                     ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))

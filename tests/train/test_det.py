@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from usf_graph.cli import main
-from usf_graph.train.det import PROTOCOL, DetectionSet, format_table, protocol_sets, run
+from usf_graph.models import SphericalDetector
+from usf_graph.train.det import PROTOCOL, DetectionSet, format_table, predict, protocol_sets, run
 
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 
@@ -32,10 +33,25 @@ def test_protocol_runs_and_scores_every_test(tmp_path):
     assert "| spherical |" in format_table(res) and "(c) fisheye 190" in format_table(res)
     # the zero-shot tests see fewer boxes than the panorama of the same views
     assert saved["boxes"]["c"] <= saved["boxes"]["a"] and saved["boxes"]["b"] == saved["boxes"]["a"]
-    # eval det reads the checkpoints back
+    # eval det reads the checkpoints back (--known-up: the views' true gravity, +z)
     for name in ("spherical", "planar"):
         assert main(["eval", "det", str(tmp_path / "out" / f"{name}.pt"), "--root",
-                     str(tmp_path / "rooms"), "--size", "32", "--num-test", "2", "--test", "a"]) == 0
+                     str(tmp_path / "rooms"), "--size", "32", "--num-test", "2", "--test", "a",
+                     "--known-up"]) == 0
+    blob = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)
+    net = SphericalDetector.from_config(blob["config"])
+    net.load_state_dict(blob["state_dict"])
+    data = DetectionSet.spherical(protocol_sets(tmp_path / "rooms", size=32, num_train=0,
+                                                num_test=2, progress=False)["a"])
+    z = torch.tensor([0.0, 0.0, 1.0])
+    kw = dict(threshold=0.0, k=5, nms=None)
+    got = predict(net, data, up=z, **kw)
+    x, mask, *_ = data.collate([0, 1])
+    with torch.no_grad():
+        want = net.eval().decode(net(x, mask, up=z.expand(2, 3)), **kw)
+    assert len(got) == 2 and all(len(g["boxes"]) == 5 for g in got)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g["boxes"], w["boxes"])
 
 
 def test_detection_sets_batch_boxes_and_fields_of_view(tmp_path):

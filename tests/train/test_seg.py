@@ -15,6 +15,7 @@ from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
     PROTOCOL,
     format_table,
+    predict,
     protocol_sets,
     run,
     segmentation_loss,
@@ -61,6 +62,26 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     out = capsys.readouterr().out
     for k in ("b", "e"):
         assert f"({k}) mIoU {100 * saved['spherical_unet'][k]['mIoU']:.2f}" in out
+    # --known-up: the views' true gravity (+z) instead of the estimate; the rotated views
+    # (b) store none, so they are refused
+    ckpt = str(tmp_path / "out" / "spherical_unet.pt")
+    assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",
+                 "--test", "c", "--known-up"]) == 0
+    capsys.readouterr()
+    assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",
+                 "--test", "b", "--known-up"]) == 2
+    assert "(b) do not store their gravity" in capsys.readouterr().err
+    blob = torch.load(ckpt, weights_only=True)
+    cfg = {k: v for k, v in blob["config"].items() if k not in ("model", "size")}
+    net = SphericalUNet.from_config(cfg)
+    net.load_state_dict(blob["state_dict"])
+    ds = protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=2,
+                       tests=("c",), progress=False)["c"]
+    z = torch.tensor([0.0, 0.0, 1.0])
+    _, points = predict(net, ds, up=z)
+    with torch.no_grad():
+        want = net.eval()(ds.x.float(), ds.mask[0], up=z.expand(2, 3)).argmax(-1)
+    assert np.array_equal(points, want.numpy())
 
 
 def test_pyg_batches_feed_both_model_kinds(tmp_path):

@@ -124,13 +124,15 @@ def detection_step(model, batch):
 
 @torch.no_grad()
 def predict(model, data: DetectionSet, batch_size: int = 16, progress: bool = True,
-            desc: str = "detect", **decode) -> list[dict]:
-    """Detections for every sample of ``data`` (see ``SphericalDetector.decode``)."""
+            desc: str = "detect", up: torch.Tensor | None = None, **decode) -> list[dict]:
+    """Detections for every sample of ``data`` (see ``SphericalDetector.decode``); ``up
+    [3]``: every view's known gravity, read instead of the estimate (``gravity=True``)."""
     model.eval()
     out = []
     for s in tqdm(range(0, len(data), batch_size), desc=desc, leave=False, disable=not progress):
         x, mask, *_ = data.collate(list(range(s, min(s + batch_size, len(data)))))
-        out += model.decode(model(x, mask), **decode)
+        kw = {} if up is None else {"up": up.to(x.dtype).expand(len(x), 3)}
+        out += model.decode(model(x, mask, **kw), **decode)
     return out
 
 

@@ -29,6 +29,15 @@ def known_up(batch, n: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     return g, g + UP_JITTER * torch.randn_like(g)
 
 
+def upright_views_up(rotate: str) -> torch.Tensor:
+    """The known gravity ``[3]`` (+z) of the protocols' unrotated views; the rotated ones
+    (``rotate="so3"``) do not store theirs."""
+    if rotate != "none":
+        raise ValueError("a known up is only defined for the upright tests; the rotated views "
+                         "(b) do not store their gravity: leave them out (--test a c d)")
+    return torch.tensor([0.0, 0.0, 1.0])
+
+
 def up_loss(head, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
     """``UP_WEIGHT`` times the up estimate's loss (``head``: its
     :class:`~usf_graph.models.GravityHead`); records its mean error (degrees)."""
@@ -85,5 +94,5 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
     net.gravity.requires_grad_(False)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "up_loss", "up_step", "pretrain_up", "trains_up",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "upright_views_up", "up_loss", "up_step", "pretrain_up", "trains_up",
            "random_cap"]

@@ -36,7 +36,7 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import known_up, pretrain_up, trains_up, up_loss
+from .gravity import known_up, pretrain_up, trains_up, up_loss, upright_views_up
 from .seg_metrics import confusion_matrix, median_frequency_weights, per_image_miou, scores
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
@@ -123,11 +123,12 @@ def segmentation_step(model, batch, class_weight: torch.Tensor | None = None):
 
 @torch.no_grad()
 def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "segment",
-            pano: Equirectangular | None = None):
+            pano: Equirectangular | None = None, up: torch.Tensor | None = None):
     """Per-pixel class predictions ``[S, H, W]`` (uint8) in ``ds.camera``'s pixels, and for
     spherical models the per-point ones ``[S, N]`` (else ``None``). A planar model sees
     other lenses re-imaged as ``pano`` (default: ``2 H x H`` for the camera's height H,
-    the protocol's training size)."""
+    the protocol's training size). ``up [3]``: every view's known gravity, read by a
+    spherical model with ``gravity=True`` instead of its estimate (an IMU)."""
     model.eval()
     cam, S = ds.camera, len(ds)
     pixels, points = [], []
@@ -149,7 +150,9 @@ def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "
     mask = ds.mask[0]
     mask = None if mask.all() else mask
     for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
-        pred = model(ds.x[s:s + batch_size].float(), mask).argmax(-1).to(torch.uint8)
+        x = ds.x[s:s + batch_size].float()
+        kw = {} if up is None else {"up": up.to(x.dtype).expand(len(x), 3)}
+        pred = model(x, mask, **kw).argmax(-1).to(torch.uint8)
         points.append(pred)
         pixels += [ds.frontend.to_image(p, mode="nearest").numpy() for p in pred]
     return np.stack(pixels), torch.cat(points).numpy()
@@ -208,14 +211,16 @@ def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
 
 
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
-                      name: str = "model") -> tuple[dict, dict]:
-    """Scores and pixel predictions of one trained model on the protocol's test sets."""
+                      name: str = "model", known_up: bool = False) -> tuple[dict, dict]:
+    """Scores and pixel predictions of one trained model on the protocol's test sets;
+    ``known_up``: a spherical model reads the views' true gravity (:func:`upright_views_up`)."""
     res, preds = {}, {}
     for k in tests:
         model = net
         if not is_planar(net) and PROTOCOL[k][2]:
             model = net.refined(PROTOCOL[k][2])
-        pix, pts = predict(model, sets[k], progress=progress, desc=f"{name} ({k})")
+        up = upright_views_up(PROTOCOL[k][1]) if known_up and not is_planar(net) else None
+        pix, pts = predict(model, sets[k], progress=progress, desc=f"{name} ({k})", up=up)
         res[k], preds[k] = score(pix, sets[k], pts), pix
     return res, preds
 
