@@ -86,7 +86,7 @@ class SphericalDeepLabV3(_Segmenter):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
         x, grav, up = self._with_height(x, mask, up, return_gravity)
-        feats = self.backbone.encode(x, mask, up if self.backbone.upright else None)
+        feats = self.backbone.encode(x, mask, up)
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)
         g = torch.relu(self.image_pool(global_mean_pool_area(f, area, m)))

@@ -150,9 +150,9 @@ class SphericalDetector(Detector, WithUp):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None) -> dict:
         x, grav, up = self._with_height(x, mask, up)
-        x, m = self.backbone(x, mask, up if self.backbone.upright else None)
+        x, m = self.backbone(x, mask, up)
         f = self.head(self.head_stage(x, m))
-        out = self._fields(f, m, up if self.upright else None)
+        out = self._fields(f, m, up)  # up: None unless upright
         if grav is not None:
             out["gravity"] = grav
         return out

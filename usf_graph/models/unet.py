@@ -310,7 +310,7 @@ class WithUp(nn.Module):
                      up: torch.Tensor | None, estimate: bool = False
                      ) -> tuple[torch.Tensor, dict | None, torch.Tensor | None]:
         """``(x with the height channel when there is a gravity estimate, the estimate, the
-        unit up read)``.
+        unit up for an upright backbone, else None)``.
         The :class:`UpNet` runs when ``up`` is not given, in training while it is trainable
         (its loss needs the estimate) or when ``estimate`` asks for it; else the estimate
         is ``None``."""
@@ -325,7 +325,8 @@ class WithUp(nn.Module):
         grav = self.gravity(x, m) if up is None or trained or estimate else None
         up = grav["up"] if up is None else up.to(x.dtype)
         up = up / up.norm(dim=-1, keepdim=True)
-        return torch.cat([x, heights(self.in_pos, up)], -1), grav, up
+        return (torch.cat([x, heights(self.in_pos, up)], -1), grav,
+                up if self.backbone.upright else None)
 
 
 class _Segmenter(WithUp):
@@ -407,7 +408,7 @@ class SphericalUNet(_Segmenter):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
         x, grav, up = self._with_height(x, mask, up, return_gravity)
-        f, m = self.backbone(x, mask, up if self.backbone.upright else None)
+        f, m = self.backbone(x, mask, up)
         logits = self.head(f if self.head_stage is None else self.head_stage(f, m))
         return (logits, grav) if return_gravity else logits
 

@@ -27,7 +27,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import known_up, pretrain_up, trains_up, up_loss
+from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -131,8 +131,7 @@ def predict(model, data: DetectionSet, batch_size: int = 16, progress: bool = Tr
     out = []
     for s in tqdm(range(0, len(data), batch_size), desc=desc, leave=False, disable=not progress):
         x, mask, *_ = data.collate(list(range(s, min(s + batch_size, len(data)))))
-        kw = {} if up is None else {"up": up.to(x.dtype).expand(len(x), 3)}
-        out += model.decode(model(x, mask, **kw), **decode)
+        out += model.decode(model(x, mask, **given_up(up, x)), **decode)
     return out
 
 

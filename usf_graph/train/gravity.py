@@ -38,6 +38,12 @@ def upright_views_up(rotate: str) -> torch.Tensor:
     return torch.tensor([0.0, 0.0, 1.0])
 
 
+def given_up(up: torch.Tensor | None, x: torch.Tensor) -> dict:
+    """Keyword arguments that hand one known gravity ``up [3]`` to every sample of the batch
+    ``x`` (``{}`` when ``up`` is None: the model reads its estimate)."""
+    return {} if up is None else {"up": up.to(x.dtype).expand(len(x), 3)}
+
+
 def up_loss(head, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
     """``UP_WEIGHT`` times the up estimate's loss (``head``: its
     :class:`~usf_graph.models.GravityHead`); records its mean error (degrees)."""
@@ -94,5 +100,5 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
     net.gravity.requires_grad_(False)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "upright_views_up", "up_loss", "up_step", "pretrain_up", "trains_up",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "upright_views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up",
            "random_cap"]

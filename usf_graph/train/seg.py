@@ -36,7 +36,7 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import known_up, pretrain_up, trains_up, up_loss, upright_views_up
+from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss, upright_views_up
 from .seg_metrics import confusion_matrix, median_frequency_weights, per_image_miou, scores
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
@@ -151,8 +151,7 @@ def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "
     mask = None if mask.all() else mask
     for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
         x = ds.x[s:s + batch_size].float()
-        kw = {} if up is None else {"up": up.to(x.dtype).expand(len(x), 3)}
-        pred = model(x, mask, **kw).argmax(-1).to(torch.uint8)
+        pred = model(x, mask, **given_up(up, x)).argmax(-1).to(torch.uint8)
         points.append(pred)
         pixels += [ds.frontend.to_image(p, mode="nearest").numpy() for p in pred]
     return np.stack(pixels), torch.cat(points).numpy()
