@@ -426,8 +426,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--size", type=int, default=None, help="det, seg: rooms image size (as trained)")
     e.add_argument("--num-test", type=int, default=50, help="det, seg: views per test")
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
-    e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read the true "
-                   "up (+z), as from an IMU, not their estimate; upright tests only")
+    e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
+                   "view's true gravity, as from an IMU, not their estimate")
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
                    "rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")

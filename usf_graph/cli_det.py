@@ -69,7 +69,7 @@ def cmd_eval_det(args) -> int:
     from .models import PlanarDetector, SphericalDetector
     from .train import load_checkpoint
     from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
-    from .train.gravity import upright_views_up
+    from .train.gravity import views_up
 
     blob = load_checkpoint(args.checkpoint)
     cfg = blob["config"]
@@ -83,7 +83,7 @@ def cmd_eval_det(args) -> int:
             raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {k!r}")
         ds = sets[k]
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
-        up = upright_views_up(PROTOCOL[k][1]) if args.known_up and not planar else None
+        up = views_up(ds) if args.known_up and not planar else None
         r = score(predict(model, data, up=up), data, model.num_classes)
         print(f"({k}) " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
         if args.boxes:

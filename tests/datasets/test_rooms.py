@@ -5,8 +5,8 @@ from torch_geometric.loader import DataLoader
 
 from usf_graph import cameras, scenes
 from usf_graph.datasets import RoomsDetection, RoomsSegmentation
-from usf_graph.datasets.rooms import view_pose
-from usf_graph.scenes import IGNORE
+from usf_graph.datasets.rooms import view_pose, view_up
+from usf_graph.scenes import IGNORE, SEMANTIC_CLASSES
 
 KW = dict(num_scenes=3, grid="icosahedral:3", progress=False)
 FISHEYE = cameras.KannalaBrandt(90, 90, 127.5, 127.5, 256, 256, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
@@ -53,6 +53,28 @@ def test_zero_shot_lens_sees_the_same_rotated_test_views(root):
         assert torch.equal(fe.y[k][m], eq.y[k][m])  # same pose, same exact labels
     none = RoomsSegmentation(root, "test", **KW)
     assert not torch.equal(none.y, eq.y)
+
+
+def test_views_know_their_gravity_even_when_rotated(root):
+    """Each view's up (an IMU's reading) is world +z in the view's frame: the exact labels
+    say ceiling along it and floor against it, rotated or not."""
+    for rotate in ("none", "so3"):
+        ds = RoomsSegmentation(root, "test", rotate=rotate, **KW)
+        g = ds.gravity
+        assert g.shape == (3, 3) and g.dtype == torch.float64
+        torch.testing.assert_close(g.norm(dim=1), torch.ones(3, dtype=torch.float64))
+        pos = ds.grid.pos.double()
+        for k in range(len(ds)):
+            up, down = (pos @ g[k]).argmax(), (pos @ g[k]).argmin()
+            assert SEMANTIC_CLASSES[int(ds.y[k][up])] in ("ceiling", "beam")
+            assert SEMANTIC_CLASSES[int(ds.y[k][down])] == "floor"
+            torch.testing.assert_close(ds[k].up[0], g[k].float())
+            _, R = view_pose(scenes.make_room(1, k), rotate, k, 1)
+            np.testing.assert_allclose(R @ view_up(rotate, k, 1), [0, 0, 1], atol=1e-12)
+        if rotate == "none":
+            assert (g == torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).all()
+        else:  # Haar-random: far from +z for some view
+            assert float(g[:, 2].min()) < 0.9
 
 
 def test_detection_boxes_match_a_direct_rendering(root):

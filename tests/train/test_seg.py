@@ -62,26 +62,28 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     out = capsys.readouterr().out
     for k in ("b", "e"):
         assert f"({k}) mIoU {100 * saved['spherical_unet'][k]['mIoU']:.2f}" in out
-    # --known-up: the views' true gravity (+z) instead of the estimate; the rotated views
-    # (b) store none, so they are refused
+    # --known-up: each view's true gravity instead of the estimate, the rotated ones too
     ckpt = str(tmp_path / "out" / "spherical_unet.pt")
     assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",
-                 "--test", "c", "--known-up"]) == 0
-    capsys.readouterr()
-    assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",
-                 "--test", "b", "--known-up"]) == 2
-    assert "(b) do not store their gravity" in capsys.readouterr().err
+                 "--test", "b", "c", "--known-up"]) == 0
     blob = torch.load(ckpt, weights_only=True)
     cfg = {k: v for k, v in blob["config"].items() if k not in ("model", "size")}
     net = SphericalUNet.from_config(cfg)
     net.load_state_dict(blob["state_dict"])
-    ds = protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=2,
-                       tests=("c",), progress=False)["c"]
+    sets = protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=2,
+                         tests=("b", "c"), progress=False)
+    ds = sets["c"]
     z = torch.tensor([0.0, 0.0, 1.0])
     _, points = predict(net, ds, up=z)
     with torch.no_grad():
         want = net.eval()(ds.x.float(), ds.mask[0], up=z.expand(2, 3)).argmax(-1)
     assert np.array_equal(points, want.numpy())
+    # the rotated views, one per batch, each with its own gravity
+    rot = sets["b"]
+    _, points = predict(net, rot, batch_size=1, up=rot.gravity)
+    with torch.no_grad():
+        want = net(rot.x.float(), None, up=rot.gravity.float()).argmax(-1)
+    assert np.array_equal(points, want.numpy()) and not (rot.gravity[:, 2] > 0.999).all()
 
 
 def test_pyg_batches_feed_both_model_kinds(tmp_path):

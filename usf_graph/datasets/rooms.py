@@ -30,14 +30,30 @@ from .stacked import add_boxes, load_or_rebuild, pack_boxes, pre_transform_stack
 ROTATIONS = ("none", "so3")
 
 
-def view_pose(scene, rotate: str, sample: int, seed: int):
-    """Position and rotation (world <- view) of a sample under a rotation protocol."""
+def _check_rotate(rotate: str) -> None:
     if rotate not in ROTATIONS:
         raise ValueError(f"rotate must be one of {ROTATIONS}, got {rotate!r}")
+
+
+def _haar(sample: int, seed: int) -> np.ndarray:
+    return random_rotation(seed=(seed * 1_000_003 + sample) % 2**62).numpy()
+
+
+def view_pose(scene, rotate: str, sample: int, seed: int):
+    """Position and rotation (world <- view) of a sample under a rotation protocol."""
+    _check_rotate(rotate)
     p, R = scene.viewpoint(0)
     if rotate == "so3":
-        R = random_rotation(seed=(seed * 1_000_003 + sample) % 2**62).numpy()
+        R = _haar(sample, seed)
     return p, R
+
+
+def view_up(rotate: str, sample: int, seed: int) -> np.ndarray:
+    r"""Gravity's up direction (world +z) in the frame of the view :func:`view_pose` gives,
+    ``[3]``: +z for gravity-aligned views (their yaw leaves it), :math:`R^\top e_z` for
+    the rotated ones; what an IMU on the camera would report."""
+    _check_rotate(rotate)
+    return _haar(sample, seed)[2].copy() if rotate == "so3" else np.array([0.0, 0.0, 1.0])
 
 
 def grid_labels(scene, position, rotation, pos: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -58,8 +74,7 @@ class _Rooms(Dataset):
                  pre_transform=None, progress: bool = True):
         if split not in ("train", "test"):
             raise ValueError(f"split must be 'train' or 'test', got {split!r}")
-        if rotate not in ROTATIONS:
-            raise ValueError(f"rotate must be one of {ROTATIONS}, got {rotate!r}")
+        _check_rotate(rotate)
         self.split, self.rotate, self.seed = split, rotate, int(seed)
         self.camera = Equirectangular(256, 128) if camera is None else camera
         self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
@@ -95,8 +110,22 @@ class _Rooms(Dataset):
         for k, v in blob.items():
             setattr(self, k, v)
 
+    @property
+    def scene_seed(self) -> int:
+        """The seed of the split's rooms (``seed``, or ``seed + 1`` for ``test``)."""
+        return self.seed + (0 if self.split == "train" else 1)
+
+    @property
+    def gravity(self) -> torch.Tensor:
+        """Every view's up direction in its own frame, ``[S, 3]`` float64
+        (:func:`view_up`): the known gravity of an IMU, for models that read one."""
+        if getattr(self, "_gravity", None) is None:
+            self._gravity = torch.as_tensor(np.stack(
+                [view_up(self.rotate, i, self.scene_seed) for i in range(len(self))]))
+        return self._gravity
+
     def process(self):
-        scene_seed = self.seed + (0 if self.split == "train" else 1)
+        scene_seed = self.scene_seed
         pos, mask = self.grid.pos.numpy(), self.frontend.mask.numpy()
         xs, ys, masks, imgs, labs, boxes, classes = [], [], [], [], [], [], []
         for i in tqdm(range(self.num_scenes), desc=f"rendering {self.split} rooms",
@@ -134,6 +163,7 @@ class _Rooms(Dataset):
         d.mask = self.mask[idx]
         d.image = self.image[idx][None]
         d.label_image = self.label_image[idx][None]
+        d.up = self.gravity[idx].float()[None]
         return d
 
     def __repr__(self) -> str:

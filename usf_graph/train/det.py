@@ -126,12 +126,13 @@ def detection_step(model, batch):
 def predict(model, data: DetectionSet, batch_size: int = 16, progress: bool = True,
             desc: str = "detect", up: torch.Tensor | None = None, **decode) -> list[dict]:
     """Detections for every sample of ``data`` (see ``SphericalDetector.decode``); ``up
-    [3]``: every view's known gravity, read instead of the estimate (``gravity=True``)."""
+    [3]`` or ``[S, 3]``: the views' known gravity, read instead of the estimate
+    (``gravity=True``; :func:`~usf_graph.train.gravity.views_up`)."""
     model.eval()
     out = []
     for s in tqdm(range(0, len(data), batch_size), desc=desc, leave=False, disable=not progress):
         x, mask, *_ = data.collate(list(range(s, min(s + batch_size, len(data)))))
-        out += model.decode(model(x, mask, **given_up(up, x)), **decode)
+        out += model.decode(model(x, mask, **given_up(up, x, s)), **decode)
     return out
 
 

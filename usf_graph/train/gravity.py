@@ -29,19 +29,24 @@ def known_up(batch, n: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
     return g, g + UP_JITTER * torch.randn_like(g)
 
 
-def upright_views_up(rotate: str) -> torch.Tensor:
-    """The known gravity ``[3]`` (+z) of the protocols' unrotated views; the rotated ones
-    (``rotate="so3"``) do not store theirs."""
-    if rotate != "none":
-        raise ValueError("a known up is only defined for the upright tests; the rotated views "
-                         "(b) do not store their gravity: leave them out (--test a c d)")
-    return torch.tensor([0.0, 0.0, 1.0])
+def views_up(ds) -> torch.Tensor:
+    """The known gravity of every view of ``ds``, ``[S, 3]`` (its ``gravity``: an IMU's
+    reading, e.g. :attr:`RoomsSegmentation.gravity <usf_graph.datasets.RoomsSegmentation>`)."""
+    g = getattr(ds, "gravity", None)
+    if g is None:
+        raise ValueError(f"{type(ds).__name__} does not know its views' gravity; a known up needs "
+                         "the protocol's rooms (RoomsSegmentation / RoomsDetection)")
+    return g
 
 
-def given_up(up: torch.Tensor | None, x: torch.Tensor) -> dict:
-    """Keyword arguments that hand one known gravity ``up [3]`` to every sample of the batch
-    ``x`` (``{}`` when ``up`` is None: the model reads its estimate)."""
-    return {} if up is None else {"up": up.to(x.dtype).expand(len(x), 3)}
+def given_up(up: torch.Tensor | None, x: torch.Tensor, start: int = 0) -> dict:
+    """Keyword arguments that hand known gravity to the batch ``x``: ``up [3]`` for every
+    sample, or ``up [S, 3]`` for a whole split whose samples ``start .. start + len(x)`` are
+    in the batch (``{}`` when ``up`` is None: the model reads its estimate)."""
+    if up is None:
+        return {}
+    up = up.to(x.dtype)
+    return {"up": up[start:start + len(x)] if up.dim() == 2 else up.expand(len(x), 3)}
 
 
 def up_loss(head, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
@@ -100,5 +105,5 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
     net.gravity.requires_grad_(False)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "upright_views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up",
            "random_cap"]

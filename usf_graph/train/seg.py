@@ -36,7 +36,7 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss, upright_views_up
+from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss, views_up
 from .seg_metrics import confusion_matrix, median_frequency_weights, per_image_miou, scores
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
@@ -127,8 +127,9 @@ def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "
     """Per-pixel class predictions ``[S, H, W]`` (uint8) in ``ds.camera``'s pixels, and for
     spherical models the per-point ones ``[S, N]`` (else ``None``). A planar model sees
     other lenses re-imaged as ``pano`` (default: ``2 H x H`` for the camera's height H,
-    the protocol's training size). ``up [3]``: every view's known gravity, read by a
-    spherical model with ``gravity=True`` instead of its estimate (an IMU)."""
+    the protocol's training size). ``up [3]`` or ``[S, 3]``: the views' known gravity
+    (:func:`~usf_graph.train.gravity.views_up`), read by a spherical model with
+    ``gravity=True`` instead of its estimate (an IMU)."""
     model.eval()
     cam, S = ds.camera, len(ds)
     pixels, points = [], []
@@ -151,7 +152,7 @@ def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "
     mask = None if mask.all() else mask
     for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
         x = ds.x[s:s + batch_size].float()
-        pred = model(x, mask, **given_up(up, x)).argmax(-1).to(torch.uint8)
+        pred = model(x, mask, **given_up(up, x, s)).argmax(-1).to(torch.uint8)
         points.append(pred)
         pixels += [ds.frontend.to_image(p, mode="nearest").numpy() for p in pred]
     return np.stack(pixels), torch.cat(points).numpy()
@@ -212,13 +213,13 @@ def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
                       name: str = "model", known_up: bool = False) -> tuple[dict, dict]:
     """Scores and pixel predictions of one trained model on the protocol's test sets;
-    ``known_up``: a spherical model reads the views' true gravity (:func:`upright_views_up`)."""
+    ``known_up``: a spherical model reads the views' true gravity (:func:`views_up`)."""
     res, preds = {}, {}
     for k in tests:
         model = net
         if not is_planar(net) and PROTOCOL[k][2]:
             model = net.refined(PROTOCOL[k][2])
-        up = upright_views_up(PROTOCOL[k][1]) if known_up and not is_planar(net) else None
+        up = views_up(sets[k]) if known_up and not is_planar(net) else None
         pix, pts = predict(model, sets[k], progress=progress, desc=f"{name} ({k})", up=up)
         res[k], preds[k] = score(pix, sets[k], pts), pix
     return res, preds
