@@ -92,6 +92,11 @@ def test_upnet_errors_and_where_it_starts():
     net = UpNet(3, 3, channels=(4, 4)).double()
     x = torch.randn(2, len(grids.icosahedral(3)), 3, dtype=torch.float64)
     assert net(x)["up"].shape == (2, 3) and net.head.pos.shape == (len(grids.icosahedral(1)), 3)
+    # a diverged run's NaN weights say so, not a linear-algebra failure in the polish
+    with torch.no_grad():
+        net.head.score.weight.fill_(float("nan"))
+    with pytest.raises(ValueError, match="scores are NaN or inf"):
+        net.eval()(x)
 
 
 def test_upnet_polishes_its_estimate_in_evaluation_only():

@@ -65,3 +65,29 @@ def test_two_process_ddp_step_equals_one_process(tmp_path):
         if k in start.state_dict() and one[k].is_floating_point():
             moved = max(moved, float((one[k] - start.state_dict()[k]).abs().max()))
     assert moved > 1e-4  # the step did change the parameters
+
+
+def test_a_diverging_run_stops_with_a_clear_error_and_keeps_the_last_epoch(tmp_path):
+    """A step whose loss turns NaN (a learning rate too high makes the weights inf) stops
+    training with an error that says what to do, and last.pt keeps the finished epoch."""
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.train.engine import fit
+
+    torch.manual_seed(0)
+    model = torch.nn.Linear(2, 1)
+    data = TensorDataset(torch.randn(8, 2), torch.randn(8, 1))
+    calls = []
+
+    def step(m, batch):
+        x, y = batch
+        calls.append(1)
+        loss = ((m(x) - y) ** 2).mean()
+        return (loss * float("nan") if len(calls) == 6 else loss), {}, len(x)
+
+    with pytest.raises(FloatingPointError, match=r"loss is nan at epoch 2, batch 2: training "
+                       r"diverged; lower the learning rate \(lr=0.01\)"):
+        fit(model, data, epochs=3, batch_size=2, lr=0.01, log_dir=tmp_path, progress=False,
+            step=step)
+    blob = load_checkpoint(tmp_path / "last.pt")
+    assert blob["epoch"] == 1 and all(torch.isfinite(v).all() for v in blob["state_dict"].values())

@@ -94,6 +94,9 @@ class GravityHead(nn.Module):
         logits = self.score(torch.relu(U + self.bias))[..., 0]  # [B, Nc]
         if extra is not None:
             logits = logits + extra
+        if not torch.isfinite(logits).all():
+            raise ValueError("the up estimate's scores are NaN or inf: its weights or its input "
+                             "are not finite (a diverged training run?)")
         cand = self.candidates.to(f.dtype)
         best = cand[logits.argmax(-1)]  # [B, 3]
         near = best @ cand.T > math.cos(self.window)

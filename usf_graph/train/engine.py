@@ -183,8 +183,15 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         bar = tqdm(_batches(train, batch_size, True, seed, epoch, collate_fn), leave=False,
                    desc=f"{name} epoch {epoch + 1}/{epochs}", disable=not progress or rank != 0)
         mean = _Mean()
-        for batch in bar:
+        for i, batch in enumerate(bar):
             loss, stats, n = step(model, batch)
+            if not torch.isfinite(loss.detach()).all():
+                # one bad step makes every weight NaN; stop before a checkpoint keeps them
+                raise FloatingPointError(
+                    f"{name}: the loss is {loss.detach().flatten()[0].item()} at epoch {epoch + 1}, "
+                    f"batch {i + 1}: training diverged; lower the learning rate (lr={lr}) or "
+                    f"check the inputs for NaN" + (f"; {log_dir / 'last.pt'} holds the last "
+                                                   "finished epoch" if log_dir is not None else ""))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
