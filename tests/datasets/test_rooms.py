@@ -71,6 +71,9 @@ def test_views_know_their_gravity_even_when_rotated(root):
             torch.testing.assert_close(ds[k].up[0], g[k].float())
             _, R = view_pose(scenes.make_room(1, k), rotate, k, 1)
             np.testing.assert_allclose(R @ view_up(rotate, k, 1), [0, 0, 1], atol=1e-12)
+        # a PyG index view, made before anything read the gravity, keeps each sample's own
+        sub = RoomsSegmentation(root, "test", rotate=rotate, **KW)[[2, 0]]
+        assert torch.equal(sub[0].up[0], g[2].float()) and torch.equal(sub[1].up[0], g[0].float())
         if rotate == "none":
             assert (g == torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).all()
         else:  # Haar-random: far from +z for some view

@@ -121,7 +121,7 @@ class _Rooms(Dataset):
         (:func:`view_up`): the known gravity of an IMU, for models that read one."""
         if getattr(self, "_gravity", None) is None:
             self._gravity = torch.as_tensor(np.stack(
-                [view_up(self.rotate, i, self.scene_seed) for i in range(len(self))]))
+                [view_up(self.rotate, i, self.scene_seed) for i in range(self.len())]))
         return self._gravity
 
     def process(self):
