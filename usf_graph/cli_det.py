@@ -26,6 +26,23 @@ def add_train_options(t) -> None:
                    choices=["spherical_unet", "spherical_deeplab", "planar_unet"],
                    help="seg: models to train (default: all three on rooms, the spherical U-Net "
                         "on stanford2d3ds)")
+    u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
+    u.add_argument("--up-extra", type=int, default=None,
+                   help="cheap extra panoramas of other rooms (det 1600; seg 0, as 1600 takes it "
+                        "past its 15 minutes)")
+    u.add_argument("--up-caps", type=float, default=None,
+                   help="share of its batches seen through random 40-100 degree caps (det 0.5, seg 0)")
+    u.add_argument("--up-epochs", type=int, default=None, help="its epochs (det 12, seg 24)")
+
+
+def up_kwargs(args, run) -> dict:
+    """``up_extra``, ``up_caps`` and ``up_epochs`` for a rooms protocol ``run``, its defaults
+    where not given."""
+    import inspect
+
+    d = inspect.signature(run).parameters
+    return {k: d[k].default if getattr(args, k) is None else getattr(args, k)
+            for k in ("up_extra", "up_caps", "up_epochs")}
 
 
 def run_kwargs(args, run) -> dict:
@@ -49,7 +66,7 @@ def cmd_train_det(args) -> int:
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/det", size=args.size or 128,
                   num_train=args.num_train or 200, num_test=args.num_test or 50,
-                  planar=not args.no_planar, **kw)
+                  planar=not args.no_planar, **up_kwargs(args, run), **kw)
     teardown_distributed()
     if not res:
         return 0

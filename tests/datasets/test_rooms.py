@@ -4,7 +4,7 @@ import torch
 from torch_geometric.loader import DataLoader
 
 from usf_graph import cameras, scenes
-from usf_graph.datasets import RoomsDetection, RoomsSegmentation
+from usf_graph.datasets import RoomsDetection, RoomsGravity, RoomsSegmentation
 from usf_graph.datasets.rooms import view_pose, view_up
 from usf_graph.scenes import IGNORE, SEMANTIC_CLASSES
 
@@ -107,3 +107,23 @@ def test_bad_arguments(root):
         RoomsSegmentation(root, rotate="z", **KW)
     with pytest.raises(ValueError, match="split must be"):
         RoomsSegmentation(root, split="val", **KW)
+
+
+def test_gravity_views_are_a_train_splits_views_without_labels_or_boxes(root):
+    """The cheap up-estimate views render the same images as a train split of their seed
+    (the labels and boxes skipped change nothing else), carry +z, and reload from disk;
+    the default seed's rooms are not the protocol's."""
+    cam = cameras.Equirectangular(64, 32)
+    full = RoomsSegmentation(root, "train", camera=cam, seed=7, **KW)
+    cheap = RoomsGravity(root, 3, camera=cam, grid="icosahedral:3", seed=7, progress=False)
+    assert torch.equal(cheap.x, full.x) and len(cheap) == 3
+    s = cheap[1]
+    assert torch.equal(s.x, full[1].x) and s.mask.all() and "y" not in s
+    assert torch.equal(s.up, torch.tensor([[0.0, 0.0, 1.0]]))
+    assert torch.equal(RoomsGravity(root, 3, camera=cam, grid="icosahedral:3", seed=7, progress=False).x,
+                       cheap.x)
+    other = RoomsGravity(root, 3, camera=cam, grid="icosahedral:3", progress=False)
+    train = RoomsSegmentation(root, "train", camera=cam, **KW)
+    assert not torch.equal(other.x, train.x)
+    with pytest.raises(ValueError, match="num_scenes must be at least 1"):
+        RoomsGravity(root, 0)

@@ -17,11 +17,13 @@ FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 
 def test_protocol_runs_and_scores_every_test(tmp_path):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, num_train=3, num_test=2,
-              epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1)
+              epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
-    # the up estimate trained alone on 4 views, then the upright detector on the first 3
-    assert saved["samples"] == {"train": 3, "test": 2, "up_train": 4} and saved["upright"]
+    # the up estimate trained alone on 4 views and 2 cheap ones, then the upright detector
+    # on the first 3
+    assert saved["samples"] == {"train": 3, "test": 2, "up_train": 4, "up_extra": 2} and saved["upright"]
     assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 2
+    assert len(list((tmp_path / "rooms" / "processed").glob("rooms_gravity_*.pt"))) == 1
     assert len((tmp_path / "out" / "spherical" / "metrics.csv").read_text().splitlines()) == 2
     for name in ("spherical", "planar"):
         for k in PROTOCOL:

@@ -1,9 +1,14 @@
-"""Handing known gravity to a batch (train.gravity)."""
+"""Handing known gravity to a batch, and the up estimate's training views (train.gravity)."""
 
 import pytest
 import torch
+from torch import nn
+from torch_geometric.data import Data
+from torch_geometric.loader import DataLoader
 
-from usf_graph.train.gravity import given_up, views_up
+from usf_graph.grids import icosahedral
+from usf_graph.models import UpNet
+from usf_graph.train.gravity import UpViews, given_up, pretrain_up, views_up
 
 
 def test_given_up_hands_one_or_each_views_gravity_to_a_batch():
@@ -24,3 +29,36 @@ def test_views_up_needs_a_split_that_knows_its_gravity():
     assert torch.equal(views_up(Views()), torch.eye(3))
     with pytest.raises(ValueError, match="does not know its views' gravity"):
         views_up(object())
+
+
+def _views(n, value, up=None, N=4):
+    return [Data(x=torch.full((N, 3), value + i), pos=torch.zeros(N, 3), y=torch.zeros(N),
+                 mask=torch.ones(N, dtype=torch.bool), **({} if up is None else {"up": up}))
+            for i in range(n)]
+
+
+def test_up_views_join_datasets_with_only_what_the_up_step_reads():
+    east = torch.tensor([[1.0, 0.0, 0.0]])
+    v = UpViews(_views(2, 0.0, east), None, _views(3, 10.0))
+    assert len(v) == 5
+    assert [float(v[i].x[0, 0]) for i in range(5)] == [0.0, 1.0, 10.0, 11.0, 12.0]
+    assert set(v[0].keys()) == {"x", "pos", "mask", "up"}
+    assert torch.equal(v[1].up, east) and torch.equal(v[4].up, torch.tensor([[0.0, 0.0, 1.0]]))
+    batch = next(iter(DataLoader(v, batch_size=5)))
+    assert torch.equal(batch.up, torch.cat([east, east] + [torch.tensor([[0.0, 0.0, 1.0]])] * 3))
+
+
+def test_pretrain_up_reads_the_extra_views():
+    """A NaN in an extra view reaches the up estimate (its clear error), so the extra views
+    are trained on, not ignored."""
+    g = icosahedral(3)
+    views = [Data(x=torch.rand(len(g.pos), 3), pos=g.pos.float(), mask=torch.ones(len(g.pos), dtype=torch.bool))
+             for _ in range(2)]
+    holder = nn.Module()
+    holder.gravity = UpNet(3, 3)
+    pretrain_up(holder, views[:1], epochs=1, batch_size=2, progress=False, extra=views[1:])
+    assert not any(p.requires_grad for p in holder.gravity.parameters())
+    bad = Data(x=torch.full((len(g.pos), 3), float("nan")), pos=g.pos.float(), mask=views[0].mask)
+    holder.gravity = UpNet(3, 3)
+    with pytest.raises((ValueError, FloatingPointError), match="NaN|non-finite"):
+        pretrain_up(holder, views[:1], epochs=1, batch_size=1, progress=False, extra=[bad])

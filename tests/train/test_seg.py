@@ -45,8 +45,10 @@ def test_loss_ignores_and_weights():
 
 def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, level=3, num_train=3,
-              num_test=2, epochs=1, batch_size=2, progress=False)
+              num_test=2, epochs=1, batch_size=2, progress=False, up_extra=2, up_caps=0.5)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert saved["up_extra"] == 2 and saved["up_caps"] == 0.5  # cheap views on the protocol's grid
+    assert len(list((tmp_path / "rooms" / "processed").glob("rooms_gravity_*.pt"))) == 1
     for name in ("spherical_unet", "spherical_deeplab", "planar_unet"):
         for k in PROTOCOL:
             r = saved[name][k]

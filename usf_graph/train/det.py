@@ -27,7 +27,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss
+from .gravity import UP_CAP_DEGREES, given_up, known_up, pretrain_up, trains_up, up_loss, up_views
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -205,13 +205,16 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         num_test: int = 50, epochs: int = 24, planar_epochs: int | None = None,
         batch_size: int = 8, lr: float = 2e-3, seed: int = 0, planar: bool = True,
         progress: bool = True, upright: bool = True, up_train: int = 400,
-        up_epochs: int = 24) -> dict:
+        up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
 
     ``upright``: the spherical detector reads directions along its up estimate
     (``SphericalDetector(gravity=True, upright=True)``); the estimate is trained first,
-    alone, on the first ``up_train`` training views for ``up_epochs``, then frozen
+    alone, on the first ``up_train`` training views and ``up_extra`` cheap panoramas of
+    other rooms (:class:`~usf_graph.datasets.RoomsGravity`, 96 pixels high, so that one
+    render serves the segmentation protocol too) for ``up_epochs``, a share ``up_caps`` of
+    its batches seen through random caps of 40-100 degrees, then frozen
     (:func:`~usf_graph.train.gravity.pretrain_up`), and the detector trains on the first
     ``num_train`` views, reading their known up."""
     rank, _ = setup_distributed()
@@ -226,11 +229,14 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright)
     if upright:
         results["samples"]["up_train"] = up_train
+        results["samples"]["up_extra"] = up_extra
         pretrain_up(spherical, sets["train"][:up_train], up_epochs, batch_size, seed=seed,
-                    progress=progress, log_dir=out / "up_estimate")
+                    progress=progress, log_dir=out / "up_estimate", caps=up_caps,
+                    cap_degrees=UP_CAP_DEGREES, extra=up_views(root, up_extra, progress=progress))
     models = {"spherical": (spherical, DetectionSet.spherical, epochs)}
     if planar:
         w, h = 2 * size, size
+        seed_everything(seed)  # the same initialization whatever the up estimate's training drew
         models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w),
                             lambda ds: DetectionSet.planar(ds, w, h, progress), planar_epochs or epochs)
     preds = {}

@@ -9,12 +9,15 @@ import math
 from functools import partial
 
 import torch
+from torch_geometric.data import Data, Dataset
 
 from ..geometry import geodesic_distance
 from ..nn.batching import to_static
 
 #: Weight of the up estimate's loss (:meth:`GravityHead.loss`) in a training step.
 UP_WEIGHT = 0.5
+#: Angular radius range of the random caps the up estimate is trained through.
+UP_CAP_DEGREES = (40.0, 100.0)
 #: Noise (per axis) on the true up that the network reads in training, so that it learns
 #: to tolerate the estimate's error at test time.
 UP_JITTER = 0.05
@@ -89,21 +92,56 @@ def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = 
     return loss, stats, B
 
 
+class UpViews(Dataset):
+    """The views of several PyG datasets of known gravity, each with only what
+    :func:`up_step` reads (``x``, ``pos``, ``mask``, ``up``), so that datasets with other
+    fields (labels, boxes) batch together."""
+
+    def __init__(self, *datasets):
+        self.parts = [d for d in datasets if d is not None]
+        self.ends = torch.tensor([len(d) for d in self.parts]).cumsum(0)
+        super().__init__()
+
+    def len(self) -> int:
+        return int(self.ends[-1]) if len(self.ends) else 0
+
+    def get(self, idx: int) -> Data:
+        k = int(torch.searchsorted(self.ends, idx, right=True))
+        d = self.parts[k][idx - (int(self.ends[k - 1]) if k else 0)]
+        up = getattr(d, "up", None)
+        return Data(x=d.x, pos=d.pos, mask=d.mask,
+                    up=torch.tensor([[0.0, 0.0, 1.0]]) if up is None else up.view(1, 3))
+
+
+def up_views(root, num: int, grid="icosahedral:5", progress: bool = True):
+    """``num`` cheap upright panoramas on ``grid`` (:class:`~usf_graph.datasets.RoomsGravity`,
+    rendered once under ``root``) for the protocols' up estimate, or ``None`` for 0."""
+    if not num:
+        return None
+    from ..datasets import RoomsGravity
+
+    return RoomsGravity(root, num, grid=grid, progress=progress)
+
+
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                 progress: bool = True, log_dir=None, caps: float = 0.0,
-                cap_degrees: tuple[float, float] = (45.0, 100.0)) -> None:
-    """Trains ``net.gravity`` alone on ``train`` (views of known gravity) for ``epochs``,
+                cap_degrees: tuple[float, float] = (45.0, 100.0), extra=None) -> None:
+    """Trains ``net.gravity`` alone on ``train`` (views of known gravity), and ``extra``
+    views when given (e.g. :class:`~usf_graph.datasets.RoomsGravity`), for ``epochs``,
     then freezes it: the segmenter's own training then reads the known gravity and never
-    runs it. The up estimate is small (tens of ms a step), so it can see the views many
-    more times than the segmenter at little cost, which it needs (README). ``caps`` and
-    ``cap_degrees``: see :func:`up_step`."""
+    runs it. The up estimate is small (tens of ms a step), so it can see many views at
+    little cost, which it needs (README). ``caps`` and ``cap_degrees``: see
+    :func:`up_step`."""
     from .engine import fit
 
+    if extra is not None:
+        train = UpViews(train, extra)
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=log_dir, progress=progress, name="up estimate",
         step=partial(up_step, caps=caps, cap_degrees=tuple(cap_degrees)))
     net.gravity.requires_grad_(False)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+           "UP_CAP_DEGREES",
            "random_cap"]

@@ -36,7 +36,16 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss, views_up
+from .gravity import (
+    UP_CAP_DEGREES,
+    given_up,
+    known_up,
+    pretrain_up,
+    trains_up,
+    up_loss,
+    up_views,
+    views_up,
+)
 from .seg_metrics import confusion_matrix, median_frequency_weights, per_image_miou, scores
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
@@ -238,17 +247,18 @@ def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_
 
 def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, lr: float,
                 seed: int, progress: bool, balance: float, up_epochs: int, shared: dict,
-                label: str | None = None) -> None:
+                label: str | None = None, up_kw: dict | None = None) -> None:
     """The protocols' recipe for one model on ``train``, logging under ``out / name``:
     class weights ``balance`` (:func:`balanced_weights`); for a spherical model first the up
     estimate, trained alone for ``up_epochs`` on the first use (under ``out /
     "up_estimate"``), kept in ``shared`` for the next models and frozen
     (:func:`~usf_graph.train.gravity.pretrain_up`; ``up_epochs=0``: trained with the
-    segmenter instead). ``label``: the progress bars' name (default ``name``)."""
+    segmenter instead; ``up_kw``: more of its keyword arguments). ``label``: the progress
+    bars' name (default ``name``)."""
     if getattr(net, "gravity", None) is not None and up_epochs:
         if "up" not in shared:
             pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
-                        log_dir=out / "up_estimate")
+                        log_dir=out / "up_estimate", **(up_kw or {}))
             shared["up"] = net.gravity.state_dict()
         net.gravity.load_state_dict(shared["up"])
         net.gravity.requires_grad_(False)
@@ -260,7 +270,8 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         num_train: int = 400, num_test: int = 50, epochs: int = 8, batch_size: int = 8,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
-        balance: float = 0.5, up_epochs: int = 24, upright: bool = True) -> dict:
+        balance: float = 0.5, up_epochs: int = 24, upright: bool = True, up_extra: int = 0,
+        up_caps: float = 0.0) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
     ``upright``: as :func:`make_model`'s.
@@ -268,19 +279,24 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     ``balance``: the class weights' power (:func:`balanced_weights`), for every model.
     ``up_epochs``: epochs of the spherical models' up estimate, trained once alone
     (:func:`~usf_graph.train.gravity.pretrain_up`) and shared (0: trained with the
-    segmenter instead)."""
+    segmenter instead). ``up_extra`` cheap panoramas of other rooms
+    (:class:`~usf_graph.datasets.RoomsGravity`) and a share ``up_caps`` of batches seen
+    through random caps train it better (as :func:`usf_graph.train.det.run` does, README),
+    but take the protocol past its 15 minutes, so they are off by default."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
     sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
-               "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright}
+               "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
+               "up_extra": up_extra, "up_caps": up_caps}
     preds, shared = {}, {}
+    up_kw = dict(caps=up_caps, cap_degrees=UP_CAP_DEGREES, extra=up_views(root, up_extra, f"icosahedral:{level}", progress))
     for name in models:
         net = make_model(name, level, upright)
         t = time.time()
         train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
-                    balance, up_epochs, shared)
+                    balance, up_epochs, shared, up_kw=up_kw)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
