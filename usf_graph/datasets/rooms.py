@@ -65,7 +65,27 @@ def grid_labels(scene, position, rotation, pos: np.ndarray, mask: np.ndarray) ->
     return y
 
 
-class _Rooms(Dataset):
+def _cache_name(prefix: str, **key) -> str:
+    """A processed file name that changes with everything the rendering depends on."""
+    import hashlib
+    import json
+
+    h = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    return f"{prefix}_{h}.pt"
+
+
+class _Rendered(Dataset):
+    """A dataset rendered here: there are no raw files and nothing to download."""
+
+    @property
+    def raw_file_names(self):
+        return []
+
+    def download(self):
+        pass
+
+
+class _Rooms(_Rendered):
     """Renders, lifts and stores a split once under ``root/processed``; loads it after."""
 
     def __init__(self, root, split: str = "train", camera: Camera | None = None,
@@ -88,21 +108,9 @@ class _Rooms(Dataset):
 
     # -- storage -------------------------------------------------------------------
     @property
-    def raw_file_names(self):
-        return []
-
-    def download(self):  # rendered, nothing to download
-        pass
-
-    @property
     def processed_file_names(self):
-        import hashlib
-        import json
-
-        key = json.dumps({"camera": self.camera.key(), "grid": self.grid.spec,
-                          "interp": self.interpolation, "n": self.num_scenes}, sort_keys=True)
-        h = hashlib.sha256(key.encode()).hexdigest()[:12]
-        return [f"rooms_{self.split}_{self.rotate}_s{self.seed}_{h}.pt"]
+        return [_cache_name(f"rooms_{self.split}_{self.rotate}_s{self.seed}", camera=self.camera.key(),
+                            grid=self.grid.spec, interp=self.interpolation, n=self.num_scenes)]
 
     def _load(self):
         blob = load_or_rebuild(self.processed_paths[0], self.process,
@@ -210,7 +218,7 @@ class RoomsDetection(_Rooms):
         return add_boxes(super().get(idx), self, idx)
 
 
-class RoomsGravity(Dataset):
+class RoomsGravity(_Rendered):
     r"""Upright panoramas of procedural rooms that carry only their signal and gravity: cheap
     extra views for training an up estimate (:func:`~usf_graph.train.gravity.pretrain_up`),
     which needs many more rooms than a segmenter or a detector does (README).
@@ -235,20 +243,9 @@ class RoomsGravity(Dataset):
         self.x = blob["x"]
 
     @property
-    def raw_file_names(self):
-        return []
-
-    def download(self):  # rendered, nothing to download
-        pass
-
-    @property
     def processed_file_names(self):
-        import hashlib
-        import json
-
-        key = json.dumps({"camera": self.camera.key(), "grid": self.grid.spec,
-                          "n": self.num_scenes}, sort_keys=True)
-        return [f"rooms_gravity_s{self.seed}_{hashlib.sha256(key.encode()).hexdigest()[:12]}.pt"]
+        return [_cache_name(f"rooms_gravity_s{self.seed}", camera=self.camera.key(),
+                            grid=self.grid.spec, n=self.num_scenes)]
 
     def process(self):
         xs = []
