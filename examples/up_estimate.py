@@ -7,7 +7,7 @@ fisheye and (d) the 90-degree pinhole (zero-shot, on what each lens sees), after
 polish (:class:`~usf_graph.models.UpPolish`), with the head's own median beside it.
 
     .venv/bin/python examples/up_estimate.py [--num-train 400] [--epochs 24] [--no-edge-votes] [--caps 0.5]
-        [--cap-degrees 45 100]
+        [--cap-degrees 45 100] [--extra 1600]
 
 About 75 s for 400 rooms x 24 epochs on 2 cores, after the rooms are rendered (``data/rooms``).
 """
@@ -23,7 +23,7 @@ from torch import nn
 
 from usf_graph.geometry import geodesic_distance
 from usf_graph.models import UpNet
-from usf_graph.train.gravity import pretrain_up
+from usf_graph.train.gravity import pretrain_up, up_views
 from usf_graph.train.seg import protocol_sets
 
 
@@ -56,6 +56,8 @@ def main(argv=None) -> dict:
                    help="share of training batches seen through a random cap only")
     p.add_argument("--cap-degrees", type=float, nargs=2, default=(45.0, 100.0),
                    metavar=("MIN", "MAX"), help="the random caps' angular radius range")
+    p.add_argument("--extra", type=int, default=0,
+                   help="cheap upright panoramas of other rooms added to training (RoomsGravity)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
@@ -66,7 +68,8 @@ def main(argv=None) -> dict:
     holder.gravity = UpNet(3, a.level, edge_votes=not a.no_edge_votes)
     t = time.time()
     pretrain_up(holder, sets["train"], a.epochs, seed=a.seed, progress=not a.no_progress,
-                caps=a.caps, cap_degrees=a.cap_degrees)
+                caps=a.caps, cap_degrees=a.cap_degrees,
+                extra=up_views(a.root, a.extra, f"icosahedral:{a.level}", not a.no_progress))
     res = {"seconds": round(time.time() - t, 1)}
     up_net = holder.gravity.eval()
     for k in ("train", "a", "c", "d"):

@@ -28,11 +28,10 @@ def add_train_options(t) -> None:
                         "on stanford2d3ds)")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=int, default=None,
-                   help="cheap extra panoramas of other rooms (det 1600; seg 0, as 1600 takes it "
-                        "past its 15 minutes)")
+                   help="cheap extra panoramas of other rooms (det 1600, seg 800)")
     u.add_argument("--up-caps", type=float, default=None,
-                   help="share of its batches seen through random 40-100 degree caps (det 0.5, seg 0)")
-    u.add_argument("--up-epochs", type=int, default=None, help="its epochs (det 12, seg 24)")
+                   help="share of its batches seen through random 40-100 degree caps (0.5)")
+    u.add_argument("--up-epochs", type=int, default=None, help="its epochs (det 12, seg 8)")
 
 
 def up_kwargs(args, run) -> dict:
