@@ -92,6 +92,16 @@ def test_detection_boxes_match_a_direct_rendering(root):
     assert batch.boxes_batch.bincount().tolist() == [len(ds[i].boxes) for i in range(3)]
 
 
+def test_segmentation_splits_skip_boxes_and_never_share_a_detection_file(root):
+    """Segmentation renders without boxes (the same images and labels), so it must not
+    store its split where a detection split of the same arguments would look."""
+    seg, det = RoomsSegmentation(root, "test", **KW), RoomsDetection(root, "test", **KW)
+    assert seg.processed_paths != det.processed_paths
+    assert torch.equal(seg.x, det.x) and torch.equal(seg.y, det.y)
+    assert len(seg.boxes) == 0 and len(det.boxes) > 0 and "boxes" not in seg[0]
+    assert len(RoomsDetection(root, "test", **KW).boxes) == len(det.boxes)  # reloaded, boxes intact
+
+
 def test_corrupt_file_is_rendered_again(root):
     ds = RoomsSegmentation(root, "train", num_scenes=2, grid="icosahedral:2", progress=False)
     path = ds.processed_paths[0]
