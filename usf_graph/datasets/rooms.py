@@ -88,7 +88,7 @@ class _Rendered(Dataset):
 class _Rooms(_Rendered):
     """Renders, lifts and stores a split once under ``root/processed``; loads it after."""
 
-    boxes = True  # whether views list their objects' boxes (about 60% of a render's time)
+    renders_boxes = True  # whether views list their objects' boxes (about 60% of a render's time)
 
     def __init__(self, root, split: str = "train", camera: Camera | None = None,
                  grid="icosahedral:5", num_scenes: int | None = None, rotate: str = "none",
@@ -111,7 +111,7 @@ class _Rooms(_Rendered):
     # -- storage -------------------------------------------------------------------
     @property
     def processed_file_names(self):
-        no_boxes = {} if type(self).boxes else {"boxes": False}  # a split with boxes keeps its name
+        no_boxes = {} if self.renders_boxes else {"boxes": False}  # a split with boxes keeps its name
         return [_cache_name(f"rooms_{self.split}_{self.rotate}_s{self.seed}", camera=self.camera.key(),
                             grid=self.grid.spec, interp=self.interpolation, n=self.num_scenes, **no_boxes)]
 
@@ -143,7 +143,7 @@ class _Rooms(_Rendered):
                       disable=not self.progress, leave=False):
             scene = make_room(scene_seed, i)
             p, R = view_pose(scene, self.rotate, i, scene_seed)
-            view = render(scene, self.camera, position=p, rotation=R, boxes=type(self).boxes)
+            view = render(scene, self.camera, position=p, rotation=R, boxes=self.renders_boxes)
             xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
             ys.append(grid_labels(scene, p, R, pos, mask))
             masks.append(mask)
@@ -202,7 +202,7 @@ class RoomsSegmentation(_Rooms):
     ``dataset.mask``, ``dataset.image``, ``dataset.label_image``.
     """
 
-    boxes = False  # segmentation reads no boxes, and a render is 2.5x faster without them
+    renders_boxes = False  # segmentation reads no boxes, and a render is 2.5x faster without them
 
 
 class RoomsDetection(_Rooms):
