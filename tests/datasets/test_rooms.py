@@ -137,3 +137,14 @@ def test_gravity_views_are_a_train_splits_views_without_labels_or_boxes(root):
     assert not torch.equal(other.x, train.x)
     with pytest.raises(ValueError, match="num_scenes must be at least 1"):
         RoomsGravity(root, 0)
+
+
+def test_gravity_views_are_cut_from_a_larger_stored_split(tmp_path, monkeypatch):
+    cam = cameras.Equirectangular(64, 32)
+    kw = dict(camera=cam, grid="icosahedral:2", progress=False)
+    big = RoomsGravity(tmp_path, 4, **kw)
+    monkeypatch.setattr("usf_graph.datasets.rooms.render", lambda *a, **k: 1 / 0)  # no rendering
+    small = RoomsGravity(tmp_path, 2, **kw)
+    assert torch.equal(small.x, big.x[:2]) and small.processed_paths != big.processed_paths
+    with pytest.raises(ZeroDivisionError):  # another seed's rooms are not cut from it
+        RoomsGravity(tmp_path, 2, seed=3, **kw)

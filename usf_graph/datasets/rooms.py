@@ -247,19 +247,44 @@ class RoomsGravity(_Rendered):
         self.x = blob["x"]
 
     @property
+    def _stem(self) -> str:
+        return _cache_name(f"rooms_gravity_s{self.seed}", camera=self.camera.key(),
+                           grid=self.grid.spec)[:-len(".pt")]
+
+    @property
     def processed_file_names(self):
-        return [_cache_name(f"rooms_gravity_s{self.seed}", camera=self.camera.key(),
-                            grid=self.grid.spec, n=self.num_scenes)]
+        return [f"{self._stem}_n{self.num_scenes}.pt"]
 
     def process(self):
-        xs = []
-        for i in tqdm(range(self.num_scenes), desc="rendering rooms for the up estimate",
-                      disable=not self.progress, leave=False):
-            scene = make_room(self.seed, i)
-            p, R = view_pose(scene, "none", i, self.seed)
-            view = render(scene, self.camera, position=p, rotation=R, boxes=False)
-            xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
-        atomic_torch_save({"x": torch.stack(xs).to(torch.float16)}, self.processed_paths[0])
+        x = self._from_larger_split()
+        if x is None:
+            xs = []
+            for i in tqdm(range(self.num_scenes), desc="rendering rooms for the up estimate",
+                          disable=not self.progress, leave=False):
+                scene = make_room(self.seed, i)
+                p, R = view_pose(scene, "none", i, self.seed)
+                view = render(scene, self.camera, position=p, rotation=R, boxes=False)
+                xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
+            x = torch.stack(xs).to(torch.float16)
+        atomic_torch_save({"x": x}, self.processed_paths[0])
+
+    def _from_larger_split(self) -> torch.Tensor | None:
+        """The first views of a larger stored split of the same seed, camera and grid (view
+        i depends on the seed and i only; e.g. the segmentation protocol's 800 after the
+        detection protocol's 1,600), or ``None``."""
+        from pathlib import Path
+
+        for path in sorted(Path(self.processed_dir).glob(f"{self._stem}_n*.pt")):
+            n = path.stem.rsplit("_n", 1)[-1]
+            if not n.isdigit() or int(n) <= self.num_scenes:
+                continue
+            try:
+                x = torch.load(path, weights_only=True)["x"]
+            except Exception:  # noqa: BLE001 - an unreadable file is simply not used
+                continue
+            if len(x) == int(n):
+                return x[:self.num_scenes].clone()
+        return None
 
     def len(self) -> int:
         return len(self.x)
