@@ -88,6 +88,13 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     assert np.array_equal(points, want.numpy()) and not (rot.gravity[:, 2] > 0.999).all()
 
 
+def test_a_planar_only_protocol_renders_no_views_for_an_up_estimate(tmp_path):
+    run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, level=3, num_train=2,
+        num_test=1, epochs=1, batch_size=2, progress=False, models=("planar_unet",), up_extra=2)
+    assert not list((tmp_path / "rooms" / "processed").glob("rooms_gravity_*.pt"))
+    assert (tmp_path / "out" / "planar_unet.pt").is_file()
+
+
 def test_pyg_batches_feed_both_model_kinds(tmp_path):
     sets = protocol_sets(tmp_path, size=32, level=3, num_train=0, num_test=2, tests=("c",),
                          progress=False)

@@ -37,7 +37,6 @@ from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
 from .gravity import (
-    UP_CAP_DEGREES,
     given_up,
     known_up,
     pretrain_up,
@@ -292,7 +291,9 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
                "up_extra": up_extra, "up_caps": up_caps}
     preds, shared = {}, {}
-    up_kw = dict(caps=up_caps, cap_degrees=UP_CAP_DEGREES, extra=up_views(root, up_extra, f"icosahedral:{level}", progress))
+    trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
+    extra = up_views(root, up_extra, f"icosahedral:{level}", progress) if trains_estimate else None
+    up_kw = dict(caps=up_caps, extra=extra)
     for name in models:
         seed_everything(seed)
         net = make_model(name, level, upright)
