@@ -27,7 +27,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import UP_CAP_DEGREES, given_up, known_up, pretrain_up, trains_up, up_loss, up_views
+from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss, up_views
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -232,7 +232,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         results["samples"]["up_extra"] = up_extra
         pretrain_up(spherical, sets["train"][:up_train], up_epochs, batch_size, seed=seed,
                     progress=progress, log_dir=out / "up_estimate", caps=up_caps,
-                    cap_degrees=UP_CAP_DEGREES, extra=up_views(root, up_extra, progress=progress))
+                    extra=up_views(root, up_extra, progress=progress))
     models = {"spherical": (spherical, DetectionSet.spherical, epochs)}
     if planar:
         w, h = 2 * size, size

@@ -73,7 +73,7 @@ def random_cap(pos: torch.Tensor, min_deg: float = 45.0, max_deg: float = 100.0,
     return pos.double() @ c > math.cos(r)
 
 
-def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = (45.0, 100.0)):
+def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = UP_CAP_DEGREES):
     """The engine's step for an :class:`~usf_graph.models.UpNet` alone, on PyG batches of
     views of known gravity (:func:`known_up`): :meth:`GravityHead.loss`. With probability
     ``caps`` the batch is seen through a :func:`random_cap` only (a smaller lens), of an
@@ -125,7 +125,7 @@ def up_views(root, num: int, grid="icosahedral:5", progress: bool = True):
 
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                 progress: bool = True, log_dir=None, caps: float = 0.0,
-                cap_degrees: tuple[float, float] = (45.0, 100.0), extra=None) -> None:
+                cap_degrees: tuple[float, float] = UP_CAP_DEGREES, extra=None) -> None:
     """Trains ``net.gravity`` alone on ``train`` (views of known gravity), and ``extra``
     views when given (e.g. :class:`~usf_graph.datasets.RoomsGravity`), for ``epochs``,
     then freezes it: the segmenter's own training then reads the known gravity and never
