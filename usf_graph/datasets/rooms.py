@@ -65,13 +65,13 @@ def grid_labels(scene, position, rotation, pos: np.ndarray, mask: np.ndarray) ->
     return y
 
 
-def _cache_name(prefix: str, **key) -> str:
-    """A processed file name that changes with everything the rendering depends on."""
+def _cache_stem(prefix: str, **key) -> str:
+    """A processed file's name, less its extension, that changes with everything the
+    rendering depends on."""
     import hashlib
     import json
 
-    h = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
-    return f"{prefix}_{h}.pt"
+    return f"{prefix}_{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]}"
 
 
 class _Rendered(Dataset):
@@ -112,8 +112,9 @@ class _Rooms(_Rendered):
     @property
     def processed_file_names(self):
         no_boxes = {} if self.renders_boxes else {"boxes": False}  # a split with boxes keeps its name
-        return [_cache_name(f"rooms_{self.split}_{self.rotate}_s{self.seed}", camera=self.camera.key(),
-                            grid=self.grid.spec, interp=self.interpolation, n=self.num_scenes, **no_boxes)]
+        return [_cache_stem(f"rooms_{self.split}_{self.rotate}_s{self.seed}", camera=self.camera.key(),
+                            grid=self.grid.spec, interp=self.interpolation, n=self.num_scenes,
+                            **no_boxes) + ".pt"]
 
     def _load(self):
         blob = load_or_rebuild(self.processed_paths[0], self.process,
@@ -248,8 +249,7 @@ class RoomsGravity(_Rendered):
 
     @property
     def _stem(self) -> str:
-        return _cache_name(f"rooms_gravity_s{self.seed}", camera=self.camera.key(),
-                           grid=self.grid.spec)[:-len(".pt")]
+        return _cache_stem(f"rooms_gravity_s{self.seed}", camera=self.camera.key(), grid=self.grid.spec)
 
     @property
     def processed_file_names(self):
