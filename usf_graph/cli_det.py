@@ -85,7 +85,7 @@ def cmd_eval_det(args) -> int:
     from .models import PlanarDetector, SphericalDetector
     from .train import load_checkpoint
     from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
-    from .train.gravity import views_up
+    from .train.gravity import format_up_report, up_report, views_up
 
     blob = load_checkpoint(args.checkpoint)
     cfg = blob["config"]
@@ -102,6 +102,9 @@ def cmd_eval_det(args) -> int:
         up = views_up(ds) if args.known_up and not planar else None
         r = score(predict(model, data, up=up), data, model.num_classes)
         print(f"({k}) " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
+        if getattr(model, "gravity", None) is not None:
+            print(f"({k}) " + format_up_report(up_report(model.gravity, data.x, data.mask,
+                                                         views_up(ds))))
         if args.boxes:
             q = box_quality(model, data)
             print(f"({k}) each true box decoded at its centre point: IoU median "

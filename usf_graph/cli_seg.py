@@ -43,6 +43,7 @@ def cmd_train_seg(args) -> int:
 
 def cmd_eval_seg(args) -> int:
     from .train import load_checkpoint
+    from .train.gravity import format_up_report
     from .train.seg import MODELS, PROTOCOL, evaluate_protocol, protocol_sets
 
     blob = load_checkpoint(args.checkpoint)
@@ -60,4 +61,6 @@ def cmd_eval_seg(args) -> int:
     for k, r in res.items():
         print(f"({k}) " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
                                     ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))
+        if "up" in r:
+            print(f"({k}) " + format_up_report(r["up"]))
     return 0

@@ -3,6 +3,7 @@ hand-set field turns into an exact up detector; its loss and its errors."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -240,12 +241,8 @@ def test_polish_rotates_with_the_input_and_ignores_hidden_points():
     a = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), dim=0)
     x = _meridian_stripes(p, a, gen) + 0.05 * torch.randn(1, len(p), 3, generator=gen, dtype=torch.float64)
     u0 = _tilt(a, 10.0, gen)[None]
-    # a rotation that maps the grid onto itself: 72 degrees about a vertex
-    axis = p[0]
-    K = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    t = 2 * math.pi / 5
-    R = torch.eye(3, dtype=torch.float64) + math.sin(t) * K + (1 - math.cos(t)) * K @ K
-    mask = p @ axis > -0.4  # symmetric about the rotation axis
+    R = _vertex_rotation(p[0])  # maps the grid onto itself
+    mask = p @ p[0] > -0.4  # symmetric about the rotation axis
     xr = torch.empty_like(x)
     xr[:, symmetry_permutation(p, R)] = x
     u, ur = polish(x, mask, u0), polish(xr, mask, u0 @ R.T)
@@ -268,3 +265,62 @@ def test_polish_survives_an_edge_right_at_the_estimate_in_float32():
     u = polish(x.expand(64, -1, -1), None, u0)
     assert u.dtype == torch.float32 and torch.isfinite(u).all()
     assert torch.allclose(u.norm(dim=-1), torch.ones(64), atol=1e-6)
+
+
+def _vertex_rotation(axis: torch.Tensor, turns: int = 1) -> torch.Tensor:
+    """A rotation by ``turns`` fifths of a turn about ``axis``: a symmetry of the
+    icosahedral grids when ``axis`` is one of their vertices."""
+    K = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    t = 2 * math.pi * turns / 5
+    return torch.eye(3, dtype=torch.float64) + math.sin(t) * K + (1 - math.cos(t)) * K @ K
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_margin_is_the_lead_of_the_best_score_over_directions_45_degrees_away(seed):
+    """Checked against the definition, written with angles in degrees: the best score minus
+    the best among candidates more than 45 degrees from the best candidate."""
+    gen = torch.Generator().manual_seed(seed)
+    coarse = grids.icosahedral(2)
+    torch.manual_seed(seed)
+    head = GravityHead(coarse, channels=3).double()
+    out = head(torch.randn(4, len(coarse), 3, generator=gen, dtype=torch.float64))
+    cand = head.candidates.numpy()
+    for logits, margin in zip(out["logits"].detach().numpy(), out["margin"].detach().numpy()):
+        best = cand[logits.argmax()]
+        deg = np.degrees(np.arccos(np.clip(cand @ best, -1, 1)))
+        assert margin == pytest.approx(logits.max() - logits[deg > 45].max(), abs=1e-12)
+        assert margin >= 0
+
+
+def test_margin_is_zero_on_a_blank_image_and_grows_with_the_evidence():
+    """No content, no preferred direction: every candidate ties, margin 0 (below
+    UNSURE_MARGIN). A "height" field makes one direction win, by more the stronger it is."""
+    from usf_graph.models.gravity import UNSURE_MARGIN
+
+    coarse = grids.icosahedral(2)
+    head = GravityHead(coarse, channels=1).double()
+    _set_cosine_detector(head, gain=400.0)
+    g = torch.nn.functional.normalize(torch.tensor([[0.2, -0.4, 0.9]], dtype=torch.float64), dim=-1)
+    f = (g @ coarse.pos.double().T)[..., None]
+    with torch.no_grad():
+        assert float(head(torch.zeros_like(f))["margin"]) == 0.0
+        weak, strong = head(0.01 * f)["margin"], head(f)["margin"]
+    assert float(weak) < UNSURE_MARGIN < float(strong)
+    torch.testing.assert_close(strong, 100 * weak)  # linear in the evidence here
+
+
+def test_margin_does_not_change_when_the_image_rotates():
+    from usf_graph.testing import symmetry_permutation
+
+    gen = torch.Generator().manual_seed(3)
+    coarse = grids.icosahedral(2)
+    torch.manual_seed(3)
+    head = GravityHead(coarse, channels=2).double()
+    p = coarse.pos.double()
+    R = _vertex_rotation(p[5], turns=2)
+    f = torch.randn(2, len(p), 2, generator=gen, dtype=torch.float64)
+    fr = torch.empty_like(f)
+    fr[:, symmetry_permutation(p, R)] = f
+    a, b = head(f), head(fr)
+    torch.testing.assert_close(b["margin"], a["margin"], rtol=0, atol=1e-10)
+    torch.testing.assert_close(b["up"], a["up"] @ R.T, rtol=0, atol=1e-10)

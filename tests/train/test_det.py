@@ -15,7 +15,7 @@ from usf_graph.train.det import PROTOCOL, DetectionSet, format_table, predict, p
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 
 
-def test_protocol_runs_and_scores_every_test(tmp_path):
+def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, num_train=3, num_test=2,
               epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
@@ -27,7 +27,12 @@ def test_protocol_runs_and_scores_every_test(tmp_path):
     assert len((tmp_path / "out" / "spherical" / "metrics.csv").read_text().splitlines()) == 2
     for name in ("spherical", "planar"):
         for k in PROTOCOL:
-            r = saved[name][k]
+            r = dict(saved[name][k])
+            # the spherical detector's up estimate, scored against each view's gravity
+            up = r.pop("up", None)
+            assert (up is None) == (name == "planar")
+            if up is not None:
+                assert up["views"] == 2 and 0 <= up["gross_unsure"] <= min(up["gross"], up["unsure"]) <= 2
             assert set(r) == {"AP", "AP50", "AP75", "usf_mAP@10", "usf_mAP@50"}
             assert all(-1 <= v <= 1 for v in r.values())
         assert (tmp_path / "out" / f"{name}.pt").is_file()
@@ -37,9 +42,19 @@ def test_protocol_runs_and_scores_every_test(tmp_path):
     assert saved["boxes"]["c"] <= saved["boxes"]["a"] and saved["boxes"]["b"] == saved["boxes"]["a"]
     # eval det reads the checkpoints back (--known-up: each view's true gravity)
     for name in ("spherical", "planar"):
+        capsys.readouterr()
         assert main(["eval", "det", str(tmp_path / "out" / f"{name}.pt"), "--root",
                      str(tmp_path / "rooms"), "--size", "32", "--num-test", "2", "--test", "a",
                      "b", "--known-up"]) == 0
+        out = capsys.readouterr().out
+        # the estimate's report, as the protocol recorded it (the planar one has none)
+        for k in ("a", "b"):
+            if name == "planar":
+                assert f"({k}) up estimate" not in out
+            else:
+                up = saved[name][k]["up"]
+                assert (f"({k}) up estimate: median error {up['median_err_deg']:.1f} deg, "
+                        f"{up['gross']} of 2 views") in out
     blob = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)
     net = SphericalDetector.from_config(blob["config"])
     net.load_state_dict(blob["state_dict"])

@@ -62,3 +62,29 @@ def test_pretrain_up_reads_the_extra_views():
     holder.gravity = UpNet(3, 3)
     with pytest.raises((ValueError, FloatingPointError), match="NaN|non-finite"):
         pretrain_up(holder, views[:1], epochs=1, batch_size=1, progress=False, extra=[bad])
+
+
+class _FixedEstimate(nn.Module):
+    """An up estimate that answers given directions and margins, in order."""
+
+    def __init__(self, up, margin):
+        super().__init__()
+        self.up, self.margin, self.seen = up, margin, 0
+
+    def forward(self, x, mask=None):
+        s, self.seen = self.seen, self.seen + len(x)
+        return {"up": self.up[s:self.seen], "margin": self.margin[s:self.seen]}
+
+
+def test_up_report_counts_gross_errors_and_the_views_it_was_unsure_of():
+    from usf_graph.models.gravity import UNSURE_MARGIN
+    from usf_graph.train.gravity import format_up_report, up_report
+
+    z, x_ax = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([1.0, 0.0, 0.0])
+    tilt = torch.tensor([0.0, 0.5 ** 0.5, 0.5 ** 0.5])  # 45 degrees: wrong, not gross
+    up = torch.stack([z, z, tilt, x_ax, -z])
+    margin = torch.tensor([5.0, 0.5, 3.0, 0.2, 2.0]) * UNSURE_MARGIN
+    r = up_report(_FixedEstimate(up, margin), torch.zeros(5, 7, 3), None, z.expand(5, 3),
+                  batch_size=2)
+    assert r == {"views": 5, "median_err_deg": 45.0, "gross": 2, "unsure": 2, "gross_unsure": 1}
+    assert format_up_report(r).startswith("up estimate: median error 45.0 deg, 2 of 5 views")

@@ -54,6 +54,9 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
             r = saved[name][k]
             assert 0 <= r["mIoU"] <= 1 and 0 <= r["mAcc"] <= 1
             assert ("sphere_mIoU" in r) == name.startswith("spherical")
+            assert ("up" in r) == name.startswith("spherical")  # its estimate's report
+            if "up" in r:
+                assert r["up"]["views"] == 2 and 0 <= r["up"]["median_err_deg"] <= 180
         assert (tmp_path / "out" / f"{name}.pt").is_file()
     assert (tmp_path / "out" / "seg_results.png").is_file()
     assert "(e) finer grid" in format_table(res) and "| planar_unet |" in format_table(res)
@@ -64,6 +67,8 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     out = capsys.readouterr().out
     for k in ("b", "e"):
         assert f"({k}) mIoU {100 * saved['spherical_unet'][k]['mIoU']:.2f}" in out
+        up = saved["spherical_unet"][k]["up"]
+        assert f"({k}) up estimate: median error {up['median_err_deg']:.1f} deg" in out
     # --known-up: each view's true gravity instead of the estimate, the rotated ones too
     ckpt = str(tmp_path / "out" / "spherical_unet.pt")
     assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",

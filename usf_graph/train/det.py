@@ -27,7 +27,16 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .gravity import given_up, known_up, pretrain_up, trains_up, up_loss, up_views
+from .gravity import (
+    given_up,
+    known_up,
+    pretrain_up,
+    trains_up,
+    up_loss,
+    up_report,
+    up_views,
+    views_up,
+)
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
@@ -254,6 +263,9 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         for k in PROTOCOL:
             preds[name][k] = predict(net, data[k], progress=progress, desc=f"{name} ({k})")
             results[name][k] = score(preds[name][k], data[k], C)
+            if getattr(net, "gravity", None) is not None:
+                results[name][k]["up"] = up_report(net.gravity, data[k].x, data[k].mask,
+                                                   views_up(sets[k]))
         save_checkpoint(out / f"{name}.pt", net, net.config, results[name])
     if rank != 0:
         return {}

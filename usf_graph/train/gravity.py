@@ -12,6 +12,7 @@ import torch
 from torch_geometric.data import Data, Dataset
 
 from ..geometry import geodesic_distance
+from ..models.gravity import UNSURE_MARGIN
 from ..nn.batching import to_static
 
 #: Weight of the up estimate's loss (:meth:`GravityHead.loss`) in a training step.
@@ -21,6 +22,9 @@ UP_CAP_DEGREES = (40.0, 100.0)
 #: Noise (per axis) on the true up that the network reads in training, so that it learns
 #: to tolerate the estimate's error at test time.
 UP_JITTER = 0.05
+#: An up estimate farther than this (degrees) from the true up is a gross error in reports:
+#: the wrong one of a room's vanishing directions, not an imprecise right one.
+GROSS_DEGREES = 60.0
 
 
 def known_up(batch, n: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -50,6 +54,34 @@ def given_up(up: torch.Tensor | None, x: torch.Tensor, start: int = 0) -> dict:
         return {}
     up = up.to(x.dtype)
     return {"up": up[start:start + len(x)] if up.dim() == 2 else up.expand(len(x), 3)}
+
+
+@torch.no_grad()
+def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
+              batch_size: int = 16) -> dict:
+    """How an up estimate (an :class:`~usf_graph.models.UpNet`, e.g. ``model.gravity``) fared
+    on views ``x [S, N, C]`` (``mask [N]`` or ``None``) of known gravity ``g [S, 3]``: the
+    median error in degrees, the number of ``gross`` errors (over :data:`GROSS_DEGREES`),
+    of views it is ``unsure`` of (``margin`` below
+    :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
+    gravity.eval()
+    ups, margins = [], []
+    for s in range(0, len(x), batch_size):
+        out = gravity(x[s:s + batch_size].float(), mask)
+        ups.append(out["up"])
+        margins.append(out["margin"])
+    err = torch.rad2deg(geodesic_distance(torch.cat(ups).double(), g.double()))
+    gross, unsure = err > GROSS_DEGREES, torch.cat(margins) < UNSURE_MARGIN
+    return {"views": len(err), "median_err_deg": round(float(err.quantile(0.5)), 2),
+            "gross": int(gross.sum()), "unsure": int(unsure.sum()),
+            "gross_unsure": int((gross & unsure).sum())}
+
+
+def format_up_report(r: dict) -> str:
+    """One line of :func:`up_report`'s numbers."""
+    return (f"up estimate: median error {r['median_err_deg']:.1f} deg, {r['gross']} of {r['views']} "
+            f"views over {GROSS_DEGREES:.0f} deg ({r['gross_unsure']} of them flagged unsure); "
+            f"{r['unsure']} flagged unsure in all")
 
 
 def up_loss(head, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
@@ -142,6 +174,6 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
     net.gravity.requires_grad_(False)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES",
            "random_cap"]

@@ -42,6 +42,7 @@ from .gravity import (
     pretrain_up,
     trains_up,
     up_loss,
+    up_report,
     up_views,
     views_up,
 )
@@ -221,7 +222,9 @@ def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
                       name: str = "model", known_up: bool = False) -> tuple[dict, dict]:
     """Scores and pixel predictions of one trained model on the protocol's test sets;
-    ``known_up``: a spherical model reads the views' true gravity (:func:`views_up`)."""
+    ``known_up``: a spherical model reads the views' true gravity (:func:`views_up`). A
+    model with an up estimate also gets its :func:`~usf_graph.train.gravity.up_report` per
+    test (``"up"``)."""
     res, preds = {}, {}
     for k in tests:
         model = net
@@ -230,6 +233,10 @@ def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = T
         up = views_up(sets[k]) if known_up and not is_planar(net) else None
         pix, pts = predict(model, sets[k], progress=progress, desc=f"{name} ({k})", up=up)
         res[k], preds[k] = score(pix, sets[k], pts), pix
+        if getattr(model, "gravity", None) is not None:
+            mask = sets[k].mask[0]
+            res[k]["up"] = up_report(model.gravity, sets[k].x, None if mask.all() else mask,
+                                     views_up(sets[k]))
     return res, preds
 
 
