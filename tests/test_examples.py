@@ -70,3 +70,37 @@ def test_up_estimate_example_small_run(tmp_path):
     err = ex.up_errors(lambda x, m: {"up": torch.tensor([[0.0, 1.0, 0.0]]).expand(len(x), 3)},
                        type("DS", (), {"x": torch.zeros(3, 5, 3), "mask": torch.ones(3, 5, dtype=torch.bool)}))
     assert err.shape == (3,) and abs(err - 90).max() < 1e-4
+
+
+def test_field_of_view_example_feeds_the_four_inputs():
+    """Input 4 is the lens's image inside its field of view and the panorama outside; the
+    masks are none, the lens's, the lens's, none."""
+    ex = load("field_of_view")
+    pano, lens = torch.rand(2, 6, 3), torch.rand(2, 6, 3)
+    seen = torch.tensor([True, False, True, True, False, False])
+    calls = []
+    res = ex._four(pano, lens, seen, lambda x, m: calls.append((x, m)) or len(calls))
+    assert list(res.values()) == [1, 2, 3, 4]
+    (x1, m1), (x2, m2), (x3, m3), (x4, m4) = calls
+    assert x1 is pano and m1 is None and x2 is pano and m2 is seen and x3 is lens and m3 is seen
+    assert m4 is None and torch.equal(x4[:, seen], lens[:, seen]) and torch.equal(x4[:, ~seen], pano[:, ~seen])
+
+
+@pytest.mark.parametrize("kind", ["seg", "det"])
+def test_field_of_view_example_small_run(tmp_path, kind):
+    from usf_graph.models import SphericalDetector
+    from usf_graph.train.engine import save_checkpoint
+    from usf_graph.train.seg import make_model
+
+    torch.manual_seed(0)
+    if kind == "seg":
+        net = make_model("spherical_unet", level=3)
+        cfg = {"model": "spherical_unet", "size": 16, **net.config}
+    else:
+        net = SphericalDetector(num_classes=12, gravity=True, upright=True)
+        cfg = net.config
+    save_checkpoint(tmp_path / "net.pt", net, cfg, {})
+    res = load("field_of_view").main([str(tmp_path / "net.pt"), "--root", str(tmp_path / "rooms"),
+                                      "--num-test", "2", "--known-up"]
+                                     + (["--size", "32"] if kind == "det" else []))
+    assert len(res) == 4 and all(0 <= v <= 1 for v in res.values())
