@@ -1,5 +1,6 @@
 """Handing known gravity to a batch, and the up estimate's training views (train.gravity)."""
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -87,4 +88,11 @@ def test_up_report_counts_gross_errors_and_the_views_it_was_unsure_of():
     r = up_report(_FixedEstimate(up, margin), torch.zeros(5, 7, 3), None, z.expand(5, 3),
                   batch_size=2)
     assert r == {"views": 5, "median_err_deg": 45.0, "gross": 2, "unsure": 2, "gross_unsure": 1}
+    # it scores the estimate in evaluation mode and leaves a training module training
+    net = UpNet(3, 3, channels=(4, 4)).double()
+    x = torch.rand(2, len(icosahedral(3)), 3, dtype=torch.float64)
+    r2 = up_report(net, x, None, torch.tensor([[0.0, 0.0, 1.0]]).expand(2, 3))
+    assert net.training and r2["views"] == 2
+    want = np.median(np.degrees(np.arccos(np.clip(net.eval()(x)["up"][:, 2].numpy(), -1, 1))))
+    assert r2["median_err_deg"] == pytest.approx(want, abs=0.01)
     assert format_up_report(r).startswith("up estimate: median error 45.0 deg, 2 of 5 views")

@@ -64,12 +64,16 @@ def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tens
     median error in degrees, the number of ``gross`` errors (over :data:`GROSS_DEGREES`),
     of views it is ``unsure`` of (``margin`` below
     :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
-    gravity.eval()
+    was_training = gravity.training
+    gravity.eval()  # the polished estimate, as at test time
     ups, margins = [], []
-    for s in range(0, len(x), batch_size):
-        out = gravity(x[s:s + batch_size].float(), mask)
-        ups.append(out["up"])
-        margins.append(out["margin"])
+    try:
+        for s in range(0, len(x), batch_size):
+            out = gravity(x[s:s + batch_size].float(), mask)
+            ups.append(out["up"])
+            margins.append(out["margin"])
+    finally:
+        gravity.train(was_training)
     err = torch.rad2deg(geodesic_distance(torch.cat(ups).double(), g.double()))
     gross, unsure = err > GROSS_DEGREES, torch.cat(margins) < UNSURE_MARGIN
     return {"views": len(err), "median_err_deg": round(float(err.quantile(0.5)), 2),
