@@ -23,7 +23,7 @@ from torch import nn
 
 from usf_graph.geometry import geodesic_distance
 from usf_graph.models import UpNet
-from usf_graph.train.gravity import pretrain_up, up_views
+from usf_graph.train.gravity import pretrain_up, up_report, up_views, views_up
 from usf_graph.train.seg import protocol_sets
 
 
@@ -76,9 +76,13 @@ def main(argv=None) -> dict:
         res[k] = summary(up_errors(up_net, sets[k]))
         r = res[k]
         r["head_median_deg"] = float(np.median(up_errors(up_net, sets[k], "up_head")))
+        mask = sets[k].mask[0]
+        rep = up_report(up_net, sets[k].x, None if mask.all() else mask, views_up(sets[k]))
+        r.update(unsure=rep["unsure"], over_60deg_unsure=rep["gross_unsure"])
         print(f"({k}) up error median {r['median_deg']:.1f} deg (the head's {r['head_median_deg']:.1f} "
               f"before the polish), 90th percentile {r['p90_deg']:.1f} deg, {r['over_60deg']} of "
-              f"{r['views']} views over 60 deg", flush=True)
+              f"{r['views']} views over 60 deg ({r['over_60deg_unsure']} of them flagged unsure, "
+              f"{r['unsure']} in all)", flush=True)
     return res
 
 

@@ -66,6 +66,7 @@ def test_up_estimate_example_small_run(tmp_path):
         assert r["views"] == (4 if k == "train" else 2)
         assert 0 <= r["median_deg"] <= r["p90_deg"] <= 180 and 0 <= r["over_60deg"] <= r["views"]
         assert 0 <= r["head_median_deg"] <= 180
+        assert 0 <= r["over_60deg_unsure"] <= min(r["over_60deg"], r["unsure"]) <= r["views"]
     # the errors are the angles to +z of what the estimate returns
     err = ex.up_errors(lambda x, m: {"up": torch.tensor([[0.0, 1.0, 0.0]]).expand(len(x), 3)},
                        type("DS", (), {"x": torch.zeros(3, 5, 3), "mask": torch.ones(3, 5, dtype=torch.bool)}))
