@@ -86,8 +86,8 @@ def main(argv=None) -> dict:
     args = p.parse_args(argv)
     blob = load_checkpoint(args.checkpoint)
     cfg = dict(blob["config"])
-    name, size = cfg.pop("model", None), args.size or cfg.pop("size", None)
-    cfg.pop("size", None)
+    name, saved_size = cfg.pop("model", None), cfg.pop("size", None)
+    size = args.size or saved_size
     if name in seg.MODELS and name != "planar_unet":
         net = seg.MODELS[name].from_config(cfg)
         sets = seg.protocol_sets(args.root, size or 96, cfg.get("level", 5), num_train=0,
