@@ -257,16 +257,18 @@ class RoomsGravity(_Rendered):
 
     def process(self):
         x = self._from_larger_split()
-        if x is None:
-            xs = []
-            for i in tqdm(range(self.num_scenes), desc="rendering rooms for the up estimate",
-                          disable=not self.progress, leave=False):
-                scene = make_room(self.seed, i)
-                p, R = view_pose(scene, "none", i, self.seed)
-                view = render(scene, self.camera, position=p, rotation=R, boxes=False)
-                xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
-            x = torch.stack(xs).to(torch.float16)
-        atomic_torch_save({"x": x}, self.processed_paths[0])
+        atomic_torch_save({"x": self._render() if x is None else x}, self.processed_paths[0])
+
+    def _render(self) -> torch.Tensor:
+        """Every view rendered and lifted, ``[num_scenes, N, 3]`` float16."""
+        xs = []
+        for i in tqdm(range(self.num_scenes), desc="rendering rooms for the up estimate",
+                      disable=not self.progress, leave=False):
+            scene = make_room(self.seed, i)
+            p, R = view_pose(scene, "none", i, self.seed)
+            view = render(scene, self.camera, position=p, rotation=R, boxes=False)
+            xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
+        return torch.stack(xs).to(torch.float16)
 
     def _from_larger_split(self) -> torch.Tensor | None:
         """The first views of a larger stored split of the same seed, camera and grid (view
