@@ -33,7 +33,7 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
             assert (up is None) == (name == "planar")
             if up is not None:
                 assert up["views"] == 2 and 0 <= up["gross_unsure"] <= min(up["gross"], up["unsure"]) <= 2
-            assert set(r) == {"AP", "AP50", "AP75", "usf_mAP@10", "usf_mAP@50"}
+            assert set(r) == {"AP", "AP50", "AP75", "AR50", "usf_mAP@10", "usf_mAP@50"}
             assert all(-1 <= v <= 1 for v in r.values())
         assert (tmp_path / "out" / f"{name}.pt").is_file()
     assert (tmp_path / "out" / "det_results.png").is_file()

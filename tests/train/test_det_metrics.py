@@ -15,7 +15,8 @@ GT = [(P([0, 0, 20, 20, 0], [179, 10, 30, 20, 45]), np.array([0, 1])),
 
 def test_perfect_detections_score_one():
     dets = [(b, c, np.ones(len(c))) for b, c in GT]
-    assert coco_ap(GT, dets, 2) == pytest.approx({"AP": 1.0, "AP50": 1.0, "AP75": 1.0})
+    assert coco_ap(GT, dets, 2) == pytest.approx({"AP": 1.0, "AP50": 1.0, "AP75": 1.0,
+                                                          "AR50": 1.0})
 
 
 def test_ap_thresholds_follow_the_spherical_iou():
@@ -29,13 +30,23 @@ def test_ap_thresholds_follow_the_spherical_iou():
     assert r["AP"] == pytest.approx(0.4)
 
 
+def test_ar50_counts_found_boxes_whatever_their_rank():
+    # class 0: two true boxes, one found (ranked below a false box); class 1: its box missed
+    truth = [(P([0, 0, 20, 20, 0], [90, 0, 20, 20, 0], [179, 10, 30, 20, 45]), np.array([0, 0, 1]))]
+    dets = [(P([0, 0, 20, 20, 0], [-90, 0, 20, 20, 0]), np.array([0, 0]), np.array([0.5, 0.9]))]
+    r = coco_ap(truth, dets, 2)
+    assert r["AR50"] == pytest.approx((0.5 + 0.0) / 2)
+    # AP50: class 0 reaches precision 1/2 at recall 1/2 (101-point interpolation), class 1 none
+    assert r["AP50"] == pytest.approx((51 * 0.5 / 101 + 0.0) / 2)
+
+
 def test_seam_and_pole_matches_count_and_wrong_classes_do_not():
     # PANDORA can write the same box with lon 179 or -181 and a box over the pole in any lon
     same = P([-181, 10, 30, 20, 45], [0, 85, 30, 30, 0])
     r = coco_ap([(GT[0][0][1:], [1]), GT[1]], [(same[:1], [1], [0.8]), (same[1:], [1], [0.7])], 2)
     assert r["AP50"] == pytest.approx(1.0)
     wrong = coco_ap(GT, [(b, 1 - c if len(c) == 2 else c * 0, np.ones(len(c))) for b, c in GT], 2)
-    assert wrong["AP50"] == pytest.approx(0.0)
+    assert wrong["AP50"] == pytest.approx(0.0) and wrong["AR50"] == pytest.approx(0.0)
 
 
 def test_no_detections_and_mismatched_lengths():

@@ -185,7 +185,8 @@ def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool 
 
 
 def score(dets: list[dict], data: DetectionSet, num_classes: int) -> dict:
-    """COCO AP/AP50/AP75 (pycocotools, spherical IoU) and USF's mAP@10 and mAP@50."""
+    """COCO AP/AP50/AP75 and AR50 (pycocotools, spherical IoU; :func:`coco_ap`) and USF's
+    mAP@10 and mAP@50."""
     truth = [data.truth(i) for i in range(len(data))]
     d = [(r["boxes"], r["classes"], r["scores"]) for r in dets]
     res = coco_ap(truth, d, num_classes)

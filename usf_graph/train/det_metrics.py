@@ -50,15 +50,19 @@ def _coco(images, anns, cats):
 
 
 def coco_ap(truth, detections, num_classes: int) -> dict:
-    """COCO AP, AP50 and AP75 of spherical detections.
+    """COCO AP, AP50 and AP75 of spherical detections, and AR50: the share of true boxes
+    found at IoU 0.5 by the 100 best detections of their image (pycocotools' recall at
+    that threshold, averaged over the classes that have true boxes). AR50 against AP50
+    splits a detector's losses into objects never found and found objects ranked below
+    false ones.
 
     Args:
         truth: per image, ``(boxes [G, 5], classes [G])`` (radians, any frame).
         detections: per image, ``(boxes [D, 5], classes [D], scores [D])`` in the same frame.
         num_classes: classes are ``0 .. num_classes - 1``.
 
-    Returns ``{"AP": ..., "AP50": ..., "AP75": ...}`` in [0, 1] (-1 where no class has a
-    ground-truth box, as pycocotools reports it).
+    Returns ``{"AP": ..., "AP50": ..., "AP75": ..., "AR50": ...}`` in [0, 1] (-1 where no
+    class has a ground-truth box, as pycocotools reports it).
     """
     if len(truth) != len(detections):
         raise ValueError(f"{len(truth)} images of ground truth but {len(detections)} of detections")
@@ -78,7 +82,10 @@ def coco_ap(truth, detections, num_classes: int) -> dict:
         ev.evaluate()
         ev.accumulate()
         ev.summarize()
-    return {"AP": float(ev.stats[0]), "AP50": float(ev.stats[1]), "AP75": float(ev.stats[2])}
+    rec = ev.eval["recall"][0, :, 0, -1]  # IoU 0.5, every class, all areas, 100 detections
+    ar50 = float(rec[rec > -1].mean()) if (rec > -1).any() else -1.0
+    return {"AP": float(ev.stats[0]), "AP50": float(ev.stats[1]), "AP75": float(ev.stats[2]),
+            "AR50": ar50}
 
 
 def _voc_ap(tp: np.ndarray, num_truth: int) -> float:
