@@ -76,8 +76,7 @@ def main(argv=None) -> dict:
         res[k] = summary(up_errors(up_net, sets[k]))
         r = res[k]
         r["head_median_deg"] = float(np.median(up_errors(up_net, sets[k], "up_head")))
-        mask = sets[k].mask[0]
-        rep = up_report(up_net, sets[k].x, None if mask.all() else mask, views_up(sets[k]))
+        rep = up_report(up_net, sets[k].x, sets[k].mask[0], views_up(sets[k]))
         r.update(unsure=rep["unsure"], over_60deg_unsure=rep["gross_unsure"])
         print(f"({k}) up error median {r['median_deg']:.1f} deg (the head's {r['head_median_deg']:.1f} "
               f"before the polish), 90th percentile {r['p90_deg']:.1f} deg, {r['over_60deg']} of "

@@ -66,13 +66,15 @@ def test_pretrain_up_reads_the_extra_views():
 
 
 class _FixedEstimate(nn.Module):
-    """An up estimate that answers given directions and margins, in order."""
+    """An up estimate that answers given directions and margins, in order, and records the
+    masks it is given in ``masks``."""
 
     def __init__(self, up, margin):
         super().__init__()
-        self.up, self.margin, self.seen = up, margin, 0
+        self.up, self.margin, self.seen, self.masks = up, margin, 0, []
 
     def forward(self, x, mask=None):
+        self.masks.append(mask)
         s, self.seen = self.seen, self.seen + len(x)
         return {"up": self.up[s:self.seen], "margin": self.margin[s:self.seen]}
 
@@ -95,4 +97,11 @@ def test_up_report_counts_gross_errors_and_the_views_it_was_unsure_of():
     assert net.training and r2["views"] == 2
     want = np.median(np.degrees(np.arccos(np.clip(net.eval()(x)["up"][:, 2].numpy(), -1, 1))))
     assert r2["median_err_deg"] == pytest.approx(want, abs=0.01)
+    # a split's all-visible mask is the unmasked estimate; a partial one reaches the network
+    full = torch.ones(x.shape[1], dtype=torch.bool)
+    assert up_report(net, x, full, torch.tensor([[0.0, 0.0, 1.0]]).expand(2, 3)) == r2
+    for mask in (torch.ones(7, dtype=torch.bool), torch.arange(7) < 4):
+        fixed = _FixedEstimate(up, margin)
+        up_report(fixed, torch.zeros(5, 7, 3), mask, z.expand(5, 3))
+        assert all(m is (None if mask.all() else mask) for m in fixed.masks)
     assert format_up_report(r).startswith("up estimate: median error 45.0 deg, 2 of 5 views")

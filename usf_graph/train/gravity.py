@@ -60,10 +60,12 @@ def given_up(up: torch.Tensor | None, x: torch.Tensor, start: int = 0) -> dict:
 def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
               batch_size: int = 16) -> dict:
     """How an up estimate (an :class:`~usf_graph.models.UpNet`, e.g. ``model.gravity``) fared
-    on views ``x [S, N, C]`` (``mask [N]`` or ``None``) of known gravity ``g [S, 3]``: the
-    median error in degrees, the number of ``gross`` errors (over :data:`GROSS_DEGREES`),
-    of views it is ``unsure`` of (``margin`` below
+    on views ``x [S, N, C]`` (``mask [N]``, e.g. a split's ``mask[0]``, or ``None``) of known
+    gravity ``g [S, 3]``: the median error in degrees, the number of ``gross`` errors (over
+    :data:`GROSS_DEGREES`), of views it is ``unsure`` of (``margin`` below
     :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
+    if mask is not None and mask.all():
+        mask = None  # every point seen: the estimate runs unmasked, as the models run it
     was_training = gravity.training
     gravity.eval()  # the polished estimate, as at test time
     ups, margins = [], []

@@ -234,9 +234,7 @@ def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = T
         pix, pts = predict(model, sets[k], progress=progress, desc=f"{name} ({k})", up=up)
         res[k], preds[k] = score(pix, sets[k], pts), pix
         if getattr(model, "gravity", None) is not None:
-            mask = sets[k].mask[0]
-            res[k]["up"] = up_report(model.gravity, sets[k].x, None if mask.all() else mask,
-                                     views_up(sets[k]))
+            res[k]["up"] = up_report(model.gravity, sets[k].x, sets[k].mask[0], views_up(sets[k]))
     return res, preds
 
 
