@@ -226,26 +226,21 @@ def up_frame(frame: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch
 class UpJet(SurfaceJet):
     r"""Derivatives of learned fields along and across a given up direction.
 
-    With up's tangential part :math:`\mathbf{t}` at each point (length :math:`\sin	heta`,
-    :math:`	heta` the angle to up) and :math:`\mathbf{e} = \mathbf{t} 	imes \mathbf{n}`,
+    With up's tangential part :math:`\mathbf{t}` at each point (length :math:`\sin\theta`,
+    :math:`\theta` the angle to up) and :math:`\mathbf{e} = \mathbf{t} \times \mathbf{n}`,
     for each field :math:`a = \mathbf{x}\mathbf{W}` (``fields`` of them; the identity when
     ``fields`` is ``None``):
 
     .. math::
-        ig(h\,\mathbf{t}^	op
-abla a,\; h\,\mathbf{e}^	op
-abla a,\;
-        h^2\,\mathbf{t}^	op
-abla^2 a\,\mathbf{t},\; h^2\,\mathbf{t}^	op
-abla^2 a\,\mathbf{e},\;
-        h^2\,\mathbf{e}^	op
-abla^2 a\,\mathbf{e}ig)
+        \big(h\,\mathbf{t}^\top\nabla a,\; h\,\mathbf{e}^\top\nabla a,\;
+        h^2\,\mathbf{t}^\top\nabla^2 a\,\mathbf{t},\; h^2\,\mathbf{t}^\top\nabla^2 a\,\mathbf{e},\;
+        h^2\,\mathbf{e}^\top\nabla^2 a\,\mathbf{e}\big)
 
     A distance-only kernel cannot tell a vertical edge from a horizontal one; with a
     known or estimated up these five numbers can, like a planar network's oriented
     filters on an upright image. When up rotates with the image (an IMU, or an
     equivariant estimate), they are invariant, so the network stays SO(3)-equivariant.
-    Where up is the normal (straight up or down) they fade to 0 with :math:`\sin	heta`.
+    Where up is the normal (straight up or down) they fade to 0 with :math:`\sin\theta`.
 
     Shapes: ``x [B, N, C]``, ``up [B, 3]`` (unit) -> ``[B, N, 5 F]`` (five blocks of F,
     ``F = fields`` or C, in the order above).
