@@ -180,3 +180,31 @@ def test_fill_hidden_takes_the_nearest_visible_values_and_averages_ties():
     assert fill(x, None) is x
     everything = torch.ones(5, dtype=torch.bool)  # nothing hidden: unchanged
     torch.testing.assert_close(fill(x, everything), x)
+
+
+def test_jets_share_a_fit_only_with_the_same_graph():
+    """Layers on one graph reuse one least-squares fit (kept in memory by the graph's
+    content); another graph of the same size, another sigma or a graph whose distances need
+    gradients each get their own, equal to a fit made from scratch."""
+    from usf_graph.nn import SurfaceJet, jet_operator
+    from usf_graph.nn.jet import _OPERATORS
+
+    g = grids.icosahedral(2)
+    h = float(g.spacing)
+    ei, ew = geodesic_radius_graph(g.pos, 3.5 * h)
+    a, b = SurfaceJet(g.pos, ei, ew, h), SurfaceJet(g.pos, ei, ew, h)
+    assert a.op_val.data_ptr() == b.op_val.data_ptr() and len(_OPERATORS) >= 1  # one storage
+    # the same edges and distances on other points: a different operator, not the cached one
+    pos2 = rotate(g.pos, random_rotation(seed=3, dtype=g.pos.dtype))
+    c = SurfaceJet(pos2, ei, ew, h)
+    fresh = jet_operator(pos2, ei, ew, float(ew.max()) / 2)
+    assert torch.equal(c.op_val, fresh.values()) and not torch.allclose(c.op_val, a.op_val)
+    d = SurfaceJet(g.pos, ei, ew, h, sigma=h)  # another width
+    assert torch.equal(d.op_val, jet_operator(g.pos, ei, ew, h).values())
+    assert not torch.allclose(d.op_val, a.op_val)
+    # distances that need gradients: fitted afresh, and the gradient reaches them
+    w = ew.double().clone().requires_grad_(True)
+    e = SurfaceJet(g.pos.double(), ei, w, h)
+    assert e.op_val.requires_grad and e.op_val.data_ptr() != a.op_val.data_ptr()
+    e.op_val.sum().backward()
+    assert w.grad is not None and torch.isfinite(w.grad).all() and w.grad.abs().sum() > 0

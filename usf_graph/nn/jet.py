@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -65,16 +68,45 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     return csr(r, j.repeat(rows), vals, (rows * n, n))
 
 
+# (graph content hash, sigma, rows) -> (operator, its transpose); every jet of a model, and
+# of every model in the process, on the same grid and radius shares one fit
+_OPERATORS: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
+_MAX_OPERATORS = 32
+
+
+def _cached_operators(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor,
+                  sigma: float, rows: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`jet_operator` and its transpose (CSR), built once per graph and kept in
+    memory (the last 32), keyed by a hash of the points, edges and distances themselves,
+    never by where they sit in memory. A graph whose points or distances need gradients is
+    fitted afresh, so that the gradients reach them."""
+    if pos.requires_grad or edge_weight.requires_grad:
+        op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
+        return op, transpose_csr(op)
+    h = hashlib.sha256()
+    for t in (pos.double(), edge_index.long(), edge_weight.double()):
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    key = (h.hexdigest(), float(sigma), rows)
+    if key in _OPERATORS:
+        _OPERATORS.move_to_end(key)
+        return _OPERATORS[key]
+    op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
+    _OPERATORS[key] = op, transpose_csr(op)
+    while len(_OPERATORS) > _MAX_OPERATORS:
+        _OPERATORS.popitem(last=False)
+    return _OPERATORS[key]
+
+
 class _Derivatives(nn.Module):
     """Holds a :func:`jet_operator` (in buffers) and applies it to signals on its graph:
     ``[N, C]``, ``[B, N, C]`` or a PyG batch ``[B N, C]`` with ``batch``."""
 
     def __init__(self, pos, edge_index, edge_weight, spacing: float, sigma, rows: int):
         super().__init__()
-        sigma = float(edge_weight.max()) / 2 if sigma is None else sigma
+        sigma = float(edge_weight.detach().max()) / 2 if sigma is None else sigma
         self.spacing, self.num_nodes = float(spacing), len(pos)
-        op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
-        opt = transpose_csr(op)
+        op, opt = _cached_operators(pos, edge_index, edge_weight, sigma, rows)
         for name, m in (("op", op), ("op_t", opt)):
             self.register_buffer(f"{name}_crow", m.crow_indices(), persistent=False)
             self.register_buffer(f"{name}_col", m.col_indices(), persistent=False)
