@@ -75,7 +75,7 @@ _MAX_OPERATORS = 32
 
 
 def _cached_operators(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor,
-                  sigma: float, rows: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
+                      sigma: float, rows: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`jet_operator` and its transpose (CSR), built once per graph and kept in
     memory (the last 32), keyed by a hash of the points, edges and distances themselves,
     never by where they sit in memory. A graph whose points or distances need gradients is
