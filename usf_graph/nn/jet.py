@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import hashlib
-from collections import OrderedDict
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
+from ..frontend.cache import GeometryCache
 from ..sparse import csr, quiet_sparse, sparse_apply, transpose_csr
 from .batching import from_static, to_static
 
@@ -68,34 +68,32 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     return csr(r, j.repeat(rows), vals, (rows * n, n))
 
 
-# (graph content hash, sigma, rows) -> (operator, its transpose); every jet of a model, and
-# of every model in the process, on the same grid and radius shares one fit
-_OPERATORS: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
-_MAX_OPERATORS = 32
+# Jet fits in memory only (a level-5 operator is tens of MB, too big to be worth a file);
+# every jet of a model, and of every model in the process, on the same graph shares one
+_FITS = GeometryCache(directory=None, max_items=32)
 
 
-def _cached_operators(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor,
-                      sigma: float, rows: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`jet_operator` and its transpose (CSR), built once per graph and kept in
-    memory (the last 32), keyed by a hash of the points, edges and distances themselves,
-    never by where they sit in memory. A graph whose points or distances need gradients is
-    fitted afresh, so that the gradients reach them."""
-    if pos.requires_grad or edge_weight.requires_grad:
+def _operator_buffers(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch.Tensor,
+                      sigma: float, rows: int) -> dict:
+    """The CSR parts (``op_crow``, ``op_col``, ``op_val`` and ``op_t_*`` of the transpose) of
+    :func:`jet_operator`, built once per graph and kept in memory (the last 32), keyed by a
+    hash of the points, edges and distances themselves, never by where they sit in memory.
+    A graph whose points or distances need gradients is fitted afresh, so that the
+    gradients reach them."""
+
+    def fit() -> dict:
         op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
-        return op, transpose_csr(op)
+        return {f"{name}_{part}": t for name, m in (("op", op), ("op_t", transpose_csr(op)))
+                for part, t in (("crow", m.crow_indices()), ("col", m.col_indices()),
+                                ("val", m.values()))}
+
+    if pos.requires_grad or edge_weight.requires_grad:
+        return fit()
     h = hashlib.sha256()
     for t in (pos.double(), edge_index.long(), edge_weight.double()):
         h.update(str(tuple(t.shape)).encode())
         h.update(t.detach().cpu().contiguous().numpy().tobytes())
-    key = (h.hexdigest(), float(sigma), rows)
-    if key in _OPERATORS:
-        _OPERATORS.move_to_end(key)
-        return _OPERATORS[key]
-    op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
-    _OPERATORS[key] = op, transpose_csr(op)
-    while len(_OPERATORS) > _MAX_OPERATORS:
-        _OPERATORS.popitem(last=False)
-    return _OPERATORS[key]
+    return _FITS.get("jet", {"graph": h.hexdigest(), "sigma": float(sigma), "rows": rows}, fit)
 
 
 class _Derivatives(nn.Module):
@@ -106,11 +104,8 @@ class _Derivatives(nn.Module):
         super().__init__()
         sigma = float(edge_weight.detach().max()) / 2 if sigma is None else sigma
         self.spacing, self.num_nodes = float(spacing), len(pos)
-        op, opt = _cached_operators(pos, edge_index, edge_weight, sigma, rows)
-        for name, m in (("op", op), ("op_t", opt)):
-            self.register_buffer(f"{name}_crow", m.crow_indices(), persistent=False)
-            self.register_buffer(f"{name}_col", m.col_indices(), persistent=False)
-            self.register_buffer(f"{name}_val", m.values(), persistent=False)
+        for name, t in _operator_buffers(pos, edge_index, edge_weight, sigma, rows).items():
+            self.register_buffer(name, t, persistent=False)
         self._rows = rows
 
     def _operator(self, name: str, dtype, shape) -> torch.Tensor:
