@@ -13,6 +13,6 @@ SOURCES = sorted((ROOT / "usf_graph").rglob("*.py"))
 @pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_no_control_characters(path):
     text = path.read_text()
-    bad = [(n, ln) for n, ln in enumerate(text.splitlines(), 1)
-           if any(ord(ch) < 32 and ch != "\n" for ch in ln)]
-    assert not bad, f"{path.name}: control characters (tab, backspace...) on lines {[n for n, _ in bad]}"
+    # split on "\n" only: splitlines() would also split on (and so hide) \f and \v
+    bad = [n for n, ln in enumerate(text.split("\n"), 1) if any(ord(ch) < 32 for ch in ln)]
+    assert not bad, f"{path.name}: control characters (tab, backspace...) on lines {bad}"
