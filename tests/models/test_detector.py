@@ -49,10 +49,13 @@ def test_surface_jet_gives_tangent_gradients_of_linear_functions():
     assert (d[:, 2] + g.pos @ a).abs().max() < 2e-2 and d[:, 3].abs().max() < 2e-2
 
 
-@pytest.mark.parametrize("gravity, upright", [(False, False), (True, False), (True, True)])
-def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries(gravity, upright):
+@pytest.mark.parametrize("gravity, upright, upright_convs", [
+    (False, False, None), (True, False, None), (True, True, None), (True, True, 2)])
+def test_spherical_detector_is_exactly_equivariant_under_grid_symmetries(gravity, upright,
+                                                                         upright_convs):
     torch.manual_seed(4)  # a seed whose random boxes differ in size and roll (checked below)
-    m = SphericalDetector(**SMALL, gravity=gravity, upright=upright).double().eval()
+    m = SphericalDetector(**SMALL, gravity=gravity, upright=upright,
+                          upright_convs=upright_convs).double().eval()
     with torch.no_grad():  # a rough head: many peaks of many shapes
         m.head.weight.mul_(30)
         if gravity:  # peaked up scores, so that the estimate is well defined

@@ -47,7 +47,7 @@ from .centernet import (
     logmap,
     peaks,
 )
-from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp, _check_upright
+from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp, _check_upright, _oriented
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
 
@@ -86,7 +86,10 @@ class SphericalDetector(Detector, WithUp):
     learned fields) and four more head fields give the traceless shape and the spin-4
     axis field in the frame of up's tangential part t (times :math:`t^2` and
     :math:`t^4` as complex numbers, normalized, fading within 30 degrees of the zenith and
-    nadir), added to the jet-based ones: an upright box is then one number.
+    nadir), added to the jet-based ones: an upright box is then one number. With
+    ``upright_convs`` (a level), the stages on that level and coarser, the head's included,
+    use :class:`~usf_graph.nn.UprightConv`: oriented kernels in the frame of up (the
+    detection protocol uses 4; README).
 
     ``forward(x, mask)`` returns those fields; :meth:`loss` trains them against boxes and
     :meth:`detect` decodes boxes. ``mask [N]`` (a camera's field of view, one for the
@@ -103,7 +106,8 @@ class SphericalDetector(Detector, WithUp):
                  head_level: int = 4, min_level: int = 2, channels=(32, 64, 128, 128),
                  num_basis: int = 3, radius_spacings: float = 3.0, jet_spacings: float = 3.5,
                  pairs: int = 8, pair_stages: int = 2, gradient_fields: int = 4,
-                 gravity: bool = False, upright: bool = False, up_fields: int = 8):
+                 gravity: bool = False, upright: bool = False, up_fields: int = 8,
+                 upright_convs: int | None = None):
         super().__init__()
         if not min_level <= head_level <= input_level:
             raise ValueError(f"need min_level <= head_level <= input_level, got {min_level}, "
@@ -113,17 +117,20 @@ class SphericalDetector(Detector, WithUp):
                            channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gradient_fields=gradient_fields,
-                           gravity=gravity, upright=upright, up_fields=up_fields)
+                           gravity=gravity, upright=upright, up_fields=up_fields,
+                           upright_convs=upright_convs)
         _check_upright(upright, gravity)
         self.num_classes, self.K = num_classes, gradient_fields
         self._gravity_net(gravity, in_channels, input_level)
         self.backbone = SphericalBackbone(in_channels + int(gravity), input_level, head_level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
-                                          pairs, pair_stages, upright=upright, up_fields=up_fields)
+                                          pairs, pair_stages, upright=upright, up_fields=up_fields,
+                                          upright_convs=upright_convs)
         self.num_points = self.backbone.num_points
         c_in = self.backbone.out_channels
         h = self.backbone.grids[head_level]
-        self.head_stage = ConvStage(h, c_in, c_in, radius_spacings * h.spacing, num_basis)
+        self.head_stage = ConvStage(h, c_in, c_in, radius_spacings * h.spacing, num_basis,
+                                    upright=_oriented(head_level, upright_convs))
         self.upright = upright  # then 4 more fields: the shape along up (module docstring)
         self.head = nn.Linear(c_in, num_classes + 4 + 3 * gradient_fields + 4 * upright)
         e3, w3 = grid_graph(h, jet_spacings * h.spacing)
@@ -151,7 +158,7 @@ class SphericalDetector(Detector, WithUp):
                 up: torch.Tensor | None = None) -> dict:
         x, grav, up = self._with_height(x, mask, up)
         x, m = self.backbone(x, mask, up)
-        f = self.head(self.head_stage(x, m))
+        f = self.head(self.head_stage(x, m, up))
         out = self._fields(f, m, up)  # up: None unless upright
         if grav is not None:
             out["gravity"] = grav

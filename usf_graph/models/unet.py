@@ -31,6 +31,7 @@ from ..nn import (
     MaskedBatchNorm,
     SphericalConv,
     UpJet,
+    UprightConv,
 )
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights
 
@@ -46,26 +47,37 @@ def level_spacing(level: int) -> float:
 
 class ConvStage(nn.Module):
     """``depth`` times conv -> masked BatchNorm -> ReLU on one grid (area-weighted,
-    mask-aware); ``radius`` in radians (at most pi: the whole sphere)."""
+    mask-aware); ``radius`` in radians (at most pi: the whole sphere). ``upright``:
+    :class:`~usf_graph.nn.UprightConv` instead of :class:`~usf_graph.nn.SphericalConv`,
+    and ``forward(x, mask, up)`` needs the unit ``up [B, 3]``."""
 
     def __init__(self, grid, c_in: int, c_out: int, radius: float, num_basis: int,
-                 depth: int = 1):
+                 depth: int = 1, upright: bool = False):
         super().__init__()
         radius = min(radius, math.pi)
         ei, ew = grid_graph(grid, radius)
         self.register_buffer("area", grid.area.float(), persistent=False)
+        self.upright = upright
         self.convs, self.norms = nn.ModuleList(), nn.ModuleList()
         for k in range(depth):
-            self.convs.append(SphericalConv(c_in if k == 0 else c_out, c_out, radius,
-                                            num_basis=num_basis, basis="gaussian")
-                              .bind(ei, ew.float(), node_weight=self.area))
+            conv = (UprightConv if upright else SphericalConv)(
+                c_in if k == 0 else c_out, c_out, radius, num_basis=num_basis, basis="gaussian")
+            extra = {"pos": grid.pos} if upright else {}
+            self.convs.append(conv.bind(ei, ew.float(), node_weight=self.area, **extra))
             self.norms.append(MaskedBatchNorm(c_out))
 
-    def forward(self, x, mask=None):
+    def forward(self, x, mask=None, up=None):
         a = self.area.to(x.dtype)
         for conv, norm in zip(self.convs, self.norms):
-            x = torch.relu(norm(conv(x, mask=mask), mask=mask, node_weight=a))
+            y = conv(x, up, mask=mask) if self.upright else conv(x, mask=mask)
+            x = torch.relu(norm(y, mask=mask, node_weight=a))
         return x
+
+
+def _oriented(level: int, upright_convs: int | None) -> bool:
+    """Whether a stage on ``level`` uses :class:`~usf_graph.nn.UprightConv`: on levels up to
+    ``upright_convs`` (None: none)."""
+    return upright_convs is not None and level <= upright_convs
 
 
 def blur(src, dst, sigma: float) -> GaussianPool:
@@ -106,6 +118,9 @@ class SphericalBackbone(nn.Module):
     known gravity or an equivariant estimate: the :class:`UpJet` of the input and of the
     learned fields give it the orientation of edges relative to up, which distance-only
     kernels cannot see. The features stay invariant when up rotates with the input.
+    ``upright_convs``: the stages on that level and coarser (encoder and decoder) use
+    :class:`~usf_graph.nn.UprightConv`, whose kernels see the direction of each neighbour
+    relative to up, as a planar CNN's filters see rows and columns (None: none).
 
     :meth:`encode` returns the ``(features, mask)`` of every level, :meth:`forward` the
     decoder's output ``([B, M, out_channels], mask [M] or None)`` on ``out_level``.
@@ -115,8 +130,10 @@ class SphericalBackbone(nn.Module):
                  min_level: int = 2, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, refine: int = 0, depth: int = 1, upright: bool = False,
-                 up_fields: int = 8):
+                 up_fields: int = 8, upright_convs: int | None = None):
         super().__init__()
+        if upright_convs is not None and not upright:
+            raise ValueError("upright_convs reads up: it needs upright=True")
         if not min_level <= out_level <= input_level:
             raise ValueError(f"need min_level <= out_level <= input_level, got {min_level}, "
                              f"{out_level}, {input_level}")
@@ -142,7 +159,8 @@ class SphericalBackbone(nn.Module):
         self.fills, self.up_pairs = nn.ModuleList(), nn.ModuleList()
         for s, lv in enumerate(range(input_level, min_level - 1, -1)):
             g, c = self.grids[lv], channels[s]
-            self.down.append(ConvStage(g, c_in, c, radius_spacings * h[lv], num_basis, depth))
+            self.down.append(ConvStage(g, c_in, c, radius_spacings * h[lv], num_basis, depth,
+                                       _oriented(lv, upright_convs)))
             c_in = c
             if s < pair_stages and lv > min_level and (pairs or upright and up_fields):
                 graph = grid_graph(g, jet_spacings * h[lv])
@@ -162,7 +180,7 @@ class SphericalBackbone(nn.Module):
             skip = skips[input_level - lv]
             self.ups.append(blur(self.grids[lv - 1], self.grids[lv], 0.5 * h[lv - 1]))
             self.up.append(ConvStage(self.grids[lv], c_in + skip, skip, radius_spacings * h[lv],
-                                     num_basis, depth))
+                                     num_basis, depth, _oriented(lv, upright_convs)))
             c_in = skip
         self.out_channels = c_in
 
@@ -178,7 +196,7 @@ class SphericalBackbone(nn.Module):
         x = self.jet_norm(x, mask=m, node_weight=self.area_in.to(x.dtype))
         feats = []
         for s, stage in enumerate(self.down):
-            x = stage(x, m)
+            x = stage(x, m, up)
             if s < len(self.fills):
                 xf, parts = self.fills[s](x, m), [x]
                 if self.pairs:
@@ -192,19 +210,19 @@ class SphericalBackbone(nn.Module):
                 m = None if m is None else mp
         return feats
 
-    def decode(self, feats: list) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Decoder over :meth:`encode`'s output."""
+    def decode(self, feats: list, up: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Decoder over :meth:`encode`'s output (``up``: as for :meth:`encode`)."""
         feats = list(feats)
         x, m = feats.pop()
         for ups, stage in zip(self.ups, self.up):
             x, _ = ups(x, m)  # hidden coarse points hold no signal: keep them out
             skip, m = feats.pop()
-            x = stage(torch.cat([x, skip], -1), m)
+            x = stage(torch.cat([x, skip], -1), m, up)
         return x, m
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None):
-        return self.decode(self.encode(x, mask, up))
+        return self.decode(self.encode(x, mask, up), up)
 
 
 class UpNet(nn.Module):

@@ -9,7 +9,7 @@ from ..graph import (
     radius_for_neighbors,
 )
 from .aggregate import EdgePlan, basis_aggregate
-from .conv import DistanceConv, PointConv, SphericalConv
+from .conv import DistanceConv, PointConv, SphericalConv, UprightConv
 from .jet import (
     FillHidden,
     GradientPairs,
@@ -33,7 +33,7 @@ from .pool import (
 )
 
 __all__ = ["FillHidden", "LocalJet", "GradientPairs", "SurfaceJet", "UpJet", "jet_operator", "tangent_frame", "up_frame", "DistanceKernel", "DistanceConv",
-           "SphericalConv", "PointConv", "EdgePlan", "basis_aggregate", "GridPool",
+           "SphericalConv", "UprightConv", "PointConv", "EdgePlan", "basis_aggregate", "GridPool",
            "GaussianPool", "GridUnpool", "FPSPool", "farthest_point_sampling",
            "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
            "euclidean_radius", "geodesic_radius", "geodesic_radius_graph",

@@ -40,6 +40,8 @@ from .gravity import (
 
 PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
+# the spherical detector's oriented convolutions: on the head's level (4) and coarser (README)
+UPRIGHT_CONVS = 4
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)"}
 
@@ -215,12 +217,15 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         num_test: int = 50, epochs: int = 24, planar_epochs: int | None = None,
         batch_size: int = 8, lr: float = 2e-3, seed: int = 0, planar: bool = True,
         progress: bool = True, upright: bool = True, up_train: int = 400,
-        up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5) -> dict:
+        up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
+        upright_convs: int | None = UPRIGHT_CONVS) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
 
     ``upright``: the spherical detector reads directions along its up estimate
-    (``SphericalDetector(gravity=True, upright=True)``); the estimate is trained first,
+    (``SphericalDetector(gravity=True, upright=True, upright_convs=upright_convs)``:
+    :class:`~usf_graph.nn.UprightConv` on the levels up to ``upright_convs``, None for
+    none); the estimate is trained first,
     alone, on the first ``up_train`` training views and ``up_extra`` cheap panoramas of
     other rooms (:class:`~usf_graph.datasets.RoomsGravity`, 96 pixels high, so that one
     render serves the segmentation protocol too) for ``up_epochs``, a share ``up_caps`` of
@@ -236,7 +241,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
                "upright": upright}
-    spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright)
+    spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
+                                  upright_convs=upright_convs if upright else None)
     if upright:
         results["samples"]["up_train"] = up_train
         results["samples"]["up_extra"] = up_extra
@@ -292,7 +298,8 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
     train = DetectionSet.spherical(train_set)
     test = DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
     C = len(PANDORA_CLASSES)
-    net = SphericalDetector(num_classes=C, gravity=upright, upright=upright)
+    net = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
+                            upright_convs=UPRIGHT_CONVS if upright else None)
     if upright:
         pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
                     log_dir=out / "up_estimate")
