@@ -1,7 +1,7 @@
 """SphericalConv vs Conv2d (same pixel count): the static-graph path (one bound graph,
 x [B, N, C]), the general PyG path (a batch of B graphs as [B N, C], geometry computed in
-the call), the naive per-edge PyG path, per-edge MLP weights and, when installed,
-torch-harmonics DISCO. Times in one run; reports ratios.
+the call), UprightConv (oriented kernels in up's frame) in both forms, the naive per-edge
+PyG path, per-edge MLP weights and, when installed, torch-harmonics DISCO. Times in one run; reports ratios.
 
     python benchmarks/conv.py [--level 6] [--batch 8] [--channels 64] [--threads 2]
 
@@ -18,7 +18,7 @@ from timing import best_time
 
 from usf_graph import grids
 from usf_graph.frontend import grid_graph
-from usf_graph.nn import SphericalConv, geodesic_radius_graph
+from usf_graph.nn import SphericalConv, UprightConv, geodesic_radius_graph
 
 DEVICE = torch.device("cpu")
 
@@ -72,6 +72,13 @@ def main():
     conv.bind(ei, ew, node_weight=area)
     rows["SphericalConv (static, bound)"] = (timeit(lambda: conv(x), a.reps),
                                              timeit(fwd_bwd(conv, x), a.reps))
+    # oriented kernels in the frame of a per-sample up: 3K sparse products instead of K
+    up = torch.nn.functional.normalize(torch.randn(B, 3, device=dev), dim=-1)
+    uconv = UprightConv(C, C, r, num_basis=4).to(dev).bind(ei, ew, node_weight=area,
+                                                           pos=g.pos.to(dev))
+    fu = lambda x: uconv(x, up)  # noqa: E731
+    rows["UprightConv (static, bound)"] = (timeit(lambda: fu(x), a.reps),
+                                           timeit(fwd_bwd(fu, x), a.reps))
     # the same B samples as a PyG batch of B graphs: [B N, C], edges offset per graph
     eib = torch.cat([ei + b * N for b in range(B)], 1)
     ewb, areab = ew.repeat(B), area.repeat(B)
@@ -79,6 +86,11 @@ def main():
     g = lambda x: conv(x, eib, ewb, node_weight=areab)  # noqa: E731
     rows[f"SphericalConv (general, PyG batch of {B})"] = (timeit(lambda: g(xg), a.reps),
                                                           timeit(fwd_bwd(g, xg), a.reps))
+    batch = torch.arange(B, device=dev).repeat_interleave(N)
+    posb = grids.icosahedral(a.level).pos.to(dev).repeat(B, 1)
+    gu = lambda x: uconv(x, up, eib, ewb, node_weight=areab, pos=posb, batch=batch)  # noqa: E731
+    rows[f"UprightConv (general, PyG batch of {B})"] = (timeit(lambda: gu(xg), 1),
+                                                        timeit(fwd_bwd(gu, xg), 1))
     try:
         from torch_harmonics import DiscreteContinuousConvS2
 
@@ -107,6 +119,10 @@ def main():
     ours = rows["SphericalConv (static, bound)"]
     gen = rows[f"SphericalConv (general, PyG batch of {B})"]
     print(f"\ngeneral / static: fwd {gen[0] / ours[0]:.2f}x, fwd+bwd {gen[1] / ours[1]:.2f}x")
+    up_s, up_g = rows["UprightConv (static, bound)"], rows[f"UprightConv (general, PyG batch of {B})"]
+    print(f"UprightConv / SphericalConv (static): fwd {up_s[0] / ours[0]:.2f}x, fwd+bwd "
+          f"{up_s[1] / ours[1]:.2f}x; UprightConv general / static: fwd {up_g[0] / up_s[0]:.2f}x, "
+          f"fwd+bwd {up_g[1] / up_s[1]:.2f}x")
     disco = next((v for k, v in rows.items() if k.startswith("DISCO")), None)
     if disco is not None:
         print(f"\nDISCO / SphericalConv: fwd {disco[0] / ours[0]:.2f}x, "

@@ -236,9 +236,10 @@ def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_scor
             keep = det["scores"] >= min_score
             img = draw_boxes(img, ds.camera, det["boxes"][keep],
                              [DETECTION_CLASSES[c] for c in det["classes"][keep]], thickness=1)
-            row.append((f"{title}: truth (green), detections (yellow)", img))
+            row.append((title, img))
         rows.append(row)
-    return contact_sheet(rows, path, titles=[f"test view {i}" for i in samples])
+    return contact_sheet(rows, path, titles=[f"test view {i}" for i in samples],
+                         legend={"truth": (0, 255, 0), f"detections (score >= {min_score:g})": (255, 255, 0)})
 
 
 def plot_segmentation(sets: dict, preds: dict, path=None, sample: int = 0):

@@ -318,8 +318,8 @@ class UprightConv(SphericalConv):
     Both forms of the graph, as :class:`DistanceConv`: ``conv.bind(edge_index, edge_weight,
     node_weight, mask, pos=pos)`` once, then ``conv(x, up, mask=None)``, 3K sparse products
     per sample where :class:`SphericalConv` costs K; or PyG's ``conv(x, up, edge_index,
-    edge_weight, node_weight, mask, pos=pos, batch=batch)`` for a batch of different graphs
-    (per-edge messages), with one up per graph.
+    edge_weight, node_weight, mask, pos=pos, batch=batch)`` for a batch of different graphs,
+    with one up per graph (the geometry computed in the call).
 
     Shapes: ``x [B, N, C_in]`` and ``up [B, 3]`` (unit), or ``x [sum N_i, C_in]`` and ``up
     [G, 3]``; ``pos [N, 3]``; output ``[B, N, C_out]`` or ``[sum N_i, C_out]``.
@@ -377,7 +377,8 @@ class UprightConv(SphericalConv):
         return out if self.bias is None else out + self.bias
 
     def _general(self, x, up, edge_index, edge_weight, node_weight, mask, pos, batch):
-        """PyG's form: per-edge messages, as a reference and for batches of different graphs."""
+        """PyG's form: a batch of different graphs is one graph of disjoint parts, each edge
+        reading its own graph's up, so the sparse kernel of the bound form serves it too."""
         if x.dim() != 2 or x.shape[-1] != self.in_channels:
             raise ValueError(f"x must be [N, {self.in_channels}] with edge_index, got "
                              f"{tuple(x.shape)}")
@@ -392,13 +393,12 @@ class UprightConv(SphericalConv):
         edge_weight = _distances(edge_weight)
         self._check_graph(edge_index, edge_weight, N, node_weight, mask)
         coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask).to(x.dtype)
-        j, i = edge_index
+        i = edge_index[1]
         g = up.to(x.dtype)[0 if batch is None else batch[i]].expand(len(i), 3)
         side = torch.einsum("emc,ec->em", _edge_directions(edge_index, pos).to(x.dtype), g)
         full = _oriented_coefficients(coef, side[None], i, N)[0]  # [E, 3K]
-        agg = x.new_zeros(N, len(full[0]), self.in_channels)
-        agg.index_add_(0, i, full[:, :, None] * x[j][:, None])
-        out = agg.reshape(N, -1) @ self.weight.to(x.dtype)
+        w = self.weight.view(len(full[0]), self.in_channels, self.out_channels).to(x.dtype)
+        out = basis_aggregate(x[None].contiguous(), w, full, EdgePlan(edge_index, N))[0]
         return out if self.bias is None else out + self.bias
 
 
