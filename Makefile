@@ -12,7 +12,7 @@ info: setup
 demo: setup
 	@$(VENV)/bin/usf-graph train mnist --out runs/mnist
 
-# the detection protocol on procedural rooms (README, "Detection"): about 15 minutes on 2 cores
+# the detection protocol on procedural rooms (README, "Detection"): 31 min on session 23's 2 cores, rooms rendered
 demo-det: setup
 	@$(VENV)/bin/usf-graph train det --out runs/det
 
