@@ -188,6 +188,8 @@ def test_detector_errors_and_masks():
         m(torch.randn(1, n, 3), torch.zeros(n, dtype=torch.bool))
     with pytest.raises(ValueError, match="min_level <= head_level"):
         SphericalDetector(input_level=3, head_level=4, min_level=1, channels=(4, 6, 8))
+    with pytest.raises(ValueError, match="upright_convs reads up"):
+        SphericalDetector(**SMALL, gravity=True, upright_convs=2)
     mask = grids.icosahedral(3).pos[:, 0] > 0  # a forward hemisphere
     out = m(torch.randn(2, n, 3), mask)
     hidden = ~out["mask"]
