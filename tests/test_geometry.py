@@ -113,3 +113,15 @@ def test_chord_geodesic_roundtrip(t):
     # the chord 2 sin(d/2) flattens at d = pi, so d is only determined to eps / cos(d/2)
     tol = 1e-12 + 1e-15 / max(math.cos(d / 2), 1e-8)
     assert G.chord_to_geodesic(G.geodesic_to_chord(d)) == pytest.approx(d, abs=tol)
+
+
+def test_tangent_towards_points_along_the_great_circle():
+    tangent_towards = G.tangent_towards
+    p = torch.tensor([[0.0, 0, 1], [1.0, 0, 0]], dtype=torch.float64)
+    q = torch.tensor([[0.6, 0.8, 0], [0.0, 0.6, 0.8]], dtype=torch.float64)
+    want = torch.tensor([[0.6, 0.8, 0], [0.0, 0.6, 0.8]], dtype=torch.float64)
+    assert (tangent_towards(p, q) - want).abs().max() < 1e-15
+    near = torch.tensor([[0.0, 0.1, 1.0]], dtype=torch.float64)
+    near = near / near.norm()
+    assert (tangent_towards(p[:1], near) - torch.tensor([[0.0, 1, 0]])).abs().max() < 1e-12
+    assert (tangent_towards(p, p) == 0).all()  # no direction where q = p

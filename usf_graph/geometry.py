@@ -16,6 +16,7 @@ __all__ = [
     "from_latlon",
     "normalize",
     "geodesic_distance",
+    "tangent_towards",
     "chord_to_geodesic",
     "geodesic_to_chord",
     "random_rotation",
@@ -79,6 +80,14 @@ def geodesic_distance(p, q):
     p, q = np.asarray(p, np.float64), np.asarray(q, np.float64)
     cross = np.cross(p, q)
     return np.arctan2(np.linalg.norm(cross, axis=-1), (p * q).sum(-1))
+
+
+def tangent_towards(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Unit tangents at unit vectors ``p [..., 3]`` pointing towards ``q [..., 3]`` (the log
+    map's direction). Undefined where q = p (0 when the tangent vanishes exactly); callers
+    mask those."""
+    t = q - (q * p).sum(-1, keepdim=True) * p
+    return t / t.norm(dim=-1, keepdim=True).clamp_min(1e-300)
 
 
 def geodesic_to_chord(d):

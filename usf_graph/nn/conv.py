@@ -6,6 +6,7 @@ import torch
 from torch import nn
 from torch_geometric.nn import MessagePassing
 
+from ..geometry import tangent_towards
 from .aggregate import EdgePlan, basis_aggregate
 from .kernel import DistanceKernel, envelope
 
@@ -407,10 +408,8 @@ def _edge_directions(edge_index: torch.Tensor, pos: torch.Tensor) -> torch.Tenso
     towards ``p_j`` (0 on a self-loop) and ``p_i x u``."""
     j, i = edge_index
     unit = pos.double() / pos.double().norm(dim=-1, keepdim=True)
-    p, q = unit[i], unit[j]
-    t = q - (p * q).sum(-1, keepdim=True) * p
-    u = t / t.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-    u = torch.where((i == j)[:, None], 0.0, u)  # a self-loop has no direction
+    p = unit[i]
+    u = torch.where((i == j)[:, None], 0.0, tangent_towards(p, unit[j]))  # a self-loop: none
     return torch.stack([u, torch.linalg.cross(p, u)], 1)
 
 

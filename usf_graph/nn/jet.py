@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from ..frontend.cache import GeometryCache
+from ..geometry import tangent_towards
 from ..sparse import csr, quiet_sparse, sparse_apply, transpose_csr
 from .batching import from_static, to_static
 
@@ -50,8 +51,7 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     n = len(pos)
     e1, e2 = tangent_frame(pos)
     d = edge_weight.double()
-    t = pos[j] - (pos[j] * pos[i]).sum(1, keepdim=True) * pos[i]
-    t = t / t.norm(dim=1, keepdim=True).clamp_min(1e-300) * d[:, None]  # log map; 0 at q=p
+    t = tangent_towards(pos[i], pos[j]) * d[:, None]  # log map; 0 at q=p
     u1, u2 = (t * e1[i]).sum(1), (t * e2[i]).sum(1)
     w = torch.exp(-0.5 * (d / sigma) ** 2)
     M = torch.stack([torch.ones_like(u1), u1, u2, 0.5 * u1 * u1, u1 * u2, 0.5 * u2 * u2], 1)
