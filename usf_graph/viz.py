@@ -152,7 +152,10 @@ def labelled_panorama(width: int = 1024, height: int = 512) -> np.ndarray:
     return (img * (1 - outline) + np.clip(ink / 127.0 - 1, 0, 1)[..., None]).astype(np.float32)
 
 
-def draw_boxes(image: np.ndarray, camera, boxes, names=None, colour=(255, 255, 0),
+TRUTH, DETECTION = (0, 255, 0), (255, 255, 0)  # box colours (RGB) of the detection figures
+
+
+def draw_boxes(image: np.ndarray, camera, boxes, names=None, colour=DETECTION,
                thickness: int = 2) -> np.ndarray:
     """A copy of ``image [H, W, 3]`` uint8 with spherical ``boxes [K, 5]`` (the camera's
     sphere frame, radians) drawn as their four great-circle edges, cut where the camera
@@ -231,7 +234,7 @@ def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_scor
         for key, title in (("a", "panorama"), ("b", "rotated"), ("c", "fisheye 190")):
             ds, det = sets[key], preds[key][i]
             a, b = int(ds.box_ptr[i]), int(ds.box_ptr[i + 1])
-            img = draw_boxes(ds.image[i].numpy(), ds.camera, ds.boxes[a:b], colour=(0, 255, 0),
+            img = draw_boxes(ds.image[i].numpy(), ds.camera, ds.boxes[a:b], colour=TRUTH,
                              thickness=1)
             keep = det["scores"] >= min_score
             img = draw_boxes(img, ds.camera, det["boxes"][keep],
@@ -239,7 +242,7 @@ def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_scor
             row.append((title, img))
         rows.append(row)
     return contact_sheet(rows, path, titles=[f"test view {i}" for i in samples],
-                         legend={"truth": (0, 255, 0), f"detections (score >= {min_score:g})": (255, 255, 0)})
+                         legend={"truth": TRUTH, f"detections (score >= {min_score:g})": DETECTION})
 
 
 def plot_segmentation(sets: dict, preds: dict, path=None, sample: int = 0):
