@@ -156,10 +156,11 @@ def fit_box(directions, up=(0.0, 0.0, 1.0), iters: int = 60, tol: float = 1e-12,
     ``None`` when the directions do not fit in an open hemisphere (the object surrounds the
     viewpoint). ``centre`` is a starting guess (the mean direction by default).
 
-    Around ``up`` itself the answer is not unique: a box that contains the pole has roll 0
-    about a frame that turns with its centre, so several centres can give symmetric
-    extents, and the fit may return another tight up-aligned box (within about 1% of the
-    area in tests, axes possibly swapped).
+    Around ``up`` itself, and around ``-up``, the answer is not unique: a box that contains
+    either pole has roll 0 about a frame that turns with its centre, so several centres can
+    give symmetric extents, and the fit may return another tight up-aligned box (within
+    about 1% of the area in tests, axes possibly swapped), or converge slowly to the same
+    one (about 3e-7 rad in tests).
     """
     from scipy.spatial import ConvexHull, QhullError
 
