@@ -467,3 +467,24 @@ def test_upright_conv_errors_name_the_problem():
     with pytest.raises(ValueError, match=r"x must be \[B, 50, 2\]"):
         conv(torch.randn(50, 2), torch.tensor([[0.0, 0, 1]]))
     assert "UprightConv(2, 3" in repr(conv)
+
+
+@pytest.mark.parametrize("basis", ["hat", "gaussian", "bessel"])
+def test_a_centre_seeing_only_the_kernels_rim_keeps_bounded_coefficients(basis):
+    """A hidden point whose only visible neighbour lies just inside the radius (a mask's
+    border, float32 geometry): its normalized coefficients stay within the kernel's range
+    instead of dividing by a rounded-negative sum (they reached 2e3, then 1e19 one layer on)."""
+    r, M = 0.3, 20_000
+    d = torch.linspace(0.99 * r, r, M)  # float32 distances at the rim
+    ei = torch.stack([torch.arange(M, 2 * M), torch.arange(M)])  # neighbour M + m -> centre m
+    mask = torch.arange(2 * M) >= M  # the centres hidden, the neighbours visible
+    conv = SphericalConv(2, 3, r, num_basis=3, basis=basis)
+    coef = conv._edge_coefficients(ei, d, 2 * M, None, mask)
+    assert torch.isfinite(coef).all()
+    if basis == "bessel":  # signed bases: bounded by the sinc's range over the envelope
+        assert coef.abs().max() < 10
+    else:
+        assert coef.min() >= 0 and coef.sum(1).max() <= 1 + 1e-5
+    x = torch.randn(2 * M, 2, generator=torch.Generator().manual_seed(0))
+    y = conv(x, ei, d, mask=mask)
+    assert (y - conv.bias).abs().max() < 10 * x.abs().max() * conv.weight.abs().sum(0).max()

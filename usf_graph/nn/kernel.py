@@ -11,9 +11,13 @@ BASES = ("hat", "gaussian", "bessel", "mlp")
 
 
 def envelope(x: torch.Tensor) -> torch.Tensor:
-    """C2 cutoff 1 - 10x^3 + 15x^4 - 6x^5 on [0, 1]: 1 at 0, 0 (with zero slope) at 1."""
+    """C2 cutoff 1 - 10x^3 + 15x^4 - 6x^5 on [0, 1]: 1 at 0, 0 (with zero slope) at 1.
+
+    Never negative: near 1 the polynomial rounds below 0 (to -8e-7 in float32), and a
+    normalization that divides by those values (:class:`~usf_graph.nn.DistanceConv` at a
+    point seeing only its kernel's rim) would blow up."""
     x = x.clamp(0, 1)
-    return 1 - x ** 3 * (10 - 15 * x + 6 * x * x)
+    return (1 - x ** 3 * (10 - 15 * x + 6 * x * x)).clamp_min(0)
 
 
 class DistanceKernel(nn.Module):
