@@ -26,6 +26,9 @@ def add_train_options(t) -> None:
                    choices=["spherical_unet", "spherical_deeplab", "planar_unet"],
                    help="seg: models to train (default: all three on rooms, the spherical U-Net "
                         "on stanford2d3ds)")
+    g.add_argument("--fov-epochs", type=int, default=None,
+                   help="det on rooms: epochs of the spherical detector's second phase, half its "
+                        "batches through random fields of view (6; 0 skips it)")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=int, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")
@@ -65,7 +68,8 @@ def cmd_train_det(args) -> int:
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/det", size=args.size or 128,
                   num_train=args.num_train or 200, num_test=args.num_test or 50,
-                  planar=not args.no_planar, **up_kwargs(args, run), **kw)
+                  planar=not args.no_planar, **up_kwargs(args, run), **kw,
+                  **({} if args.fov_epochs is None else {"fov_epochs": args.fov_epochs}))
     teardown_distributed()
     if not res:
         return 0

@@ -6,18 +6,29 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from usf_graph.cli import main
 from usf_graph.models import SphericalDetector
-from usf_graph.train.det import PROTOCOL, DetectionSet, format_table, predict, protocol_sets, run
+from usf_graph.models.centernet import box_centres
+from usf_graph.train.det import (
+    PROTOCOL,
+    DetectionSet,
+    ThroughRandomFields,
+    format_table,
+    predict,
+    protocol_sets,
+    run,
+)
 
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 
 
 def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, num_train=3, num_test=2,
-              epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2)
+              epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2,
+              fov_epochs=1)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
     # the up estimate trained alone on 4 views and 2 cheap ones, then the upright detector
     # on the first 3
@@ -25,6 +36,10 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 2
     assert len(list((tmp_path / "rooms" / "processed").glob("rooms_gravity_*.pt"))) == 1
     assert len((tmp_path / "out" / "spherical" / "metrics.csv").read_text().splitlines()) == 2
+    # then its second phase, through random fields of view
+    assert saved["fov_epochs"] == 1 and saved["fov_share"] == 0.5
+    assert len((tmp_path / "out" / "spherical" / "fields_of_view" / "metrics.csv").read_text()
+               .splitlines()) == 2
     for name in ("spherical", "planar"):
         for k in PROTOCOL:
             r = dict(saved[name][k])
@@ -89,6 +104,37 @@ def test_detection_sets_batch_boxes_and_fields_of_view(tmp_path):
     assert len(head) == 1 and torch.equal(head.x, sph.x[:1]) and head.mask is sph.mask
     assert torch.equal(head.boxes, sph.boxes[:n0]) and head.box_ptr.tolist() == [0, n0]
     assert len(sph.first(5)) == 2
+
+
+def test_random_fields_of_view_cut_batches_and_their_boxes(tmp_path):
+    sets = protocol_sets(tmp_path, size=32, num_train=0, num_test=4, progress=False)
+    data, pos = DetectionSet.spherical(sets["a"]), sets["a"].grid.pos.double()
+    assert data.mask is None and len(data.boxes) > 4
+    every = ThroughRandomFields(data, pos, share=1.0, seed=3)
+    again = ThroughRandomFields(data, pos, share=1.0, seed=3)
+    x0, _, b0, c0, i0 = data.collate([0, 1, 2, 3])
+    cuts = set()
+    for _ in range(6):
+        x, seen, boxes, classes, image = every([0, 1, 2, 3])
+        assert torch.equal(x, x0) and seen.dtype == torch.bool and 0.05 < seen.float().mean() < 0.6
+        # exactly the boxes whose centre's nearest grid point is seen, in order
+        keep = seen[(box_centres(b0.double()) @ pos.T).argmax(1)]
+        assert torch.equal(boxes, b0[keep]) and torch.equal(classes, c0[keep])
+        assert torch.equal(image, i0[keep])
+        assert torch.equal(seen, again([0, 1, 2, 3])[1])  # the seed fixes the draws
+        cuts.add(int(seen.sum()))
+    assert len(cuts) == 6  # a new field of view each batch
+    never = ThroughRandomFields(data, pos, share=0.0)
+    got = never([2, 0])
+    assert got[1] is None and all(torch.equal(a, b) for a, b in zip(got[2:], data.collate([2, 0])[2:]))
+    # a camera's own mask is kept: the cut is within it
+    lens = DetectionSet.spherical(sets["d"])
+    seen = ThroughRandomFields(lens, pos, share=1.0)([0])[1]
+    assert not (seen & ~lens.mask).any()
+    with pytest.raises(ValueError, match="share"):
+        ThroughRandomFields(data, pos, share=1.5)
+    with pytest.raises(ValueError, match="grid's points"):
+        ThroughRandomFields(data, pos[:10])
 
 
 def test_pandora_command_on_the_fixture(tmp_path, capsys):

@@ -188,20 +188,3 @@ def test_stanford_command_on_fixtures(tmp_path):
     assert set(r) >= {"mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU"}
     assert np.isfinite(r["mIoU"]) and res["spherical_unet"]["mean"]["mIoU"] == r["mIoU"]
     assert (tmp_path / "out" / "fold1_spherical_unet.pt").is_file()
-
-
-def test_random_cap_is_a_cap_of_the_asked_size():
-    from usf_graph import grids
-    from usf_graph.train.gravity import random_cap
-
-    pos = grids.icosahedral(4).pos.double()
-    for seed in range(5):
-        m = random_cap(pos, 45, 100, generator=torch.Generator().manual_seed(seed))
-        assert torch.equal(m, random_cap(pos, 45, 100, generator=torch.Generator().manual_seed(seed)))
-        # a cap: the seen points are those nearest its centre (their mean direction)
-        c = torch.nn.functional.normalize(pos[m].mean(0), dim=0)
-        d = pos @ c
-        assert d[m].min() > d[~m].max() - 1e-2
-        # of a size between the two radii (area fraction (1 - cos r) / 2)
-        frac = m.double().mean()
-        assert 0.146 - 0.01 < frac < 0.587 + 0.01

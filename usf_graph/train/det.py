@@ -27,6 +27,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .fov import random_field_of_view
 from .gravity import (
     given_up,
     known_up,
@@ -42,6 +43,8 @@ PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
 # the spherical detector's oriented convolutions: on the head's level (4) and coarser (README)
 UPRIGHT_CONVS = 4
+# the spherical detector's second phase, through random fields of view (README)
+FOV_EPOCHS, FOV_SHARE, FOV_LR = 6, 0.5, 5e-4
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)"}
 
@@ -114,6 +117,34 @@ class DetectionSet(Dataset):
             torch.zeros(0, dtype=torch.long)
         image = torch.repeat_interleave(torch.arange(len(idx)), b - a)
         return x, self.mask, self.boxes[rows].float(), self.box_class[rows], image
+
+
+class ThroughRandomFields:
+    """A ``collate_fn`` over a spherical :class:`DetectionSet` that sees a share of the
+    batches through one random field of view (:func:`~usf_graph.train.fov.random_field_of_view`,
+    a pinhole's or a fisheye's, over the grid points ``pos [N, 3]``), with the boxes whose
+    centre it hides left out: training on parts of the sphere, as narrower lenses show it.
+    ``share``: the probability of a batch being cut; ``seed``: of the draws."""
+
+    def __init__(self, data: DetectionSet, pos: torch.Tensor, share: float = FOV_SHARE,
+                 seed: int = 0):
+        if not 0 <= share <= 1:
+            raise ValueError(f"share must be in [0, 1], got {share}")
+        if pos.shape != (data.x.shape[1], 3):
+            raise ValueError(f"pos must be the grid's points [{data.x.shape[1]}, 3], got {tuple(pos.shape)}")
+        self.data, self.pos, self.share = data, pos.double(), float(share)
+        self.generator = torch.Generator().manual_seed(int(seed))
+
+    def __call__(self, idx: list[int]):
+        x, mask, boxes, classes, image = self.data.collate(idx)
+        if float(torch.rand((), generator=self.generator)) >= self.share:
+            return x, mask, boxes, classes, image
+        seen = random_field_of_view(self.pos, self.generator)
+        seen = seen if mask is None else seen & mask
+        if not seen.any():
+            return x, mask, boxes, classes, image
+        keep = seen[(box_centres(boxes.double()) @ self.pos.T).argmax(1)]  # centre's nearest point
+        return x, seen, boxes[keep], classes[keep], image[keep]
 
 
 def detection_step(model, batch):
@@ -218,7 +249,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         batch_size: int = 8, lr: float = 2e-3, seed: int = 0, planar: bool = True,
         progress: bool = True, upright: bool = True, up_train: int = 400,
         up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
-        upright_convs: int | None = UPRIGHT_CONVS) -> dict:
+        upright_convs: int | None = UPRIGHT_CONVS, fov_epochs: int = FOV_EPOCHS,
+        fov_share: float = FOV_SHARE) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
 
@@ -231,7 +263,13 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     render serves the segmentation protocol too) for ``up_epochs``, a share ``up_caps`` of
     its batches seen through random caps of 40-100 degrees, then frozen
     (:func:`~usf_graph.train.gravity.pretrain_up`), and the detector trains on the first
-    ``num_train`` views, reading their known up."""
+    ``num_train`` views, reading their known up.
+
+    ``fov_epochs``: then the spherical detector trains on, at learning rate ``FOV_LR``,
+    with a share ``fov_share`` of its batches seen through random fields of view
+    (:class:`ThroughRandomFields`), so that it also works from the part of the sphere a
+    narrower lens sees (0: no second phase). Trained so from the start, it learns much
+    less (README)."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -240,7 +278,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     C = len(DETECTION_CLASSES)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
-               "upright": upright}
+               "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share}
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
                                   upright_convs=upright_convs if upright else None)
     if upright:
@@ -263,6 +301,11 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         fit(net, data["train"], None, epochs=ep, batch_size=batch_size, lr=lr, seed=seed,
             log_dir=out / name, config=net.config, progress=progress, name=name,
             step=detection_step, collate_fn=data["train"].collate)
+        if name == "spherical" and fov_epochs:
+            fit(net, data["train"], None, epochs=fov_epochs, batch_size=batch_size, lr=FOV_LR,
+                seed=seed, log_dir=out / name / "fields_of_view", config=net.config,
+                progress=progress, name=f"{name}, fields of view", step=detection_step,
+                collate_fn=ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share, seed))
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)

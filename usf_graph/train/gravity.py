@@ -5,7 +5,6 @@ in the same steps or beforehand and alone (:func:`pretrain_up`, then frozen)."""
 
 from __future__ import annotations
 
-import math
 from functools import partial
 
 import torch
@@ -14,6 +13,7 @@ from torch_geometric.data import Data, Dataset
 from ..geometry import geodesic_distance
 from ..models.gravity import UNSURE_MARGIN
 from ..nn.batching import to_static
+from .fov import random_cap
 
 #: Weight of the up estimate's loss (:meth:`GravityHead.loss`) in a training step.
 UP_WEIGHT = 0.5
@@ -102,15 +102,6 @@ def trains_up(net) -> bool:
     return bool(getattr(getattr(net, "module", net), "trains_up", False))
 
 
-def random_cap(pos: torch.Tensor, min_deg: float = 45.0, max_deg: float = 100.0,
-               generator: torch.Generator | None = None) -> torch.Tensor:
-    """A field of view ``[N]`` (bool) over points ``pos [N, 3]``: a cap of uniform random
-    angular radius in ``[min_deg, max_deg]`` about a uniform random direction."""
-    c = torch.nn.functional.normalize(torch.randn(3, generator=generator, dtype=torch.float64), dim=0)
-    r = math.radians(min_deg + (max_deg - min_deg) * float(torch.rand((), generator=generator)))
-    return pos.double() @ c > math.cos(r)
-
-
 def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = UP_CAP_DEGREES):
     """The engine's step for an :class:`~usf_graph.models.UpNet` alone, on PyG batches of
     views of known gravity (:func:`known_up`): :meth:`GravityHead.loss`. With probability
@@ -181,5 +172,4 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
 
 
 __all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
-           "UP_CAP_DEGREES",
-           "random_cap"]
+           "UP_CAP_DEGREES"]

@@ -1,0 +1,60 @@
+"""Random fields of view: caps and pinhole frusta of the asked sizes, reproducible."""
+
+import math
+
+import torch
+
+from usf_graph import grids
+from usf_graph.train.fov import random_cap, random_field_of_view, random_frustum, random_pinhole
+
+
+def _gen(seed):
+    return torch.Generator().manual_seed(seed)
+
+
+def test_random_cap_is_a_cap_of_the_asked_size():
+    pos = grids.icosahedral(4).pos.double()
+    for seed in range(5):
+        m = random_cap(pos, 45, 100, generator=_gen(seed))
+        assert torch.equal(m, random_cap(pos, 45, 100, generator=_gen(seed)))
+        # a cap: the seen points are those nearest its centre (their mean direction)
+        c = torch.nn.functional.normalize(pos[m].mean(0), dim=0)
+        d = pos @ c
+        assert d[m].min() > d[~m].max() - 1e-2
+        # of a size between the two radii (area fraction (1 - cos r) / 2)
+        frac = m.double().mean()
+        assert 0.146 - 0.01 < frac < 0.587 + 0.01
+
+
+def test_random_frustum_is_what_its_pinhole_sees():
+    g = grids.healpix(32)  # equal areas: the seen share of points is the solid angle's
+    pos = g.pos.double()
+    for seed in range(6):
+        cam = random_pinhole(60, 120, generator=_gen(seed))
+        m = random_frustum(pos, 60, 120, generator=_gen(seed))
+        assert torch.equal(m, random_frustum(pos, 60, 120, generator=_gen(seed)))
+        # the drawn fields of view, from the focal lengths, in range
+        half = [math.atan(32 / f) for f in (cam.fx, cam.fy)]
+        assert all(math.radians(30) <= h <= math.radians(60) for h in half)
+        # solid angle of a rectangular pyramid: 4 asin(sin a sin b) for half-angles a, b
+        omega = 4 * math.asin(math.sin(half[0]) * math.sin(half[1]))
+        assert abs(4 * math.pi * m.double().mean() - omega) < 0.03 * omega
+        # it looks along the camera's axis: the seen points surround it
+        axis = torch.as_tensor(cam.rotation[:, 2])
+        assert (pos[m] @ axis).min() > math.cos(math.atan(math.hypot(*map(math.tan, half)))) - 1e-9
+        assert torch.nn.functional.normalize(pos[m].mean(0), dim=0) @ axis > 0.999
+
+
+def test_random_field_of_view_draws_both_kinds():
+    pos = grids.icosahedral(3).pos.double()
+    gen = _gen(0)
+    masks = [random_field_of_view(pos, gen) for _ in range(40)]
+    fracs = torch.stack([m.double().mean() for m in masks])
+    assert (fracs > 0.05).all() and (fracs < 0.6).all()
+    # caps are rotation-symmetric about their centre; frusta have corners: both occur
+    spread = []
+    for m in masks:
+        c = torch.nn.functional.normalize(pos[m].mean(0), dim=0)
+        d = pos @ c
+        spread.append(float(d[~m].max() - d[m].min()))  # < 0 only for a cap (up to the grid)
+    assert min(spread) < 0.02 and max(spread) > 0.1

@@ -1,0 +1,55 @@
+"""Random fields of view: parts of the sphere as narrower lenses show them, for training a
+spherical model that must also work through those lenses (a pinhole sees a sixth of it)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..cameras import Pinhole
+from ..geometry import random_rotation
+
+#: Field-of-view range (degrees, each axis) of :func:`random_frustum`'s pinholes.
+FRUSTUM_DEGREES = (60.0, 120.0)
+#: Angular radius range (degrees) of :func:`random_cap`'s caps, fisheye-like fields of view.
+CAP_DEGREES = (45.0, 100.0)
+
+
+def _uniform(lo: float, hi: float, generator: torch.Generator | None) -> float:
+    return lo + (hi - lo) * float(torch.rand((), generator=generator))
+
+
+def random_cap(pos: torch.Tensor, min_deg: float = CAP_DEGREES[0], max_deg: float = CAP_DEGREES[1],
+               generator: torch.Generator | None = None) -> torch.Tensor:
+    """A field of view ``[N]`` (bool) over points ``pos [N, 3]``: a cap of uniform random
+    angular radius in ``[min_deg, max_deg]`` about a uniform random direction."""
+    c = torch.nn.functional.normalize(torch.randn(3, generator=generator, dtype=torch.float64), dim=0)
+    return pos.double() @ c > math.cos(math.radians(_uniform(min_deg, max_deg, generator)))
+
+
+def random_pinhole(min_deg: float = FRUSTUM_DEGREES[0], max_deg: float = FRUSTUM_DEGREES[1],
+                   generator: torch.Generator | None = None, size: int = 64) -> Pinhole:
+    """A ``size x size`` :class:`~usf_graph.cameras.Pinhole` whose horizontal and vertical
+    fields of view are drawn uniformly from ``[min_deg, max_deg]``, mounted with a
+    Haar-random rotation."""
+    f = [size / 2 / math.tan(math.radians(_uniform(min_deg, max_deg, generator)) / 2)
+         for _ in range(2)]
+    R = random_rotation(generator=generator).numpy()
+    c = (size - 1) / 2  # the image spans c -+ size / 2: the drawn fields of view exactly
+    return Pinhole(f[0], f[1], c, c, size, size, rotation=R)
+
+
+def random_frustum(pos: torch.Tensor, min_deg: float = FRUSTUM_DEGREES[0],
+                   max_deg: float = FRUSTUM_DEGREES[1],
+                   generator: torch.Generator | None = None) -> torch.Tensor:
+    """What a :func:`random_pinhole` sees of points ``pos [N, 3]``: ``[N]`` (bool)."""
+    cam = random_pinhole(min_deg, max_deg, generator)
+    return torch.as_tensor(np.asarray(cam.sees(pos.double().numpy())[1], bool))
+
+
+def random_field_of_view(pos: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """A :func:`random_frustum` or a :func:`random_cap` (default ranges), with equal odds."""
+    pick = random_frustum if float(torch.rand((), generator=generator)) < 0.5 else random_cap
+    return pick(pos, generator=generator)
