@@ -91,3 +91,39 @@ def test_a_diverging_run_stops_with_a_clear_error_and_keeps_the_last_epoch(tmp_p
             step=step)
     blob = load_checkpoint(tmp_path / "last.pt")
     assert blob["epoch"] == 1 and all(torch.isfinite(v).all() for v in blob["state_dict"].values())
+
+
+@pytest.mark.parametrize("frozen", [False, True])
+def test_frozen_norms_keep_their_statistics_while_their_scale_trains(frozen):
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.nn import MaskedBatchNorm
+    from usf_graph.train.engine import fit
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.lin, self.bn, self.mbn = torch.nn.Linear(2, 3), torch.nn.BatchNorm1d(3), MaskedBatchNorm(3)
+
+        def forward(self, x):
+            return self.mbn(self.bn(self.lin(x)))
+
+    torch.manual_seed(0)
+    net = Net()
+    data = TensorDataset(5 + 3 * torch.randn(16, 2), torch.randn(16, 3))
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+
+    def step(m, batch):
+        x, y = batch
+        # in training mode a norm uses its batch's statistics; frozen, its running ones
+        for bn in (m.bn, m.mbn):
+            assert bn.training != frozen
+        return ((m(x) - y) ** 2).mean(), {}, len(x)
+
+    fit(net, data, epochs=2, batch_size=4, lr=0.05, progress=False, step=step, frozen_norms=frozen)
+    after = net.state_dict()
+    for name in ("bn", "mbn"):
+        stats_same = all(torch.equal(before[f"{name}.{s}"], after[f"{name}.{s}"])
+                         for s in ("running_mean", "running_var"))
+        assert stats_same == frozen
+        assert not torch.equal(before[f"{name}.weight"], after[f"{name}.weight"])  # it trains

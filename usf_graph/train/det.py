@@ -268,8 +268,10 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     ``fov_epochs``: then the spherical detector trains on, at learning rate ``FOV_LR``,
     with a share ``fov_share`` of its batches seen through random fields of view
     (:class:`ThroughRandomFields`), so that it also works from the part of the sphere a
-    narrower lens sees (0: no second phase). Trained so from the start, it learns much
-    less (README)."""
+    narrower lens sees (0: no second phase). Its batch normalizations keep the panoramas'
+    running statistics meanwhile (:func:`~usf_graph.train.engine.freeze_norms`), as every
+    test view is normalized with them; with the statistics of parts of the sphere, or
+    trained through fields of view from the start, it learns much less (README)."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -305,7 +307,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
             fit(net, data["train"], None, epochs=fov_epochs, batch_size=batch_size, lr=FOV_LR,
                 seed=seed, log_dir=out / name / "fields_of_view", config=net.config,
                 progress=progress, name=f"{name}, fields of view", step=detection_step,
-                collate_fn=ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share, seed))
+                collate_fn=ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share, seed),
+                frozen_norms=True)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)

@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
 from ..fileio import atomic_torch_save
+from ..nn.norm import MaskedBatchNorm
 
 Step = Callable[[nn.Module, Any], tuple[torch.Tensor, dict, int]]
 
@@ -147,11 +148,24 @@ def evaluate(model: nn.Module, dataset: Dataset, batch_size: int = 256,
     return mean.means()
 
 
+def freeze_norms(model: nn.Module) -> nn.Module:
+    """Puts every batch normalization of ``model`` (torch's and
+    :class:`~usf_graph.nn.MaskedBatchNorm`) in evaluation mode: it normalizes with its
+    running statistics and leaves them unchanged, while its scale and shift still train.
+    For fine-tuning on batches whose own statistics differ from what the model meets at
+    test time: parts of the sphere, say, where every test view is normalized with the
+    running statistics of whole ones."""
+    for m in model.modules():
+        if isinstance(m, (nn.modules.batchnorm._BatchNorm, MaskedBatchNorm)):
+            m.eval()
+    return model
+
+
 def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: int = 10,
         batch_size: int = 32, lr: float = 3e-3, weight_decay: float = 1e-4, seed: int = 0,
         log_dir=None, config: dict | None = None, resume: bool = False, progress: bool = True,
         name: str = "model", on_epoch: Callable[[int, dict], None] | None = None,
-        step: Step = classification_step, collate_fn=None) -> dict:
+        step: Step = classification_step, collate_fn=None, frozen_norms: bool = False) -> dict:
     """Train a model with AdamW and a cosine schedule; ``step(model, batch) -> (loss,
     stats, n)`` says what a batch's loss is (default: :func:`classification_step`), and
     ``collate_fn`` how samples make a batch (the DataLoader's; PyG datasets are batched
@@ -160,7 +174,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     Logs ``metrics.csv`` / ``metrics.json`` (and TensorBoard when installed) under
     ``log_dir`` and writes ``last.pt`` each epoch; ``resume=True`` continues from it.
     Under ``torchrun`` the model is wrapped in DistributedDataParallel and each process
-    takes its share of every global batch of ``batch_size``.
+    takes its share of every global batch of ``batch_size``. ``frozen_norms``: batch
+    normalizations keep their running statistics (:func:`freeze_norms`).
     """
     rank, world = setup_distributed()
     seed_everything(seed)
@@ -180,6 +195,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     writer = _tensorboard(log_dir) if rank == 0 else None
     for epoch in range(start, epochs):
         model.train()
+        if frozen_norms:
+            freeze_norms(model)
         bar = tqdm(_batches(train, batch_size, True, seed, epoch, collate_fn), leave=False,
                    desc=f"{name} epoch {epoch + 1}/{epochs}", disable=not progress or rank != 0)
         mean = _Mean()
