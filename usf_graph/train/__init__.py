@@ -3,6 +3,7 @@
 from .engine import (
                      evaluate,
                      fit,
+                     freeze_norms,
                      load_checkpoint,
                      save_checkpoint,
                      seed_everything,
@@ -10,5 +11,5 @@ from .engine import (
                      teardown_distributed,
 )
 
-__all__ = ["fit", "evaluate", "save_checkpoint", "load_checkpoint", "seed_everything",
+__all__ = ["fit", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint", "seed_everything",
            "setup_distributed", "teardown_distributed"]
