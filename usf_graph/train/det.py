@@ -5,7 +5,9 @@ procedural rooms seen by an upright equirectangular camera, then scores both wit
 (:func:`~usf_graph.train.det_metrics.coco_ap`) and USF's mAP@10 on (a) new rooms, same
 camera; (b) the same views under Haar-random rotations; (c) the same views through a
 190-degree fisheye; (d) through a 90-degree pinhole, both zero-shot. The planar baseline
-sees (c) and (d) re-imaged as panoramas (black where the lens does not see).
+sees (c) and (d) re-imaged as panoramas (black where the lens does not see). The spherical
+detector ends with a second phase on parts of the panoramas, through random fields of view
+(:class:`ThroughRandomFields`), its BatchNorm statistics frozen.
 """
 
 from __future__ import annotations
