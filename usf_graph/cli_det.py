@@ -37,14 +37,19 @@ def add_train_options(t) -> None:
     u.add_argument("--up-epochs", type=int, default=None, help="its epochs (det 12, seg 8)")
 
 
-def up_kwargs(args, run) -> dict:
-    """``up_extra``, ``up_caps`` and ``up_epochs`` for a rooms protocol ``run``, its defaults
-    where not given."""
+def given_or_default(args, run, keys) -> dict:
+    """The options ``keys`` for ``run``: as given on the command line, else ``run``'s
+    defaults."""
     import inspect
 
     d = inspect.signature(run).parameters
-    return {k: d[k].default if getattr(args, k) is None else getattr(args, k)
-            for k in ("up_extra", "up_caps", "up_epochs")}
+    return {k: d[k].default if getattr(args, k) is None else getattr(args, k) for k in keys}
+
+
+def up_kwargs(args, run) -> dict:
+    """``up_extra``, ``up_caps`` and ``up_epochs`` for a rooms protocol ``run``, its defaults
+    where not given."""
+    return given_or_default(args, run, ("up_extra", "up_caps", "up_epochs"))
 
 
 def run_kwargs(args, run) -> dict:
@@ -69,7 +74,7 @@ def cmd_train_det(args) -> int:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/det", size=args.size or 128,
                   num_train=args.num_train or 200, num_test=args.num_test or 50,
                   planar=not args.no_planar, **up_kwargs(args, run), **kw,
-                  **({} if args.fov_epochs is None else {"fov_epochs": args.fov_epochs}))
+                  **given_or_default(args, run, ("fov_epochs",)))
     teardown_distributed()
     if not res:
         return 0
