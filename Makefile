@@ -12,7 +12,7 @@ info: setup
 demo: setup
 	@$(VENV)/bin/usf-graph train mnist --out runs/mnist
 
-# the detection protocol on procedural rooms (README, "Detection"): 31 min on session 23's 2 cores, rooms rendered
+# the detection protocol on procedural rooms (README, "Detection"): 31-32 min on sessions 23-24's 2 cores, rooms rendered
 demo-det: setup
 	@$(VENV)/bin/usf-graph train det --out runs/det
 
