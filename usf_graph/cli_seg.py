@@ -5,7 +5,7 @@ from __future__ import annotations
 import inspect
 import json
 
-from .cli_det import run_kwargs, up_kwargs
+from .cli_det import given_or_default, run_kwargs, up_kwargs
 
 
 def cmd_train_seg(args) -> int:
@@ -24,7 +24,8 @@ def cmd_train_seg(args) -> int:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/seg", size=args.size or 96,
                   num_train=args.num_train or inspect.signature(run).parameters["num_train"].default,
                   num_test=args.num_test or 50,
-                  models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw)
+                  models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw,
+                  **given_or_default(args, run, ("fov_epochs",)))
     teardown_distributed()
     if not res:
         return 0

@@ -8,6 +8,8 @@ import torch
 from usf_graph import grids
 from usf_graph.geometry import rotation_from_axis_angle
 from usf_graph.models import PlanarDeepLab, PlanarUNet, SphericalDeepLabV3, SphericalUNet
+from usf_graph.models.unet import ConvStage
+from usf_graph.nn import UprightConv
 from usf_graph.testing import assert_equivariant, smooth_signal, symmetry_permutation
 
 UNET = dict(num_classes=5, level=3, channels=(4, 6, 8), pairs=2, gravity=True)
@@ -31,7 +33,10 @@ def _signal(pos, seed=0):
                                     (SphericalDeepLabV3, DEEPLAB),
                                     (SphericalUNet, {**UNET, "upright": True}),
                                     (SphericalUNet, {**UNET, "upright": True, "pairs": 0, "up_fields": 2}),
-                                    (SphericalDeepLabV3, {**DEEPLAB, "upright": True})])
+                                    (SphericalDeepLabV3, {**DEEPLAB, "upright": True}),
+                                    (SphericalUNet, {**UNET, "upright": True, "upright_convs": 3,
+                                                     "head_depth": 1}),
+                                    (SphericalDeepLabV3, {**DEEPLAB, "upright": True, "upright_convs": 3})])
 def test_logits_move_with_the_rotation(cls, kw):
     torch.manual_seed(0)
     m = cls(**kw).double().eval()
@@ -61,6 +66,28 @@ def test_logits_move_with_the_rotation(cls, kw):
     y = x.clone()
     y[:, ~mask] = 5.0
     assert torch.allclose(m(x, mask)[:, mask], m(y, mask)[:, mask], atol=1e-12)
+
+
+@pytest.mark.parametrize("cls,kw", [(SphericalUNet, {**UNET, "head_depth": 1}), (SphericalDeepLabV3, DEEPLAB)])
+def test_oriented_stages_are_those_on_the_asked_levels(cls, kw):
+    """``upright_convs=L``: every conv stage of the segmenter (not its up estimate's) on
+    level L and coarser is made of UprightConvs, the finer ones of distance-only convs."""
+    def stages(m):
+        return [mod for name, mod in m.named_modules()
+                if isinstance(mod, ConvStage) and not name.startswith("gravity")]
+    torch.manual_seed(0)
+    m = cls(**{**kw, "upright": True, "upright_convs": 2}).double().eval()
+    by_level = {}
+    for st in stages(m):
+        n = len(st.area)
+        by_level.setdefault(n, set()).add(st.upright)
+        assert all(isinstance(c, UprightConv) == st.upright for c in st.convs)
+    assert by_level[len(grids.icosahedral(2))] == {True} and by_level[len(grids.icosahedral(3))] == {False}
+    # the level-3 ones too with upright_convs=3, none with None
+    m3 = cls(**{**kw, "upright": True, "upright_convs": 3})
+    assert all(st.upright for st in stages(m3)) and not any(st.upright for st in stages(cls(**{**kw, "upright": True})))
+    with pytest.raises(ValueError, match="upright_convs reads up"):
+        cls(**{**kw, "upright_convs": 3})
 
 
 @pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalDeepLabV3, DEEPLAB)])

@@ -2,10 +2,17 @@
 
 import math
 
+import pytest
 import torch
 
 from usf_graph import grids
-from usf_graph.train.fov import random_cap, random_field_of_view, random_frustum, random_pinhole
+from usf_graph.train.fov import (
+    RandomFields,
+    random_cap,
+    random_field_of_view,
+    random_frustum,
+    random_pinhole,
+)
 
 
 def _gen(seed):
@@ -58,3 +65,31 @@ def test_random_field_of_view_draws_both_kinds():
         d = pos @ c
         spread.append(float(d[~m].max() - d[m].min()))  # < 0 only for a cap (up to the grid)
     assert min(spread) < 0.02 and max(spread) > 0.1
+
+
+def test_random_fields_draw_a_share_within_a_mask():
+    pos = grids.icosahedral(3).pos.double()
+    draws = RandomFields(pos, share=0.3, seed=1)
+    got = [draws() for _ in range(300)]
+    cut = [m for m in got if m is not None]
+    assert 0.22 < len(cut) / len(got) < 0.38  # the share of cut batches
+    assert len({m.numpy().tobytes() for m in cut}) == len(cut)  # each a new field of view
+    # the same seed, the same draws
+    again = RandomFields(pos, share=0.3, seed=1)
+    assert all((a is None and b is None) or torch.equal(a, b)
+               for a, b in zip(got[:50], (again() for _ in range(50))))
+    # within a camera's mask; a mask they never meet leaves the batch whole
+    half = pos[:, 2] > 0
+    inside = RandomFields(pos, share=1.0, seed=2)
+    for _ in range(20):
+        m = inside(half)
+        assert m is None or not (m & ~half).any()
+    one = torch.zeros(len(pos), dtype=torch.bool)
+    one[0] = True
+    assert sum(inside(one) is None for _ in range(20)) > 10
+    assert RandomFields(pos, share=0.0)(half) is None
+    for bad in (-0.1, 1.1):
+        with pytest.raises(ValueError, match="share"):
+            RandomFields(pos, share=bad)
+    with pytest.raises(ValueError, match="points"):
+        RandomFields(pos[:, :2], share=0.5)

@@ -11,9 +11,11 @@ from torch_geometric.loader import DataLoader
 from tests.datasets.test_stanford import NAMES, _write_pano
 from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
+from usf_graph.scenes import IGNORE
 from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
     PROTOCOL,
+    ThroughRandomFields,
     format_table,
     predict,
     protocol_sets,
@@ -144,6 +146,36 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
         hook.remove()
     with pytest.raises(ValueError, match="gravity=True"):
         m(x, mask, up=noisy)
+
+
+def test_random_fields_of_view_cut_batches_and_ignore_their_labels_outside(tmp_path):
+    sets = protocol_sets(tmp_path, size=32, level=3, num_train=0, num_test=3, tests=("a", "d"),
+                         progress=False)
+    ds, pos = sets["a"], sets["a"].grid.pos
+    every, again = (ThroughRandomFields(pos, share=1.0, seed=4) for _ in range(2))
+    whole = next(iter(DataLoader(ds, batch_size=3)))
+    cuts = set()
+    for _ in range(5):
+        batch = every([ds[i] for i in range(3)])
+        x, y, mask, _, _ = split_batch(batch)
+        assert torch.equal(x, whole.x.view(3, -1, 3).float())  # the signal is kept
+        assert mask.dtype == torch.bool and 0.05 < mask.float().mean() < 0.6
+        # labels inside kept, outside ignored, in every sample
+        assert torch.equal(y[:, mask], whole.y.view(3, -1)[:, mask])
+        assert (y[:, ~mask] == IGNORE).all()
+        assert torch.equal(mask, split_batch(again([ds[i] for i in range(3)]))[2])  # seeded
+        cuts.add(int(mask.sum()))
+    assert len(cuts) == 5  # a new field of view each batch
+    kept = ThroughRandomFields(pos, share=0.0)([ds[0], ds[1]])
+    assert torch.equal(kept.y, whole.y[:2 * len(pos)]) and bool(kept.mask.all())
+    # within a camera's own field of view
+    lens = sets["d"]
+    mask = split_batch(ThroughRandomFields(pos, share=1.0)([lens[0], lens[1]]))[2]
+    assert not (mask & ~lens.mask[0]).any()
+    with pytest.raises(ValueError, match="share"):
+        ThroughRandomFields(pos, share=-0.1)
+    with pytest.raises(ValueError, match="points"):
+        ThroughRandomFields(pos[:10], share=1.0)([ds[0]])
 
 
 def test_pretrained_up_estimate_is_frozen_and_spared_in_training(tmp_path):

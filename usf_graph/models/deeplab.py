@@ -8,7 +8,15 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .unet import ConvStage, SphericalBackbone, _check_upright, _Segmenter, blur, level_spacing
+from .unet import (
+    ConvStage,
+    SphericalBackbone,
+    _check_upright,
+    _oriented,
+    _Segmenter,
+    blur,
+    level_spacing,
+)
 
 
 class Pointwise(nn.Module):
@@ -39,7 +47,10 @@ class SphericalDeepLabV3(_Segmenter):
     :class:`~usf_graph.models.SphericalUNet`'s, whose ``gravity`` option (an
     :class:`~usf_graph.models.UpNet` whose estimate gives every point its height as one more
     input channel; ``forward(x, mask, up=...)`` takes a known up) and ``upright`` option
-    (:class:`~usf_graph.nn.UpJet` features in the backbone) it shares.
+    (:class:`~usf_graph.nn.UpJet` features in the backbone) it shares. ``upright_convs`` (a
+    level): the stages on that level and coarser, the ASPP's and the decoder's included,
+    use :class:`~usf_graph.nn.UprightConv`, oriented kernels in the frame of up (None:
+    none).
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` -> logits ``[B, N, num_classes]`` (and the gravity estimate with
@@ -51,7 +62,7 @@ class SphericalDeepLabV3(_Segmenter):
                  rates=(2, 4, 6), low_channels: int = 32, num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, gravity: bool = False, refine: int = 0,
-                 upright: bool = False, up_fields: int = 8):
+                 upright: bool = False, up_fields: int = 8, upright_convs: int | None = None):
         super().__init__()
         aspp_level = level - len(channels) + 1 if aspp_level is None else aspp_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
@@ -60,26 +71,29 @@ class SphericalDeepLabV3(_Segmenter):
                            low_channels=low_channels, num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine,
-                           upright=upright, up_fields=up_fields)
+                           upright=upright, up_fields=up_fields, upright_convs=upright_convs)
         _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, aspp_level,
                                           aspp_level, channels, num_basis, radius_spacings,
-                                          jet_spacings, pairs, pair_stages, refine, upright=upright, up_fields=up_fields)
+                                          jet_spacings, pairs, pair_stages, refine, upright=upright, up_fields=up_fields,
+                                          upright_convs=upright_convs)
         self.num_points = self.backbone.num_points
         ga, gl = self.backbone.grids[aspp_level], self.backbone.grids[level]
         c, a = self.backbone.out_channels, aspp_channels
         self.register_buffer("area_aspp", ga.area.float(), persistent=False)
         self.register_buffer("area_out", gl.area.float(), persistent=False)
         self.point = Pointwise(c, a)
-        self.atrous = nn.ModuleList([ConvStage(ga, c, a, r * level_spacing(aspp_level), num_basis)
-                                     for r in rates])
+        oriented = _oriented(aspp_level, upright_convs)
+        self.atrous = nn.ModuleList([ConvStage(ga, c, a, r * level_spacing(aspp_level), num_basis,
+                                               upright=oriented) for r in rates])
         self.image_pool = nn.Linear(c, a)
         self.fuse = Pointwise(a * (len(rates) + 2), a)
         self.up = blur(ga, gl, 0.5 * level_spacing(aspp_level))
         self.low = Pointwise(self.backbone.skip_channels[0], low_channels)
         self._gravity_net(gravity, in_channels, level, refine)
         self.decoder = ConvStage(gl, a + low_channels, a // 2,
-                                 radius_spacings * level_spacing(level), num_basis)
+                                 radius_spacings * level_spacing(level), num_basis,
+                                 upright=_oriented(level, upright_convs))
         self.head = nn.Linear(a // 2, num_classes)
         self.reset_parameters()
 
@@ -90,11 +104,11 @@ class SphericalDeepLabV3(_Segmenter):
         (low, m_low), (f, m) = feats[0], feats[-1]
         area = self.area_aspp.to(f.dtype)
         g = torch.relu(self.image_pool(global_mean_pool_area(f, area, m)))
-        branches = [self.point(f, m, area)] + [s(f, m) for s in self.atrous]
+        branches = [self.point(f, m, area)] + [s(f, m, up) for s in self.atrous]
         branches.append(g[:, None].expand(-1, f.shape[1], -1))
         y, _ = self.up(self.fuse(torch.cat(branches, -1), m, area), m)
         parts = [y, self.low(low, m_low, self.area_out.to(f.dtype))]
-        logits = self.head(self.decoder(torch.cat(parts, -1), m_low))
+        logits = self.head(self.decoder(torch.cat(parts, -1), m_low, up))
         return (logits, grav) if return_gravity else logits
 
 

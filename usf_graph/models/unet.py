@@ -391,7 +391,8 @@ class SphericalUNet(_Segmenter):
     ``forward(x, mask, up=...)`` takes a known up instead of the estimate. With
     ``upright=True`` as well, the backbone also reads the orientation of the input and of
     ``up_fields`` learned fields relative to up (:class:`~usf_graph.nn.UpJet`, see
-    :class:`SphericalBackbone`).
+    :class:`SphericalBackbone`), and ``upright_convs`` (a level) makes the stages on that
+    level and coarser use :class:`~usf_graph.nn.UprightConv`.
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]`` (and the
@@ -402,23 +403,26 @@ class SphericalUNet(_Segmenter):
                  min_level: int | None = None, channels=(32, 64, 128, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, gravity: bool = False, depth: int = 1,
-                 head_depth: int = 0, refine: int = 0, upright: bool = False, up_fields: int = 8):
+                 head_depth: int = 0, refine: int = 0, upright: bool = False, up_fields: int = 8,
+                 upright_convs: int | None = None):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
                            min_level=min_level, channels=list(channels), num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, depth=depth,
-                           head_depth=head_depth, refine=refine, upright=upright, up_fields=up_fields)
+                           head_depth=head_depth, refine=refine, upright=upright, up_fields=up_fields,
+                           upright_convs=upright_convs)
         _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
-                                          pairs, pair_stages, refine, depth, upright, up_fields)
+                                          pairs, pair_stages, refine, depth, upright, up_fields,
+                                          upright_convs)
         c = self.backbone.out_channels
         self._gravity_net(gravity, in_channels, level, refine)
         self.head_stage = ConvStage(self.backbone.grids[level], c, c,
                                     radius_spacings * level_spacing(level), num_basis,
-                                    head_depth) if head_depth else None
+                                    head_depth, _oriented(level, upright_convs)) if head_depth else None
         self.head = nn.Linear(c, num_classes)
         self.num_points = self.backbone.num_points
         self.reset_parameters()
@@ -427,7 +431,7 @@ class SphericalUNet(_Segmenter):
                 up: torch.Tensor | None = None, return_gravity: bool = False):
         x, grav, up = self._with_height(x, mask, up, return_gravity)
         f, m = self.backbone(x, mask, up)
-        logits = self.head(f if self.head_stage is None else self.head_stage(f, m))
+        logits = self.head(f if self.head_stage is None else self.head_stage(f, m, up))
         return (logits, grav) if return_gravity else logits
 
 

@@ -29,7 +29,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .fov import random_field_of_view
+from .fov import RandomFields
 from .gravity import (
     given_up,
     known_up,
@@ -130,22 +130,16 @@ class ThroughRandomFields:
 
     def __init__(self, data: DetectionSet, pos: torch.Tensor, share: float = FOV_SHARE,
                  seed: int = 0):
-        if not 0 <= share <= 1:
-            raise ValueError(f"share must be in [0, 1], got {share}")
         if pos.shape != (data.x.shape[1], 3):
             raise ValueError(f"pos must be the grid's points [{data.x.shape[1]}, 3], got {tuple(pos.shape)}")
-        self.data, self.pos, self.share = data, pos.double(), float(share)
-        self.generator = torch.Generator().manual_seed(int(seed))
+        self.data, self.fields = data, RandomFields(pos, share, seed)
 
     def __call__(self, idx: list[int]):
         x, mask, boxes, classes, image = self.data.collate(idx)
-        if float(torch.rand((), generator=self.generator)) >= self.share:
+        seen = self.fields(mask)
+        if seen is None:
             return x, mask, boxes, classes, image
-        seen = random_field_of_view(self.pos, self.generator)
-        seen = seen if mask is None else seen & mask
-        if not seen.any():
-            return x, mask, boxes, classes, image
-        keep = seen[(box_centres(boxes.double()) @ self.pos.T).argmax(1)]  # centre's nearest point
+        keep = seen[(box_centres(boxes.double()) @ self.fields.pos.T).argmax(1)]  # centre's nearest point
         return x, seen, boxes[keep], classes[keep], image[keep]
 
 

@@ -53,3 +53,26 @@ def random_field_of_view(pos: torch.Tensor, generator: torch.Generator | None = 
     """A :func:`random_frustum` or a :func:`random_cap` (default ranges), with equal odds."""
     pick = random_frustum if float(torch.rand((), generator=generator)) < 0.5 else random_cap
     return pick(pos, generator=generator)
+
+
+class RandomFields:
+    """Fields of view to train a share of the batches through: ``fields(mask)`` is ``None``
+    (leave this batch whole) with probability ``1 - share``, else one
+    :func:`random_field_of_view` over the grid points ``pos [N, 3]``, within ``mask [N]``
+    (a camera's own field of view; ``None``: the whole sphere), or ``None`` where the two do
+    not meet. ``seed``: of the draws, which follow one another across calls."""
+
+    def __init__(self, pos: torch.Tensor, share: float, seed: int = 0):
+        if not 0 <= share <= 1:
+            raise ValueError(f"share must be in [0, 1], got {share}")
+        if pos.dim() != 2 or pos.shape[1] != 3:
+            raise ValueError(f"pos must be the grid's points [N, 3], got {tuple(pos.shape)}")
+        self.pos, self.share = pos.double(), float(share)
+        self.generator = torch.Generator().manual_seed(int(seed))
+
+    def __call__(self, mask: torch.Tensor | None = None) -> torch.Tensor | None:
+        if float(torch.rand((), generator=self.generator)) >= self.share:
+            return None
+        seen = random_field_of_view(self.pos, self.generator)
+        seen = seen if mask is None else seen & mask.bool()
+        return seen if seen.any() else None

@@ -36,6 +36,7 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .fov import RandomFields
 from .gravity import (
     given_up,
     known_up,
@@ -53,6 +54,8 @@ PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3",
             "e": ("equirectangular", "none", 1)}
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)", "e": "finer grid (zero-shot)"}
+# the spherical models' second phase, through random fields of view (README)
+FOV_EPOCHS, FOV_SHARE, FOV_LR = 0, 0.5, 5e-4
 MODELS = {"spherical_unet": SphericalUNet, "spherical_deeplab": SphericalDeepLabV3,
           "planar_unet": PlanarUNet}
 
@@ -96,6 +99,32 @@ def split_batch(batch):
         raise ValueError("the samples of a batch have different fields of view; batch one camera")
     image = batch.image.permute(0, 3, 1, 2).float() / 255
     return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
+
+
+class ThroughRandomFields:
+    """A ``collate_fn`` over a spherical segmentation dataset (PyG samples with ``x``,
+    ``y`` and ``mask``, e.g. :class:`~usf_graph.datasets.RoomsSegmentation`) that sees a
+    share of the batches through one random field of view
+    (:class:`~usf_graph.train.fov.RandomFields`, a pinhole's or a fisheye's, over the
+    grid points ``pos [N, 3]``), its labels outside ignored: training on parts of the
+    sphere, as narrower lenses show it. ``share``: the probability of a batch being cut;
+    ``seed``: of the draws. Returns a :class:`~torch_geometric.data.Batch`."""
+
+    def __init__(self, pos: torch.Tensor, share: float = FOV_SHARE, seed: int = 0):
+        self.fields = RandomFields(pos, share, seed)
+
+    def __call__(self, samples: list):
+        from torch_geometric.data import Batch
+
+        batch = Batch.from_data_list(samples)
+        if batch.mask.numel() != len(samples) * len(self.fields.pos):
+            raise ValueError(f"the samples are not on the {len(self.fields.pos)} points this "
+                             "collate_fn was built for")
+        seen = self.fields(samples[0].mask)
+        if seen is not None:
+            batch.mask = seen.repeat(len(samples))
+            batch.y = torch.where(batch.mask, batch.y, torch.full_like(batch.y, IGNORE))
+        return batch
 
 
 def segmentation_step(model, batch, class_weight: torch.Tensor | None = None):
@@ -251,14 +280,21 @@ def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_
 
 def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, lr: float,
                 seed: int, progress: bool, balance: float, up_epochs: int, shared: dict,
-                label: str | None = None, up_kw: dict | None = None) -> None:
+                label: str | None = None, up_kw: dict | None = None, fov_epochs: int = 0,
+                fov_share: float = FOV_SHARE) -> None:
     """The protocols' recipe for one model on ``train``, logging under ``out / name``:
     class weights ``balance`` (:func:`balanced_weights`); for a spherical model first the up
     estimate, trained alone for ``up_epochs`` on the first use (under ``out /
     "up_estimate"``), kept in ``shared`` for the next models and frozen
     (:func:`~usf_graph.train.gravity.pretrain_up`; ``up_epochs=0``: trained with the
     segmenter instead; ``up_kw``: more of its keyword arguments). ``label``: the progress
-    bars' name (default ``name``)."""
+    bars' name (default ``name``).
+
+    ``fov_epochs``: a spherical model then trains that many more epochs at ``FOV_LR``, a
+    share ``fov_share`` of its batches seen through random fields of view
+    (:class:`ThroughRandomFields`), its normalizations frozen
+    (:func:`~usf_graph.train.engine.freeze_norms`: a cut batch's statistics are those of
+    one part of one room), logging under ``out / name / "fields_of_view"``."""
     if getattr(net, "gravity", None) is not None and up_epochs:
         if "up" not in shared:
             pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
@@ -269,13 +305,18 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
     step = partial(segmentation_step, class_weight=balanced_weights(train, balance))
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=out / name, config=net.config, progress=progress, name=label or name, step=step)
+    if fov_epochs and not is_planar(net):
+        fit(net, train, None, epochs=fov_epochs, batch_size=batch_size, lr=FOV_LR, seed=seed,
+            log_dir=out / name / "fields_of_view", config=net.config, progress=progress,
+            name=f"{label or name}, fields of view", step=step, frozen_norms=True,
+            collate_fn=ThroughRandomFields(train.grid.pos, fov_share, seed))
 
 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         num_train: int = 400, num_test: int = 50, epochs: int = 8, batch_size: int = 8,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
         balance: float = 0.5, up_epochs: int = 8, upright: bool = True, up_extra: int = 800,
-        up_caps: float = 0.5) -> dict:
+        up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
     ``upright``: as :func:`make_model`'s.
@@ -287,14 +328,16 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     other rooms (:class:`~usf_graph.datasets.RoomsGravity`), a share ``up_caps`` of its
     batches through random caps (fewer than :func:`usf_graph.train.det.run`'s 1,600 x 12
     epochs, to stay within 15 minutes; README). Every model starts from the same seed,
-    whatever the models before it drew."""
+    whatever the models before it drew. ``fov_epochs``, ``fov_share``: the spherical
+    models' second phase, through random fields of view (:func:`train_model`; 0 skips it)."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
     sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
-               "up_extra": up_extra, "up_caps": up_caps}
+               "up_extra": up_extra, "up_caps": up_caps, "fov_epochs": fov_epochs,
+               "fov_share": fov_share}
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
     extra = up_views(root, up_extra, f"icosahedral:{level}", progress) if trains_estimate else None
@@ -304,7 +347,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         net = make_model(name, level, upright)
         t = time.time()
         train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
-                    balance, up_epochs, shared, up_kw=up_kw)
+                    balance, up_epochs, shared, up_kw=up_kw, fov_epochs=fov_epochs,
+                    fov_share=fov_share)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
