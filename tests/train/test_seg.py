@@ -47,9 +47,19 @@ def test_loss_ignores_and_weights():
 
 def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, level=3, num_train=3,
-              num_test=2, epochs=1, batch_size=2, progress=False, up_extra=2, up_caps=0.5)
+              num_test=2, epochs=1, batch_size=2, progress=False, up_extra=2, up_caps=0.5,
+              fov_epochs=1)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
     assert saved["up_extra"] == 2 and saved["up_caps"] == 0.5  # cheap views on the protocol's grid
+    assert saved["fov_epochs"] == 1
+    for name in ("spherical_unet", "spherical_deeplab", "planar_unet"):  # every model's second phase
+        log = json.loads((tmp_path / "out" / name / "second_phase" / "metrics.json").read_text())
+        assert [r["epoch"] for r in log] == [1]
+    # the DeepLab's oriented kernels on every level below the input's, the U-Net's none
+    configs = {n: torch.load(tmp_path / "out" / f"{n}.pt", weights_only=True)["config"]
+               for n in ("spherical_unet", "spherical_deeplab")}
+    assert configs["spherical_deeplab"]["upright_convs"] == 2
+    assert configs["spherical_unet"]["upright_convs"] is None
     assert len(list((tmp_path / "rooms" / "processed").glob("rooms_gravity_*.pt"))) == 1
     for name in ("spherical_unet", "spherical_deeplab", "planar_unet"):
         for k in PROTOCOL:

@@ -4,7 +4,9 @@ through other lenses and on a finer grid.
 The protocol (:func:`run`) trains the spherical U-Net, the spherical DeepLab v3 and the
 planar U-Net on procedural rooms seen by an upright equirectangular camera, straight from
 the PyG dataset (:class:`~usf_graph.datasets.RoomsSegmentation`) through the shared
-engine, then scores them (:mod:`~usf_graph.train.seg_metrics`) on:
+engine (8 epochs, then a second phase of 6 at a lower learning rate, the spherical models'
+through random fields of view: :func:`train_model`), then scores them
+(:mod:`~usf_graph.train.seg_metrics`) on:
 
 (a) new rooms, same camera; (b) the same views under Haar-random rotations; (c) the same
 views through a 190-degree fisheye; (d) through a 90-degree pinhole, both zero-shot;
@@ -54,8 +56,8 @@ PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3",
             "e": ("equirectangular", "none", 1)}
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)", "e": "finer grid (zero-shot)"}
-# the spherical models' second phase, through random fields of view (README)
-FOV_EPOCHS, FOV_SHARE, FOV_LR = 0, 0.5, 5e-4
+# every model's second phase, the spherical ones' through random fields of view (README)
+FOV_EPOCHS, FOV_SHARE, FOV_LR = 6, 0.5, 5e-4
 MODELS = {"spherical_unet": SphericalUNet, "spherical_deeplab": SphericalDeepLabV3,
           "planar_unet": PlanarUNet}
 
@@ -237,7 +239,9 @@ def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
     with their up estimate (``gravity=True``: trained on the views' known gravity, it
     gives the network each point's height, which a planar network reads from its rows)
     and, with ``upright``, derivatives along and across up (``upright=True``: the
-    orientation a planar network's filters see)."""
+    orientation a planar network's filters see); the DeepLab's stages on every level
+    coarser than the input's then have oriented kernels as well
+    (:class:`~usf_graph.nn.UprightConv`, ``upright_convs=level - 1``)."""
     if name not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
     C = len(SEMANTIC_CLASSES)
@@ -245,6 +249,8 @@ def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
         return PlanarUNet(C)
     # upright: oriented fields replace the gradient pairs, for the 2x step budget (README)
     kw = dict(upright=True, pairs=0, up_fields=4) if upright else {}
+    if upright and name == "spherical_deeplab":  # the U-Net's stay distance-only: its step budget
+        kw["upright_convs"] = level - 1
     return MODELS[name](C, level=level, gravity=True, **kw)
 
 
@@ -290,11 +296,12 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
     segmenter instead; ``up_kw``: more of its keyword arguments). ``label``: the progress
     bars' name (default ``name``).
 
-    ``fov_epochs``: a spherical model then trains that many more epochs at ``FOV_LR``, a
-    share ``fov_share`` of its batches seen through random fields of view
-    (:class:`ThroughRandomFields`), its normalizations frozen
-    (:func:`~usf_graph.train.engine.freeze_norms`: a cut batch's statistics are those of
-    one part of one room), logging under ``out / name / "fields_of_view"``."""
+    ``fov_epochs``: the model then trains that many more epochs at ``FOV_LR`` (logging
+    under ``out / name / "second_phase"``): a spherical one with a share ``fov_share`` of
+    its batches seen through random fields of view (:class:`ThroughRandomFields`), its
+    normalizations frozen (:func:`~usf_graph.train.engine.freeze_norms`: a cut batch's
+    statistics are those of one part of one room); a planar one, which has no field of
+    view to cut, on the whole panoramas, so that every model trains as long."""
     if getattr(net, "gravity", None) is not None and up_epochs:
         if "up" not in shared:
             pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
@@ -305,11 +312,12 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
     step = partial(segmentation_step, class_weight=balanced_weights(train, balance))
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=out / name, config=net.config, progress=progress, name=label or name, step=step)
-    if fov_epochs and not is_planar(net):
+    if fov_epochs:
+        cut = not is_planar(net)
         fit(net, train, None, epochs=fov_epochs, batch_size=batch_size, lr=FOV_LR, seed=seed,
-            log_dir=out / name / "fields_of_view", config=net.config, progress=progress,
-            name=f"{label or name}, fields of view", step=step, frozen_norms=True,
-            collate_fn=ThroughRandomFields(train.grid.pos, fov_share, seed))
+            log_dir=out / name / "second_phase", config=net.config, progress=progress,
+            name=f"{label or name}, second phase", step=step, frozen_norms=cut,
+            collate_fn=ThroughRandomFields(train.grid.pos, fov_share, seed) if cut else None)
 
 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
@@ -327,9 +335,10 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     segmenter instead). It sees the training views and ``up_extra`` cheap panoramas of
     other rooms (:class:`~usf_graph.datasets.RoomsGravity`), a share ``up_caps`` of its
     batches through random caps (fewer than :func:`usf_graph.train.det.run`'s 1,600 x 12
-    epochs, to stay within 15 minutes; README). Every model starts from the same seed,
-    whatever the models before it drew. ``fov_epochs``, ``fov_share``: the spherical
-    models' second phase, through random fields of view (:func:`train_model`; 0 skips it)."""
+    epochs, for time; README). Every model starts from the same seed,
+    whatever the models before it drew. ``fov_epochs``, ``fov_share``: every model's
+    second phase, the spherical ones' through random fields of view (:func:`train_model`;
+    0 skips it)."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
