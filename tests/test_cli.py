@@ -1,4 +1,7 @@
 import argparse
+import functools
+import importlib
+import inspect
 
 import cv2
 import numpy as np
@@ -185,3 +188,24 @@ def test_camera_cli_reports_bad_files(tmp_path, capsys):
     assert main(["camera", str(tmp_path / "odd.yaml")]) == 2
     assert "unrecognized calibration format" in capsys.readouterr().err
     assert main(["camera", str(tmp_path / "missing.yaml")]) == 2
+
+
+@pytest.mark.parametrize("task", ["det", "seg"])
+def test_train_passes_the_protocol_options_or_their_defaults(task, monkeypatch):
+    """``train det|seg`` hands ``run`` each option as given, else ``run``'s own default."""
+    module = importlib.import_module(f"usf_graph.train.{task}")
+    defaults = inspect.signature(module.run).parameters
+    calls = []
+
+    @functools.wraps(module.run)  # the same signature, which the command reads
+    def fake_run(**kw):
+        calls.append(kw)
+        return {}
+
+    monkeypatch.setattr(module, "run", fake_run)
+    assert main(["train", task]) == 0
+    assert main(["train", task, "--fov-epochs", "0", "--up-epochs", "3"]) == 0
+    for key in ("fov_epochs", "up_epochs", "up_extra", "up_caps"):
+        assert calls[0][key] == defaults[key].default
+    assert calls[1]["fov_epochs"] == 0 and calls[1]["up_epochs"] == 3
+    assert calls[1]["up_extra"] == defaults["up_extra"].default
