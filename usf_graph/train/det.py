@@ -29,7 +29,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .fov import RandomFields
+from .fov import FOV_LR, FOV_SHARE, RandomFields
 from .gravity import (
     given_up,
     known_up,
@@ -46,7 +46,7 @@ PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
 # the spherical detector's oriented convolutions: on the head's level (4) and coarser (README)
 UPRIGHT_CONVS = 4
 # the spherical detector's second phase, through random fields of view (README)
-FOV_EPOCHS, FOV_SHARE, FOV_LR = 6, 0.5, 5e-4
+FOV_EPOCHS = 6
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)"}
 

@@ -15,6 +15,9 @@ from ..geometry import random_rotation
 FRUSTUM_DEGREES = (60.0, 120.0)
 #: Angular radius range (degrees) of :func:`random_cap`'s caps, fisheye-like fields of view.
 CAP_DEGREES = (45.0, 100.0)
+#: The second training phase through random fields of view that both protocols use (det
+#: and seg, README): the share of batches cut, and its learning rate.
+FOV_SHARE, FOV_LR = 0.5, 5e-4
 
 
 def _uniform(lo: float, hi: float, generator: torch.Generator | None) -> float:

@@ -38,7 +38,7 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .fov import RandomFields
+from .fov import FOV_LR, FOV_SHARE, RandomFields
 from .gravity import (
     given_up,
     known_up,
@@ -57,7 +57,7 @@ PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3",
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)", "e": "finer grid (zero-shot)"}
 # every model's second phase, the spherical ones' through random fields of view (README)
-FOV_EPOCHS, FOV_SHARE, FOV_LR = 6, 0.5, 5e-4
+FOV_EPOCHS = 6
 MODELS = {"spherical_unet": SphericalUNet, "spherical_deeplab": SphericalDeepLabV3,
           "planar_unet": PlanarUNet}
 
