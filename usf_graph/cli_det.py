@@ -29,7 +29,7 @@ def add_train_options(t) -> None:
     g.add_argument("--fov-epochs", type=int, default=None,
                    help="rooms: epochs of the second phase at a lower learning rate, the "
                         "spherical models' with half their batches through random fields of "
-                        "view (det: the spherical detector only; seg: every model; 6, 0 skips it)")
+                        "view (every model; 6, 0 skips it)")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=int, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from usf_graph import grids
-from usf_graph.geometry import rotation_from_axis_angle
+from usf_graph.geometry import geodesic_distance, rotation_from_axis_angle
 from usf_graph.models import PlanarDetector, SphericalDetector
-from usf_graph.models.centernet import heatmap_targets, logmap
+from usf_graph.models.centernet import box_centres, expmap, heatmap_targets, logmap, nearest_points
 from usf_graph.nn import SurfaceJet, geodesic_radius_graph
 from usf_graph.ops import box_corners, box_iou, rotate_boxes
 from usf_graph.testing import smooth_signal, symmetry_permutation
@@ -20,6 +20,25 @@ BOXES = torch.tensor(np.radians([[179.0, 10, 30, 20, 0], [-40, 84, 25, 40, 0],
                                  [60, -20, 12, 50, 90], [-120, 5, 60, 15, -90],
                                  [10, 30, 40, 40, 30], [100, -70, 20, 10, 0]]))
 
+
+
+def test_logmap_inverts_expmap_and_nearest_points_brute_force():
+    g = torch.Generator().manual_seed(0)
+    p = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=torch.float64), dim=-1)
+    q = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=torch.float64), dim=-1)
+    v = logmap(p, q)
+    # tangent at p, as long as the arc, and exp brings it back to q
+    assert (v * p).sum(-1).abs().max() < 1e-12
+    torch.testing.assert_close(v.norm(dim=-1), geodesic_distance(p, q), rtol=0, atol=1e-12)
+    torch.testing.assert_close(expmap(p, v), q, rtol=0, atol=1e-12)
+    assert logmap(p, p).abs().max() < 1e-15  # no way to go
+    # a quarter turn about z takes x to y: the tangent at x is pi/2 along y
+    x, y = torch.eye(3, dtype=torch.float64)[:2]
+    torch.testing.assert_close(logmap(x, y), y * np.pi / 2, rtol=0, atol=1e-15)
+    pts = grids.icosahedral(2).pos.double()
+    near = nearest_points(BOXES, pts)
+    brute = geodesic_distance(box_centres(BOXES)[:, None], pts[None]).argmin(1)
+    assert torch.equal(near, brute)
 
 def _icosahedral_symmetry(level):
     pos = grids.icosahedral(level).pos

@@ -36,10 +36,11 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 2
     assert len(list((tmp_path / "rooms" / "processed").glob("rooms_gravity_*.pt"))) == 1
     assert len((tmp_path / "out" / "spherical" / "metrics.csv").read_text().splitlines()) == 2
-    # then its second phase, through random fields of view
+    # then each detector's second phase, the spherical one's through random fields of view
     assert saved["fov_epochs"] == 1 and saved["fov_share"] == 0.5
-    assert len((tmp_path / "out" / "spherical" / "fields_of_view" / "metrics.csv").read_text()
-               .splitlines()) == 2
+    for name in ("spherical", "planar"):
+        assert len((tmp_path / "out" / name / "second_phase" / "metrics.csv").read_text()
+                   .splitlines()) == 2
     for name in ("spherical", "planar"):
         for k in PROTOCOL:
             r = dict(saved[name][k])

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..geometry import from_latlon, geodesic_distance
+from ..geometry import from_latlon, geodesic_distance, tangent_towards
 from ..ops import spherical_nms
 
 # A box's heatmap is a Gaussian of geodesic distance with this share of its size as sigma,
@@ -28,12 +28,15 @@ def box_centres(boxes: torch.Tensor) -> torch.Tensor:
     return from_latlon(boxes[:, 1], boxes[:, 0])
 
 
+def nearest_points(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Index ``[K]`` of the point of ``points [M, 3]`` (unit) nearest each box's centre
+    (``boxes [K, 5]``)."""
+    return (box_centres(boxes).to(points.dtype) @ points.T).argmax(1)
+
+
 def logmap(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     """Tangent vectors at unit ``p`` pointing to ``q`` with length their geodesic distance."""
-    cos = (p * q).sum(-1, keepdim=True)
-    t = q - cos * p
-    s = t.norm(dim=-1, keepdim=True)
-    return t * (torch.atan2(s, cos) / s.clamp_min(1e-300))
+    return tangent_towards(p, q) * geodesic_distance(p, q)[..., None]
 
 
 def expmap(p: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -70,7 +73,7 @@ def heatmap_targets(points: torch.Tensor, boxes: torch.Tensor, classes: torch.Te
         return (target.view(num_images, num_classes, M).transpose(1, 2), none,
                 (none, none, points.new_zeros(0)))
     c = box_centres(boxes).to(points.dtype)
-    nearest = (c @ points.T).argmax(1)
+    nearest = nearest_points(boxes, points)
     d = geodesic_distance(c[:, None], points[None])  # [K, M]
     sigma = torch.clamp(SIGMA_SHARE * (boxes[:, 2] * boxes[:, 3]).sqrt().to(points.dtype), min=spacing / 2)
     g = torch.exp(-0.5 * (d / sigma[:, None]) ** 2)

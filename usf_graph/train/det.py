@@ -7,7 +7,8 @@ camera; (b) the same views under Haar-random rotations; (c) the same views throu
 190-degree fisheye; (d) through a 90-degree pinhole, both zero-shot. The planar baseline
 sees (c) and (d) re-imaged as panoramas (black where the lens does not see). The spherical
 detector ends with a second phase on parts of the panoramas, through random fields of view
-(:class:`ThroughRandomFields`), its BatchNorm statistics frozen.
+(:class:`ThroughRandomFields`), its BatchNorm statistics frozen; the planar one trains as
+long, on whole panoramas.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from ..cameras import Equirectangular
 from ..frontend import render
 from ..geometry import geodesic_distance
 from ..models import PlanarDetector, SphericalDetector
-from ..models.centernet import box_centres
+from ..models.centernet import box_centres, nearest_points
 from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
@@ -45,7 +46,7 @@ PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
             "c": ("fisheye190", "none"), "d": ("pinhole90", "none")}
 # the spherical detector's oriented convolutions: on the head's level (4) and coarser (README)
 UPRIGHT_CONVS = 4
-# the spherical detector's second phase, through random fields of view (README)
+# every detector's second phase, the spherical one's through random fields of view (README)
 FOV_EPOCHS = 6
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)"}
@@ -139,7 +140,7 @@ class ThroughRandomFields:
         seen = self.fields(mask)
         if seen is None:
             return x, mask, boxes, classes, image
-        keep = seen[(box_centres(boxes.double()) @ self.fields.pos.T).argmax(1)]  # centre's nearest point
+        keep = seen[nearest_points(boxes, self.fields.pos)]
         return x, seen, boxes[keep], classes[keep], image[keep]
 
 
@@ -196,7 +197,7 @@ def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool 
             continue
         out = model(x, mask)
         boxes = boxes.double()
-        near = (box_centres(boxes).to(pts.dtype) @ pts.T).argmax(1)
+        near = nearest_points(boxes, pts)
         # one copy of the fields per true box, with a single peak at its centre point
         one = {k: v[image] if torch.is_tensor(v) and v.dim() > 1 else v for k, v in out.items()}
         heat = torch.full_like(one["heat"], -30.0)
@@ -261,13 +262,15 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     (:func:`~usf_graph.train.gravity.pretrain_up`), and the detector trains on the first
     ``num_train`` views, reading their known up.
 
-    ``fov_epochs``: then the spherical detector trains on, at learning rate ``FOV_LR``,
-    with a share ``fov_share`` of its batches seen through random fields of view
-    (:class:`ThroughRandomFields`), so that it also works from the part of the sphere a
-    narrower lens sees (0: no second phase). Its batch normalizations keep the panoramas'
-    running statistics meanwhile (:func:`~usf_graph.train.engine.freeze_norms`), as every
-    test view is normalized with them; with the statistics of parts of the sphere, or
-    trained through fields of view from the start, it learns much less (README)."""
+    ``fov_epochs``: then each detector trains that many more epochs at learning rate
+    ``FOV_LR`` (0: no second phase). The spherical one sees a share ``fov_share`` of its
+    batches through random fields of view (:class:`ThroughRandomFields`), so that it also
+    works from the part of the sphere a narrower lens sees. Its batch normalizations keep
+    the panoramas' running statistics meanwhile
+    (:func:`~usf_graph.train.engine.freeze_norms`), as every test view is normalized with
+    them; with the statistics of parts of the sphere, or trained through fields of view
+    from the start, it learns much less (README). The planar one, which has no field of
+    view to cut, sees whole panoramas, so that both train as long."""
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -299,12 +302,14 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         fit(net, data["train"], None, epochs=ep, batch_size=batch_size, lr=lr, seed=seed,
             log_dir=out / name, config=net.config, progress=progress, name=name,
             step=detection_step, collate_fn=data["train"].collate)
-        if name == "spherical" and fov_epochs:
+        if fov_epochs:  # the planar detector has no field of view to cut: whole panoramas
+            cut = name == "spherical"
             fit(net, data["train"], None, epochs=fov_epochs, batch_size=batch_size, lr=FOV_LR,
-                seed=seed, log_dir=out / name / "fields_of_view", config=net.config,
-                progress=progress, name=f"{name}, fields of view", step=detection_step,
-                collate_fn=ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share, seed),
-                frozen_norms=True)
+                seed=seed, log_dir=out / name / "second_phase", config=net.config,
+                progress=progress, name=f"{name}, second phase", step=detection_step,
+                collate_fn=ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share,
+                                               seed) if cut else data["train"].collate,
+                frozen_norms=cut)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
