@@ -21,7 +21,6 @@ BOXES = torch.tensor(np.radians([[179.0, 10, 30, 20, 0], [-40, 84, 25, 40, 0],
                                  [10, 30, 40, 40, 30], [100, -70, 20, 10, 0]]))
 
 
-
 def test_logmap_inverts_expmap_and_nearest_points_brute_force():
     g = torch.Generator().manual_seed(0)
     p = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=torch.float64), dim=-1)
@@ -39,6 +38,8 @@ def test_logmap_inverts_expmap_and_nearest_points_brute_force():
     near = nearest_points(BOXES, pts)
     brute = geodesic_distance(box_centres(BOXES)[:, None], pts[None]).argmin(1)
     assert torch.equal(near, brute)
+    assert torch.equal(nearest_points(BOXES.float(), pts), near)
+
 
 def _icosahedral_symmetry(level):
     pos = grids.icosahedral(level).pos

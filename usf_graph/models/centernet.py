@@ -30,8 +30,8 @@ def box_centres(boxes: torch.Tensor) -> torch.Tensor:
 
 def nearest_points(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Index ``[K]`` of the point of ``points [M, 3]`` (unit) nearest each box's centre
-    (``boxes [K, 5]``)."""
-    return (box_centres(boxes).to(points.dtype) @ points.T).argmax(1)
+    (``boxes [K, 5]``; the centres in float64, so float32 boxes pick the same points)."""
+    return (box_centres(boxes.double()).to(points.dtype) @ points.T).argmax(1)
 
 
 def logmap(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
