@@ -204,8 +204,8 @@ def test_train_passes_the_protocol_options_or_their_defaults(task, monkeypatch):
 
     monkeypatch.setattr(module, "run", fake_run)
     assert main(["train", task]) == 0
-    assert main(["train", task, "--fov-epochs", "0", "--up-epochs", "3"]) == 0
-    for key in ("fov_epochs", "up_epochs", "up_extra", "up_caps"):
+    assert main(["train", task, "--fov-epochs", "0", "--up-epochs", "3", "--up-sign", "0.5"]) == 0
+    for key in ("fov_epochs", "up_epochs", "up_extra", "up_caps", "up_sign"):
         assert calls[0][key] == defaults[key].default
-    assert calls[1]["fov_epochs"] == 0 and calls[1]["up_epochs"] == 3
+    assert calls[1]["fov_epochs"] == 0 and calls[1]["up_epochs"] == 3 and calls[1]["up_sign"] == 0.5
     assert calls[1]["up_extra"] == defaults["up_extra"].default

@@ -36,6 +36,9 @@ def add_train_options(t) -> None:
     u.add_argument("--up-caps", type=float, default=None,
                    help="share of its batches seen through random 40-100 degree caps (0.5)")
     u.add_argument("--up-epochs", type=int, default=None, help="its epochs (det 12, seg 8)")
+    u.add_argument("--up-sign", type=float, default=None,
+                   help="weight of a loss term against scoring down above up (0; 1 was a "
+                        "lead in session 26, docs/seg_det_log.md)")
 
 
 def given_or_default(args, run, keys) -> dict:
@@ -48,9 +51,9 @@ def given_or_default(args, run, keys) -> dict:
 
 
 def up_kwargs(args, run) -> dict:
-    """``up_extra``, ``up_caps`` and ``up_epochs`` for a rooms protocol ``run``, its defaults
-    where not given."""
-    return given_or_default(args, run, ("up_extra", "up_caps", "up_epochs"))
+    """``up_extra``, ``up_caps``, ``up_epochs`` and ``up_sign`` for a rooms protocol ``run``,
+    its defaults where not given."""
+    return given_or_default(args, run, ("up_extra", "up_caps", "up_epochs", "up_sign"))
 
 
 def run_kwargs(args, run) -> dict:

@@ -84,6 +84,27 @@ def test_loss_prefers_scores_peaked_at_the_true_up():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
 
 
+
+def test_sign_weight_penalizes_scoring_down_above_up():
+    coarse = grids.icosahedral(1)
+    head = GravityHead(coarse, channels=1).double()
+    g = torch.nn.functional.normalize(torch.tensor([[0.3, -0.2, 1.0]], dtype=torch.float64), dim=-1)
+    up, down = head.target(g), head.target(-g)
+
+    def extra(logits, w=0.5):
+        return head.loss({"logits": logits}, g, sign_weight=w) - head.loss({"logits": logits}, g)
+
+    # scores even under g -> -g: softplus(0) = log 2, whatever the scores' size
+    even = 7.0 * (up + down)
+    torch.testing.assert_close(extra(even), torch.tensor(0.5 * math.log(2), dtype=torch.float64))
+    # a margin of m for up costs about w e^-m; for down, about w m
+    m = 20.0
+    torch.testing.assert_close(extra(m * up / (up * up).sum()), torch.tensor(0.0, dtype=torch.float64),
+                               atol=1e-8, rtol=0)
+    torch.testing.assert_close(extra(m * down / (down * down).sum()),
+                               torch.tensor(0.5 * m, dtype=torch.float64), atol=1e-6, rtol=0)
+    assert extra(torch.zeros_like(up), 0.0) == 0  # off by default
+
 def test_upnet_errors_and_where_it_starts():
     from usf_graph.models import UpNet
 

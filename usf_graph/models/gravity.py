@@ -126,14 +126,23 @@ class GravityHead(nn.Module):
         :math:`\kappa`; 100 is about 6 degrees wide) -> ``[B, Nc]``."""
         return torch.softmax(self.concentration * g @ self.candidates.to(g.dtype).T, -1)
 
-    def loss(self, out: dict, g: torch.Tensor) -> torch.Tensor:
-        """Cross-entropy of the scores (:meth:`forward`'s ``out``) against :meth:`target`,
+    def loss(self, out: dict, g: torch.Tensor, sign_weight: float = 0.0) -> torch.Tensor:
+        r"""Cross-entropy of the scores (:meth:`forward`'s ``out``) against :meth:`target`,
         plus (when ``out`` has ``height``) the area-weighted squared error of the heights
-        over the visible points."""
+        over the visible points.
+
+        ``sign_weight`` :math:`w`: plus :math:`w\,\mathrm{softplus}(s(-g) - s(g))`, with
+        :math:`s(v) = \sum_n q_n(v)\, \ell_n` the scores weighted by :meth:`target`: a
+        penalty on scoring down above up, which the cross-entropy counts as one wrong
+        candidate among hundreds, while about half of the estimate's gross errors on
+        partial views are upside down (docs/seg_det_log.md, session 26)."""
         logits = out["logits"]
         g = g.to(logits.dtype)
         q = self.target(g)
         ce = -(q * torch.log_softmax(logits, -1)).sum(-1).mean()
+        if sign_weight:
+            ce = ce + sign_weight * nn.functional.softplus(
+                ((self.target(-g) - q) * logits).sum(-1)).mean()
         if "height" not in out:
             return ce
         w = out["weight"]

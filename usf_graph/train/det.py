@@ -247,7 +247,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         progress: bool = True, upright: bool = True, up_train: int = 400,
         up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
         upright_convs: int | None = UPRIGHT_CONVS, fov_epochs: int = FOV_EPOCHS,
-        fov_share: float = FOV_SHARE) -> dict:
+        fov_share: float = FOV_SHARE, up_sign: float = 0.0) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
 
@@ -259,8 +259,9 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     other rooms (:class:`~usf_graph.datasets.RoomsGravity`, 96 pixels high, so that one
     render serves the segmentation protocol too) for ``up_epochs``, a share ``up_caps`` of
     its batches seen through random caps of 40-100 degrees, then frozen
-    (:func:`~usf_graph.train.gravity.pretrain_up`), and the detector trains on the first
-    ``num_train`` views, reading their known up.
+    (:func:`~usf_graph.train.gravity.pretrain_up`; ``up_sign``: as
+    :func:`usf_graph.train.seg.run`'s), and the detector trains on the first ``num_train``
+    views, reading their known up.
 
     ``fov_epochs``: then each detector trains that many more epochs at learning rate
     ``FOV_LR`` (0: no second phase). The spherical one sees a share ``fov_share`` of its
@@ -279,14 +280,15 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     C = len(DETECTION_CLASSES)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
-               "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share}
+               "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
+               "up_sign": up_sign}
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
                                   upright_convs=upright_convs if upright else None)
     if upright:
         results["samples"]["up_train"] = up_train
         results["samples"]["up_extra"] = up_extra
         pretrain_up(spherical, sets["train"][:up_train], up_epochs, batch_size, seed=seed,
-                    progress=progress, log_dir=out / "up_estimate", caps=up_caps,
+                    progress=progress, log_dir=out / "up_estimate", caps=up_caps, sign_weight=up_sign,
                     extra=up_views(root, up_extra, progress=progress))
     models = {"spherical": (spherical, DetectionSet.spherical, epochs)}
     if planar:

@@ -90,11 +90,12 @@ def format_up_report(r: dict) -> str:
             f"{r['unsure']} flagged unsure in all")
 
 
-def up_loss(head, grav: dict, g: torch.Tensor, stats: dict) -> torch.Tensor:
+def up_loss(head, grav: dict, g: torch.Tensor, stats: dict, sign_weight: float = 0.0) -> torch.Tensor:
     """``UP_WEIGHT`` times the up estimate's loss (``head``: its
-    :class:`~usf_graph.models.GravityHead`); records its mean error (degrees)."""
+    :class:`~usf_graph.models.GravityHead`; ``sign_weight``: its
+    :meth:`~usf_graph.models.GravityHead.loss`'s); records its mean error (degrees)."""
     stats["up_err_deg"] = float(torch.rad2deg(geodesic_distance(grav["up"].detach(), g)).mean())
-    return UP_WEIGHT * head.loss(grav, g)
+    return UP_WEIGHT * head.loss(grav, g, sign_weight)
 
 
 def trains_up(net) -> bool:
@@ -102,11 +103,13 @@ def trains_up(net) -> bool:
     return bool(getattr(getattr(net, "module", net), "trains_up", False))
 
 
-def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = UP_CAP_DEGREES):
+def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = UP_CAP_DEGREES,
+            sign_weight: float = 0.0):
     """The engine's step for an :class:`~usf_graph.models.UpNet` alone, on PyG batches of
-    views of known gravity (:func:`known_up`): :meth:`GravityHead.loss`. With probability
-    ``caps`` the batch is seen through a :func:`random_cap` only (a smaller lens), of an
-    angular radius drawn from ``cap_degrees``."""
+    views of known gravity (:func:`known_up`): :meth:`GravityHead.loss` (with its
+    ``sign_weight``). With probability ``caps`` the batch is seen through a
+    :func:`random_cap` only (a smaller lens), of an angular radius drawn from
+    ``cap_degrees``."""
     B = batch.num_graphs
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
     seen = getattr(batch, "mask", None)  # panoramas may come without one
@@ -117,7 +120,7 @@ def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = 
     g, _ = known_up(batch, B, x.dtype)
     out = model(x, None if mask.all() else mask)
     stats = {}
-    loss = up_loss(getattr(model, "module", model).head, out, g, stats)
+    loss = up_loss(getattr(model, "module", model).head, out, g, stats, sign_weight)
     return loss, stats, B
 
 
@@ -154,20 +157,21 @@ def up_views(root, num: int, grid="icosahedral:5", progress: bool = True):
 
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                 progress: bool = True, log_dir=None, caps: float = 0.0,
-                cap_degrees: tuple[float, float] = UP_CAP_DEGREES, extra=None) -> None:
+                cap_degrees: tuple[float, float] = UP_CAP_DEGREES, extra=None,
+                sign_weight: float = 0.0) -> None:
     """Trains ``net.gravity`` alone on ``train`` (views of known gravity), and ``extra``
     views when given (e.g. :class:`~usf_graph.datasets.RoomsGravity`), for ``epochs``,
     then freezes it: the segmenter's own training then reads the known gravity and never
     runs it. The up estimate is small (tens of ms a step), so it can see many views at
-    little cost, which it needs (README). ``caps`` and ``cap_degrees``: see
-    :func:`up_step`."""
+    little cost, which it needs (README). ``caps``, ``cap_degrees`` and ``sign_weight``:
+    see :func:`up_step`."""
     from .engine import fit
 
     if extra is not None:
         train = UpViews(train, extra)
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=log_dir, progress=progress, name="up estimate",
-        step=partial(up_step, caps=caps, cap_degrees=tuple(cap_degrees)))
+        step=partial(up_step, caps=caps, cap_degrees=tuple(cap_degrees), sign_weight=sign_weight))
     net.gravity.requires_grad_(False)
 
 

@@ -324,7 +324,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         num_train: int = 400, num_test: int = 50, epochs: int = 8, batch_size: int = 8,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
         balance: float = 0.5, up_epochs: int = 8, upright: bool = True, up_extra: int = 800,
-        up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE) -> dict:
+        up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE,
+        up_sign: float = 0.0) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
     ``upright``: as :func:`make_model`'s.
@@ -335,7 +336,9 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     segmenter instead). It sees the training views and ``up_extra`` cheap panoramas of
     other rooms (:class:`~usf_graph.datasets.RoomsGravity`), a share ``up_caps`` of its
     batches through random caps (fewer than :func:`usf_graph.train.det.run`'s 1,600 x 12
-    epochs, for time; README). Every model starts from the same seed,
+    epochs, for time; README), and ``up_sign``: the weight of a penalty on scoring down
+    above up (:meth:`~usf_graph.models.GravityHead.loss`'s ``sign_weight``; 0, the
+    protocol's; 1 was a lead in session 26, docs/seg_det_log.md). Every model starts from the same seed,
     whatever the models before it drew. ``fov_epochs``, ``fov_share``: every model's
     second phase, the spherical ones' through random fields of view (:func:`train_model`;
     0 skips it)."""
@@ -345,12 +348,12 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
-               "up_extra": up_extra, "up_caps": up_caps, "fov_epochs": fov_epochs,
+               "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign, "fov_epochs": fov_epochs,
                "fov_share": fov_share}
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
     extra = up_views(root, up_extra, f"icosahedral:{level}", progress) if trains_estimate else None
-    up_kw = dict(caps=up_caps, extra=extra)
+    up_kw = dict(caps=up_caps, extra=extra, sign_weight=up_sign)
     for name in models:
         seed_everything(seed)
         net = make_model(name, level, upright)
