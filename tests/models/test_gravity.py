@@ -84,7 +84,6 @@ def test_loss_prefers_scores_peaked_at_the_true_up():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in head.parameters())
 
 
-
 def test_sign_weight_penalizes_scoring_down_above_up():
     coarse = grids.icosahedral(1)
     head = GravityHead(coarse, channels=1).double()
@@ -104,6 +103,7 @@ def test_sign_weight_penalizes_scoring_down_above_up():
     torch.testing.assert_close(extra(m * down / (down * down).sum()),
                                torch.tensor(0.5 * m, dtype=torch.float64), atol=1e-6, rtol=0)
     assert extra(torch.zeros_like(up), 0.0) == 0  # off by default
+
 
 def test_upnet_errors_and_where_it_starts():
     from usf_graph.models import UpNet

@@ -30,7 +30,7 @@ from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .fov import FOV_LR, FOV_SHARE, RandomFields
+from .fov import FOV_SHARE, RandomFields, second_phase
 from .gravity import (
     given_up,
     known_up,
@@ -288,8 +288,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         results["samples"]["up_train"] = up_train
         results["samples"]["up_extra"] = up_extra
         pretrain_up(spherical, sets["train"][:up_train], up_epochs, batch_size, seed=seed,
-                    progress=progress, log_dir=out / "up_estimate", caps=up_caps, sign_weight=up_sign,
-                    extra=up_views(root, up_extra, progress=progress))
+                    progress=progress, log_dir=out / "up_estimate", caps=up_caps,
+                    sign_weight=up_sign, extra=up_views(root, up_extra, progress=progress))
     models = {"spherical": (spherical, DetectionSet.spherical, epochs)}
     if planar:
         w, h = 2 * size, size
@@ -305,13 +305,11 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
             log_dir=out / name, config=net.config, progress=progress, name=name,
             step=detection_step, collate_fn=data["train"].collate)
         if fov_epochs:  # the planar detector has no field of view to cut: whole panoramas
-            cut = name == "spherical"
-            fit(net, data["train"], None, epochs=fov_epochs, batch_size=batch_size, lr=FOV_LR,
-                seed=seed, log_dir=out / name / "second_phase", config=net.config,
-                progress=progress, name=f"{name}, second phase", step=detection_step,
-                collate_fn=ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share,
-                                               seed) if cut else data["train"].collate,
-                frozen_norms=cut)
+            cut = ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share, seed) \
+                if name == "spherical" else None
+            second_phase(net, data["train"], fov_epochs, out / name, name, cut=cut,
+                         collate_fn=data["train"].collate, batch_size=batch_size, seed=seed,
+                         config=net.config, progress=progress, step=detection_step)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)

@@ -4,12 +4,14 @@ spherical model that must also work through those lenses (a pinhole sees a sixth
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..cameras import Pinhole
 from ..geometry import random_rotation
+from .engine import fit
 
 #: Field-of-view range (degrees, each axis) of :func:`random_frustum`'s pinholes.
 FRUSTUM_DEGREES = (60.0, 120.0)
@@ -79,3 +81,19 @@ class RandomFields:
         seen = random_field_of_view(self.pos, self.generator)
         seen = seen if mask is None else seen & mask.bool()
         return seen if seen.any() else None
+
+
+def second_phase(net, train, epochs: int, log_dir, name: str, cut=None, collate_fn=None,
+                 **fit_kw) -> None:
+    """Both protocols' second phase: ``net`` trains ``epochs`` more on ``train`` at
+    ``FOV_LR``, logging under ``log_dir / "second_phase"`` (``fit_kw``: the rest of
+    :func:`~usf_graph.train.engine.fit`'s arguments). ``cut``: a ``collate_fn`` that sees
+    a share of the batches through random fields of view (e.g. one over
+    :class:`RandomFields`); the normalizations are then frozen
+    (:func:`~usf_graph.train.engine.freeze_norms`), as a cut batch's statistics are those
+    of one part of one view. Without it (a planar model, with no field of view to cut) the
+    model trains on the whole views through ``collate_fn``, so that every model trains as
+    long."""
+    fit(net, train, None, epochs=epochs, lr=FOV_LR, log_dir=Path(log_dir) / "second_phase",
+        name=f"{name}, second phase", frozen_norms=cut is not None,
+        collate_fn=collate_fn if cut is None else cut, **fit_kw)

@@ -38,7 +38,7 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
-from .fov import FOV_LR, FOV_SHARE, RandomFields
+from .fov import FOV_SHARE, RandomFields, second_phase
 from .gravity import (
     given_up,
     known_up,
@@ -313,11 +313,10 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=out / name, config=net.config, progress=progress, name=label or name, step=step)
     if fov_epochs:
-        cut = not is_planar(net)
-        fit(net, train, None, epochs=fov_epochs, batch_size=batch_size, lr=FOV_LR, seed=seed,
-            log_dir=out / name / "second_phase", config=net.config, progress=progress,
-            name=f"{label or name}, second phase", step=step, frozen_norms=cut,
-            collate_fn=ThroughRandomFields(train.grid.pos, fov_share, seed) if cut else None)
+        cut = None if is_planar(net) else ThroughRandomFields(train.grid.pos, fov_share, seed)
+        second_phase(net, train, fov_epochs, out / name, label or name, cut=cut,
+                     batch_size=batch_size, seed=seed, config=net.config, progress=progress,
+                     step=step)
 
 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
@@ -338,8 +337,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     batches through random caps (fewer than :func:`usf_graph.train.det.run`'s 1,600 x 12
     epochs, for time; README), and ``up_sign``: the weight of a penalty on scoring down
     above up (:meth:`~usf_graph.models.GravityHead.loss`'s ``sign_weight``; 0, the
-    protocol's; 1 was a lead in session 26, docs/seg_det_log.md). Every model starts from the same seed,
-    whatever the models before it drew. ``fov_epochs``, ``fov_share``: every model's
+    protocol's; 1 was a lead in session 26, docs/seg_det_log.md). Every model starts from
+    the same seed, whatever the models before it drew. ``fov_epochs``, ``fov_share``: every model's
     second phase, the spherical ones' through random fields of view (:func:`train_model`;
     0 skips it)."""
     rank, _ = setup_distributed()
@@ -348,8 +347,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
-               "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign, "fov_epochs": fov_epochs,
-               "fov_share": fov_share}
+               "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign,
+               "fov_epochs": fov_epochs, "fov_share": fov_share}
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
     extra = up_views(root, up_extra, f"icosahedral:{level}", progress) if trains_estimate else None
