@@ -428,6 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
                    "view's true gravity, as from an IMU, not their estimate")
+    e.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
+                   help="det, seg: the up estimate assumes level cameras (optical axis "
+                        "horizontal) with this strength; 10 in the README, 0 (default) off")
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
                    "rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")

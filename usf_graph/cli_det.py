@@ -94,6 +94,16 @@ def cmd_train_det(args) -> int:
     return 0
 
 
+def level_prior(model, strength: float) -> None:
+    """``eval --level-prior``: sets it on ``model``'s up estimate
+    (:func:`~usf_graph.models.gravity.set_level_prior`); an error if there is none to set."""
+    from .models import set_level_prior
+
+    if strength and not set_level_prior(model, strength):
+        raise ValueError("--level-prior needs a spherical model with an up estimate (gravity=True); "
+                         "this checkpoint has none")
+
+
 def cmd_eval_det(args) -> int:
     from .models import PlanarDetector, SphericalDetector
     from .train import load_checkpoint
@@ -105,6 +115,7 @@ def cmd_eval_det(args) -> int:
     planar = "height" in cfg
     model = (PlanarDetector if planar else SphericalDetector).from_config(cfg)
     model.load_state_dict(blob["state_dict"])
+    level_prior(model, args.level_prior)
     sets = protocol_sets(args.root or "data/rooms", args.size or 128, num_train=0,
                          num_test=args.num_test, seed=args.seed)
     for k in args.test or list(PROTOCOL):

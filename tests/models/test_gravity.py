@@ -345,3 +345,100 @@ def test_margin_does_not_change_when_the_image_rotates():
     a, b = head(f), head(fr)
     torch.testing.assert_close(b["margin"], a["margin"], rtol=0, atol=1e-10)
     torch.testing.assert_close(b["up"], a["up"] @ R.T, rtol=0, atol=1e-10)
+
+
+
+def _cap(pos: torch.Tensor, axis, degrees: float) -> torch.Tensor:
+    axis = torch.nn.functional.normalize(torch.as_tensor(axis, dtype=torch.float64), dim=0)
+    return pos.double() @ axis > math.cos(math.radians(degrees))
+
+
+def test_level_scores_are_minus_beta_times_the_squared_projection_on_the_mean_view():
+    """Against the formula with m computed here in numpy, the visible points' area-weighted
+    mean; and its size for the protocols' lenses."""
+    from usf_graph.models.gravity import level_scores
+
+    grid, cand = grids.icosahedral(4), grids.icosahedral(2).pos.double()
+    pos, area = grid.pos.double(), grid.area.double()
+    mask = _cap(pos, [1.0, 0.3, -0.2], 50)
+    got = level_scores(cand, pos, area, mask, 7.0).numpy()
+    w = area.numpy() * mask.numpy()
+    m = (w[:, None] * pos.numpy()).sum(0) / w.sum()
+    np.testing.assert_allclose(got, -7.0 * (cand.numpy() @ m) ** 2 / np.linalg.norm(m), rtol=0, atol=1e-12)
+    # |m| = (1 + cos r) / 2 for a cap of radius r: 0.82 here, 0.46 for a 190-degree fisheye
+    assert np.linalg.norm(m) == pytest.approx((1 + math.cos(math.radians(50))) / 2, abs=0.01)
+    fisheye = level_scores(cand, pos, area, _cap(pos, [0, 1.0, 0], 95), 1.0)
+    assert float(-fisheye.min()) == pytest.approx((1 + math.cos(math.radians(95))) / 2, abs=0.01)
+    # the whole sphere has no mean direction: nothing
+    everything = torch.ones(len(pos), dtype=torch.bool)
+    assert level_scores(cand, pos, area, everything, 7.0).abs().max() < 1e-9
+
+
+def _level_net():
+    from usf_graph.models import UpNet
+
+    torch.manual_seed(0)
+    return UpNet(3, 3, channels=(4, 4)).double().eval()
+
+
+def test_level_prior_turns_an_up_along_the_optical_axis_across_it():
+    """An UpNet whose own scores say "up is the optical axis" (a huge bias towards the
+    candidate there, through the head's ``extra`` scores): without the prior it agrees;
+    with a strong one it picks a direction across the axis, as a level camera's up is,
+    and the margin (read from the same scores) follows."""
+    net = _level_net()
+    net.polish = None
+    pos = net.view_pos
+    axis = torch.nn.functional.normalize(torch.tensor([1.0, 0.2, 0.1], dtype=torch.float64), dim=0)
+    mask = _cap(pos, axis, 45)
+    x = torch.randn(2, len(pos), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    head_forward = net.head.forward
+    towards_axis = 30.0 * (net.head.candidates @ axis)
+    net.head.forward = lambda f, m=None, extra=None: head_forward(
+        f, m, towards_axis if extra is None else extra + towards_axis)
+    with torch.no_grad():
+        free = net(x, mask)["up"]
+        net.level_prior = 1000.0
+        level = net(x, mask)["up"]
+        whole = net(x)["up"]  # no field of view: no prior
+        net.level_prior = 0.0
+        torch.testing.assert_close(net(x)["up"], whole, rtol=0, atol=0)
+    assert (free @ axis > 0.95).all()
+    assert ((level @ axis).abs() < math.sin(math.radians(10))).all()  # the candidates' spacing
+
+
+def test_level_prior_keeps_the_estimate_equivariant():
+    from usf_graph.testing import symmetry_permutation
+
+    net = _level_net()
+    net.level_prior = 5.0
+    p = net.view_pos
+    R = _vertex_rotation(p[7], turns=2)
+    perm = symmetry_permutation(p, R)
+    x = torch.randn(2, len(p), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    mask = _cap(p, [0.3, -1.0, 0.4], 70)
+    xr, mr = torch.empty_like(x), torch.empty_like(mask)
+    xr[:, perm], mr[perm] = x, mask
+    with torch.no_grad():
+        a, b = net(x, mask), net(xr, mr)
+        net.level_prior = 0.0
+        off = net(x, mask)
+    torch.testing.assert_close(b["up"], a["up"] @ R.T, rtol=0, atol=1e-9)
+    torch.testing.assert_close(b["margin"], a["margin"], rtol=0, atol=1e-9)
+    assert (off["logits"] - a["logits"]).abs().max() > 1  # it did act
+
+
+def test_set_level_prior_reaches_every_up_estimate_and_checks_its_value():
+    from usf_graph.models import SphericalUNet, set_level_prior
+
+    net = _level_net()
+    assert net.level_prior == 0.0
+    assert set_level_prior(net, 10) == 1 and net.level_prior == 10.0
+    assert set_level_prior(torch.nn.Linear(2, 2), 10) == 0
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="level_prior must be a finite number >= 0"):
+            set_level_prior(net, bad)
+    assert net.level_prior == 10.0  # a bad value changes nothing
+    seg = SphericalUNet(num_classes=3, level=3, channels=(4, 4), gravity=True)
+    assert set_level_prior(seg, 2.5) == 1 and seg.gravity.level_prior == 2.5
+    assert seg.refined(1).gravity.level_prior == 2.5  # the finer grid's copy keeps it

@@ -30,6 +30,29 @@ def heights(pos: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     return (pos.to(up.dtype) @ up.T).T[..., None]
 
 
+def check_level_prior(strength: float) -> float:
+    """``strength`` as a float, or a ``ValueError`` unless it is finite and at least 0."""
+    strength = float(strength)
+    if not math.isfinite(strength) or strength < 0:
+        raise ValueError(f"level_prior must be a finite number >= 0 (0: off), got {strength}")
+    return strength
+
+
+def level_scores(candidates: torch.Tensor, pos: torch.Tensor, area: torch.Tensor,
+                 mask: torch.Tensor, strength: float) -> torch.Tensor:
+    r"""Scores ``[Nc]`` for a camera mounted level, to add to a :class:`GravityHead`'s:
+    :math:`-\beta\,(a_n \cdot m)^2 / \lVert m \rVert` for the candidates :math:`a_n`
+    (``candidates [Nc, 3]``), with :math:`m` the area-weighted mean of the points ``pos
+    [N, 3]`` (areas ``area [N]``) that the field of view ``mask [N]`` sees, and
+    :math:`\beta` = ``strength``. Up is perpendicular to a level camera's optical axis,
+    which :math:`m` points along: about :math:`-\beta` for a candidate on the axis of a
+    90-degree pinhole (:math:`\lVert m \rVert = 0.83`), :math:`-\beta / 2` for a
+    190-degree fisheye (0.46), 0 for the whole sphere (:math:`m = 0`)."""
+    w = area * mask.to(area.dtype)
+    m = (w[:, None] * pos).sum(0) / w.sum()
+    return -strength * (candidates @ m) ** 2 / m.norm().clamp_min(1e-12)
+
+
 class GravityHead(nn.Module):
     r"""Estimates the up direction of a spherical image, SO(3)-equivariantly.
 

@@ -33,7 +33,7 @@ from ..nn import (
     UpJet,
     UprightConv,
 )
-from .gravity import EdgeVotes, GravityHead, UpPolish, heights
+from .gravity import EdgeVotes, GravityHead, UpPolish, check_level_prior, heights, level_scores
 
 _SPACING: dict[int, float] = {}
 
@@ -239,6 +239,15 @@ class UpNet(nn.Module):
     It is small and separate from the segmenter, so that the segmenter's first layer can
     already read each point's height.
 
+    **A level camera** (``level_prior`` :math:`\beta`, 0 by default; set it on a trained
+    model with :func:`set_level_prior`). A camera mounted with its optical axis horizontal
+    (most robots, cars, tripods) has up perpendicular to that axis. Without an IMU,
+    :math:`\beta > 0` adds :func:`~usf_graph.models.gravity.level_scores` of the input's
+    field of view to the head's scores: about :math:`\beta` against directions along a
+    pinhole's axis, half that for a fisheye, nothing for a whole panorama. The field of view
+    rotates with the camera, so the estimate stays equivariant; but the prior is wrong for a
+    tilted narrow camera (one looking at the floor): leave it 0 there.
+
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, ``mask [N]`` or
     ``None`` -> :class:`GravityHead`'s output ``{"up": [B, 3], "logits": [B, Nc], ...}``.
     """
@@ -268,6 +277,9 @@ class UpNet(nn.Module):
         self.votes = EdgeVotes(top, self.head.candidates, 4 * in_channels + channels[0],
                                h[levels[0]]) if edge_votes else None
         self.polish = UpPolish(grids[level], h[level]) if polish else None
+        self.level_prior = 0.0
+        self.register_buffer("view_pos", grids[level].pos.double(), persistent=False)
+        self.register_buffer("view_area", grids[level].area.double(), persistent=False)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
         m, x_in = mask, x
@@ -285,11 +297,26 @@ class UpNet(nn.Module):
             if not s and self.votes is not None:  # edge weights from the first stage's in+out
                 votes = self.votes(image, torch.cat([y, x], -1), m)
             x = y
+        if self.level_prior and mask is not None:
+            level = level_scores(self.head.candidates, self.view_pos, self.view_area, mask,
+                                 self.level_prior).to(x.dtype)
+            votes = level if votes is None else votes + level
         out = self.head(x, m, votes)
         if self.polish is not None and not self.training:  # training reads the head's scores only
             out["up_head"] = out["up"]
             out["up"] = self.polish(x_in, mask, out["up"])
         return out
+
+
+def set_level_prior(model: nn.Module, strength: float) -> int:
+    """Sets ``level_prior`` on every :class:`UpNet` in ``model`` (a trained segmenter or
+    detector with ``gravity=True``, or an ``UpNet``): for cameras mounted level, without an
+    IMU; 0 turns it off. Returns how many it set (0: the model has no up estimate)."""
+    strength = check_level_prior(strength)
+    nets = [m for m in model.modules() if isinstance(m, UpNet)]
+    for net in nets:
+        net.level_prior = strength
+    return len(nets)
 
 
 def _check_upright(upright: bool, gravity: bool) -> None:
@@ -370,6 +397,9 @@ class _Segmenter(WithUp):
         p = next(self.parameters())
         net = net.to(device=p.device, dtype=p.dtype)
         net.load_state_dict(self.state_dict())
+        for old, new in zip(self.modules(), net.modules()):  # settings outside the state
+            if isinstance(old, UpNet):
+                new.level_prior = old.level_prior
         return net.train(self.training)
 
 
