@@ -103,6 +103,21 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     with torch.no_grad():
         want = net(rot.x.float(), None, up=rot.gravity.float()).argmax(-1)
     assert np.array_equal(points, want.numpy()) and not (rot.gravity[:, 2] > 0.999).all()
+    # --level-prior: the fisheye's up estimate assumes a level camera; the report follows it
+    from usf_graph.models import set_level_prior
+    from usf_graph.train.gravity import up_report, views_up
+
+    capsys.readouterr()
+    assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",
+                 "--test", "c", "--level-prior", "50"]) == 0
+    out = capsys.readouterr().out
+    set_level_prior(net, 50)
+    r = up_report(net.gravity, ds.x, ds.mask[0], views_up(ds))
+    assert f"(c) up estimate: median error {r['median_err_deg']:.1f} deg" in out
+    # a planar model has no estimate to set it on
+    assert main(["eval", "seg", str(tmp_path / "out" / "planar_unet.pt"), "--root",
+                 str(tmp_path / "rooms"), "--num-test", "2", "--test", "c", "--level-prior", "1"]) == 2
+    assert "--level-prior needs a spherical model" in capsys.readouterr().err
 
 
 def test_a_planar_only_protocol_renders_no_views_for_an_up_estimate(tmp_path):
