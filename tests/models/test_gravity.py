@@ -372,6 +372,8 @@ def test_level_scores_are_minus_beta_times_the_squared_projection_on_the_mean_vi
     # the whole sphere has no mean direction: nothing
     everything = torch.ones(len(pos), dtype=torch.bool)
     assert level_scores(cand, pos, area, everything, 7.0).abs().max() < 1e-9
+    with pytest.raises(ValueError, match="sees no point"):
+        level_scores(cand, pos, area, torch.zeros_like(everything), 7.0)
 
 
 def _level_net():

@@ -48,6 +48,8 @@ def level_scores(candidates: torch.Tensor, pos: torch.Tensor, area: torch.Tensor
     which :math:`m` points along: about :math:`-\beta` for a candidate on the axis of a
     90-degree pinhole (:math:`\lVert m \rVert = 0.83`), :math:`-\beta / 2` for a
     190-degree fisheye (0.46), 0 for the whole sphere (:math:`m = 0`)."""
+    if not mask.any():
+        raise ValueError("level_scores: the field of view (mask) sees no point")
     w = area * mask.to(area.dtype)
     m = (w[:, None] * pos).sum(0) / w.sum()
     return -strength * (candidates @ m) ** 2 / m.norm().clamp_min(1e-12)
