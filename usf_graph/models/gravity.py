@@ -30,14 +30,6 @@ def heights(pos: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     return (pos.to(up.dtype) @ up.T).T[..., None]
 
 
-def check_level_prior(strength: float) -> float:
-    """``strength`` as a float, or a ``ValueError`` unless it is finite and at least 0."""
-    strength = float(strength)
-    if not math.isfinite(strength) or strength < 0:
-        raise ValueError(f"level_prior must be a finite number >= 0 (0: off), got {strength}")
-    return strength
-
-
 def level_scores(candidates: torch.Tensor, pos: torch.Tensor, area: torch.Tensor,
                  mask: torch.Tensor, strength: float) -> torch.Tensor:
     r"""Scores ``[Nc]`` for a camera mounted level, to add to a :class:`GravityHead`'s:

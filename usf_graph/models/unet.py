@@ -33,7 +33,7 @@ from ..nn import (
     UpJet,
     UprightConv,
 )
-from .gravity import EdgeVotes, GravityHead, UpPolish, check_level_prior, heights, level_scores
+from .gravity import EdgeVotes, GravityHead, UpPolish, heights, level_scores
 
 _SPACING: dict[int, float] = {}
 
@@ -312,7 +312,9 @@ def set_level_prior(model: nn.Module, strength: float) -> int:
     """Sets ``level_prior`` on every :class:`UpNet` in ``model`` (a trained segmenter or
     detector with ``gravity=True``, or an ``UpNet``): for cameras mounted level, without an
     IMU; 0 turns it off. Returns how many it set (0: the model has no up estimate)."""
-    strength = check_level_prior(strength)
+    strength = float(strength)
+    if not math.isfinite(strength) or strength < 0:
+        raise ValueError(f"level_prior must be a finite number >= 0 (0: off), got {strength}")
     nets = [m for m in model.modules() if isinstance(m, UpNet)]
     for net in nets:
         net.level_prior = strength
