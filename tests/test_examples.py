@@ -105,3 +105,46 @@ def test_field_of_view_example_small_run(tmp_path, kind):
                                       "--num-test", "2", "--known-up"]
                                      + (["--size", "32"] if kind == "det" else []))
     assert len(res) == 4 and all(0 <= v <= 1 for v in res.values())
+
+
+def test_up_sign_example_small_run(tmp_path, capsys):
+    """The sign check trains on a few views and is asked on (a), (c) and (d): every view
+    it flips gets exactly the opposite up, and the printed counts are the returned ones."""
+    from usf_graph.train.engine import save_checkpoint
+    from usf_graph.train.seg import make_model
+
+    torch.manual_seed(0)
+    net = make_model("spherical_unet", level=3)
+    save_checkpoint(tmp_path / "net.pt", net, {"model": "spherical_unet", "size": 16, **net.config}, {})
+    ex = load("up_sign")
+    res = ex.main([str(tmp_path / "net.pt"), "--root", str(tmp_path / "rooms"), "--num-train", "4",
+                   "--num-test", "2", "--epochs", "1", "--cut-epochs", "1", "--no-progress"])
+    out = capsys.readouterr().out
+    assert set(res) == {"a", "c", "d"}
+    for k, r in res.items():
+        assert 0 <= r["flipped"] <= 2
+        assert all(0 <= r[w]["gross"] <= 2 and 0 <= r[w]["mIoU"] <= 1 for w in ("before", "after"))
+        if not r["flipped"]:
+            assert r["after"] == r["before"]
+        assert f"({k}) gross errors {r['before']['gross']} -> {r['after']['gross']} ({r['flipped']} flipped)" in out
+    # the check itself: a flip is exactly the opposite up, and a sample flips alone
+    sets = ex.seg.protocol_sets(tmp_path / "rooms", 16, 3, 4, 2, tests=("c",), progress=False)
+    sign = ex.train_sign(sets["train"], 3, 1, 0, 0.0, 0, progress=False)
+    net.eval()
+    up, fixed = ex.checked(sign, net, sets["c"])
+    same, opposite = torch.isclose(fixed, up).all(-1), torch.isclose(fixed, -up).all(-1)
+    assert (same | opposite).all()
+    area, mask = sets["c"].grid.area.double(), sets["c"].mask[0]
+    with torch.no_grad():
+        s_up = ex.upright_score(sign, area, sets["c"].x.float(), mask, up)
+        s_down = ex.upright_score(sign, area, sets["c"].x.float(), mask, -up)
+    assert torch.equal(opposite, s_down > s_up)
+
+
+def test_up_sign_example_refuses_a_planar_checkpoint(tmp_path):
+    from usf_graph.models import PlanarUNet
+    from usf_graph.train.engine import save_checkpoint
+
+    save_checkpoint(tmp_path / "p.pt", PlanarUNet(13), {"model": "planar_unet", "size": 16}, {})
+    with pytest.raises(SystemExit, match="not a spherical checkpoint"):
+        load("up_sign").main([str(tmp_path / "p.pt")])
