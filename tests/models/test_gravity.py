@@ -151,7 +151,7 @@ def test_loss_adds_the_area_weighted_height_error_of_the_visible_points():
 
 def _edge_votes(level=4):
     from usf_graph.models.gravity import EdgeVotes
-    from usf_graph.models.unet import level_spacing
+    from usf_graph.models.stages import level_spacing
 
     g = grids.icosahedral(level)
     ev = EdgeVotes(g, grids.icosahedral(3).pos, features=1, spacing=level_spacing(level)).double()
@@ -199,7 +199,7 @@ def test_edge_votes_ignore_hidden_points():
 
 def _polish(level=4, **kw):
     from usf_graph.models.gravity import UpPolish
-    from usf_graph.models.unet import level_spacing
+    from usf_graph.models.stages import level_spacing
 
     g = grids.icosahedral(level)
     return g, UpPolish(g, level_spacing(level), **kw)

@@ -8,7 +8,7 @@ import torch
 from usf_graph import grids
 from usf_graph.geometry import rotation_from_axis_angle
 from usf_graph.models import PlanarDeepLab, PlanarUNet, SphericalDeepLabV3, SphericalUNet
-from usf_graph.models.unet import ConvStage
+from usf_graph.models.stages import ConvStage
 from usf_graph.nn import UprightConv
 from usf_graph.testing import assert_equivariant, smooth_signal, symmetry_permutation
 

@@ -8,15 +8,8 @@ from torch import nn
 
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
-from .unet import (
-    ConvStage,
-    SphericalBackbone,
-    _check_upright,
-    _oriented,
-    _Segmenter,
-    blur,
-    level_spacing,
-)
+from .stages import ConvStage, _oriented, blur, level_spacing
+from .unet import SphericalBackbone, _check_upright, _Segmenter
 
 
 class Pointwise(nn.Module):

@@ -47,7 +47,8 @@ from .centernet import (
     logmap,
     peaks,
 )
-from .unet import ConvStage, FillHidden, SphericalBackbone, WithUp, _check_upright, _oriented
+from .stages import ConvStage, _oriented
+from .unet import FillHidden, SphericalBackbone, WithUp, _check_upright
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
 

@@ -25,79 +25,13 @@ from ..frontend import grid_graph
 from ..grids import icosahedral
 from ..nn import (
     FillHidden,
-    GaussianPool,
     GradientPairs,
     LocalJet,
     MaskedBatchNorm,
-    SphericalConv,
     UpJet,
-    UprightConv,
 )
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights, level_scores
-
-_SPACING: dict[int, float] = {}
-
-
-def level_spacing(level: int) -> float:
-    """Mean spacing (radians) of ``icosahedral(level)``, memoized."""
-    if level not in _SPACING:
-        _SPACING[level] = float(icosahedral(level).spacing)
-    return _SPACING[level]
-
-
-class ConvStage(nn.Module):
-    """``depth`` times conv -> masked BatchNorm -> ReLU on one grid (area-weighted,
-    mask-aware); ``radius`` in radians (at most pi: the whole sphere). ``upright``:
-    :class:`~usf_graph.nn.UprightConv` instead of :class:`~usf_graph.nn.SphericalConv`,
-    and ``forward(x, mask, up)`` needs the unit ``up [B, 3]``."""
-
-    def __init__(self, grid, c_in: int, c_out: int, radius: float, num_basis: int,
-                 depth: int = 1, upright: bool = False):
-        super().__init__()
-        radius = min(radius, math.pi)
-        ei, ew = grid_graph(grid, radius)
-        self.register_buffer("area", grid.area.float(), persistent=False)
-        self.upright = upright
-        self.convs, self.norms = nn.ModuleList(), nn.ModuleList()
-        for k in range(depth):
-            conv = (UprightConv if upright else SphericalConv)(
-                c_in if k == 0 else c_out, c_out, radius, num_basis=num_basis, basis="gaussian")
-            extra = {"pos": grid.pos} if upright else {}
-            self.convs.append(conv.bind(ei, ew.float(), node_weight=self.area, **extra))
-            self.norms.append(MaskedBatchNorm(c_out))
-
-    def forward(self, x, mask=None, up=None):
-        a = self.area.to(x.dtype)
-        for conv, norm in zip(self.convs, self.norms):
-            y = conv(x, up, mask=mask) if self.upright else conv(x, mask=mask)
-            x = torch.relu(norm(y, mask=mask, node_weight=a))
-        return x
-
-
-def _oriented(level: int, upright_convs: int | None) -> bool:
-    """Whether a stage on ``level`` uses :class:`~usf_graph.nn.UprightConv`: on levels up to
-    ``upright_convs`` (None: none)."""
-    return upright_convs is not None and level <= upright_convs
-
-
-def blur(src, dst, sigma: float) -> GaussianPool:
-    """Gaussian resampling from grid ``src`` to grid ``dst`` (pooling or upsampling),
-    ``sigma`` in radians."""
-    return GaussianPool(src.pos, dst.pos, sigma, area=src.area)
-
-
-def check_input(x: torch.Tensor, mask, n: int, c: int, level: int):
-    """Validate ``x [B, n, c]`` and ``mask [n]``; returns the mask as bool, or ``None``
-    when everything is seen."""
-    if x.dim() != 3 or tuple(x.shape[1:]) != (n, c):
-        raise ValueError(f"expected x [B, {n}, {c}] (a signal on icosahedral:{level}), got "
-                         f"{tuple(x.shape)}")
-    if not torch.isfinite(x).all():
-        raise ValueError("x has NaN or inf; lift images with SphericalFrontend or clean them")
-    if mask is not None and (mask.shape != (n,) or not mask.any()):
-        raise ValueError(f"mask must be a bool [{n}] with some point visible, got "
-                         f"{tuple(mask.shape)}")
-    return None if mask is None or mask.all() else mask.bool()
+from .stages import ConvStage, _oriented, blur, check_input, level_spacing
 
 
 class SphericalBackbone(nn.Module):
