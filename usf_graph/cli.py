@@ -386,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "render tables, by kind and size.")
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
-    from .cli_det import add_train_options
+    from .cli_det import add_eval_options, add_train_options
     from .train.mnist import run as mnist_run
 
     d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}  # one source
@@ -421,16 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("task", choices=TASKS, help="the checkpoint's task")
     e.add_argument("checkpoint", help="a checkpoint .pt from train")
     e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms)")
-    e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d", "e"], default=None,
-                   help="det, seg: protocol tests (default: all; (e) is seg's)")
-    e.add_argument("--size", type=int, default=None, help="det, seg: rooms image size (as trained)")
-    e.add_argument("--num-test", type=int, default=50, help="det, seg: views per test")
-    e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
-    e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
-                   "view's true gravity, as from an IMU, not their estimate")
-    e.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
-                   help="det, seg: the up estimate assumes level cameras (optical axis "
-                        "horizontal) with this strength; 10 in the README, 0 (default) off")
+    add_eval_options(e)
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
                    "rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")

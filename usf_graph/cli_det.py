@@ -41,6 +41,20 @@ def add_train_options(t) -> None:
                         "lead in session 26, docs/seg_det_log.md)")
 
 
+def add_eval_options(e) -> None:
+    """Options of ``eval det`` and ``eval seg``: which tests, which views, which up."""
+    e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d", "e"], default=None,
+                   help="det, seg: protocol tests (default: all; (e) is seg's)")
+    e.add_argument("--size", type=int, default=None, help="det, seg: rooms image size (as trained)")
+    e.add_argument("--num-test", type=int, default=50, help="det, seg: views per test")
+    e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
+    e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
+                   "view's true gravity, as from an IMU, not their estimate")
+    e.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
+                   help="det, seg: the up estimate assumes level cameras (optical axis "
+                        "horizontal) with this strength; 10 in the README, 0 (default) off")
+
+
 def given_or_default(args, run, keys) -> dict:
     """The options ``keys`` for ``run``: as given on the command line, else ``run``'s
     defaults."""
