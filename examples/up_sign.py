@@ -2,8 +2,9 @@
 
 With the level prior (``--level-prior``), what the up estimate still gets wrong through the
 fisheye is mostly the sign. This trains a sign check and asks it on the protocol's tests:
-an upright :class:`~usf_graph.models.SphericalUNet` (one output channel, the protocol's
-U-Net configuration) reads the image with heights and ``UpJet`` features along a candidate
+a :class:`~usf_graph.models.SignCheck` (an upright ``SphericalUNet`` with one output
+channel, the protocol's U-Net configuration, trained by
+:func:`~usf_graph.train.gravity.pretrain_sign`) reads the image with heights and ``UpJet`` features along a candidate
 up u. Its score s(u) is the area-weighted mean output over the visible points, trained by
 ``softplus(s(-g) - s(g))`` on the training views' known gravity g, jittered. It trains
 first on whole panoramas, then with a share of the batches through random fields of view
@@ -11,85 +12,39 @@ and the normalizations frozen (training them on cut batches breaks it at test). 
 the estimate u is flipped where s(-u) > s(u). Everything depends on u only through
 heights and derivatives along it, so the check rotates with the input.
 
-    .venv/bin/python examples/up_sign.py runs/seg_seed1/spherical_deeplab.pt --seed 1 --level-prior 10
+    .venv/bin/python examples/up_sign.py runs/seg_seed1/spherical_deeplab.pt --seed 1 --level-prior 10 \
+        --save runs/seg_seed1/sign_check.pt
 
 About 12 minutes on 2 cores once the protocol's rooms are rendered (``data/rooms``).
 Prints, per test, the estimate's gross errors (over 60 degrees) and the mIoU on pixels
-before and after the check (docs/seg_det_log.md, session 27).
+before and after the check (docs/seg_det_log.md, session 27). Here the check is asked on
+every test; attached to a model (``set_sign_check``, or ``usf-graph eval seg|det
+--sign-check`` with the ``--save``d file) it is asked only on wide fields of view.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 
 import torch
-import torch.nn.functional as F
-from tqdm import tqdm
 
 from usf_graph.geometry import geodesic_distance
-from usf_graph.models import SphericalUNet, set_level_prior
-from usf_graph.train import load_checkpoint, seg
-from usf_graph.train.engine import freeze_norms, seed_everything
-from usf_graph.train.fov import RandomFields
-from usf_graph.train.gravity import GROSS_DEGREES, views_up
-
-
-def upright_score(net, area, x, mask, up):
-    """s(up) ``[B]``: ``net``'s area-weighted mean output over the visible points."""
-    out = net(x, mask, up=up)[..., 0]
-    w = area.to(out.dtype) * (1 if mask is None else mask.to(out.dtype))
-    return (out * w).sum(-1) / w.sum()
-
-
-def jittered(g, degrees, gen):
-    """``g [B, 3]`` turned by a uniform angle up to ``degrees`` about random axes."""
-    v = torch.randn(g.shape, generator=gen, dtype=g.dtype)
-    v = F.normalize(v - (v * g).sum(-1, keepdim=True) * g, dim=-1)
-    t = torch.deg2rad(torch.rand(len(g), 1, generator=gen, dtype=g.dtype) * degrees)
-    return torch.cos(t) * g + torch.sin(t) * v
-
-
-def train_sign(train, level, epochs, cut_epochs, share, seed, batch=8, jitter=8.0, progress=True):
-    """The sign check, trained on ``train`` (views of known gravity)."""
-    seed_everything(seed)
-    net = SphericalUNet(num_classes=1, level=level, gravity=True, upright=True, pairs=0, up_fields=4)
-    net.gravity.requires_grad_(False)  # never asked: the check is handed its candidate
-    x_all, g_all = train.x, views_up(train).double()
-    area, gen = train.grid.area.double(), torch.Generator().manual_seed(seed)
-    for n_epochs, cut, lr in ((epochs, 0.0, 3e-3), (cut_epochs, share, 1e-3)):
-        if not n_epochs:
-            continue
-        fields = RandomFields(train.grid.pos, cut, seed)
-        opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, n_epochs * math.ceil(len(x_all) / batch))
-        for _ in tqdm(range(n_epochs), desc=f"sign check, {cut:.0%} cut", disable=not progress):
-            net.train()
-            if cut:
-                freeze_norms(net)
-            order = torch.randperm(len(x_all), generator=gen)
-            for i in range(0, len(x_all), batch):
-                idx = order[i:i + batch]
-                x, g = x_all[idx].float(), jittered(g_all[idx], jitter, gen).float()
-                mask = fields()
-                right = upright_score(net, area, x, mask, g)
-                loss = F.softplus(upright_score(net, area, x, mask, -g) - right).mean()
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                sched.step()
-    return net.eval()
+from usf_graph.models import SignCheck, set_level_prior
+from usf_graph.train import load_checkpoint, save_checkpoint, seg
+from usf_graph.train.engine import seed_everything
+from usf_graph.train.gravity import GROSS_DEGREES, pretrain_sign, views_up
 
 
 @torch.no_grad()
 def checked(sign, model, ds, batch=16):
-    """The estimate's ups ``[S, 3]`` for ``ds`` and the same after the sign check."""
+    """The estimate's ups ``[S, 3]`` for ``ds`` and the same after the sign check (asked
+    whatever the field of view, to show where it helps and where it harms)."""
     mask = None if ds.mask[0].all() else ds.mask[0]
-    area, ups, out = ds.grid.area.double(), [], []
+    ups, out = [], []
     for s in range(0, len(ds), batch):
         x = ds.x[s:s + batch].float()
         u = model.gravity(x, mask)["up"]
-        flip = upright_score(sign, area, x, mask, -u) > upright_score(sign, area, x, mask, u)
+        flip = sign.score(x, mask, -u) > sign.score(x, mask, u)
         ups.append(u)
         out.append(torch.where(flip[:, None], -u, u))
     return torch.cat(ups), torch.cat(out)
@@ -106,6 +61,8 @@ def main(argv=None) -> dict:
     p.add_argument("--cut-epochs", type=int, default=4, help="then through random fields of view")
     p.add_argument("--share", type=float, default=0.7, help="of the batches cut then")
     p.add_argument("--level-prior", type=float, default=10.0, help="the estimate's (0: off)")
+    p.add_argument("--save", default=None, help="write the trained check here (a checkpoint "
+                   "for 'usf-graph eval seg|det --sign-check')")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     blob = load_checkpoint(a.checkpoint)
@@ -119,8 +76,9 @@ def main(argv=None) -> dict:
     set_level_prior(model, a.level_prior)
     sets = seg.protocol_sets(a.root, size, cfg["level"], a.num_train, a.num_test, a.seed,
                              tests=("a", "c", "d"), progress=not a.no_progress)
-    sign = train_sign(sets["train"], cfg["level"], a.epochs, a.cut_epochs, a.share, a.seed,
-                      progress=not a.no_progress)
+    seed_everything(a.seed)
+    sign = pretrain_sign(SignCheck(cfg["level"]), sets["train"], a.epochs, a.cut_epochs, a.share,
+                         a.seed, progress=not a.no_progress)
     res = {}
     for k in ("a", "c", "d"):
         ds, g = sets[k], views_up(sets[k]).double()
@@ -134,6 +92,9 @@ def main(argv=None) -> dict:
         res[k] = r
         print(f"({k}) gross errors {r['before']['gross']} -> {r['after']['gross']} ({r['flipped']} "
               f"flipped), mIoU {100 * r['before']['mIoU']:.2f} -> {100 * r['after']['mIoU']:.2f}")
+    if a.save:
+        save_checkpoint(a.save, sign, {"model": "sign_check", **sign.config}, res)
+        print(f"sign check: {a.save}")
     return res
 
 

@@ -109,8 +109,10 @@ def test_field_of_view_example_small_run(tmp_path, kind):
 
 def test_up_sign_example_small_run(tmp_path, capsys):
     """The sign check trains on a few views and is asked on (a), (c) and (d): every view
-    it flips gets exactly the opposite up, and the printed counts are the returned ones."""
+    it flips gets exactly the opposite up, the printed counts are the returned ones, and
+    ``--save`` writes a check that ``load_sign_check`` reads back."""
     from usf_graph.train.engine import save_checkpoint
+    from usf_graph.train.gravity import load_sign_check
     from usf_graph.train.seg import make_model
 
     torch.manual_seed(0)
@@ -118,7 +120,8 @@ def test_up_sign_example_small_run(tmp_path, capsys):
     save_checkpoint(tmp_path / "net.pt", net, {"model": "spherical_unet", "size": 16, **net.config}, {})
     ex = load("up_sign")
     res = ex.main([str(tmp_path / "net.pt"), "--root", str(tmp_path / "rooms"), "--num-train", "4",
-                   "--num-test", "2", "--epochs", "1", "--cut-epochs", "1", "--no-progress"])
+                   "--num-test", "2", "--epochs", "1", "--cut-epochs", "1", "--no-progress",
+                   "--save", str(tmp_path / "sign.pt")])
     out = capsys.readouterr().out
     assert set(res) == {"a", "c", "d"}
     for k, r in res.items():
@@ -127,18 +130,17 @@ def test_up_sign_example_small_run(tmp_path, capsys):
         if not r["flipped"]:
             assert r["after"] == r["before"]
         assert f"({k}) gross errors {r['before']['gross']} -> {r['after']['gross']} ({r['flipped']} flipped)" in out
-    # the check itself: a flip is exactly the opposite up, and a sample flips alone
-    sets = ex.seg.protocol_sets(tmp_path / "rooms", 16, 3, 4, 2, tests=("c",), progress=False)
-    sign = ex.train_sign(sets["train"], 3, 1, 0, 0.0, 0, progress=False)
+    sign = load_sign_check(tmp_path / "sign.pt")
+    assert sign.config["level"] == 3 and f"sign check: {tmp_path / 'sign.pt'}" in out
+    # the example's own flips: exactly the opposite up, where the check scores it higher
+    sets = ex.seg.protocol_sets(tmp_path / "rooms", 16, 3, 0, 2, tests=("c",), progress=False)
     net.eval()
     up, fixed = ex.checked(sign, net, sets["c"])
     same, opposite = torch.isclose(fixed, up).all(-1), torch.isclose(fixed, -up).all(-1)
     assert (same | opposite).all()
-    area, mask = sets["c"].grid.area.double(), sets["c"].mask[0]
+    x, mask = sets["c"].x.float(), sets["c"].mask[0]
     with torch.no_grad():
-        s_up = ex.upright_score(sign, area, sets["c"].x.float(), mask, up)
-        s_down = ex.upright_score(sign, area, sets["c"].x.float(), mask, -up)
-    assert torch.equal(opposite, s_down > s_up)
+        assert torch.equal(opposite, sign.score(x, mask, -up) > sign.score(x, mask, up))
 
 
 def test_up_sign_example_refuses_a_planar_checkpoint(tmp_path):

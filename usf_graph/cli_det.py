@@ -53,6 +53,9 @@ def add_eval_options(e) -> None:
     e.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
                    help="det, seg: the up estimate assumes level cameras (optical axis "
                         "horizontal) with this strength; 10 in the README, 0 (default) off")
+    e.add_argument("--sign-check", default=None, metavar="PATH",
+                   help="det, seg: pass the up estimate through this sign check on wide fields "
+                        "of view (a file of 'examples/up_sign.py --save')")
 
 
 def given_or_default(args, run, keys) -> dict:
@@ -108,14 +111,18 @@ def cmd_train_det(args) -> int:
     return 0
 
 
-def level_prior(model, strength: float) -> None:
-    """``eval --level-prior``: sets it on ``model``'s up estimate
-    (:func:`~usf_graph.models.gravity.set_level_prior`); an error if there is none to set."""
-    from .models import set_level_prior
+def up_options(model, args) -> None:
+    """``eval --level-prior`` and ``--sign-check``: set on ``model``'s up estimate
+    (:func:`~usf_graph.models.set_level_prior`, :func:`~usf_graph.models.set_sign_check`);
+    an error if there is none to set them on."""
+    from .models import set_level_prior, set_sign_check
+    from .train.gravity import load_sign_check
 
-    if strength and not set_level_prior(model, strength):
-        raise ValueError("--level-prior needs a spherical model with an up estimate (gravity=True); "
-                         "this checkpoint has none")
+    needs = "{} needs a spherical model with an up estimate (gravity=True); this checkpoint has none"
+    if args.level_prior and not set_level_prior(model, args.level_prior):
+        raise ValueError(needs.format("--level-prior"))
+    if args.sign_check and not set_sign_check(model, load_sign_check(args.sign_check)):
+        raise ValueError(needs.format("--sign-check"))
 
 
 def cmd_eval_det(args) -> int:
@@ -129,7 +136,7 @@ def cmd_eval_det(args) -> int:
     planar = "height" in cfg
     model = (PlanarDetector if planar else SphericalDetector).from_config(cfg)
     model.load_state_dict(blob["state_dict"])
-    level_prior(model, args.level_prior)
+    up_options(model, args)
     sets = protocol_sets(args.root or "data/rooms", args.size or 128, num_train=0,
                          num_test=args.num_test, seed=args.seed)
     for k in args.test or list(PROTOCOL):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import inspect
 import json
 
-from .cli_det import given_or_default, level_prior, run_kwargs, up_kwargs
+from .cli_det import given_or_default, run_kwargs, up_kwargs, up_options
 
 
 def cmd_train_seg(args) -> int:
@@ -54,7 +54,7 @@ def cmd_eval_seg(args) -> int:
         raise ValueError(f"{args.checkpoint} is not a segmentation checkpoint of 'usf-graph train seg'")
     model = MODELS[name].from_config(cfg)
     model.load_state_dict(blob["state_dict"])
-    level_prior(model, args.level_prior)
+    up_options(model, args)
     tests = args.test or list(PROTOCOL)
     sets = protocol_sets(args.root or "data/rooms", args.size or size or 96,
                          cfg.get("level", 5), num_train=0, num_test=args.num_test, seed=args.seed,

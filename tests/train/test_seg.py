@@ -114,10 +114,25 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     set_level_prior(net, 50)
     r = up_report(net.gravity, ds.x, ds.mask[0], views_up(ds))
     assert f"(c) up estimate: median error {r['median_err_deg']:.1f} deg" in out
-    # a planar model has no estimate to set it on
-    assert main(["eval", "seg", str(tmp_path / "out" / "planar_unet.pt"), "--root",
-                 str(tmp_path / "rooms"), "--num-test", "2", "--test", "c", "--level-prior", "1"]) == 2
-    assert "--level-prior needs a spherical model" in capsys.readouterr().err
+    # --sign-check: a saved check passes the estimate on; the finer grid's (e) reads its refined copy
+    from usf_graph.models import SignCheck, set_sign_check
+    from usf_graph.train.engine import save_checkpoint
+
+    torch.manual_seed(3)
+    check = SignCheck(level=3, channels=(4, 4, 4), min_field=0.0)
+    save_checkpoint(tmp_path / "sign.pt", check, {"model": "sign_check", **check.config}, {})
+    assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",
+                 "--test", "c", "e", "--sign-check", str(tmp_path / "sign.pt")]) == 0
+    out = capsys.readouterr().out
+    set_level_prior(net, 0)
+    set_sign_check(net, check.eval())
+    r = up_report(net.gravity, ds.x, ds.mask[0], views_up(ds))
+    assert f"(c) up estimate: median error {r['median_err_deg']:.1f} deg" in out and "(e) mIoU" in out
+    # a planar model has no estimate to set either on
+    for option, value in (("--level-prior", "1"), ("--sign-check", str(tmp_path / "sign.pt"))):
+        assert main(["eval", "seg", str(tmp_path / "out" / "planar_unet.pt"), "--root",
+                     str(tmp_path / "rooms"), "--num-test", "2", "--test", "c", option, value]) == 2
+        assert f"{option} needs a spherical model" in capsys.readouterr().err
 
 
 def test_a_planar_only_protocol_renders_no_views_for_an_up_estimate(tmp_path):

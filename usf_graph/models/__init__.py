@@ -7,9 +7,10 @@ from .gravity import EdgeVotes, GravityHead, UpPolish
 from .planar_detector import PlanarDetector
 from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
+from .sign import SignCheck, set_sign_check
 from .unet import SphericalBackbone, SphericalUNet, UpNet, set_level_prior
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",
            "SphericalDetector", "PlanarDetector", "SphericalBackbone", "SphericalUNet",
            "PlanarUNet", "PlanarDeepLab", "SphericalDeepLabV3", "GravityHead", "EdgeVotes", "UpPolish", "UpNet",
-           "set_level_prior"]
+           "set_level_prior", "SignCheck", "set_sign_check"]

@@ -212,6 +212,7 @@ class UpNet(nn.Module):
                                h[levels[0]]) if edge_votes else None
         self.polish = UpPolish(grids[level], h[level]) if polish else None
         self.level_prior = 0.0
+        object.__setattr__(self, "sign_check", None)  # a test-time setting: not in the state
         self.register_buffer("view_pos", grids[level].pos.double(), persistent=False)
         self.register_buffer("view_area", grids[level].area.double(), persistent=False)
 
@@ -239,7 +240,19 @@ class UpNet(nn.Module):
         if self.polish is not None and not self.training:  # training reads the head's scores only
             out["up_head"] = out["up"]
             out["up"] = self.polish(x_in, mask, out["up"])
+        if self.sign_check is not None and not self.training:
+            out["up"] = self.sign_check(x_in, mask, out["up"])
         return out
+
+    def set_sign_check(self, check) -> None:
+        """Passes the estimate through ``check`` (a :class:`~usf_graph.models.SignCheck` for
+        this net's input grid) at test time; ``None`` removes it. It stays out of the
+        ``state_dict`` and of ``.to()``: move it with the model yourself."""
+        if check is not None and len(check.area) != len(self.view_pos):
+            raise ValueError(f"the sign check reads {len(check.area)} points, this up estimate's "
+                             f"input has {len(self.view_pos)}: build it for the same level and "
+                             "refine (SignCheck.refined)")
+        object.__setattr__(self, "sign_check", check)
 
 
 def set_level_prior(model: nn.Module, strength: float) -> int:
@@ -336,6 +349,7 @@ class _Segmenter(WithUp):
         for old, new in zip(self.modules(), net.modules()):  # settings outside the state
             if isinstance(old, UpNet):
                 new.level_prior = old.level_prior
+                new.set_sign_check(None if old.sign_check is None else old.sign_check.refined(levels))
         return net.train(self.training)
 
 
