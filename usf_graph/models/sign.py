@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..grids import icosahedral
+from .stages import refined_copy
 from .unet import SphericalUNet, UpNet
 
 #: The share of the sphere a camera must see for the check to be asked (a 190-degree
@@ -61,7 +61,11 @@ class SignCheck(nn.Module):
                                  channels=channels, gravity=True, upright=True, pairs=0,
                                  up_fields=4, refine=refine)
         self.net.gravity.requires_grad_(False)
-        self.register_buffer("area", icosahedral(level + refine).area.double(), persistent=False)
+
+    @property
+    def area(self) -> torch.Tensor:
+        """The input grid's point areas ``[N]`` (float64), as its up estimate holds them."""
+        return self.net.gravity.view_area
 
     @classmethod
     def from_config(cls, config: dict) -> SignCheck:
@@ -90,11 +94,7 @@ class SignCheck(nn.Module):
 
     def refined(self, levels: int = 1) -> SignCheck:
         """The same check for inputs ``levels`` grid levels finer, with these weights."""
-        check = type(self)(**{**self.config, "refine": self.config["refine"] + levels})
-        p = next(self.parameters())
-        check = check.to(device=p.device, dtype=p.dtype)
-        check.load_state_dict(self.state_dict())
-        return check.train(self.training)
+        return refined_copy(self, levels)
 
     def __repr__(self) -> str:
         c = self.config

@@ -52,6 +52,17 @@ class ConvStage(nn.Module):
         return x
 
 
+def refined_copy(module: nn.Module, levels: int) -> nn.Module:
+    """``module`` (built from its ``config``, with a ``refine`` entry) rebuilt for inputs
+    ``levels`` grid levels finer, with its weights, device, dtype and mode: every radius is
+    in radians, so the same weights apply."""
+    new = type(module)(**{**module.config, "refine": module.config.get("refine", 0) + levels})
+    p = next(module.parameters())
+    new = new.to(device=p.device, dtype=p.dtype)
+    new.load_state_dict(module.state_dict())
+    return new.train(module.training)
+
+
 def _oriented(level: int, upright_convs: int | None) -> bool:
     """Whether a stage on ``level`` uses :class:`~usf_graph.nn.UprightConv`: on levels up to
     ``upright_convs`` (None: none)."""
@@ -78,4 +89,4 @@ def check_input(x: torch.Tensor, mask, n: int, c: int, level: int):
     return None if mask is None or mask.all() else mask.bool()
 
 
-__all__ = ["level_spacing", "ConvStage", "blur", "check_input"]
+__all__ = ["level_spacing", "ConvStage", "blur", "check_input", "refined_copy"]

@@ -31,7 +31,7 @@ from ..nn import (
     UpJet,
 )
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights, level_scores
-from .stages import ConvStage, _oriented, blur, check_input, level_spacing
+from .stages import ConvStage, _oriented, blur, check_input, level_spacing, refined_copy
 
 
 class SphericalBackbone(nn.Module):
@@ -342,15 +342,12 @@ class _Segmenter(WithUp):
     def refined(self, levels: int = 1):
         """The same network on grids ``levels`` finer (module docstring), with these
         weights: for inputs lifted to ``icosahedral(level + levels)``."""
-        net = type(self)(**{**self.config, "refine": self.config.get("refine", 0) + levels})
-        p = next(self.parameters())
-        net = net.to(device=p.device, dtype=p.dtype)
-        net.load_state_dict(self.state_dict())
+        net = refined_copy(self, levels)
         for old, new in zip(self.modules(), net.modules()):  # settings outside the state
             if isinstance(old, UpNet):
                 new.level_prior = old.level_prior
                 new.set_sign_check(None if old.sign_check is None else old.sign_check.refined(levels))
-        return net.train(self.training)
+        return net
 
 
 class SphericalUNet(_Segmenter):
