@@ -150,3 +150,49 @@ def test_up_sign_example_refuses_a_planar_checkpoint(tmp_path):
     save_checkpoint(tmp_path / "p.pt", PlanarUNet(13), {"model": "planar_unet", "size": 16}, {})
     with pytest.raises(SystemExit, match="not a spherical checkpoint"):
         load("up_sign").main([str(tmp_path / "p.pt")])
+
+
+@pytest.mark.parametrize("kind", ["seg", "det"])
+def test_through_lens_example_trains_the_first_phase_through_the_lens(tmp_path, kind):
+    """It starts from the first phase (``<checkpoint>/last.pt``), not the final weights:
+    with 0 epochs it scores exactly what that state scores. With 1 epoch the network
+    trains through the lens while its up estimate stays frozen, and the result is saved
+    with its scores. A checkpoint without a first phase is refused."""
+    from usf_graph.train import det, seg
+    from usf_graph.train.engine import load_checkpoint, save_checkpoint
+
+    torch.manual_seed(0)
+    if kind == "seg":
+        final, first = (seg.make_model("spherical_unet", level=3) for _ in range(2))
+        cfg, size = {"model": "spherical_unet", "size": 16, **final.config}, []
+    else:
+        from usf_graph.models import SphericalDetector
+
+        final, first = (SphericalDetector(num_classes=12, gravity=True, upright=True) for _ in range(2))
+        cfg, size = final.config, ["--size", "32", "--rendered", "4"]
+    save_checkpoint(tmp_path / "net.pt", final, cfg, {})
+    save_checkpoint(tmp_path / "net" / "last.pt", first, cfg, {})
+    ex = load("through_lens")
+    common = [str(tmp_path / "net.pt"), "--root", str(tmp_path / "rooms"), "--num-train", "4",
+              "--num-test", "2", "--no-progress", *size]
+    res = ex.main(common + ["--epochs", "0"])
+    first.eval()
+    if kind == "seg":
+        sets = seg.protocol_sets(tmp_path / "rooms", 16, 3, 0, 2, tests=("a", "d"), progress=False)
+        for known, key in ((True, "true up"), (False, "estimate")):
+            want, _ = seg.evaluate_protocol(first, sets, ("a", "d"), False, known_up=known)
+            assert res[key] == {k: r["mIoU"] for k, r in want.items()}
+    else:
+        sets = det.protocol_sets(tmp_path / "rooms", 32, num_train=0, num_test=2, progress=False)
+        data = det.DetectionSet.spherical(sets["d"])
+        want = det.score(det.predict(first, data, progress=False), data, 12)["AP50"]
+        assert res["estimate"]["d"] == want
+    res = ex.main(common + ["--epochs", "1", "--out", str(tmp_path / "adapted")])
+    assert (tmp_path / "adapted" / "second_phase" / "metrics.csv").exists()
+    saved = load_checkpoint(tmp_path / "adapted" / "model.pt")
+    assert saved["metrics"] == res and saved["config"] == cfg
+    start = first.state_dict()
+    moved = [k for k, v in saved["state_dict"].items() if not torch.equal(v, start[k])]
+    assert moved and not any(k.startswith("gravity.") for k in moved)
+    with pytest.raises(SystemExit, match="no first-phase state"):
+        ex.main([str(tmp_path / "adapted" / "model.pt")])

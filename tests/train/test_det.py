@@ -21,6 +21,7 @@ from usf_graph.train.det import (
     protocol_sets,
     run,
 )
+from usf_graph.train.fov import camera_field
 
 FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 
@@ -132,6 +133,12 @@ def test_random_fields_of_view_cut_batches_and_their_boxes(tmp_path):
     lens = DetectionSet.spherical(sets["d"])
     seen = ThroughRandomFields(lens, pos, share=1.0)([0])[1]
     assert not (seen & ~lens.mask).any()
+    # through a given lens, turned about gravity: its field of view, and the boxes it shows
+    gen = torch.Generator().manual_seed(4)
+    torch.rand((), generator=gen)
+    _, seen, boxes, _, _ = ThroughRandomFields(data, pos, 1.0, seed=4, camera=sets["d"].camera)([0, 1, 2, 3])
+    assert torch.equal(seen, camera_field(sets["d"].camera, pos, "yaw", gen))
+    assert torch.equal(boxes, b0[seen[(box_centres(b0.double()) @ pos.T).argmax(1)]])
     with pytest.raises(ValueError, match="share"):
         ThroughRandomFields(data, pos, share=1.5)
     with pytest.raises(ValueError, match="grid's points"):

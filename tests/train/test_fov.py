@@ -93,3 +93,57 @@ def test_random_fields_draw_a_share_within_a_mask():
             RandomFields(pos, share=bad)
     with pytest.raises(ValueError, match="points"):
         RandomFields(pos[:, :2], share=0.5)
+
+
+def test_camera_field_turns_the_lens_about_gravity():
+    """A level 90-degree pinhole turned by ``yaw`` stays level, its centre on the horizon
+    at a new azimuth each draw; a tilted one keeps its tilt; ``so3`` mounts it anywhere.
+    Always exactly its field of view: the solid angle 4 asin(sin a sin b) of its frustum."""
+    from usf_graph.scenes.lenses import protocol_cameras
+    from usf_graph.train.fov import camera_field
+
+    g = grids.healpix(32)
+    pos = g.pos.double()
+    cam = protocol_cameras(64)["pinhole90"]
+    omega = 4 * math.asin(math.sin(math.pi / 4) ** 2)
+    gen = _gen(0)
+    centres = []
+    for _ in range(12):
+        m = camera_field(cam, pos, "yaw", gen)
+        assert abs(4 * math.pi * m.double().mean() - omega) < 0.03 * omega
+        c = torch.nn.functional.normalize(pos[m].mean(0), dim=0)
+        assert abs(c[2]) < 0.01  # level: as much above the horizon as below
+        assert abs(pos[m][:, 2].max() + pos[m][:, 2].min()) < 0.03
+        centres.append(float(torch.atan2(c[1], c[0])))
+    assert len({round(a, 3) for a in centres}) == 12 and max(centres) - min(centres) > 3
+    # looking 30 degrees up (the camera pitched about the sphere's y axis): it stays so
+    t = math.radians(30)
+    pitch = torch.tensor([[math.cos(t), 0, -math.sin(t)], [0, 1, 0], [math.sin(t), 0, math.cos(t)]],
+                         dtype=torch.float64).numpy()
+    up30 = cam.with_rotation(pitch @ cam.rotation)
+    for _ in range(4):
+        m = camera_field(up30, pos, "yaw", gen)
+        c = torch.nn.functional.normalize(pos[m].mean(0), dim=0)
+        assert abs(float(c[2]) - math.sin(t)) < 0.03
+    heights = [float(torch.nn.functional.normalize(pos[m].mean(0), dim=0)[2])
+               for m in (camera_field(cam, pos, "so3", gen) for _ in range(30))]
+    assert max(abs(h) for h in heights) > 0.5
+    with pytest.raises(ValueError, match="turn"):
+        camera_field(cam, pos, "roll", gen)
+    with pytest.raises(ValueError, match="turn"):
+        RandomFields(pos, 0.5, camera=cam, turn="roll")
+
+
+def test_random_fields_through_a_camera_draw_its_turned_field():
+    """With ``camera`` every cut is :func:`camera_field`'s draw from the same generator,
+    after the draw that decides whether to cut."""
+    from usf_graph.scenes.lenses import protocol_cameras
+    from usf_graph.train.fov import camera_field
+
+    pos = grids.icosahedral(3).pos.double()
+    cam = protocol_cameras(32)["fisheye190"]
+    draws = RandomFields(pos, share=1.0, seed=5, camera=cam)
+    gen = _gen(5)
+    for _ in range(5):
+        torch.rand((), generator=gen)
+        assert torch.equal(draws(), camera_field(cam, pos, "yaw", gen))

@@ -12,6 +12,7 @@ from tests.datasets.test_stanford import NAMES, _write_pano
 from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
 from usf_graph.scenes import IGNORE
+from usf_graph.train.fov import camera_field
 from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
     PROTOCOL,
@@ -212,6 +213,13 @@ def test_random_fields_of_view_cut_batches_and_ignore_their_labels_outside(tmp_p
     lens = sets["d"]
     mask = split_batch(ThroughRandomFields(pos, share=1.0)([lens[0], lens[1]]))[2]
     assert not (mask & ~lens.mask[0]).any()
+    # through a given lens, turned about gravity: its field of view, labels outside ignored
+    gen = torch.Generator().manual_seed(7)
+    torch.rand((), generator=gen)
+    batch = ThroughRandomFields(pos, 1.0, seed=7, camera=lens.camera)([ds[0], ds[1]])
+    _, y, mask, _, _ = split_batch(batch)
+    assert torch.equal(mask, camera_field(lens.camera, pos, "yaw", gen))
+    assert (y[:, ~mask] == IGNORE).all() and torch.equal(y[:, mask], whole.y.view(3, -1)[:2, mask])
     with pytest.raises(ValueError, match="share"):
         ThroughRandomFields(pos, share=-0.1)
     with pytest.raises(ValueError, match="points"):

@@ -127,13 +127,15 @@ class ThroughRandomFields:
     batches through one random field of view (:func:`~usf_graph.train.fov.random_field_of_view`,
     a pinhole's or a fisheye's, over the grid points ``pos [N, 3]``), with the boxes whose
     centre it hides left out: training on parts of the sphere, as narrower lenses show it.
-    ``share``: the probability of a batch being cut; ``seed``: of the draws."""
+    ``share``: the probability of a batch being cut; ``seed``: of the draws; ``camera``,
+    ``turn``: cut through that camera's field of view instead, turned at random (as
+    :class:`~usf_graph.train.fov.RandomFields`'s)."""
 
     def __init__(self, data: DetectionSet, pos: torch.Tensor, share: float = FOV_SHARE,
-                 seed: int = 0):
+                 seed: int = 0, camera=None, turn: str = "yaw"):
         if pos.shape != (data.x.shape[1], 3):
             raise ValueError(f"pos must be the grid's points [{data.x.shape[1]}, 3], got {tuple(pos.shape)}")
-        self.data, self.fields = data, RandomFields(pos, share, seed)
+        self.data, self.fields = data, RandomFields(pos, share, seed, camera, turn)
 
     def __call__(self, idx: list[int]):
         x, mask, boxes, classes, image = self.data.collate(idx)

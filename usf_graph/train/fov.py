@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import Pinhole
+from ..cameras import Camera, Pinhole
 from ..geometry import random_rotation
 from .engine import fit
 
@@ -60,25 +60,49 @@ def random_field_of_view(pos: torch.Tensor, generator: torch.Generator | None = 
     return pick(pos, generator=generator)
 
 
+def camera_field(camera: Camera, pos: torch.Tensor, turn: str = "yaw",
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+    """What ``camera`` sees of points ``pos [N, 3]`` once turned at random: ``[N]`` (bool).
+    ``turn="yaw"``: its own mounting turned about +z (the gravity of upright views) by a
+    uniform angle, so a level camera stays level, as a robot's does when it turns;
+    ``"so3"``: mounted with a Haar-random rotation instead."""
+    if turn == "yaw":
+        a = 2 * math.pi * float(torch.rand((), generator=generator, dtype=torch.float64))
+        c, s = math.cos(a), math.sin(a)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ camera.rotation
+    elif turn == "so3":
+        R = random_rotation(generator=generator).numpy()
+    else:
+        raise ValueError(f"turn must be 'yaw' or 'so3', got {turn!r}")
+    return torch.as_tensor(np.asarray(camera.with_rotation(R).sees(pos.double().numpy())[1], bool))
+
+
 class RandomFields:
     """Fields of view to train a share of the batches through: ``fields(mask)`` is ``None``
     (leave this batch whole) with probability ``1 - share``, else one
-    :func:`random_field_of_view` over the grid points ``pos [N, 3]``, within ``mask [N]``
-    (a camera's own field of view; ``None``: the whole sphere), or ``None`` where the two do
-    not meet. ``seed``: of the draws, which follow one another across calls."""
+    :func:`random_field_of_view` over the grid points ``pos [N, 3]`` (with ``camera``:
+    what that camera sees turned at random, :func:`camera_field` with ``turn``), within
+    ``mask [N]`` (a camera's own field of view; ``None``: the whole sphere), or ``None``
+    where the two do not meet. ``seed``: of the draws, which follow one another across
+    calls."""
 
-    def __init__(self, pos: torch.Tensor, share: float, seed: int = 0):
+    def __init__(self, pos: torch.Tensor, share: float, seed: int = 0,
+                 camera: Camera | None = None, turn: str = "yaw"):
         if not 0 <= share <= 1:
             raise ValueError(f"share must be in [0, 1], got {share}")
         if pos.dim() != 2 or pos.shape[1] != 3:
             raise ValueError(f"pos must be the grid's points [N, 3], got {tuple(pos.shape)}")
+        if turn not in ("yaw", "so3"):
+            raise ValueError(f"turn must be 'yaw' or 'so3', got {turn!r}")
         self.pos, self.share = pos.double(), float(share)
+        self.camera, self.turn = camera, turn
         self.generator = torch.Generator().manual_seed(int(seed))
 
     def __call__(self, mask: torch.Tensor | None = None) -> torch.Tensor | None:
         if float(torch.rand((), generator=self.generator)) >= self.share:
             return None
-        seen = random_field_of_view(self.pos, self.generator)
+        seen = random_field_of_view(self.pos, self.generator) if self.camera is None else \
+            camera_field(self.camera, self.pos, self.turn, self.generator)
         seen = seen if mask is None else seen & mask.bool()
         return seen if seen.any() else None
 

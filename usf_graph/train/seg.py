@@ -110,10 +110,13 @@ class ThroughRandomFields:
     (:class:`~usf_graph.train.fov.RandomFields`, a pinhole's or a fisheye's, over the
     grid points ``pos [N, 3]``), its labels outside ignored: training on parts of the
     sphere, as narrower lenses show it. ``share``: the probability of a batch being cut;
-    ``seed``: of the draws. Returns a :class:`~torch_geometric.data.Batch`."""
+    ``seed``: of the draws; ``camera``, ``turn``: cut through that camera's field of view
+    instead, turned at random (as :class:`~usf_graph.train.fov.RandomFields`'s). Returns a
+    :class:`~torch_geometric.data.Batch`."""
 
-    def __init__(self, pos: torch.Tensor, share: float = FOV_SHARE, seed: int = 0):
-        self.fields = RandomFields(pos, share, seed)
+    def __init__(self, pos: torch.Tensor, share: float = FOV_SHARE, seed: int = 0,
+                 camera=None, turn: str = "yaw"):
+        self.fields = RandomFields(pos, share, seed, camera, turn)
 
     def __call__(self, samples: list):
         from torch_geometric.data import Batch
