@@ -8,8 +8,8 @@ of the training panoramas cut to what the lens sees, turned about gravity at ran
 level camera stays level; ``--turn so3`` mounts it at random instead), the labels or boxes
 it hides left out, the normalizations frozen, at the second phase's learning rate
 (:func:`usf_graph.train.fov.second_phase` with ``ThroughRandomFields(camera=...)``). Then
-it scores (a) and the lens's test, given the true up and with the estimate: mIoU on
-pixels (``train seg``) or AP50 (``train det``). It writes the trained model and
+it scores (a) and the lens's test, given the true up and with the estimate (without and
+with the level-camera prior, ``--level-prior``): mIoU on pixels (``train seg``) or AP50 (``train det``). It writes the trained model and
 ``results.json`` under ``--out``.
 
 It is not zero-shot: the model has seen the test lens's field of view in training, which
@@ -30,7 +30,7 @@ import json
 from functools import partial
 from pathlib import Path
 
-from usf_graph.models import SphericalDetector
+from usf_graph.models import SphericalDetector, set_level_prior
 from usf_graph.scenes.lenses import protocol_cameras
 from usf_graph.train import det, load_checkpoint, save_checkpoint, seg
 from usf_graph.train.fov import second_phase
@@ -94,6 +94,8 @@ def main(argv=None) -> dict:
     p.add_argument("--num-test", type=int, default=50)
     p.add_argument("--size", type=int, default=None,
                    help="panorama height (default: the checkpoint's, or det's 128)")
+    p.add_argument("--level-prior", type=float, default=10.0,
+                   help="also score the estimate with this level-camera prior (0: skip)")
     p.add_argument("--balance", type=float, default=0.5, help="seg: the class weights' power")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     args = p.parse_args(argv)
@@ -122,9 +124,13 @@ def main(argv=None) -> dict:
     metric, unit = run(net, args, size, cfg.get("level", 5))
     res = {"test": args.test, "epochs": args.epochs, "turn": args.turn,
            "true up": metric(True), "estimate": metric(False)}
+    if args.level_prior:
+        set_level_prior(net, args.level_prior)
+        res["estimate, level prior"] = metric(False)
     print(f"{unit} after {args.epochs} epochs through the lens of ({args.test}), turned by {args.turn}:")
-    for k in ("true up", "estimate"):
-        print(f"  {k:9s} " + "  ".join(f"({t}) {100 * v:6.2f}" for t, v in res[k].items()))
+    for k in ("true up", "estimate", "estimate, level prior"):
+        if k in res:
+            print(f"  {k:22s} " + "  ".join(f"({t}) {100 * v:6.2f}" for t, v in res[k].items()))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(res, indent=1))
     save_checkpoint(args.out / "model.pt", net, saved, res)

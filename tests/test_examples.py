@@ -158,6 +158,7 @@ def test_through_lens_example_trains_the_first_phase_through_the_lens(tmp_path, 
     with 0 epochs it scores exactly what that state scores. With 1 epoch the network
     trains through the lens while its up estimate stays frozen, and the result is saved
     with its scores. A checkpoint without a first phase is refused."""
+    from usf_graph.models import set_level_prior
     from usf_graph.train import det, seg
     from usf_graph.train.engine import load_checkpoint, save_checkpoint
 
@@ -182,6 +183,9 @@ def test_through_lens_example_trains_the_first_phase_through_the_lens(tmp_path, 
         for known, key in ((True, "true up"), (False, "estimate")):
             want, _ = seg.evaluate_protocol(first, sets, ("a", "d"), False, known_up=known)
             assert res[key] == {k: r["mIoU"] for k, r in want.items()}
+        set_level_prior(first, 10.0)  # the third row: the estimate with a level camera's prior
+        want, _ = seg.evaluate_protocol(first, sets, ("a", "d"), False)
+        assert res["estimate, level prior"] == {k: r["mIoU"] for k, r in want.items()}
     else:
         sets = det.protocol_sets(tmp_path / "rooms", 32, num_train=0, num_test=2, progress=False)
         data = det.DetectionSet.spherical(sets["d"])
