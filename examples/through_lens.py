@@ -19,8 +19,8 @@ you know without rendering new data.
     .venv/bin/python examples/through_lens.py runs/seg/spherical_deeplab.pt --test d
     .venv/bin/python examples/through_lens.py runs/det/spherical.pt --test d --epochs 12
 
-About 11 minutes (seg, 8 epochs) or 10 minutes (det, 12 epochs) on 2 cores once the
-protocol's rooms are rendered (``data/rooms``).
+About 13 minutes (seg, 8 epochs; det, 12 epochs) on 2 cores once the protocol's rooms
+are rendered (``data/rooms``).
 """
 
 from __future__ import annotations
