@@ -106,8 +106,8 @@ def main(argv=None) -> dict:
                          "`usf-graph train seg` or `train det` first")
     saved = load_checkpoint(ckpt)["config"]
     cfg = dict(saved)
-    name, size = cfg.pop("model", None), args.size or cfg.pop("size", None)
-    cfg.pop("size", None)
+    name, saved_size = cfg.pop("model", None), cfg.pop("size", None)
+    size = args.size or saved_size
     if name in seg.MODELS and name != "planar_unet":
         net, run, args.num_train = seg.MODELS[name].from_config(cfg), _seg, args.num_train or 400
         size = size or 96

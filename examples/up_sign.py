@@ -44,9 +44,8 @@ def checked(sign, model, ds, batch=16):
     for s in range(0, len(ds), batch):
         x = ds.x[s:s + batch].float()
         u = model.gravity(x, mask)["up"]
-        flip = sign.score(x, mask, -u) > sign.score(x, mask, u)
         ups.append(u)
-        out.append(torch.where(flip[:, None], -u, u))
+        out.append(sign.correct(x, mask, u))
     return torch.cat(ups), torch.cat(out)
 
 

@@ -45,7 +45,8 @@ class SignCheck(nn.Module):
         refine: inputs on ``icosahedral(level + refine)`` (see :meth:`refined`).
 
     Shapes: ``score(x [B, N, in_channels], mask [N] or None, up [B, 3]) -> [B]``;
-    ``forward(x, mask, up) -> up [B, 3]``, each row ``up`` or ``-up``.
+    ``forward(x, mask, up) -> up [B, 3]``, each row ``up`` or ``-up`` (:meth:`correct`
+    where the field of view is wide enough, else ``up``).
     """
 
     def __init__(self, level: int = 5, in_channels: int = 3, channels=(32, 64, 128, 128),
@@ -86,11 +87,13 @@ class SignCheck(nn.Module):
             return True
         return bool((self.area * mask).sum() >= self.config["min_field"] * self.area.sum())
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
-        if not self.asked(mask):
-            return up
+    def correct(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
+        """``up [B, 3]`` with the rows where s(-up) > s(up) turned, whatever the field of view."""
         flip = self.score(x, mask, -up) > self.score(x, mask, up)
         return torch.where(flip[:, None], -up, up)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
+        return self.correct(x, mask, up) if self.asked(mask) else up
 
     def refined(self, levels: int = 1) -> SignCheck:
         """The same check for inputs ``levels`` grid levels finer, with these weights."""

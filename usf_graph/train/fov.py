@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ..cameras import Camera, Pinhole
-from ..geometry import random_rotation
+from ..geometry import random_rotation, rotation_from_axis_angle
 from .engine import fit
 
 #: Field-of-view range (degrees, each axis) of :func:`random_frustum`'s pinholes.
@@ -60,20 +60,23 @@ def random_field_of_view(pos: torch.Tensor, generator: torch.Generator | None = 
     return pick(pos, generator=generator)
 
 
+def _check_turn(turn: str) -> str:
+    if turn not in ("yaw", "so3"):
+        raise ValueError(f"turn must be 'yaw' or 'so3', got {turn!r}")
+    return turn
+
+
 def camera_field(camera: Camera, pos: torch.Tensor, turn: str = "yaw",
                  generator: torch.Generator | None = None) -> torch.Tensor:
     """What ``camera`` sees of points ``pos [N, 3]`` once turned at random: ``[N]`` (bool).
     ``turn="yaw"``: its own mounting turned about +z (the gravity of upright views) by a
     uniform angle, so a level camera stays level, as a robot's does when it turns;
     ``"so3"``: mounted with a Haar-random rotation instead."""
-    if turn == "yaw":
+    if _check_turn(turn) == "yaw":
         a = 2 * math.pi * float(torch.rand((), generator=generator, dtype=torch.float64))
-        c, s = math.cos(a), math.sin(a)
-        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ camera.rotation
-    elif turn == "so3":
-        R = random_rotation(generator=generator).numpy()
+        R = rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), a) @ camera.rotation
     else:
-        raise ValueError(f"turn must be 'yaw' or 'so3', got {turn!r}")
+        R = random_rotation(generator=generator).numpy()
     return torch.as_tensor(np.asarray(camera.with_rotation(R).sees(pos.double().numpy())[1], bool))
 
 
@@ -92,10 +95,8 @@ class RandomFields:
             raise ValueError(f"share must be in [0, 1], got {share}")
         if pos.dim() != 2 or pos.shape[1] != 3:
             raise ValueError(f"pos must be the grid's points [N, 3], got {tuple(pos.shape)}")
-        if turn not in ("yaw", "so3"):
-            raise ValueError(f"turn must be 'yaw' or 'so3', got {turn!r}")
         self.pos, self.share = pos.double(), float(share)
-        self.camera, self.turn = camera, turn
+        self.camera, self.turn = camera, _check_turn(turn)
         self.generator = torch.Generator().manual_seed(int(seed))
 
     def __call__(self, mask: torch.Tensor | None = None) -> torch.Tensor | None:
