@@ -27,9 +27,9 @@ import argparse
 import numpy as np
 import torch
 
-from usf_graph.models import SphericalDetector
 from usf_graph.models.centernet import box_centres
-from usf_graph.train import det, load_checkpoint, seg
+from usf_graph.train import det, seg
+from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.gravity import given_up, views_up
 from usf_graph.train.seg_metrics import confusion_matrix, scores
 
@@ -84,23 +84,16 @@ def main(argv=None) -> dict:
     p.add_argument("--size", type=int, default=None,
                    help="panorama height (default: the checkpoint's, or det's 128)")
     args = p.parse_args(argv)
-    blob = load_checkpoint(args.checkpoint)
-    cfg = dict(blob["config"])
-    name, saved_size = cfg.pop("model", None), cfg.pop("size", None)
-    size = args.size or saved_size
-    if name in seg.MODELS and name != "planar_unet":
-        net = seg.MODELS[name].from_config(cfg)
-        sets = seg.protocol_sets(args.root, size or 96, cfg.get("level", 5), num_train=0,
+    ckpt = load_protocol_model(args.checkpoint).require(spherical=True)
+    net, size = ckpt.model, args.size or ckpt.size
+    if ckpt.task == "seg":
+        sets = seg.protocol_sets(args.root, size, ckpt.config.get("level", 5), num_train=0,
                                  num_test=args.num_test, tests=("a", args.test), progress=False)
         score, unit = _segmenter_score, "mIoU (area-weighted)"
-    elif name is None and "height" not in cfg:
-        net = SphericalDetector.from_config(cfg)
-        sets = det.protocol_sets(args.root, size or 128, num_train=0, num_test=args.num_test,
+    else:
+        sets = det.protocol_sets(args.root, size, num_train=0, num_test=args.num_test,
                                  progress=False)
         score, unit = _detector_score, "AP50"
-    else:
-        raise SystemExit(f"{args.checkpoint}: not a spherical segmenter or detector of the protocols")
-    net.load_state_dict(blob["state_dict"])
     net.eval()
     up = views_up(sets["a"]) if args.known_up else None
     res = score(net, sets, args.test, up)

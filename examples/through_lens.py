@@ -30,9 +30,10 @@ import json
 from functools import partial
 from pathlib import Path
 
-from usf_graph.models import SphericalDetector, set_level_prior
+from usf_graph.models import set_level_prior
 from usf_graph.scenes.lenses import protocol_cameras
 from usf_graph.train import det, load_checkpoint, save_checkpoint, seg
+from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.fov import second_phase
 from usf_graph.train.gravity import views_up
 
@@ -104,24 +105,19 @@ def main(argv=None) -> dict:
     if not first.exists():
         raise SystemExit(f"{first}: no first-phase state next to {ckpt}; train the protocol with "
                          "`usf-graph train seg` or `train det` first")
-    saved = load_checkpoint(ckpt)["config"]
-    cfg = dict(saved)
-    name, saved_size = cfg.pop("model", None), cfg.pop("size", None)
-    size = args.size or saved_size
-    if name in seg.MODELS and name != "planar_unet":
-        net, run, args.num_train = seg.MODELS[name].from_config(cfg), _seg, args.num_train or 400
-        size = size or 96
-    elif name is None and "height" not in cfg:
-        net, run, args.num_train = SphericalDetector.from_config(cfg), _det, args.num_train or 200
-        size, args.rendered = size or 128, max(args.rendered, args.num_train)
+    saved = load_protocol_model(ckpt, weights=False).require(spherical=True)
+    net, size = saved.model, args.size or saved.size
+    if saved.task == "seg":
+        run, args.num_train = _seg, args.num_train or 400
     else:
-        raise SystemExit(f"{ckpt}: not a spherical segmenter or detector of the protocols")
+        run, args.num_train = _det, args.num_train or 200
+        args.rendered = max(args.rendered, args.num_train)
     if getattr(net, "gravity", None) is None:
         raise SystemExit(f"{ckpt}: the model has no up estimate to keep frozen")
     load_checkpoint(first, net)
     net.gravity.requires_grad_(False)
     args.out = Path(args.out or f"{ckpt.with_suffix('')}_through_{args.test}")
-    metric, unit = run(net, args, size, cfg.get("level", 5))
+    metric, unit = run(net, args, size, saved.config.get("level", 5))
     res = {"test": args.test, "epochs": args.epochs, "turn": args.turn,
            "true up": metric(True), "estimate": metric(False)}
     if args.level_prior:
@@ -133,7 +129,7 @@ def main(argv=None) -> dict:
             print(f"  {k:22s} " + "  ".join(f"({t}) {100 * v:6.2f}" for t, v in res[k].items()))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(res, indent=1))
-    save_checkpoint(args.out / "model.pt", net, saved, res)
+    save_checkpoint(args.out / "model.pt", net, saved.config, res)
     return res
 
 

@@ -30,7 +30,8 @@ import torch
 
 from usf_graph.geometry import geodesic_distance
 from usf_graph.models import SignCheck, set_level_prior
-from usf_graph.train import load_checkpoint, save_checkpoint, seg
+from usf_graph.train import save_checkpoint, seg
+from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.engine import seed_everything
 from usf_graph.train.gravity import GROSS_DEGREES, pretrain_sign, views_up
 
@@ -64,13 +65,8 @@ def main(argv=None) -> dict:
                    "for 'usf-graph eval seg|det --sign-check')")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
-    blob = load_checkpoint(a.checkpoint)
-    cfg = dict(blob["config"])
-    name, size = cfg.pop("model", None), cfg.pop("size", 96)
-    if name not in seg.MODELS or seg.MODELS[name] is seg.PlanarUNet:
-        raise SystemExit(f"{a.checkpoint} is not a spherical checkpoint of 'usf-graph train seg'")
-    model = seg.MODELS[name].from_config(cfg)
-    model.load_state_dict(blob["state_dict"])
+    ckpt = load_protocol_model(a.checkpoint).require("seg", spherical=True)
+    model, cfg, size = ckpt.model, ckpt.config, ckpt.size
     model.eval()
     set_level_prior(model, a.level_prior)
     sets = seg.protocol_sets(a.root, size, cfg["level"], a.num_train, a.num_test, a.seed,

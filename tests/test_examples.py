@@ -148,7 +148,7 @@ def test_up_sign_example_refuses_a_planar_checkpoint(tmp_path):
     from usf_graph.train.engine import save_checkpoint
 
     save_checkpoint(tmp_path / "p.pt", PlanarUNet(13), {"model": "planar_unet", "size": 16}, {})
-    with pytest.raises(SystemExit, match="not a spherical checkpoint"):
+    with pytest.raises(ValueError, match="not a spherical seg model"):
         load("up_sign").main([str(tmp_path / "p.pt")])
 
 

@@ -126,18 +126,14 @@ def up_options(model, args) -> None:
 
 
 def cmd_eval_det(args) -> int:
-    from .models import PlanarDetector, SphericalDetector
-    from .train import load_checkpoint
+    from .train.checkpoints import load_protocol_model
     from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
     from .train.gravity import format_up_report, up_report, views_up
 
-    blob = load_checkpoint(args.checkpoint)
-    cfg = blob["config"]
-    planar = "height" in cfg
-    model = (PlanarDetector if planar else SphericalDetector).from_config(cfg)
-    model.load_state_dict(blob["state_dict"])
+    ckpt = load_protocol_model(args.checkpoint).require("det")
+    model, cfg, planar = ckpt.model, ckpt.config, ckpt.planar
     up_options(model, args)
-    sets = protocol_sets(args.root or "data/rooms", args.size or 128, num_train=0,
+    sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, num_train=0,
                          num_test=args.num_test, seed=args.seed)
     for k in args.test or list(PROTOCOL):
         if k not in PROTOCOL:

@@ -43,21 +43,16 @@ def cmd_train_seg(args) -> int:
 
 
 def cmd_eval_seg(args) -> int:
-    from .train import load_checkpoint
+    from .train.checkpoints import load_protocol_model
     from .train.gravity import format_up_report
-    from .train.seg import MODELS, PROTOCOL, evaluate_protocol, protocol_sets
+    from .train.seg import PROTOCOL, evaluate_protocol, protocol_sets
 
-    blob = load_checkpoint(args.checkpoint)
-    cfg = dict(blob["config"])
-    name, size = cfg.pop("model", None), cfg.pop("size", None)
-    if name not in MODELS:
-        raise ValueError(f"{args.checkpoint} is not a segmentation checkpoint of 'usf-graph train seg'")
-    model = MODELS[name].from_config(cfg)
-    model.load_state_dict(blob["state_dict"])
+    ckpt = load_protocol_model(args.checkpoint).require("seg")
+    model, name = ckpt.model, ckpt.name
     up_options(model, args)
     tests = args.test or list(PROTOCOL)
-    sets = protocol_sets(args.root or "data/rooms", args.size or size or 96,
-                         cfg.get("level", 5), num_train=0, num_test=args.num_test, seed=args.seed,
+    sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size,
+                         ckpt.config.get("level", 5), num_train=0, num_test=args.num_test, seed=args.seed,
                          tests=tests)
     res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
     for k, r in res.items():

@@ -1,0 +1,52 @@
+import pytest
+import torch
+
+from usf_graph.models import PlanarDetector, PlanarUNet, SphericalDetector, SphericalUNet
+from usf_graph.train.checkpoints import load_protocol_model
+from usf_graph.train.engine import save_checkpoint
+
+
+def _models():
+    torch.manual_seed(0)
+    unet = SphericalUNet(13, level=3, channels=(4, 4, 4, 4))
+    planar = PlanarUNet(13, channels=(4, 4))
+    detector = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(4, 4, 4))
+    planar_detector = PlanarDetector(12, height=16, width=32, channels=(4, 4))
+    return [  # (model, the config the protocol saves, task, name, size)
+        (unet, {"model": "spherical_unet", "size": 32, **unet.config}, "seg", "spherical_unet", 32),
+        (planar, {"model": "planar_unet", **planar.config}, "seg", "planar_unet", 96),
+        (detector, detector.config, "det", "spherical_detector", 128),
+        (planar_detector, planar_detector.config, "det", "planar_detector", 128),
+    ]
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_every_protocol_checkpoint_comes_back_as_its_model(tmp_path, i):
+    model, cfg, task, name, size = _models()[i]
+    with torch.no_grad():  # weights unlike a fresh initialization's
+        for p in model.parameters():
+            p.add_(torch.rand_like(p))
+    save_checkpoint(tmp_path / "m.pt", model, cfg, {})
+    got = load_protocol_model(tmp_path / "m.pt")
+    assert (got.task, got.name, got.size, got.planar) == (task, name, size, "planar" in name)
+    assert type(got.model) is type(model) and got.config == cfg
+    want = model.state_dict()
+    assert all(torch.equal(v, want[k]) for k, v in got.model.state_dict().items())
+    fresh = load_protocol_model(tmp_path / "m.pt", weights=False).model.state_dict()
+    assert not all(torch.equal(v, want[k]) for k, v in fresh.items())
+    assert got.require(task) is got
+    other = "det" if task == "seg" else "seg"
+    with pytest.raises(ValueError, match=f"holds the {task} model '{name}', not a {other} model"):
+        got.require(other)
+    if got.planar:
+        with pytest.raises(ValueError, match=f"not a spherical {task} model"):
+            got.require(task, spherical=True)
+    else:
+        assert got.require(spherical=True) is got
+
+
+def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
+    model = torch.nn.Linear(2, 2)
+    save_checkpoint(tmp_path / "m.pt", model, {"model": "sign_check"}, {})
+    with pytest.raises(ValueError, match="not a checkpoint of 'usf-graph train seg|det'.*'sign_check'"):
+        load_protocol_model(tmp_path / "m.pt")

@@ -1,0 +1,78 @@
+"""Which protocol model a checkpoint holds, rebuilt from it: the one reader that the
+``usf-graph eval seg|det`` commands and the examples starting from a protocol checkpoint
+share, so that they agree on how a checkpoint says what it is."""
+
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass
+
+from torch import nn
+
+from ..models import PlanarDetector, SphericalDetector
+from . import det, seg
+from .engine import load_checkpoint
+
+
+@dataclass
+class ProtocolCheckpoint:
+    """A protocol model rebuilt from its checkpoint.
+
+    ``path``: where it was read; ``task``: ``"seg"`` or ``"det"``; ``name``: a
+    :data:`usf_graph.train.seg.MODELS` key, or ``"spherical_detector"`` /
+    ``"planar_detector"``; ``config``: the saved config, as saved
+    (hand it back to :func:`~usf_graph.train.save_checkpoint` to save a model of the same
+    kind); ``size``: the panorama height it was trained at (the saved one, else the
+    task's protocol default); ``blob``: the whole checkpoint."""
+
+    path: str
+    task: str
+    name: str
+    model: nn.Module
+    config: dict
+    size: int
+    blob: dict
+
+    @property
+    def planar(self) -> bool:
+        return self.name in ("planar_unet", "planar_detector")
+
+    def require(self, task: str | None = None, spherical: bool = False) -> ProtocolCheckpoint:
+        """Itself, or a clear error if it is not of ``task`` (``"seg"``, ``"det"``) or,
+        with ``spherical``, if it is planar."""
+        if (task or self.task) != self.task or (spherical and self.planar):
+            wanted = ("a spherical " if spherical else "a ") + (task or "seg|det")
+            raise ValueError(f"{self.path} holds the {self.task} model {self.name!r}, not "
+                             f"{wanted} model; give a checkpoint of 'usf-graph train "
+                             f"{task or 'seg|det'}'")
+        return self
+
+
+def _default_size(task: str) -> int:
+    run = seg.run if task == "seg" else det.run
+    return inspect.signature(run).parameters["size"].default
+
+
+def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
+    """The model a checkpoint of ``usf-graph train seg|det`` (or of an example saving one
+    of the same kind) holds, with its trained weights (``weights=False``: freshly
+    initialized, e.g. to load another state of it). A segmentation checkpoint names its
+    model (``config["model"]``); a detection one does not, and a planar detector's config
+    has the image ``height``."""
+    blob = load_checkpoint(path)
+    cfg = dict(blob["config"])
+    name, size = cfg.pop("model", None), cfg.pop("size", None)
+    if name in seg.MODELS:
+        task, model = "seg", seg.MODELS[name].from_config(cfg)
+    elif name is None and "num_classes" in cfg:
+        task = "det"
+        planar = "height" in cfg
+        name = "planar_detector" if planar else "spherical_detector"
+        model = (PlanarDetector if planar else SphericalDetector).from_config(cfg)
+    else:
+        raise ValueError(f"{path} is not a checkpoint of 'usf-graph train seg|det' (its config "
+                         f"names model {name!r})")
+    if weights:
+        model.load_state_dict(blob["state_dict"])
+    return ProtocolCheckpoint(str(path), task, name, model, blob["config"],
+                              size or _default_size(task), blob)
