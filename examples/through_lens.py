@@ -31,7 +31,6 @@ from functools import partial
 from pathlib import Path
 
 from usf_graph.models import set_level_prior
-from usf_graph.scenes.lenses import protocol_cameras
 from usf_graph.train import det, load_checkpoint, save_checkpoint, seg
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.fov import second_phase
@@ -42,7 +41,7 @@ def _seg(net, args, size, level):
     sets = seg.protocol_sets(args.root, size, level, args.num_train, args.num_test, args.seed,
                              tests=("a", args.test), progress=args.progress)
     train = sets["train"]
-    cut = seg.ThroughRandomFields(train.grid.pos, 1.0, args.seed, camera=_lens(args, size),
+    cut = seg.ThroughRandomFields(train.grid.pos, 1.0, args.seed, camera=sets[args.test].camera,
                                   turn=args.turn)
     step = partial(seg.segmentation_step, class_weight=seg.balanced_weights(train, args.balance))
     second_phase(net, train, args.epochs, args.out, "through the lens", cut=cut, batch_size=8,
@@ -61,7 +60,7 @@ def _det(net, args, size, _level):
     data = {k: det.DetectionSet.spherical(sets[k]) for k in ("train", "a", args.test)}
     train = data["train"].first(args.num_train)
     cut = det.ThroughRandomFields(train, sets["train"].grid.pos, 1.0, args.seed,
-                                  camera=_lens(args, size), turn=args.turn)
+                                  camera=sets[args.test].camera, turn=args.turn)
     second_phase(net, train, args.epochs, args.out, "through the lens", cut=cut,
                  batch_size=8, seed=args.seed, progress=args.progress, step=det.detection_step)
 
@@ -71,10 +70,6 @@ def _det(net, args, size, _level):
         return {k: det.score(f, data[k], net.num_classes)["AP50"] for k, f in found.items()}
 
     return metric, "AP50"
-
-
-def _lens(args, size):
-    return protocol_cameras(size)[seg.PROTOCOL[args.test][0]]
 
 
 def main(argv=None) -> dict:
