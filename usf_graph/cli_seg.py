@@ -52,8 +52,8 @@ def cmd_eval_seg(args) -> int:
     up_options(model, args)
     tests = args.test or list(PROTOCOL)
     sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size,
-                         ckpt.config.get("level", 5), num_train=0, num_test=args.num_test, seed=args.seed,
-                         tests=tests)
+                         ckpt.config.get("level", 5), num_train=0, num_test=args.num_test,
+                         seed=args.seed, tests=tests)
     res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
     for k, r in res.items():
         print(f"({k}) " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
