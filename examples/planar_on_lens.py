@@ -19,41 +19,46 @@ About 20 minutes each on 2 cores, the pinhole views rendered (about 70 s per 400
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 from functools import partial
 from pathlib import Path
 
 from usf_graph.datasets import RoomsSegmentation
 from usf_graph.models import PlanarUNet
-from usf_graph.scenes.lenses import protocol_cameras
 from usf_graph.train import fit, save_checkpoint, seed_everything, seg
 
 
 def main(argv=None) -> dict:
+    protocol = {k: v.default for k, v in inspect.signature(seg.run).parameters.items()}
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--test", default="d", choices=["c", "d"], help="d: pinhole 90, c: fisheye 190")
-    p.add_argument("--num-train", type=int, default=400, help="training rooms, one view each")
+    p.add_argument("--num-train", type=int, default=protocol["num_train"],
+                   help="training rooms, one view each")
     p.add_argument("--epochs", type=int, default=30)
-    p.add_argument("--size", type=int, default=96, help="the protocol's size: lens images size x size")
-    p.add_argument("--level", type=int, default=5, help="the grid the rooms are stored on")
-    p.add_argument("--balance", type=float, default=0.5, help="the class weights' power")
+    p.add_argument("--size", type=int, default=protocol["size"],
+                   help="the protocol's size: lens images size x size")
+    p.add_argument("--level", type=int, default=protocol["level"],
+                   help="the grid the rooms are stored on")
+    p.add_argument("--balance", type=float, default=protocol["balance"],
+                   help="the class weights' power")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--root", default="data/rooms")
-    p.add_argument("--num-test", type=int, default=50)
+    p.add_argument("--num-test", type=int, default=protocol["num_test"])
     p.add_argument("--out", default=None, help="default: runs/planar_on_<test>_s<seed>")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     a = p.parse_args(argv)
-    lens = protocol_cameras(a.size)[seg.PROTOCOL[a.test][0]]
-    train = RoomsSegmentation(a.root, "train", camera=lens, grid=f"icosahedral:{a.level}",
-                              num_scenes=a.num_train, seed=a.seed, progress=a.progress)
     test = seg.protocol_sets(a.root, a.size, a.level, num_train=0, num_test=a.num_test,
                              seed=a.seed, tests=(a.test,), progress=a.progress)[a.test]
+    train = RoomsSegmentation(a.root, "train", camera=test.camera, grid=test.grid,
+                              num_scenes=a.num_train, seed=a.seed, progress=a.progress)
     out = Path(a.out or f"runs/planar_on_{a.test}_s{a.seed}")
     seed_everything(a.seed)
     net = PlanarUNet(len(seg.SEMANTIC_CLASSES))
     step = partial(seg.segmentation_step, class_weight=seg.balanced_weights(train, a.balance))
-    fit(net, train, None, epochs=a.epochs, batch_size=8, lr=3e-3, seed=a.seed, log_dir=out,
-        config=net.config, progress=a.progress, name=f"planar on ({a.test})", step=step)
+    fit(net, train, None, epochs=a.epochs, batch_size=protocol["batch_size"], lr=protocol["lr"],
+        seed=a.seed, log_dir=out, config=net.config, progress=a.progress,
+        name=f"planar on ({a.test})", step=step)
     pixels, _ = seg.predict(net, test, progress=a.progress, pano=test.camera)  # its own image
     res = {"test": a.test, "num_train": a.num_train, "epochs": a.epochs, "seed": a.seed,
            **{k: v for k, v in seg.score(pixels, test).items() if k in ("mIoU", "mAcc")}}

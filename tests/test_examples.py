@@ -216,7 +216,7 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
                                        "--root", str(tmp_path / "rooms"), "--out", str(out),
                                        "--no-progress"])
     ckpt = load_protocol_model(out / "model.pt")
-    assert (ckpt.name, ckpt.size) == ("planar_unet", 16) and ckpt.blob["metrics"] == res
+    assert (ckpt.name, ckpt.size) == ("planar_unet", 16) and ckpt.metrics == res
     assert json.loads((out / "results.json").read_text()) == res
     assert len((out / "metrics.csv").read_text().splitlines()) == 2  # one epoch logged
     test = seg.protocol_sets(tmp_path / "rooms", 16, 3, 0, 2, tests=("d",), progress=False)["d"]

@@ -26,10 +26,10 @@ def test_every_protocol_checkpoint_comes_back_as_its_model(tmp_path, i):
     with torch.no_grad():  # weights unlike a fresh initialization's
         for p in model.parameters():
             p.add_(torch.rand_like(p))
-    save_checkpoint(tmp_path / "m.pt", model, cfg, {})
+    save_checkpoint(tmp_path / "m.pt", model, cfg, {"score": 0.25})
     got = load_protocol_model(tmp_path / "m.pt")
     assert (got.task, got.name, got.size, got.planar) == (task, name, size, "planar" in name)
-    assert type(got.model) is type(model) and got.config == cfg
+    assert type(got.model) is type(model) and got.config == cfg and got.metrics == {"score": 0.25}
     want = model.state_dict()
     assert all(torch.equal(v, want[k]) for k, v in got.model.state_dict().items())
     fresh = load_protocol_model(tmp_path / "m.pt", weights=False).model.state_dict()

@@ -23,7 +23,7 @@ class ProtocolCheckpoint:
     ``"planar_detector"``; ``config``: the saved config, as saved
     (hand it back to :func:`~usf_graph.train.save_checkpoint` to save a model of the same
     kind); ``size``: the panorama height it was trained at (the saved one, else the
-    task's protocol default); ``blob``: the whole checkpoint."""
+    task's protocol default); ``metrics``: the metrics saved with it."""
 
     path: str
     task: str
@@ -31,7 +31,7 @@ class ProtocolCheckpoint:
     model: nn.Module
     config: dict
     size: int
-    blob: dict
+    metrics: dict
 
     @property
     def planar(self) -> bool:
@@ -75,4 +75,4 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     if weights:
         model.load_state_dict(blob["state_dict"])
     return ProtocolCheckpoint(str(path), task, name, model, blob["config"],
-                              size or _default_size(task), blob)
+                              size or _default_size(task), blob.get("metrics", {}))
