@@ -407,6 +407,30 @@ def test_upright_conv_equals_its_dense_reference_with_gradients_on_fresh_masks()
     assert (conv(one, up) - iso(one, up)).abs().max() < 1e-12
 
 
+def test_upright_conv_follows_in_place_edits_of_its_bound_mask_and_weights():
+    """The oriented basis kept between calls is rebuilt when the bound mask changes in
+    place, and never holds an autograd graph (a learnable basis gets a fresh one)."""
+    pos = random_sphere(200, 3, dtype=torch.float64)
+    ei, ew, area = graph(pos, 0.5)
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randn(2, 200, 2, generator=gen, dtype=torch.float64)
+    up = _unit(torch.randn(2, 3, generator=gen, dtype=torch.float64))
+    mask = torch.ones(200, dtype=torch.bool)
+    conv = UprightConv(2, 3, 0.5, num_basis=3, basis="gaussian").double()
+    conv.bind(ei, ew, node_weight=area, mask=mask, pos=pos)
+    with torch.no_grad():
+        before = conv(x, up)
+        assert (conv(x, up) - before).abs().max() == 0  # the kept basis: the same answer
+        mask[:80] = False
+        after = conv(x, up)
+    assert (after - upright_reference(x, up, pos, conv, area, mask)).abs().max() < 1e-12
+    assert (after - before).abs().max() > 1e-3
+    learn = UprightConv(2, 3, 0.5, num_basis=3, basis="mlp").double()
+    learn.bind(ei, ew, node_weight=area, mask=mask, pos=pos)
+    learn(x, up).sum().backward()
+    assert learn._oriented is None and learn.kernel.mlp[0].weight.grad.abs().sum() > 0
+
+
 def test_upright_conv_is_exactly_equivariant_when_up_turns_with_the_input():
     g = grids.icosahedral(3)
     axis = g.pos[0].double() / g.pos[0].double().norm()  # a vertex: a 5-fold symmetry axis

@@ -332,6 +332,7 @@ class UprightConv(SphericalConv):
                          bias)
         self.weight = nn.Parameter(torch.empty(3 * num_basis * in_channels, out_channels))
         self.register_buffer("directions", None, persistent=False)
+        self._oriented = None  # (the coefficients it was made from, their oriented basis)
         self.reset_parameters()
 
     def bind(self, edge_index: torch.Tensor, edge_weight: torch.Tensor,
@@ -369,13 +370,27 @@ class UprightConv(SphericalConv):
                              f"{None if up is None else tuple(up.shape)}")
         if mask is not None and mask.shape != (x.shape[1],):
             raise ValueError(f"mask must have shape [{x.shape[1]}], got {tuple(mask.shape)}")
-        coef = self._bound_coefficients(mask).to(x.dtype)  # [E, K]
-        side = torch.einsum("emc,bc->bem", self.directions.to(x.dtype), up.to(x.dtype))
-        full = _oriented_coefficients(coef, side, self.bound_edge_index[1], x.shape[1])  # [B, E, 3K]
+        coef = self._bound_coefficients(mask)
+        basis = self._bound_basis(coef, x.dtype)
+        coef = coef.to(x.dtype)
+        ang = (basis.reshape(-1, 3) @ up.to(x.dtype).t()).view(len(coef), -1, len(x))  # [E, 2K, B]
         w = self.weight.view(3 * self.num_basis, self.in_channels, self.out_channels).to(x.dtype)
-        out = torch.cat([basis_aggregate(x[b:b + 1].contiguous(), w, full[b], self.plan)
+        out = torch.cat([basis_aggregate(x[b:b + 1].contiguous(), w,
+                                         torch.cat([coef, ang[..., b]], 1), self.plan)
                          for b in range(len(x))])
         return out if self.bias is None else out + self.bias
+
+    def _bound_basis(self, coef: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """:func:`oriented_basis` of the bound graph for its coefficients ``coef``. Kept
+        while they are the cached ones (one ``[E, 2K, 3]`` per graph and mask instead of
+        ``[B, E, 2K]`` centred products per call); never with an autograd graph."""
+        cached = self._oriented
+        if cached is not None and cached[0] is coef and cached[1].dtype == dtype:
+            return cached[1]
+        basis = oriented_basis(coef.to(dtype), self.directions.to(dtype),
+                               self.bound_edge_index[1], self.plan.num_nodes)
+        self._oriented = (coef, basis) if coef is self._coef else None
+        return basis
 
     def _general(self, x, up, edge_index, edge_weight, node_weight, mask, pos, batch):
         """PyG's form: a batch of different graphs is one graph of disjoint parts, each edge
@@ -397,7 +412,7 @@ class UprightConv(SphericalConv):
         i = edge_index[1]
         g = up.to(x.dtype)[0 if batch is None else batch[i]].expand(len(i), 3)
         side = torch.einsum("emc,ec->em", _edge_directions(edge_index, pos).to(x.dtype), g)
-        full = _oriented_coefficients(coef, side[None], i, N)[0]  # [E, 3K]
+        full = torch.cat([coef, oriented_basis(coef, side, i, N)], 1)  # [E, 3K]
         w = self.weight.view(len(full[0]), self.in_channels, self.out_channels).to(x.dtype)
         out = basis_aggregate(x[None].contiguous(), w, full, EdgePlan(edge_index, N))[0]
         return out if self.bias is None else out + self.bias
@@ -413,14 +428,20 @@ def _edge_directions(edge_index: torch.Tensor, pos: torch.Tensor) -> torch.Tenso
     return torch.stack([u, torch.linalg.cross(p, u)], 1)
 
 
-def _oriented_coefficients(coef: torch.Tensor, side: torch.Tensor, i: torch.Tensor, n: int) -> torch.Tensor:
-    """:class:`UprightConv`'s coefficients ``[B, E, 3K]`` from the distance ones ``coef [E,
-    K]`` and each edge's direction along and across up, ``side [B, E, 2]``: those times the
-    direction less its mean over each centre's neighbours (so a constant has no oriented
-    response, even where a mask cuts the neighbourhood)."""
-    ang = coef[None, :, :, None] * side[:, :, None, :]  # [B, E, K, 2]
-    B, K = len(side), coef.shape[1]
-    mean = ang.new_zeros(B, n, K, 2).index_add_(1, i, ang) / \
-        coef.new_zeros(n, K).index_add_(0, i, coef).clamp_min(1e-12)[None, :, :, None]
-    ang = ang - coef[None, :, :, None] * mean[:, i]
-    return torch.cat([coef.expand(B, -1, -1), ang[..., 0], ang[..., 1]], -1)
+def oriented_basis(coef: torch.Tensor, directions: torch.Tensor, i: torch.Tensor,
+                   n: int) -> torch.Tensor:
+    r""":class:`UprightConv`'s oriented coefficients :math:`a_{ijk} (s_{ij} - \bar s_{ik})`
+    (the K along up) and :math:`a_{ijk} (c_{ij} - \bar c_{ik})` (the K across), ``[E, 2K,
+    ...]``, from the distance coefficients ``coef [E, K]``, each edge's centre ``i [E]``
+    among ``n`` points and its ``directions [E, 2, ...]``: ``u`` and ``p_i x u`` (``[E, 2,
+    3]``, giving a linear map to take with a unit up) or their products with the edge's
+    up (``[E, 2]``). Both the direction and its mean over a centre's neighbours are linear
+    in up, so with ``[E, 2, 3]`` the map is built once per graph and mask and each
+    sample's up costs one small product."""
+    ones = (1,) * (directions.dim() - 2)
+    c = coef.view(*coef.shape, 1, *ones)  # [E, K, 1, ...]
+    ang = c * directions[:, None]  # [E, K, 2, ...]
+    total = coef.new_zeros(n, coef.shape[1]).index_add_(0, i, coef).clamp_min(1e-12)
+    mean = ang.new_zeros(n, *ang.shape[1:]).index_add_(0, i, ang) / total.view(*total.shape, 1, *ones)
+    ang = ang - c * mean[i]
+    return ang.transpose(1, 2).reshape(len(coef), -1, *directions.shape[2:])  # along up first
