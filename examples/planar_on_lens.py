@@ -19,18 +19,17 @@ About 20 minutes each on 2 cores, the pinhole views rendered (about 70 s per 400
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 from functools import partial
 from pathlib import Path
 
 from usf_graph.datasets import RoomsSegmentation
 from usf_graph.models import PlanarUNet
-from usf_graph.train import fit, save_checkpoint, seed_everything, seg
+from usf_graph.train import defaults, fit, save_checkpoint, seed_everything, seg
 
 
 def main(argv=None) -> dict:
-    protocol = {k: v.default for k, v in inspect.signature(seg.run).parameters.items()}
+    protocol = defaults(seg.run)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--test", default="d", choices=["c", "d"], help="d: pinhole 90, c: fisheye 190")
     p.add_argument("--num-train", type=int, default=protocol["num_train"],

@@ -31,7 +31,7 @@ from functools import partial
 from pathlib import Path
 
 from usf_graph.models import set_level_prior
-from usf_graph.train import det, load_checkpoint, save_checkpoint, seg
+from usf_graph.train import defaults, det, load_checkpoint, save_checkpoint, seg
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.fov import second_phase
 from usf_graph.train.gravity import views_up
@@ -44,8 +44,9 @@ def _seg(net, args, size, level):
     cut = seg.ThroughRandomFields(train.grid.pos, 1.0, args.seed, camera=sets[args.test].camera,
                                   turn=args.turn)
     step = partial(seg.segmentation_step, class_weight=seg.balanced_weights(train, args.balance))
-    second_phase(net, train, args.epochs, args.out, "through the lens", cut=cut, batch_size=8,
-                 seed=args.seed, progress=args.progress, step=step)
+    second_phase(net, train, args.epochs, args.out, "through the lens", cut=cut,
+                 batch_size=defaults(seg.run)["batch_size"], seed=args.seed,
+                 progress=args.progress, step=step)
 
     def metric(known):
         res, _ = seg.evaluate_protocol(net, sets, ("a", args.test), args.progress, known_up=known)
@@ -62,7 +63,8 @@ def _det(net, args, size, _level):
     cut = det.ThroughRandomFields(train, sets["train"].grid.pos, 1.0, args.seed,
                                   camera=sets[args.test].camera, turn=args.turn)
     second_phase(net, train, args.epochs, args.out, "through the lens", cut=cut,
-                 batch_size=8, seed=args.seed, progress=args.progress, step=det.detection_step)
+                 batch_size=defaults(det.run)["batch_size"], seed=args.seed,
+                 progress=args.progress, step=det.detection_step)
 
     def metric(known):
         found = {k: det.predict(net, data[k], progress=False, up=views_up(sets[k]) if known else None)
@@ -85,8 +87,9 @@ def main(argv=None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--num-train", type=int, default=None,
                    help="training views (default: the protocol's, 400 seg, 200 det)")
-    p.add_argument("--rendered", type=int, default=400,
-                   help="det: training rooms rendered (the protocol renders 400 for its up estimate)")
+    p.add_argument("--rendered", type=int, default=defaults(det.run)["up_train"],
+                   help="det: training rooms rendered (default: as many as the protocol "
+                        "renders for its up estimate, 400)")
     p.add_argument("--num-test", type=int, default=50)
     p.add_argument("--size", type=int, default=None,
                    help="panorama height (default: the checkpoint's, or det's 128)")
@@ -102,11 +105,9 @@ def main(argv=None) -> dict:
                          "`usf-graph train seg` or `train det` first")
     saved = load_protocol_model(ckpt, weights=False).require(spherical=True)
     net, size = saved.model, args.size or saved.size
-    if saved.task == "seg":
-        run, args.num_train = _seg, args.num_train or 400
-    else:
-        run, args.num_train = _det, args.num_train or 200
-        args.rendered = max(args.rendered, args.num_train)
+    run = _seg if saved.task == "seg" else _det
+    args.num_train = args.num_train or defaults(seg.run if run is _seg else det.run)["num_train"]
+    args.rendered = max(args.rendered, args.num_train)
     if getattr(net, "gravity", None) is None:
         raise SystemExit(f"{ckpt}: the model has no up estimate to keep frozen")
     load_checkpoint(first, net)

@@ -204,8 +204,19 @@ def test_train_passes_the_protocol_options_or_their_defaults(task, monkeypatch):
 
     monkeypatch.setattr(module, "run", fake_run)
     assert main(["train", task]) == 0
-    assert main(["train", task, "--fov-epochs", "0", "--up-epochs", "3", "--up-sign", "0.5"]) == 0
-    for key in ("fov_epochs", "up_epochs", "up_extra", "up_caps", "up_sign"):
-        assert calls[0][key] == defaults[key].default
+    assert main(["train", task, "--fov-epochs", "0", "--up-epochs", "3", "--up-sign", "0.5",
+                 "--num-train", "7", "--size", "32"]) == 0
+    for key in ("fov_epochs", "up_epochs", "up_extra", "up_caps", "up_sign", "size",
+                "num_train", "num_test", "epochs", "batch_size", "lr"):
+        assert calls[0][key] == defaults[key].default, key
     assert calls[1]["fov_epochs"] == 0 and calls[1]["up_epochs"] == 3 and calls[1]["up_sign"] == 0.5
+    assert calls[1]["num_train"] == 7 and calls[1]["size"] == 32
     assert calls[1]["up_extra"] == defaults["up_extra"].default
+    assert calls[1]["num_test"] == defaults["num_test"].default
+
+
+@pytest.mark.parametrize("option", ["--num-train", "--num-test", "--size"])
+def test_train_refuses_sizes_and_counts_below_one(option, capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "seg", option, "0"])
+    assert f"{option}: must be at least 1, got 0" in capsys.readouterr().err

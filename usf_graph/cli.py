@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import math
 import os
@@ -387,9 +386,10 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
     from .cli_det import add_eval_options, add_train_options
+    from .train import defaults
     from .train.mnist import run as mnist_run
 
-    d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}  # one source
+    d = defaults(mnist_run)  # one source
     t = sub.add_parser("train", help="train a task (mnist, det, seg)", formatter_class=fmt,
                        description="Train a task and its planar baseline, then test under "
                                    "rotations (and, for det and seg, other lenses).")

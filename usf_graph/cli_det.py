@@ -2,9 +2,18 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer of at least 1 (sizes and view counts)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
 
 
 def add_train_options(t) -> None:
@@ -14,11 +23,11 @@ def add_train_options(t) -> None:
     g.add_argument("--dataset", default="rooms", choices=["rooms", "pandora", "stanford2d3ds"],
                    help="procedural rooms (rendered here), or the real data: PANDORA (det) or "
                         "Stanford 2D-3D-S (seg); download those first")
-    g.add_argument("--size", type=int, default=None,
+    g.add_argument("--size", type=positive_int, default=None,
                    help="panorama height (width 2x; fisheye and pinhole size x size); default: "
                         "det 128, seg 96 (stanford2d3ds: 256)")
-    g.add_argument("--num-train", type=int, default=None, help="rooms: training views (det 200, seg 400)")
-    g.add_argument("--num-test", type=int, default=None, help="rooms: views per test (50)")
+    g.add_argument("--num-train", type=positive_int, default=None, help="rooms: training views (det 200, seg 400)")
+    g.add_argument("--num-test", type=positive_int, default=None, help="rooms: views per test (50)")
     g.add_argument("--lr", type=float, default=None, help="AdamW learning rate (det 2e-3, seg 3e-3)")
     g.add_argument("--fold", default="1", choices=["1", "2", "3", "all"],
                    help="stanford2d3ds: the area-disjoint fold, or all three")
@@ -45,8 +54,8 @@ def add_eval_options(e) -> None:
     """Options of ``eval det`` and ``eval seg``: which tests, which views, which up."""
     e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d", "e"], default=None,
                    help="det, seg: protocol tests (default: all; (e) is seg's)")
-    e.add_argument("--size", type=int, default=None, help="det, seg: rooms image size (as trained)")
-    e.add_argument("--num-test", type=int, default=50, help="det, seg: views per test")
+    e.add_argument("--size", type=positive_int, default=None, help="det, seg: rooms image size (as trained)")
+    e.add_argument("--num-test", type=positive_int, default=50, help="det, seg: views per test")
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
                    "view's true gravity, as from an IMU, not their estimate")
@@ -61,10 +70,10 @@ def add_eval_options(e) -> None:
 def given_or_default(args, run, keys) -> dict:
     """The options ``keys`` for ``run``: as given on the command line, else ``run``'s
     defaults."""
-    import inspect
+    from .train import defaults
 
-    d = inspect.signature(run).parameters
-    return {k: d[k].default if getattr(args, k) is None else getattr(args, k) for k in keys}
+    d = defaults(run)
+    return {k: d[k] if getattr(args, k) is None else getattr(args, k) for k in keys}
 
 
 def up_kwargs(args, run) -> dict:
@@ -75,9 +84,9 @@ def up_kwargs(args, run) -> dict:
 
 def run_kwargs(args, run) -> dict:
     """The common options of ``train det|seg``, with ``run``'s defaults where not given."""
-    import inspect
+    from .train import defaults
 
-    d = {k: v.default for k, v in inspect.signature(run).parameters.items()}
+    d = defaults(run)
     return dict(epochs=args.epochs or d["epochs"], batch_size=args.batch_size or d["batch_size"],
                 seed=args.seed, progress=True, lr=args.lr or d["lr"])
 
@@ -92,10 +101,9 @@ def cmd_train_det(args) -> int:
     if args.dataset == "pandora":
         res = run_pandora(root=args.root or "data/pandora", out=args.out or "runs/det_pandora", **kw)
     else:
-        res = run(root=args.root or "data/rooms", out=args.out or "runs/det", size=args.size or 128,
-                  num_train=args.num_train or 200, num_test=args.num_test or 50,
+        res = run(root=args.root or "data/rooms", out=args.out or "runs/det",
                   planar=not args.no_planar, **up_kwargs(args, run), **kw,
-                  **given_or_default(args, run, ("fov_epochs",)))
+                  **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs")))
     teardown_distributed()
     if not res:
         return 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 import json
 
 from .cli_det import given_or_default, run_kwargs, up_kwargs, up_options
@@ -19,13 +18,11 @@ def cmd_train_seg(args) -> int:
         folds = (1, 2, 3) if args.fold == "all" else (int(args.fold),)
         res = run_stanford(root=args.root or "data/stanford2d3ds", out=args.out or "runs/seg_stanford",
                            folds=folds, models=tuple(args.models or ("spherical_unet",)),
-                           size=args.size or 256, **kw)
+                           **given_or_default(args, run_stanford, ("size",)), **kw)
     else:
-        res = run(root=args.root or "data/rooms", out=args.out or "runs/seg", size=args.size or 96,
-                  num_train=args.num_train or inspect.signature(run).parameters["num_train"].default,
-                  num_test=args.num_test or 50,
+        res = run(root=args.root or "data/rooms", out=args.out or "runs/seg",
                   models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw,
-                  **given_or_default(args, run, ("fov_epochs",)))
+                  **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs")))
     teardown_distributed()
     if not res:
         return 0

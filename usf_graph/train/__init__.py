@@ -1,6 +1,7 @@
 """Training and evaluation loops shared by all tasks."""
 
 from .engine import (
+                     defaults,
                      evaluate,
                      fit,
                      freeze_norms,
@@ -11,5 +12,5 @@ from .engine import (
                      teardown_distributed,
 )
 
-__all__ = ["fit", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint", "seed_everything",
+__all__ = ["defaults", "fit", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint", "seed_everything",
            "setup_distributed", "teardown_distributed"]

@@ -4,14 +4,13 @@ share, so that they agree on how a checkpoint says what it is."""
 
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass
 
 from torch import nn
 
 from ..models import PlanarDetector, SphericalDetector
 from . import det, seg
-from .engine import load_checkpoint
+from .engine import defaults, load_checkpoint
 
 
 @dataclass
@@ -49,8 +48,7 @@ class ProtocolCheckpoint:
 
 
 def _default_size(task: str) -> int:
-    run = seg.run if task == "seg" else det.run
-    return inspect.signature(run).parameters["size"].default
+    return defaults(seg.run if task == "seg" else det.run)["size"]
 
 
 def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import inspect
 import json
 import math
 import os
@@ -22,6 +23,13 @@ from ..fileio import atomic_torch_save
 from ..nn.norm import MaskedBatchNorm
 
 Step = Callable[[nn.Module, Any], tuple[torch.Tensor, dict, int]]
+
+
+def defaults(fn: Callable) -> dict:
+    """``fn``'s keyword defaults, ``{name: default}``: the one source of a protocol's
+    settings (its ``run``) for the command line and the examples that reuse them."""
+    return {k: v.default for k, v in inspect.signature(fn).parameters.items()
+            if v.default is not inspect.Parameter.empty}
 
 
 def seed_everything(seed: int, deterministic: bool = True) -> None:
