@@ -2,12 +2,14 @@
 U-Net at the same number of pixels and the same channels, on CPU or a GPU.
 
     python benchmarks/seg_step.py [--device cuda] [--batch 8] [--level 5] [--reps 5]
+                                  [--model spherical_unet|spherical_deeplab]
 
 Spherical: :class:`SphericalUNet` as ``usf-graph train seg`` builds and trains it (jet,
 gradient pairs, up estimate) on ``icosahedral:level`` (N points): its up estimate is
 trained beforehand and frozen, so the step reads the known up and never runs it. The up
 estimate's own step (:func:`~usf_graph.train.gravity.up_step`, run ``up_epochs`` times per
-view before) is timed on its own line. Planar: :class:`PlanarUNet` with the same channels
+view before) is timed on its own line. ``--model spherical_deeplab`` times the protocol's
+DeepLab instead (its oriented kernels included), against the same planar U-Net. Planar: :class:`PlanarUNet` with the same channels
 on an equirectangular image of H x 2H pixels, H the multiple of 8 nearest to
 sqrt(N / 2). Both with 13-class cross-entropy on random inputs and labels (the cost does not
 depend on them), in the static-graph form with one field of view for the batch.
@@ -32,12 +34,14 @@ def main():
     p.add_argument("--level", type=int, default=5)
     p.add_argument("--reps", type=int, default=5)
     p.add_argument("--threads", type=int, default=2, help="CPU threads")
+    p.add_argument("--model", default="spherical_unet", choices=["spherical_unet", "spherical_deeplab"],
+                   help="the spherical model (the 2x target is the U-Net's)")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
     torch.manual_seed(0)
-    sph = make_model("spherical_unet", a.level).to(dev)
-    planar = PlanarUNet(channels=sph.config["channels"]).to(dev)
+    sph = make_model(a.model, a.level).to(dev)
+    planar = PlanarUNet(channels=make_model("spherical_unet", a.level).config["channels"]).to(dev)
     N, B = sph.num_points, a.batch
     H = max(8, 8 * round(math.sqrt(N / 2) / 8))
     xs, ys = torch.rand(B, N, 3, device=dev), torch.randint(0, 13, (B, N), device=dev)
@@ -52,7 +56,7 @@ def main():
     print(f"{where}, batch {B}, best of {a.reps} steps, channels {sph.config['channels']}")
     print("| model | points | parameters | step (ms) | samples/s |")
     print("|---|---|---|---|---|")
-    for name, m, n, t in ((f"SphericalUNet (icosahedral:{a.level})", sph, N, ts),
+    for name, m, n, t in ((f"{type(sph).__name__} (icosahedral:{a.level})", sph, N, ts),
                           (f"PlanarUNet ({2 * H}x{H})", planar, 2 * H * H, tp)):
         params = sum(q.numel() for q in m.parameters())
         print(f"| {name} | {n} | {params} | {1e3 * t:.1f} | {B / t:.0f} |")

@@ -42,3 +42,6 @@ def test_seg_step_benchmark_runs():
     out = run("benchmarks/seg_step.py", "--batch", "1", "--level", "3", "--reps", "1")
     assert "| SphericalUNet (icosahedral:3) | 642 |" in out and "| PlanarUNet (32x16) |" in out
     assert "spherical / planar step time" in out
+    out = run("benchmarks/seg_step.py", "--batch", "1", "--level", "3", "--reps", "1",
+              "--model", "spherical_deeplab")
+    assert "| SphericalDeepLabV3 (icosahedral:3) | 642 |" in out
