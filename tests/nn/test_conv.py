@@ -429,6 +429,12 @@ def test_upright_conv_follows_in_place_edits_of_its_bound_mask_and_weights():
     learn.bind(ei, ew, node_weight=area, mask=mask, pos=pos)
     learn(x, up).sum().backward()
     assert learn._oriented is None and learn.kernel.mlp[0].weight.grad.abs().sum() > 0
+    other = torch.rand(200, generator=gen) > 0.4
+    with torch.no_grad():  # a per-call mask neither uses nor drops the kept basis
+        kept = conv._oriented
+        cut = conv(x, up, mask=other)
+        assert conv._oriented is kept and (conv(x, up) - after).abs().max() == 0
+        assert (cut - upright_reference(x, up, pos, conv, area, other)).abs().max() < 1e-12
 
 
 def test_upright_conv_is_exactly_equivariant_when_up_turns_with_the_input():

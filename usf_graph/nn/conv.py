@@ -389,7 +389,8 @@ class UprightConv(SphericalConv):
             return cached[1]
         basis = oriented_basis(coef.to(dtype), self.directions.to(dtype),
                                self.bound_edge_index[1], self.plan.num_nodes)
-        self._oriented = (coef, basis) if coef is self._coef else None
+        if coef is self._coef:  # a per-call mask's or a learnable kernel's: not kept
+            self._oriented = (coef, basis)
         return basis
 
     def _general(self, x, up, edge_index, edge_weight, node_weight, mask, pos, batch):
