@@ -9,9 +9,9 @@ gradient pairs, up estimate) on ``icosahedral:level`` (N points): its up estimat
 trained beforehand and frozen, so the step reads the known up and never runs it. The up
 estimate's own step (:func:`~usf_graph.train.gravity.up_step`, run ``up_epochs`` times per
 view before) is timed on its own line. ``--model spherical_deeplab`` times the protocol's
-DeepLab instead (its oriented kernels included), against the same planar U-Net. Planar: :class:`PlanarUNet` with the same channels
-on an equirectangular image of H x 2H pixels, H the multiple of 8 nearest to
-sqrt(N / 2). Both with 13-class cross-entropy on random inputs and labels (the cost does not
+DeepLab instead (its oriented kernels included), against the same planar U-Net. Planar:
+:class:`PlanarUNet` with the spherical U-Net's channels on an equirectangular image of H x
+2H pixels, H the multiple of 8 nearest to sqrt(N / 2). Both with 13-class cross-entropy on random inputs and labels (the cost does not
 depend on them), in the static-graph form with one field of view for the batch.
 """
 
@@ -23,7 +23,8 @@ import math
 import torch
 from timing import step_time
 
-from usf_graph.models import PlanarUNet
+from usf_graph.models import PlanarUNet, SphericalUNet
+from usf_graph.train import defaults
 from usf_graph.train.seg import make_model, segmentation_loss
 
 
@@ -41,7 +42,7 @@ def main():
     dev = torch.device(a.device)
     torch.manual_seed(0)
     sph = make_model(a.model, a.level).to(dev)
-    planar = PlanarUNet(channels=make_model("spherical_unet", a.level).config["channels"]).to(dev)
+    planar = PlanarUNet(channels=defaults(SphericalUNet)["channels"]).to(dev)  # not a 2nd model
     N, B = sph.num_points, a.batch
     H = max(8, 8 * round(math.sqrt(N / 2) / 8))
     xs, ys = torch.rand(B, N, 3, device=dev), torch.randint(0, 13, (B, N), device=dev)
