@@ -2,7 +2,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo demo-det demo-seg info test test-slow lint bench clean
+.PHONY: setup demo demo-det demo-seg demo-seg-full info test test-slow lint bench clean
 setup:
 	@bash scripts/bootstrap.sh
 
@@ -16,7 +16,12 @@ demo: setup
 demo-det: setup
 	@$(VENV)/bin/usf-graph train det --out runs/det
 
+# the segmentation protocol in 15 minutes: half the channels, 6 + 2 epochs (README, "What fits in 15 minutes")
 demo-seg: setup
+	@$(VENV)/bin/usf-graph train seg --channel-scale 0.5 --epochs 6 --fov-epochs 2 --up-epochs 4 --up-extra 400 --out runs/seg_15min
+
+# the full segmentation protocol (the README's tables): about 42 min on 2 cores, rooms rendered
+demo-seg-full: setup
 	@$(VENV)/bin/usf-graph train seg --out runs/seg
 
 test: setup

@@ -3,13 +3,15 @@ U-Net at the same number of pixels and the same channels, on CPU or a GPU.
 
     python benchmarks/seg_step.py [--device cuda] [--batch 8] [--level 5] [--reps 5]
                                   [--model spherical_unet|spherical_deeplab]
+                                  [--channel-scale 1.0]
 
 Spherical: :class:`SphericalUNet` as ``usf-graph train seg`` builds and trains it (jet,
 gradient pairs, up estimate) on ``icosahedral:level`` (N points): its up estimate is
 trained beforehand and frozen, so the step reads the known up and never runs it. The up
 estimate's own step (:func:`~usf_graph.train.gravity.up_step`, run ``up_epochs`` times per
 view before) is timed on its own line. ``--model spherical_deeplab`` times the protocol's
-DeepLab instead (its oriented kernels included), against the same planar U-Net. Planar:
+DeepLab instead (its oriented kernels included), against the same planar U-Net. ``--channel-scale``: both models' channels times this, as
+``usf-graph train seg --channel-scale`` builds them. Planar:
 :class:`PlanarUNet` with the spherical U-Net's channels on an equirectangular image of H x
 2H pixels, H the multiple of 8 nearest to sqrt(N / 2). Both with 13-class cross-entropy on random inputs and labels (the cost does not
 depend on them), in the static-graph form with one field of view for the batch.
@@ -24,7 +26,7 @@ import torch
 from timing import step_time
 
 from usf_graph.models import PlanarUNet, SphericalUNet
-from usf_graph.train import defaults
+from usf_graph.train import defaults, scaled_channels
 from usf_graph.train.seg import make_model, segmentation_loss
 
 
@@ -37,12 +39,15 @@ def main():
     p.add_argument("--threads", type=int, default=2, help="CPU threads")
     p.add_argument("--model", default="spherical_unet", choices=["spherical_unet", "spherical_deeplab"],
                    help="the spherical model (the 2x target is the U-Net's)")
+    p.add_argument("--channel-scale", type=float, default=1.0,
+                   help="both models' channels times this (as train seg's option)")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
     torch.manual_seed(0)
-    sph = make_model(a.model, a.level).to(dev)
-    planar = PlanarUNet(channels=defaults(SphericalUNet)["channels"]).to(dev)  # not a 2nd model
+    sph = make_model(a.model, a.level, channel_scale=a.channel_scale).to(dev)
+    unet = {**defaults(SphericalUNet), **scaled_channels(SphericalUNet, a.channel_scale)}
+    planar = PlanarUNet(channels=unet["channels"]).to(dev)  # not a 2nd model
     N, B = sph.num_points, a.batch
     H = max(8, 8 * round(math.sqrt(N / 2) / 8))
     xs, ys = torch.rand(B, N, 3, device=dev), torch.randint(0, 13, (B, N), device=dev)

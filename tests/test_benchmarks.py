@@ -45,3 +45,6 @@ def test_seg_step_benchmark_runs():
     out = run("benchmarks/seg_step.py", "--batch", "1", "--level", "3", "--reps", "1",
               "--model", "spherical_deeplab")
     assert "| SphericalDeepLabV3 (icosahedral:3) | 642 |" in out
+    out = run("benchmarks/seg_step.py", "--batch", "1", "--level", "3", "--reps", "1",
+              "--channel-scale", "0.5")  # both at half the channels: the planar U-Net's 257,357
+    assert "channels [16, 32, 64, 64]" in out and "| PlanarUNet (32x16) | 512 | 257357 |" in out

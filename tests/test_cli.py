@@ -207,12 +207,23 @@ def test_train_passes_the_protocol_options_or_their_defaults(task, monkeypatch):
     assert main(["train", task, "--fov-epochs", "0", "--up-epochs", "3", "--up-sign", "0.5",
                  "--num-train", "7", "--size", "32"]) == 0
     for key in ("fov_epochs", "up_epochs", "up_extra", "up_caps", "up_sign", "size",
-                "num_train", "num_test", "epochs", "batch_size", "lr"):
+                "num_train", "num_test", "epochs", "batch_size", "lr", "channel_scale"):
         assert calls[0][key] == defaults[key].default, key
     assert calls[1]["fov_epochs"] == 0 and calls[1]["up_epochs"] == 3 and calls[1]["up_sign"] == 0.5
     assert calls[1]["num_train"] == 7 and calls[1]["size"] == 32
     assert calls[1]["up_extra"] == defaults["up_extra"].default
     assert calls[1]["num_test"] == defaults["num_test"].default
+    assert calls[0]["channel_scale"] == defaults["channel_scale"].default == 1.0
+    assert main(["train", task, "--channel-scale", "0.5"]) == 0
+    assert calls[2]["channel_scale"] == 0.5
+
+
+@pytest.mark.parametrize("argv", [["train", "det", "--dataset", "pandora", "--channel-scale", "0.5"],
+                                  ["train", "seg", "--dataset", "stanford2d3ds",
+                                   "--channel-scale", "0.5"]])
+def test_channel_scale_is_refused_where_it_would_be_ignored(argv, capsys):
+    assert main(argv) == 2
+    assert "--channel-scale is an option of" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("option", ["--num-train", "--num-test", "--size"])

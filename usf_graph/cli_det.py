@@ -39,6 +39,9 @@ def add_train_options(t) -> None:
                    help="rooms: epochs of the second phase at a lower learning rate, the "
                         "spherical models' with half their batches through random fields of "
                         "view (every model; 6, 0 skips it)")
+    g.add_argument("--channel-scale", type=float, default=None, metavar="S",
+                   help="rooms: every model's channel counts times S (1; 0.5 in the README's "
+                        "15-minute recipe, 'make demo-seg')")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=int, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")
@@ -99,11 +102,15 @@ def cmd_train_det(args) -> int:
         raise ValueError("Stanford 2D-3D-S is a segmentation dataset: use 'usf-graph train seg'")
     kw = run_kwargs(args, run)
     if args.dataset == "pandora":
+        if args.channel_scale is not None:
+            raise ValueError("--channel-scale is an option of the rooms protocol; PANDORA "
+                             "trains the detector at its own channels")
         res = run_pandora(root=args.root or "data/pandora", out=args.out or "runs/det_pandora", **kw)
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/det",
                   planar=not args.no_planar, **up_kwargs(args, run), **kw,
-                  **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs")))
+                  **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs",
+                                                    "channel_scale")))
     teardown_distributed()
     if not res:
         return 0

@@ -15,6 +15,9 @@ def cmd_train_seg(args) -> int:
         raise ValueError("PANDORA is a detection dataset: use 'usf-graph train det'")
     kw = run_kwargs(args, run)
     if args.dataset == "stanford2d3ds":
+        if args.channel_scale is not None:
+            raise ValueError("--channel-scale is an option of the rooms protocol; Stanford "
+                             "2D-3D-S trains the models at their own channels")
         folds = (1, 2, 3) if args.fold == "all" else (int(args.fold),)
         res = run_stanford(root=args.root or "data/stanford2d3ds", out=args.out or "runs/seg_stanford",
                            folds=folds, models=tuple(args.models or ("spherical_unet",)),
@@ -22,7 +25,8 @@ def cmd_train_seg(args) -> int:
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/seg",
                   models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw,
-                  **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs")))
+                  **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs",
+                                                    "channel_scale")))
     teardown_distributed()
     if not res:
         return 0

@@ -29,8 +29,14 @@ FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, num_train=3, num_test=2,
               epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2,
-              fov_epochs=1)
+              fov_epochs=1, channel_scale=0.5)
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    # both detectors at half their channels, the up estimate at its own
+    assert saved["channel_scale"] == 0.5
+    configs = {n: torch.load(tmp_path / "out" / f"{n}.pt", weights_only=True)["config"]
+               for n in ("spherical", "planar")}
+    assert configs["spherical"]["channels"] == [16, 32, 64, 64]  # of 32, 64, 128, 128
+    assert configs["planar"]["channels"] == [8, 16, 32, 64]  # of 16, 32, 64, 128
     # the up estimate trained alone on 4 views and 2 cheap ones, then the upright detector
     # on the first 3
     assert saved["samples"] == {"train": 3, "test": 2, "up_train": 4, "up_extra": 2} and saved["upright"]
@@ -244,3 +250,14 @@ def test_box_quality_decodes_each_true_box_at_its_own_centre_point():
     big[:, 2:4] *= 1.2
     np.testing.assert_allclose(q["iou_true_centre"], (box_area(boxes) / box_area(big)).numpy(), atol=1e-6)
     assert (q["iou"] < q["iou_true_centre"] + 1e-6).all()
+
+
+@pytest.mark.parametrize("task", ["det", "seg"])
+def test_a_bad_channel_scale_stops_a_protocol_before_it_renders(tmp_path, task):
+    import importlib
+
+    module = importlib.import_module(f"usf_graph.train.{task}")
+    with pytest.raises(ValueError, match="channel scale must be in"):
+        module.run(root=tmp_path / "rooms", out=tmp_path / "out", channel_scale=-0.5,
+                   progress=False)
+    assert not (tmp_path / "rooms").exists() and not (tmp_path / "out").exists()

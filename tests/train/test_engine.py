@@ -127,3 +127,20 @@ def test_frozen_norms_keep_their_statistics_while_their_scale_trains(frozen):
                          for s in ("running_mean", "running_var"))
         assert stats_same == frozen
         assert not torch.equal(before[f"{name}.weight"], after[f"{name}.weight"])  # it trains
+
+
+def test_scaled_channels_is_a_width_multiplier_of_the_defaults():
+    from usf_graph.models import PlanarUNet, SphericalDeepLabV3
+    from usf_graph.train import scaled_channels
+
+    # SphericalDeepLabV3: channels (32, 64, 128), aspp 128, low-level 32
+    assert scaled_channels(SphericalDeepLabV3, 0.5) == {
+        "channels": [16, 32, 64], "aspp_channels": 64, "low_channels": 16}
+    # rounded, and never below 8 channels
+    assert scaled_channels(PlanarUNet, 0.3) == {"channels": [10, 19, 38, 38]}
+    assert scaled_channels(PlanarUNet, 0.1) == {"channels": [8, 8, 13, 13]}
+    assert scaled_channels(PlanarUNet, 1.0) == {}
+    assert scaled_channels(SphericalClassifier, 2.0) == {"channels": [64, 128, 256, 256]}
+    for bad in (0.0, -1.0, float("nan"), float("inf"), 5.0):
+        with pytest.raises(ValueError, match="channel scale must be in"):
+            scaled_channels(PlanarUNet, bad)

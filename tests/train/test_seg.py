@@ -15,9 +15,11 @@ from usf_graph.scenes import IGNORE
 from usf_graph.train.fov import camera_field
 from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
+    MODELS,
     PROTOCOL,
     ThroughRandomFields,
     format_table,
+    make_model,
     predict,
     protocol_sets,
     run,
@@ -268,3 +270,37 @@ def test_stanford_command_on_fixtures(tmp_path):
     assert set(r) >= {"mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU"}
     assert np.isfinite(r["mIoU"]) and res["spherical_unet"]["mean"]["mIoU"] == r["mIoU"]
     assert (tmp_path / "out" / "fold1_spherical_unet.pt").is_file()
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_make_model_scales_the_channels_and_the_checkpoint_keeps_them(tmp_path, name):
+    from usf_graph.train.checkpoints import load_protocol_model
+    from usf_graph.train.engine import save_checkpoint
+
+    full, half = make_model(name, level=3), make_model(name, level=3, channel_scale=0.5)
+    for key in ("channels", "aspp_channels", "low_channels"):
+        if key in full.config:  # every default is even, so halving is exact
+            want = full.config[key]
+            want = [c // 2 for c in want] if isinstance(want, list) else want // 2
+            assert half.config[key] == want, key
+    size = sum(p.numel() for p in half.parameters()) / sum(p.numel() for p in full.parameters())
+    gravity = getattr(full, "gravity", None)
+    if gravity is not None:  # the up estimate keeps its own channels
+        assert [p.shape for p in half.gravity.parameters()] == [p.shape for p in gravity.parameters()]
+        dense = sum(p.numel() for p in gravity.parameters())
+        size = (sum(p.numel() for p in half.parameters()) - dense) / (
+            sum(p.numel() for p in full.parameters()) - dense)
+    assert 0.2 < size < 0.35, size  # dense layers are a quarter, the inputs' layers more
+    save_checkpoint(tmp_path / "m.pt", half, {"model": name, "size": 32, **half.config}, {})
+    back = load_protocol_model(tmp_path / "m.pt").model
+    assert {k: v.shape for k, v in back.state_dict().items()} == {
+        k: v.shape for k, v in half.state_dict().items()}
+    with pytest.raises(ValueError, match="channel scale"):
+        make_model(name, level=3, channel_scale=0.0)
+
+
+def test_an_unknown_model_stops_the_protocol_before_it_renders(tmp_path):
+    with pytest.raises(ValueError, match=r"unknown models \['planar_deeplab'\]"):
+        run(root=tmp_path / "rooms", out=tmp_path / "out", progress=False,
+            models=("spherical_unet", "planar_deeplab"))
+    assert not (tmp_path / "rooms").exists()

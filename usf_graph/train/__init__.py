@@ -7,10 +7,11 @@ from .engine import (
                      freeze_norms,
                      load_checkpoint,
                      save_checkpoint,
+                     scaled_channels,
                      seed_everything,
                      setup_distributed,
                      teardown_distributed,
 )
 
-__all__ = ["defaults", "fit", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint", "seed_everything",
-           "setup_distributed", "teardown_distributed"]
+__all__ = ["defaults", "fit", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint",
+           "scaled_channels", "seed_everything", "setup_distributed", "teardown_distributed"]

@@ -29,7 +29,15 @@ from ..models.centernet import box_centres, nearest_points
 from ..ops import box_iou
 from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
 from .det_metrics import coco_ap, usf_map
-from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .engine import (
+    check_channel_scale,
+    fit,
+    save_checkpoint,
+    scaled_channels,
+    seed_everything,
+    setup_distributed,
+    write_results,
+)
 from .fov import FOV_SHARE, RandomFields, second_phase
 from .gravity import (
     given_up,
@@ -249,9 +257,11 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         progress: bool = True, upright: bool = True, up_train: int = 400,
         up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
         upright_convs: int | None = UPRIGHT_CONVS, fov_epochs: int = FOV_EPOCHS,
-        fov_share: float = FOV_SHARE, up_sign: float = 0.0) -> dict:
+        fov_share: float = FOV_SHARE, up_sign: float = 0.0, channel_scale: float = 1.0) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
+    ``channel_scale``: both detectors' channel counts times this
+    (:func:`~usf_graph.train.engine.scaled_channels`; the up estimate keeps its own).
 
     ``upright``: the spherical detector reads directions along its up estimate
     (``SphericalDetector(gravity=True, upright=True, upright_convs=upright_convs)``:
@@ -274,6 +284,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     them; with the statistics of parts of the sphere, or trained through fields of view
     from the start, it learns much less (README). The planar one, which has no field of
     view to cut, sees whole panoramas, so that both train as long."""
+    check_channel_scale(channel_scale)  # before any rendering
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -283,9 +294,10 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
                "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
-               "up_sign": up_sign}
+               "up_sign": up_sign, "channel_scale": channel_scale}
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
-                                  upright_convs=upright_convs if upright else None)
+                                  upright_convs=upright_convs if upright else None,
+                                  **scaled_channels(SphericalDetector, channel_scale))
     if upright:
         results["samples"]["up_train"] = up_train
         results["samples"]["up_extra"] = up_extra
@@ -296,7 +308,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     if planar:
         w, h = 2 * size, size
         seed_everything(seed)  # the same initialization whatever the up estimate's training drew
-        models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w),
+        models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w,
+                                           **scaled_channels(PlanarDetector, channel_scale)),
                             lambda ds: DetectionSet.planar(ds, w, h, progress), planar_epochs or epochs)
     preds = {}
     for name, (net, make, ep) in models.items():

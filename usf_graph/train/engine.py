@@ -32,6 +32,31 @@ def defaults(fn: Callable) -> dict:
             if v.default is not inspect.Parameter.empty}
 
 
+# the constructor arguments that count channels, in the protocols' models
+CHANNEL_ARGS = ("channels", "aspp_channels", "low_channels")
+
+
+def check_channel_scale(scale: float) -> float:
+    """``scale`` if it is a usable width multiplier, in (0, 4]; else a ValueError (a run
+    checks it before it renders anything)."""
+    if not (math.isfinite(scale) and 0 < scale <= 4):
+        raise ValueError(f"the channel scale must be in (0, 4], got {scale}")
+    return scale
+
+
+def scaled_channels(cls: Callable, scale: float) -> dict:
+    """Keyword arguments that build ``cls`` with every default channel count in
+    :data:`CHANNEL_ARGS` times ``scale`` (rounded, at least 8): a width multiplier, ``{}``
+    for ``scale`` 1. At 0.5 a planar U-Net's step costs about 0.3x, a spherical model's
+    0.6x: the jets and the sparse products' index work do not shrink
+    (``benchmarks/README.md``)."""
+    if check_channel_scale(scale) == 1:
+        return {}
+    d = defaults(cls)
+    return {k: [max(8, round(c * scale)) for c in d[k]] if isinstance(d[k], (tuple, list))
+            else max(8, round(d[k] * scale)) for k in CHANNEL_ARGS if k in d}
+
+
 def seed_everything(seed: int, deterministic: bool = True) -> None:
     """Seed python, numpy and torch; make torch kernels deterministic where it can."""
     random.seed(seed)

@@ -37,7 +37,15 @@ from ..frontend import render
 from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
-from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .engine import (
+    check_channel_scale,
+    fit,
+    save_checkpoint,
+    scaled_channels,
+    seed_everything,
+    setup_distributed,
+    write_results,
+)
 from .fov import FOV_SHARE, RandomFields, second_phase
 from .gravity import (
     given_up,
@@ -237,21 +245,25 @@ def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
     return sets
 
 
-def make_model(name: str, level: int = 5, upright: bool = True) -> nn.Module:
+def make_model(name: str, level: int = 5, upright: bool = True,
+               channel_scale: float = 1.0) -> nn.Module:
     """A protocol model by name (:data:`MODELS`), spherical ones on ``icosahedral:level``
     with their up estimate (``gravity=True``: trained on the views' known gravity, it
     gives the network each point's height, which a planar network reads from its rows)
     and, with ``upright``, derivatives along and across up (``upright=True``: the
     orientation a planar network's filters see); the DeepLab's stages on every level
     coarser than the input's then have oriented kernels as well
-    (:class:`~usf_graph.nn.UprightConv`, ``upright_convs=level - 1``)."""
+    (:class:`~usf_graph.nn.UprightConv`, ``upright_convs=level - 1``). ``channel_scale``:
+    every channel count times this (:func:`~usf_graph.train.engine.scaled_channels`; the
+    up estimate keeps its own)."""
     if name not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
     C = len(SEMANTIC_CLASSES)
+    widths = scaled_channels(MODELS[name], channel_scale)
     if name == "planar_unet":
-        return PlanarUNet(C)
+        return PlanarUNet(C, **widths)
     # upright: oriented fields replace the gradient pairs, for the 2x step budget (README)
-    kw = dict(upright=True, pairs=0, up_fields=4) if upright else {}
+    kw = dict(upright=True, pairs=0, up_fields=4, **widths) if upright else widths
     if upright and name == "spherical_deeplab":  # the U-Net's stay distance-only: its step budget
         kw["upright_convs"] = level - 1
     return MODELS[name](C, level=level, gravity=True, **kw)
@@ -327,10 +339,11 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
         balance: float = 0.5, up_epochs: int = 8, upright: bool = True, up_extra: int = 800,
         up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE,
-        up_sign: float = 0.0) -> dict:
+        up_sign: float = 0.0, channel_scale: float = 1.0) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
-    ``upright``: as :func:`make_model`'s.
+    ``upright``, ``channel_scale``: as :func:`make_model`'s, for every model (0.5, with
+    fewer epochs, is the README's 15-minute recipe).
 
     ``balance``: the class weights' power (:func:`balanced_weights`), for every model.
     ``up_epochs``: epochs of the spherical models' up estimate, trained once alone
@@ -344,6 +357,9 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     the same seed, whatever the models before it drew. ``fov_epochs``, ``fov_share``: every model's
     second phase, the spherical ones' through random fields of view (:func:`train_model`;
     0 skips it)."""
+    check_channel_scale(channel_scale)  # these two before any rendering
+    if unknown := sorted(set(models) - set(MODELS)):
+        raise ValueError(f"unknown models {unknown}: choose from {sorted(MODELS)}")
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -351,14 +367,14 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
                "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign,
-               "fov_epochs": fov_epochs, "fov_share": fov_share}
+               "fov_epochs": fov_epochs, "fov_share": fov_share, "channel_scale": channel_scale}
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
     extra = up_views(root, up_extra, f"icosahedral:{level}", progress) if trains_estimate else None
     up_kw = dict(caps=up_caps, extra=extra, sign_weight=up_sign)
     for name in models:
         seed_everything(seed)
-        net = make_model(name, level, upright)
+        net = make_model(name, level, upright, channel_scale)
         t = time.time()
         train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
                     balance, up_epochs, shared, up_kw=up_kw, fov_epochs=fov_epochs,
