@@ -231,3 +231,31 @@ def test_train_refuses_sizes_and_counts_below_one(option, capsys):
     with pytest.raises(SystemExit):
         main(["train", "seg", option, "0"])
     assert f"{option}: must be at least 1, got 0" in capsys.readouterr().err
+
+
+def test_the_makefile_demos_of_the_protocols_parse(monkeypatch):
+    """Each ``make demo-*`` line of the rooms protocols reaches ``run`` with its options."""
+    import shlex
+    from pathlib import Path
+
+    lines = [ln.split("usf-graph ", 1)[1] for ln in
+             (Path(__file__).resolve().parents[1] / "Makefile").read_text().splitlines()
+             if "usf-graph train det" in ln or "usf-graph train seg" in ln]
+    assert len(lines) == 4, lines  # each protocol's 15-minute recipe and its full one
+    calls = []
+    for task in ("det", "seg"):
+        module = importlib.import_module(f"usf_graph.train.{task}")
+
+        @functools.wraps(module.run)
+        def fake_run(_task=task, **kw):
+            calls.append((_task, kw))
+            return {}
+
+        monkeypatch.setattr(module, "run", fake_run)
+    for ln in lines:
+        assert main(shlex.split(ln)) == 0, ln
+    recipes = {kw["out"]: (task, kw["channel_scale"], kw["epochs"], kw["fov_epochs"], kw["up_extra"])
+               for task, kw in calls}
+    assert recipes["runs/seg_15min"] == ("seg", 0.5, 6, 2, 400)
+    assert recipes["runs/det_15min"] == ("det", 0.5, 16, 3, 400)
+    assert recipes["runs/seg"][1:] == (1.0, 8, 6, 800) and recipes["runs/det"][1:] == (1.0, 24, 6, 1600)

@@ -41,7 +41,7 @@ def add_train_options(t) -> None:
                         "view (every model; 6, 0 skips it)")
     g.add_argument("--channel-scale", type=float, default=None, metavar="S",
                    help="rooms: every model's channel counts times S (1; 0.5 in the README's "
-                        "15-minute recipe, 'make demo-seg')")
+                        "15-minute recipes, 'make demo-seg' and 'make demo-det')")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=int, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")
