@@ -223,7 +223,7 @@ def test_train_passes_the_protocol_options_or_their_defaults(task, monkeypatch):
                                    "--channel-scale", "0.5"]])
 def test_channel_scale_is_refused_where_it_would_be_ignored(argv, capsys):
     assert main(argv) == 2
-    assert "--channel-scale is an option of" in capsys.readouterr().err
+    assert f"--channel-scale is an option of the rooms protocols; on {argv[3]}" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("option", ["--num-train", "--num-test", "--size"])

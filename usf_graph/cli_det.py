@@ -85,6 +85,14 @@ def up_kwargs(args, run) -> dict:
     return given_or_default(args, run, ("up_extra", "up_caps", "up_epochs", "up_sign"))
 
 
+def rooms_only_options(args) -> None:
+    """Refuse, on real data, the options that only the rooms protocols read (rather than
+    ignore them)."""
+    if args.dataset != "rooms" and args.channel_scale is not None:
+        raise ValueError(f"--channel-scale is an option of the rooms protocols; on "
+                         f"{args.dataset} the models train at their own channels")
+
+
 def run_kwargs(args, run) -> dict:
     """The common options of ``train det|seg``, with ``run``'s defaults where not given."""
     from .train import defaults
@@ -101,10 +109,8 @@ def cmd_train_det(args) -> int:
     if args.dataset == "stanford2d3ds":
         raise ValueError("Stanford 2D-3D-S is a segmentation dataset: use 'usf-graph train seg'")
     kw = run_kwargs(args, run)
+    rooms_only_options(args)
     if args.dataset == "pandora":
-        if args.channel_scale is not None:
-            raise ValueError("--channel-scale is an option of the rooms protocol; PANDORA "
-                             "trains the detector at its own channels")
         res = run_pandora(root=args.root or "data/pandora", out=args.out or "runs/det_pandora", **kw)
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/det",

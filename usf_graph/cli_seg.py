@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from .cli_det import given_or_default, run_kwargs, up_kwargs, up_options
+from .cli_det import given_or_default, rooms_only_options, run_kwargs, up_kwargs, up_options
 
 
 def cmd_train_seg(args) -> int:
@@ -14,10 +14,8 @@ def cmd_train_seg(args) -> int:
     if args.dataset == "pandora":
         raise ValueError("PANDORA is a detection dataset: use 'usf-graph train det'")
     kw = run_kwargs(args, run)
+    rooms_only_options(args)
     if args.dataset == "stanford2d3ds":
-        if args.channel_scale is not None:
-            raise ValueError("--channel-scale is an option of the rooms protocol; Stanford "
-                             "2D-3D-S trains the models at their own channels")
         folds = (1, 2, 3) if args.fold == "all" else (int(args.fold),)
         res = run_stanford(root=args.root or "data/stanford2d3ds", out=args.out or "runs/seg_stanford",
                            folds=folds, models=tuple(args.models or ("spherical_unet",)),
