@@ -175,6 +175,29 @@ def test_remap_fast_path_equals_gather_and_batches():
     torch.testing.assert_close(b[1], 2 * exact)
 
 
+@pytest.mark.parametrize("interpolation", ["bilinear", "nearest"])
+def test_remap_fast_path_leaves_out_pixels_without_a_ray_and_masked_ones(interpolation):
+    """A fisheye whose image circle leaves the corners without rays, and an image mask:
+    the table leaves those pixels out and renormalizes; the cv2.remap path (numpy uint8 and
+    float32 images) must agree, whatever values those pixels hold."""
+    fish = cameras.KannalaBrandt(20.0, 20.0, 31.5, 31.5, 64, 64, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
+    assert not fish.unproject(fish.pixel_grid())[1].all()
+    body = np.ones((64, 64), bool)
+    body[40:, 20:44] = False  # the robot's body
+    img = np.random.default_rng(0).integers(0, 256, (64, 64, 3)).astype(np.uint8)
+    for mask in (None, body):
+        fe = SphericalFrontend(fish, grids.icosahedral(4), interpolation=interpolation,
+                               image_mask=mask, cache=GeometryCache(None))
+        exact = fe.lift(torch.as_tensor(img).double())  # the table, float64
+        for arr in (img, img.astype(np.float32)):
+            fast = fe.lift(arr)
+            assert (fast - exact.float()).abs().max() < (0.5 if arr.dtype == np.uint8 else 1e-3)
+        if mask is not None:  # what the mask hides does not matter
+            other = img.copy()
+            other[~body] = 255
+            assert torch.equal(fe.lift(other), fe.lift(img))
+
+
 def test_data_loader_offsets_and_to_image_and_render():
     cam, img = equirect_image(64)
     g = grids.icosahedral(2)

@@ -129,13 +129,14 @@ class SphericalFrontend:
                                grid.spacing if interpolation == "rbf" else None)
 
         t = self.cache.get("lift", key, build)
+        self._image_mask = image_mask
         self.mask = t["mask"].bool()
         self._table = _Table(t["crow"], t["col"], t["val"], camera.width * camera.height)
         self._uv = t["uv"].numpy()
         self.radius = float(radius) if radius is not None else default_radius(grid)
         self._edges = None  # built on first use: lift/lift_batch never need the graph
         self._all_seen = bool(self.mask.all())
-        self._maps = None
+        self._maps, self._valid = None, None
         self._render = {}
 
     @property
@@ -175,7 +176,26 @@ class SphericalFrontend:
             my = np.full(rows * _ROW, -16, np.float32)
             mx[:n], my[:n] = np.where(seen, u, -16), np.where(seen, v, -16)
             self._maps = (mx.reshape(rows, _ROW), my.reshape(rows, _ROW))
+            self._valid = self._valid_weights(*self._maps)
         return self._maps
+
+    def _valid_weights(self, mx, my):
+        """For bilinear lifts of a camera with pixels that have no ray (past a fisheye's
+        image circle) or are masked: ``(valid [H, W], 1 / their bilinear weight [N])``,
+        else None. The table leaves such pixels out and renormalizes over the rest;
+        cv2.remap would blend them in, so lift zeroes them and divides by this weight."""
+        if self.interpolation != "bilinear":
+            return None  # nearest never reads them: points whose pixel has none are unseen
+        cam = self.camera
+        valid = cam.unproject(cam.pixel_grid())[1]
+        if self._image_mask is not None:
+            valid = valid & np.asarray(self._image_mask, bool)
+        if valid.all():
+            return None
+        border = cv2.BORDER_WRAP if cam.wraps_u else cv2.BORDER_CONSTANT
+        w = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=border)
+        w = w.ravel()[:self.num_points]
+        return valid, np.where(self.mask.numpy() & (w > 0), 1 / np.where(w > 0, w, 1), 0.0)
 
     def _can_remap(self, arr) -> bool:
         return (self.interpolation in ("bilinear", "nearest") and isinstance(arr, np.ndarray)
@@ -191,9 +211,14 @@ class SphericalFrontend:
             # seen points are clamped inside the image, so the border only matters for
             # unseen ones (constant 0), except in u for panoramas that wrap around
             border = cv2.BORDER_WRAP if self.camera.wraps_u else cv2.BORDER_CONSTANT
-            out = cv2.remap(arr, mx, my, inter, borderMode=border)
+            # float32, not the image's integers: the weighted sum is divided afterwards
+            src = arr if self._valid is None else \
+                np.where(self._valid[0][..., None], arr, 0).astype(np.float32)
+            out = cv2.remap(src, mx, my, inter, borderMode=border)
             out = out.reshape(-1, arr.shape[-1])[:self.num_points]
             x = torch.from_numpy(out.astype(np.float32, copy=False))
+            if self._valid is not None:
+                x.mul_(torch.from_numpy(self._valid[1]).float()[:, None])
             if self.camera.wraps_u and not self._all_seen:
                 x.mul_(self.mask[:, None])
             if arr.dtype.kind != "f":
