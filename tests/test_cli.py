@@ -131,7 +131,8 @@ def test_cache_command_shows_and_clears(tmp_path, monkeypatch, capsys):
 def test_every_command_and_option_has_help(capsys):
     parser = build_parser()
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    assert set(subs.choices) == {"info", "camera", "lift", "render", "scenes", "cache", "train", "eval"}
+    assert set(subs.choices) == {"info", "camera", "lift", "render", "scenes", "cache", "train", "eval",
+                                 "predict"}
     for name, sub in subs.choices.items():
         assert sub.description, name
         for a in sub._actions:
@@ -259,3 +260,62 @@ def test_the_makefile_demos_of_the_protocols_parse(monkeypatch):
     assert recipes["runs/seg_15min"] == ("seg", 0.5, 6, 2, 400)
     assert recipes["runs/det_15min"] == ("det", 0.5, 16, 3, 400)
     assert recipes["runs/seg"][1:] == (1.0, 8, 6, 800) and recipes["runs/det"][1:] == (1.0, 24, 6, 1600)
+
+
+def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
+    """``predict`` reads a PNG (OpenCV's BGR) and a camera file, and writes what
+    ``train.apply`` returns for the RGB array: a label image, and boxes in PANDORA's form."""
+    import json
+
+    from usf_graph.models import PlanarUNet, SphericalDetector, SphericalUNet
+    from usf_graph.ops import to_pandora
+    from usf_graph.scenes import DETECTION_CLASSES
+    from usf_graph.train import save_checkpoint
+    from usf_graph.train.apply import detect_image, segment_image
+    from usf_graph.train.seg import protocol_sets
+
+    ds = protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=1,
+                       tests=("c",), progress=False)["c"]
+    rgb = ds.image[0].numpy()
+    cv2.imwrite(str(tmp_path / "view.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    ds.camera.save(tmp_path / "fish.yaml")
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
+    with torch.no_grad():
+        seg.head.weight.mul_(30)  # confident labels
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", "size": 32, **seg.config}, {})
+    common = ["--camera", str(tmp_path / "fish.yaml"), "--out", str(tmp_path / "out"),
+              "--interpolation", "bilinear"]
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common]) == 0
+    out = capsys.readouterr().out
+    assert "estimated, margin" in out and "pixels: " in out
+    got = cv2.imread(str(tmp_path / "out" / "view_labels.png"), cv2.IMREAD_UNCHANGED)
+    want = segment_image(seg.eval(), rgb, ds.camera, interpolation="bilinear")["labels"]
+    assert got.dtype == np.uint8 and np.array_equal(got, want)
+    assert len(np.unique(want)) > 2 and (tmp_path / "out" / "view_seg.png").stat().st_size > 0
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common,
+                 "--up", "0", "0", "2"]) == 0
+    assert "up: (+0.000, +0.000, +1.000), given" in capsys.readouterr().out
+
+    det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
+                            gravity=True)
+    with torch.no_grad():
+        det.head.bias[:12].fill_(0.0)  # heatmaps over the 0.05 the JSON keeps from
+    save_checkpoint(tmp_path / "det.pt", det, det.config, {})
+    assert main(["predict", "det", str(tmp_path / "det.pt"), str(tmp_path / "view.png"), *common,
+                 "--min-score", "0"]) == 0
+    doc = json.loads((tmp_path / "out" / "view_boxes.json").read_text())
+    r = detect_image(det.eval(), rgb, ds.camera, interpolation="bilinear")
+    assert len(doc["detections"]) == len(r["boxes"]) > 0
+    assert np.allclose([d["bbox"] for d in doc["detections"]], to_pandora(r["boxes"]), atol=1e-9)
+    assert [d["category"] for d in doc["detections"]] == [DETECTION_CLASSES[c] for c in r["classes"]]
+    drawn = cv2.imread(str(tmp_path / "out" / "view_boxes.png"))
+    assert drawn.shape == (512, 512, 3)  # a 32-pixel view, enlarged to draw on
+    assert f"{len(r['boxes'])} of {len(r['boxes'])} boxes" in capsys.readouterr().out
+
+    planar = PlanarUNet(13, channels=(4, 4))
+    save_checkpoint(tmp_path / "planar.pt", planar, {"model": "planar_unet", **planar.config}, {})
+    assert main(["predict", "seg", str(tmp_path / "planar.pt"), str(tmp_path / "view.png"), *common]) == 2
+    assert "not a spherical seg model" in capsys.readouterr().err
+    assert main(["predict", "det", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common]) == 2
+    assert "not a spherical det model" in capsys.readouterr().err

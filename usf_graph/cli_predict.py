@@ -1,0 +1,136 @@
+"""``usf-graph predict seg|det``: a trained spherical model on your own camera's image."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def add_predict_parser(sub, fmt, camera_help: str, camera_options) -> None:
+    """The ``predict`` subcommand and its options."""
+    from .frontend.interpolation import METHODS
+
+    p = sub.add_parser("predict", help="run a trained seg or det model on your own image",
+                       formatter_class=fmt,
+                       description="Lift an image through its camera onto a trained spherical "
+                                   "model's grid and write the answer in the camera's terms: "
+                                   "seg, a label image in its pixels and a figure; det, "
+                                   "spherical boxes (JSON, PANDORA's degrees) drawn on it.")
+    p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
+    p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
+    p.add_argument("image", help="an RGB image (any format OpenCV reads, or .npy)")
+    p.add_argument("--camera", required=True, help=camera_help)
+    camera_options(p)
+    p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="gravity's up in the camera's sphere frame (x forward, y left, z up), "
+                        "e.g. from an IMU; default: the model's own estimate")
+    p.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
+                   help="the up estimate assumes a level camera with this strength (10 in the "
+                        "README; 0 off)")
+    p.add_argument("--sign-check", default=None, metavar="PATH",
+                   help="pass the up estimate through this sign check (examples/up_sign.py --save)")
+    p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
+                   help="how the image is lifted; auto: area where the image is over twice as "
+                        "fine as the grid (no aliasing), else bilinear as in training")
+    p.add_argument("--min-score", type=float, default=0.3,
+                   help="det: boxes drawn and listed from this score (the JSON keeps every box "
+                        "from 0.05)")
+    p.add_argument("--out", default="predictions", metavar="DIR",
+                   help="folder for <image name>_labels.png and _seg.png (seg), or "
+                        "_boxes.json and _boxes.png (det)")
+
+
+def _report_up(info: dict) -> str:
+    if info["source"] == "none":
+        return "up: not read (this model has no up estimate)"
+    u = ", ".join(f"{v:+.3f}" for v in info["up"])
+    if info["source"] == "given":
+        return f"up: ({u}), given"
+    flag = " UNSURE: give --up from an IMU if you have one" if info["unsure"] else ""
+    return f"up: ({u}), estimated, margin {info['margin']:.2f}{flag}"
+
+
+def cmd_predict(args) -> int:
+    import cv2
+
+    from .cli import _camera, _read_image
+    from .cli_det import up_options
+    from .train.apply import UNSEEN, class_names, detect_image, segment_image
+    from .train.checkpoints import load_protocol_model
+
+    ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
+    model = ckpt.model
+    up_options(model, args)
+    image = _read_image(args.image)
+    cam = _camera(args.camera, args.key, args.fov, args.image_mask, image.shape)
+    out, stem = Path(args.out), Path(args.image).stem
+    out.mkdir(parents=True, exist_ok=True)
+    names = class_names(args.task, model.config["num_classes"])
+    if args.task == "seg":
+        r = segment_image(model, image, cam, up=args.up, interpolation=args.interpolation)
+        print(_report_up(r))
+        lab = r["labels"]
+        seen = lab != UNSEEN
+        shares = np.bincount(lab[seen], minlength=len(names)) / max(int(seen.sum()), 1)
+        top = np.argsort(-shares)[:5]
+        print("pixels: " + ", ".join(f"{names[c]} {100 * shares[c]:.1f}%" for c in top if shares[c] > 0))
+        cv2.imwrite(str(out / f"{stem}_labels.png"), lab)
+        _seg_figure(_as_uint8(image), lab, out / f"{stem}_seg.png", names)
+        print(f"wrote {out / f'{stem}_labels.png'} (class index per pixel, {UNSEEN}: unseen) and "
+              f"{out / f'{stem}_seg.png'}")
+        return 0
+    r = detect_image(model, image, cam, up=args.up, interpolation=args.interpolation)
+    print(_report_up(r))
+    _write_boxes(r, names, out / f"{stem}_boxes.json", args)
+    keep = r["scores"] >= args.min_score
+    for b, c, s in zip(r["boxes"][keep], r["classes"][keep], r["scores"][keep]):
+        print(f"{names[c]:>14} {s:.2f}  centre lon {np.degrees(b[0]):+7.1f} lat "
+              f"{np.degrees(b[1]):+6.1f} deg, {np.degrees(b[2]):.0f} x {np.degrees(b[3]):.0f} deg")
+    print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
+    from .viz import draw_boxes
+
+    scale = max(1, -(-512 // max(cam.width, cam.height)))  # small images enlarged to about 512
+    drawn = draw_boxes(_as_uint8(image), cam, r["boxes"][keep], [names[c] for c in r["classes"][keep]],
+                       scale=scale)
+    cv2.imwrite(str(out / f"{stem}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
+    print(f"wrote {out / f'{stem}_boxes.json'} and {out / f'{stem}_boxes.png'}")
+    return 0
+
+
+def _as_uint8(image: np.ndarray) -> np.ndarray:
+    """The RGB of an image that predict accepted, as uint8 for drawing on (uint16 scaled
+    down, float in [0, 1] scaled up)."""
+    rgb = np.ascontiguousarray(image[..., :3])
+    if rgb.dtype == np.uint8:
+        return rgb
+    if rgb.dtype == np.uint16:
+        return (rgb >> 8).astype(np.uint8)
+    return (np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255).round().astype(np.uint8)
+
+
+def _write_boxes(r: dict, names, path: Path, args) -> None:
+    """The detections as JSON, boxes in PANDORA's stored form (degrees, its signs)."""
+    from .ops import to_pandora
+
+    bbox = to_pandora(r["boxes"]).reshape(-1, 5) if len(r["boxes"]) else np.zeros((0, 5))
+    doc = {"image": str(args.image), "camera": str(args.camera),
+           "frame": "the camera's sphere frame (x forward, y left, z up); bbox as PANDORA "
+                    "stores it: [lon, lat, fov_x, fov_y, gamma] in degrees, lon growing to the "
+                    "right, gamma counter-clockwise as displayed",
+           "up": {k: v for k, v in r.items() if k in ("up", "source", "margin", "unsure")},
+           "interpolation": r["interpolation"],
+           "detections": [{"category": names[c], "category_index": int(c), "score": float(s),
+                           "bbox": [float(v) for v in b]}
+                          for b, c, s in zip(bbox, r["classes"], r["scores"])]}
+    path.write_text(json.dumps(doc, indent=1))
+
+
+def _seg_figure(rgb: np.ndarray, labels: np.ndarray, path: Path, names) -> None:
+    from .scenes import PALETTE, colourize
+    from .viz import contact_sheet
+
+    present = np.unique(labels[labels < len(names)])
+    contact_sheet([[("image", rgb), ("predicted labels", colourize(labels))]], path,
+                  legend={names[c]: PALETTE[c] for c in present})

@@ -1,0 +1,160 @@
+"""A trained spherical model on one image from any calibrated camera: the image is lifted
+onto the model's grid through its camera, and the answer comes back in that camera's
+terms (labels in its pixels, boxes in its sphere frame). What ``usf-graph predict`` runs.
+
+The protocols train on RGB in [0, 1] lifted bilinearly from images about as fine as the
+grid; :func:`lift_for` lifts any image the same way, and averages over each grid cell
+(``area``) where the image is much finer than the grid, so that a 4K fisheye does not
+alias into what the model never saw.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..frontend import SphericalFrontend
+from ..grids import from_spec
+
+#: Unseen pixels of a label image (the datasets' ignore index).
+UNSEEN = 255
+
+
+def class_names(task: str, num_classes: int) -> list[str]:
+    """The class names of a protocol model: the 13 Stanford 2D-3D-S classes (seg), the
+    rooms' 12 or PANDORA's 47 (det, told apart by their number), else ``class k``."""
+    from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES, SEMANTIC_CLASSES
+
+    known = [SEMANTIC_CLASSES] if task == "seg" else [DETECTION_CLASSES, PANDORA_CLASSES]
+    for names in known:
+        if len(names) == num_classes:
+            return list(names)
+    return [f"class {k}" for k in range(num_classes)]
+
+
+def input_grid(model):
+    """The grid a spherical protocol model reads (``model.input_grid``), or a clear error
+    for a planar one, which reads panoramas of one size and no other camera."""
+    spec = getattr(model, "input_grid", None)
+    if spec is None:
+        raise ValueError(f"{type(model).__name__} is planar: it reads equirectangular images of "
+                         "its training size only; predict with a spherical checkpoint")
+    return from_spec(spec)
+
+
+def choose_interpolation(camera, grid) -> str:
+    """``area`` when the camera's median pixel is under half the grid's spacing (the grid
+    would skip pixels: aliasing), else ``bilinear`` (what the protocols lift with)."""
+    om = camera.pixel_solid_angles()
+    pixel = math.sqrt(float(np.median(om[om > 0])))
+    return "area" if pixel < grid.spacing / 2 else "bilinear"
+
+
+def rgb01(image) -> np.ndarray:
+    """An RGB image as float32 in [0, 1], ``[H, W, 3]``: uint8 / 255, uint16 / 65535,
+    float as it is (checked to lie in [0, 1]); a fourth (alpha) channel is dropped."""
+    a = np.asarray(image)
+    if a.ndim != 3 or a.shape[2] not in (3, 4):
+        raise ValueError(f"the models read RGB images [H, W, 3], got shape {a.shape}; convert "
+                         "grayscale or other channel counts to RGB first")
+    a = a[..., :3]
+    if a.dtype == np.uint8 or a.dtype == np.uint16:
+        return a.astype(np.float32) / np.iinfo(a.dtype).max
+    if a.dtype.kind != "f":
+        raise ValueError(f"image dtype {a.dtype} is not supported: give uint8, uint16 or "
+                         "float in [0, 1]")
+    a = a.astype(np.float32)
+    seen = np.isfinite(a)
+    if seen.any() and (a[seen].min() < 0 or a[seen].max() > 1):
+        raise ValueError(f"a float image must hold values in [0, 1], got [{a[seen].min():g}, "
+                         f"{a[seen].max():g}]; divide by 255 (or the sensor's maximum) first")
+    return a
+
+
+def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None):
+    """``(frontend, x [1, N, 3], mask [N] or None)``: ``image`` (see :func:`rgb01`) lifted
+    through ``camera`` onto ``model``'s grid. ``interpolation``: a
+    :class:`~usf_graph.frontend.SphericalFrontend` method, or ``auto``
+    (:func:`choose_interpolation`). ``image_mask [H, W]``: False on pixels to ignore."""
+    grid = input_grid(model)
+    rgb = rgb01(image)  # before any table is built: a wrong image costs nothing
+    if interpolation == "auto":
+        interpolation = choose_interpolation(camera, grid)
+    fe = SphericalFrontend(camera, grid, interpolation=interpolation, image_mask=image_mask)
+    x = fe.lift(rgb)[None]
+    return fe, x, None if fe.mask.all() else fe.mask
+
+
+def _up(up, dtype) -> torch.Tensor | None:
+    if up is None:
+        return None
+    u = torch.as_tensor(np.asarray(up, np.float64).reshape(-1))
+    if u.shape != (3,) or not torch.isfinite(u).all() or u.norm() < 1e-9:
+        raise ValueError(f"up must be 3 finite numbers, not all 0 (the gravity's up in the "
+                         f"camera's sphere frame: x forward, y left, z up), got {up}")
+    return (u / u.norm()).to(dtype)[None]
+
+
+def _up_info(given, grav) -> dict:
+    """The up the model read: given, or estimated with its margin (None without one)."""
+    if given is not None:
+        return {"up": given[0].tolist(), "source": "given"}
+    if grav is None:
+        return {"up": None, "source": "none"}
+    from ..models.gravity import UNSURE_MARGIN
+
+    margin = float(grav["margin"][0]) if "margin" in grav else None
+    return {"up": grav["up"][0].tolist(), "source": "estimated", "margin": margin,
+            "unsure": margin is not None and margin < UNSURE_MARGIN}
+
+
+@torch.no_grad()
+def segment_image(model, image, camera, up=None, interpolation: str = "auto",
+                  image_mask=None) -> dict:
+    """A trained spherical segmenter on one image of ``camera``.
+
+    ``up``: gravity's up in the camera's sphere frame (an IMU), else the model's estimate.
+    Returns ``{"labels": [H, W] uint8 in the camera's pixels (:data:`UNSEEN` where it has
+    no ray or the mask ignores it), "points": [N] uint8 per grid point (UNSEEN outside the
+    field of view), "probs": [N, C] float32, "up": ..., "interpolation": ...}``."""
+    fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
+    model.eval()
+    given = _up(up, x.dtype)
+    kw = {} if given is None else {"up": given}
+    logits, grav = model(x, mask, return_gravity=True, **kw)
+    probs = logits[0].softmax(-1)
+    points = probs.argmax(-1).to(torch.uint8)
+    labels = fe.to_image(points, mode="nearest").numpy()
+    seen = _seen_pixels(fe, image_mask)
+    labels[~seen] = UNSEEN
+    points[~fe.mask] = UNSEEN
+    return {"labels": labels, "points": points.numpy(), "probs": probs.float().numpy(),
+            "interpolation": fe.interpolation, **_up_info(given, grav)}
+
+
+@torch.no_grad()
+def detect_image(model, image, camera, up=None, interpolation: str = "auto", image_mask=None,
+                 threshold: float = 0.05, k: int = 100, nms: float | None = 0.5) -> dict:
+    """A trained spherical detector on one image of ``camera``: ``{"boxes": [D, 5]
+    (radians, the camera's sphere frame; :mod:`usf_graph.ops.boxes`), "classes": [D],
+    "scores": [D], "up": ..., "interpolation": ...}``, best first. ``up`` as
+    :func:`segment_image`'s; ``threshold``, ``k``, ``nms`` as
+    :meth:`~usf_graph.models.SphericalDetector.decode`'s."""
+    fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
+    model.eval()
+    given = _up(up, x.dtype)
+    out = model(x, mask) if given is None else model(x, mask, up=given)
+    found = model.decode(out, k=k, threshold=threshold, nms=nms)[0]
+    return {**found, "interpolation": fe.interpolation, **_up_info(given, out.get("gravity"))}
+
+
+def _seen_pixels(fe: SphericalFrontend, image_mask=None) -> np.ndarray:
+    """``[H, W]`` bool: pixels with a ray (and not ignored by the masks)."""
+    _, valid = fe.camera.lens_normal_map()
+    seen = np.asarray(valid, bool).reshape(fe.camera.height, fe.camera.width)
+    for m in (fe.camera.image_mask, image_mask):
+        if m is not None:
+            seen = seen & np.asarray(m, bool)
+    return seen
