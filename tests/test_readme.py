@@ -102,3 +102,50 @@ def test_segmentation_section_runs(tmp_path, monkeypatch):
     assert tuple(scope["logits"].shape) == (2, 10242, 13)
     assert tuple(scope["pixels"].shape) == (128, 256) and int(scope["pixels"].max()) < 13
     assert "--fold all" in section and "not run here" in section
+
+
+def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
+    """The predict section's commands as printed, on the fisheye files that the "Your
+    camera" commands write, with small untrained models saved where the checkpoints of
+    ``make demo-seg`` and ``make demo-det`` would be."""
+    import json
+    import shlex
+
+    import cv2
+    import torch
+
+    from usf_graph.cli import main
+    from usf_graph.models import SphericalDeepLabV3, SphericalDetector
+    from usf_graph.train import save_checkpoint
+    from usf_graph.viz import labelled_panorama
+
+    text = (ROOT / "README.md").read_text()
+    setup = [ln for block in re.findall(r"```bash\n(.*?)```", text.split("## Your camera", 1)[1]
+                                        .split("\n## ", 1)[0], re.S)
+             for ln in block.splitlines() if ln.startswith("usf-graph ")][:2]
+    section = text.split("## Your own images: `usf-graph predict`", 1)[1].split("\n## ", 1)[0]
+    lines = [ln for block in re.findall(r"```bash\n(.*?)```", section, re.S)
+             for ln in block.splitlines() if ln.startswith("usf-graph ")]
+    assert [ln.split()[2] for ln in lines] == ["seg", "det"]
+    (tmp_path / "tests").symlink_to(ROOT / "tests")
+    monkeypatch.chdir(tmp_path)
+    for ln in setup:  # fisheye.yaml, and pano.png re-imaged as fisheye.png
+        if " render " in ln:
+            cv2.imwrite("pano.png", (255 * labelled_panorama(512, 256)[..., ::-1]).astype("uint8"))
+        assert main(shlex.split(ln)[1:]) == 0, ln
+    torch.manual_seed(0)
+    seg = SphericalDeepLabV3(level=3, channels=(8, 8, 8), aspp_channels=8, low_channels=8,
+                             gravity=True)
+    det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
+                            gravity=True)
+    Path("runs/seg_15min").mkdir(parents=True)
+    Path("runs/det_15min").mkdir(parents=True)
+    save_checkpoint("runs/seg_15min/spherical_deeplab.pt", seg,
+                    {"model": "spherical_deeplab", "size": 96, **seg.config}, {})
+    save_checkpoint("runs/det_15min/spherical.pt", det, det.config, {})
+    for ln in lines:
+        assert main(shlex.split(ln)[1:]) == 0, ln
+    assert Path("predictions/fisheye_labels.png").stat().st_size > 0
+    assert Path("predictions/fisheye_seg.png").stat().st_size > 0
+    doc = json.loads(Path("predictions/fisheye_boxes.json").read_text())
+    assert doc["up"]["source"] == "given" and doc["interpolation"] == "area"

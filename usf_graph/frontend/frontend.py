@@ -129,14 +129,14 @@ class SphericalFrontend:
                                grid.spacing if interpolation == "rbf" else None)
 
         t = self.cache.get("lift", key, build)
-        self._image_mask = image_mask
+        self._image_mask, self._rows = image_mask, (t["crow"], t["col"], t["val"])
         self.mask = t["mask"].bool()
         self._table = _Table(t["crow"], t["col"], t["val"], camera.width * camera.height)
         self._uv = t["uv"].numpy()
         self.radius = float(radius) if radius is not None else default_radius(grid)
         self._edges = None  # built on first use: lift/lift_batch never need the graph
         self._all_seen = bool(self.mask.all())
-        self._maps, self._valid = None, None
+        self._maps, self._border = None, None
         self._render = {}
 
     @property
@@ -176,26 +176,35 @@ class SphericalFrontend:
             my = np.full(rows * _ROW, -16, np.float32)
             mx[:n], my[:n] = np.where(seen, u, -16), np.where(seen, v, -16)
             self._maps = (mx.reshape(rows, _ROW), my.reshape(rows, _ROW))
-            self._valid = self._valid_weights(*self._maps)
+            self._border = self._border_rows(*self._maps)
         return self._maps
 
-    def _valid_weights(self, mx, my):
-        """For bilinear lifts of a camera with pixels that have no ray (past a fisheye's
-        image circle) or are masked: ``(valid [H, W], 1 / their bilinear weight [N])``,
-        else None. The table leaves such pixels out and renormalizes over the rest;
-        cv2.remap would blend them in, so lift zeroes them and divides by this weight."""
+    def _border_rows(self, mx, my):
+        """For bilinear lifts, the seen points whose four pixels include one without a ray
+        (past a fisheye's image circle) or a masked one: ``(rows, pixels, A)`` with ``A``
+        their table rows as a scipy CSR ``[R, P]`` over the ``P`` pixels they read; None if
+        there are none. The table leaves such pixels out and renormalizes over the rest,
+        where cv2.remap would blend them in, so lift recomputes these few points from it."""
         if self.interpolation != "bilinear":
-            return None  # nearest never reads them: points whose pixel has none are unseen
+            return None  # nearest reads one pixel, which for a seen point is valid
         cam = self.camera
         valid = cam.unproject(cam.pixel_grid())[1]
         if self._image_mask is not None:
             valid = valid & np.asarray(self._image_mask, bool)
-        if valid.all():
-            return None
         border = cv2.BORDER_WRAP if cam.wraps_u else cv2.BORDER_CONSTANT
         w = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=border)
-        w = w.ravel()[:self.num_points]
-        return valid, np.where(self.mask.numpy() & (w > 0), 1 / np.where(w > 0, w, 1), 0.0)
+        rows = np.flatnonzero(self.mask.numpy() & (w.ravel()[:self.num_points] < 1 - 1e-4))
+        if not len(rows):
+            return None
+        from scipy import sparse
+
+        crow, col, val = (np.asarray(a) for a in self._rows)
+        A = sparse.csr_matrix((val, col, crow), shape=(self.num_points, cam.width * cam.height))[rows]
+        A.eliminate_zeros()  # a pixel without a ray may hold anything, NaN included
+        pixels = np.unique(A.indices)  # lift then reads these few pixels, not the image
+        A = sparse.csr_matrix((A.data, np.searchsorted(pixels, A.indices), A.indptr),
+                              shape=(len(rows), len(pixels)))
+        return rows, pixels, A
 
     def _can_remap(self, arr) -> bool:
         return (self.interpolation in ("bilinear", "nearest") and isinstance(arr, np.ndarray)
@@ -211,14 +220,12 @@ class SphericalFrontend:
             # seen points are clamped inside the image, so the border only matters for
             # unseen ones (constant 0), except in u for panoramas that wrap around
             border = cv2.BORDER_WRAP if self.camera.wraps_u else cv2.BORDER_CONSTANT
-            # float32, not the image's integers: the weighted sum is divided afterwards
-            src = arr if self._valid is None else \
-                np.where(self._valid[0][..., None], arr, 0).astype(np.float32)
-            out = cv2.remap(src, mx, my, inter, borderMode=border)
+            out = cv2.remap(arr, mx, my, inter, borderMode=border)
             out = out.reshape(-1, arr.shape[-1])[:self.num_points]
             x = torch.from_numpy(out.astype(np.float32, copy=False))
-            if self._valid is not None:
-                x.mul_(torch.from_numpy(self._valid[1]).float()[:, None])
+            if self._border is not None:
+                rows, pixels, A = self._border
+                x[rows] = torch.from_numpy((A @ arr.reshape(-1, arr.shape[-1])[pixels]).astype(np.float32))
             if self.camera.wraps_u and not self._all_seen:
                 x.mul_(self.mask[:, None])
             if arr.dtype.kind != "f":
