@@ -122,8 +122,10 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
     model.eval()
     given = _up(up, x.dtype)
-    kw = {} if given is None else {"up": given}
-    logits, grav = model(x, mask, return_gravity=True, **kw)
+    if given is None:
+        logits, grav = model(x, mask, return_gravity=True)
+    else:
+        logits, grav = model(x, mask, up=given), None
     probs = logits[0].softmax(-1)
     points = probs.argmax(-1).to(torch.uint8)
     labels = fe.to_image(points, mode="nearest").numpy()
