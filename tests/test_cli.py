@@ -296,6 +296,17 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common,
                  "--up", "0", "0", "2"]) == 0
     assert "up: (+0.000, +0.000, +1.000), given" in capsys.readouterr().out
+    # frames: the model loaded once, an output per image; one name twice is refused
+    (tmp_path / "frames").mkdir()
+    cv2.imwrite(str(tmp_path / "frames" / "next.png"), cv2.cvtColor(rgb[:, ::-1].copy(), cv2.COLOR_RGB2BGR))
+    frames = [str(tmp_path / "view.png"), str(tmp_path / "frames" / "next.png")]
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), *frames, *common]) == 0
+    assert capsys.readouterr().out.count("== ") == 2
+    flipped = segment_image(seg, rgb[:, ::-1].copy(), ds.camera, interpolation="bilinear")["labels"]
+    assert np.array_equal(cv2.imread(str(tmp_path / "out" / "next_labels.png"), cv2.IMREAD_UNCHANGED), flipped)
+    assert not np.array_equal(flipped, want)
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), frames[0], frames[0], *common]) == 2
+    assert "several images are named ['view']" in capsys.readouterr().err
 
     det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
                             gravity=True)

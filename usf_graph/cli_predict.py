@@ -20,7 +20,9 @@ def add_predict_parser(sub, fmt, camera_help: str, camera_options) -> None:
                                    "spherical boxes (JSON, PANDORA's degrees) drawn on it.")
     p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
-    p.add_argument("image", help="an RGB image (any format OpenCV reads, or .npy)")
+    p.add_argument("image", nargs="+",
+                   help="RGB image(s) of the one camera (any format OpenCV reads, or .npy); "
+                        "several: frames, the model loaded once")
     p.add_argument("--camera", required=True, help=camera_help)
     camera_options(p)
     p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
@@ -53,50 +55,76 @@ def _report_up(info: dict) -> str:
 
 
 def cmd_predict(args) -> int:
-    import cv2
-
-    from .cli import _camera, _read_image
     from .cli_det import up_options
-    from .train.apply import UNSEEN, class_names, detect_image, segment_image
+    from .train.apply import class_names
     from .train.checkpoints import load_protocol_model
 
+    stems = [Path(p).stem for p in args.image]
+    if len(set(stems)) < len(stems):
+        twice = sorted({s for s in stems if stems.count(s) > 1})
+        raise ValueError(f"several images are named {twice}: their outputs would overwrite "
+                         "each other in --out; predict them in separate runs")
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
-    model = ckpt.model
+    model = ckpt.model  # loaded once for every image
     up_options(model, args)
-    image = _read_image(args.image)
-    cam = _camera(args.camera, args.key, args.fov, args.image_mask, image.shape)
-    out, stem = Path(args.out), Path(args.image).stem
-    out.mkdir(parents=True, exist_ok=True)
     names = class_names(args.task, model.config["num_classes"])
-    if args.task == "seg":
-        r = segment_image(model, image, cam, up=args.up, interpolation=args.interpolation)
-        print(_report_up(r))
-        lab = r["labels"]
-        seen = lab != UNSEEN
-        shares = np.bincount(lab[seen], minlength=len(names)) / max(int(seen.sum()), 1)
-        top = np.argsort(-shares)[:5]
-        print("pixels: " + ", ".join(f"{names[c]} {100 * shares[c]:.1f}%" for c in top if shares[c] > 0))
-        cv2.imwrite(str(out / f"{stem}_labels.png"), lab)
-        _seg_figure(_as_uint8(image), lab, out / f"{stem}_seg.png", names)
-        print(f"wrote {out / f'{stem}_labels.png'} (class index per pixel, {UNSEEN}: unseen) and "
-              f"{out / f'{stem}_seg.png'}")
-        return 0
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for path in args.image:
+        if len(args.image) > 1:
+            print(f"== {path}")
+        (_predict_seg if args.task == "seg" else _predict_det)(model, path, names, out, args)
+    return 0
+
+
+def _image_and_camera(path, args):
+    from .cli import _camera, _read_image
+
+    image = _read_image(path)
+    return image, _camera(args.camera, args.key, args.fov, args.image_mask, image.shape)
+
+
+def _predict_seg(model, path, names, out: Path, args) -> None:
+    import cv2
+
+    from .train.apply import UNSEEN, segment_image
+
+    image, cam = _image_and_camera(path, args)
+    stem = Path(path).stem
+    r = segment_image(model, image, cam, up=args.up, interpolation=args.interpolation)
+    print(_report_up(r))
+    lab = r["labels"]
+    seen = lab != UNSEEN
+    shares = np.bincount(lab[seen], minlength=len(names)) / max(int(seen.sum()), 1)
+    top = np.argsort(-shares)[:5]
+    print("pixels: " + ", ".join(f"{names[c]} {100 * shares[c]:.1f}%" for c in top if shares[c] > 0))
+    cv2.imwrite(str(out / f"{stem}_labels.png"), lab)
+    _seg_figure(_as_uint8(image), lab, out / f"{stem}_seg.png", names)
+    print(f"wrote {out / f'{stem}_labels.png'} (class index per pixel, {UNSEEN}: unseen) and "
+          f"{out / f'{stem}_seg.png'}")
+
+
+def _predict_det(model, path, names, out: Path, args) -> None:
+    import cv2
+
+    from .train.apply import detect_image
+    from .viz import draw_boxes
+
+    image, cam = _image_and_camera(path, args)
+    stem = Path(path).stem
     r = detect_image(model, image, cam, up=args.up, interpolation=args.interpolation)
     print(_report_up(r))
-    _write_boxes(r, names, out / f"{stem}_boxes.json", args)
+    _write_boxes(r, names, out / f"{stem}_boxes.json", path, args.camera)
     keep = r["scores"] >= args.min_score
     for b, c, s in zip(r["boxes"][keep], r["classes"][keep], r["scores"][keep]):
         print(f"{names[c]:>14} {s:.2f}  centre lon {np.degrees(b[0]):+7.1f} lat "
               f"{np.degrees(b[1]):+6.1f} deg, {np.degrees(b[2]):.0f} x {np.degrees(b[3]):.0f} deg")
     print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
-    from .viz import draw_boxes
-
     scale = max(1, -(-512 // max(cam.width, cam.height)))  # small images enlarged to about 512
     drawn = draw_boxes(_as_uint8(image), cam, r["boxes"][keep], [names[c] for c in r["classes"][keep]],
                        scale=scale)
     cv2.imwrite(str(out / f"{stem}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
     print(f"wrote {out / f'{stem}_boxes.json'} and {out / f'{stem}_boxes.png'}")
-    return 0
 
 
 def _as_uint8(image: np.ndarray) -> np.ndarray:
@@ -110,12 +138,12 @@ def _as_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255).round().astype(np.uint8)
 
 
-def _write_boxes(r: dict, names, path: Path, args) -> None:
+def _write_boxes(r: dict, names, path: Path, image, camera) -> None:
     """The detections as JSON, boxes in PANDORA's stored form (degrees, its signs)."""
     from .ops import to_pandora
 
     bbox = to_pandora(r["boxes"]).reshape(-1, 5) if len(r["boxes"]) else np.zeros((0, 5))
-    doc = {"image": str(args.image), "camera": str(args.camera),
+    doc = {"image": str(image), "camera": str(camera),
            "frame": "the camera's sphere frame (x forward, y left, z up); bbox as PANDORA "
                     "stores it: [lon, lat, fov_x, fov_y, gamma] in degrees, lon growing to the "
                     "right, gamma counter-clockwise as displayed",
