@@ -288,7 +288,7 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
               "--interpolation", "bilinear"]
     assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common]) == 0
     out = capsys.readouterr().out
-    assert "estimated, margin" in out and "pixels: " in out
+    assert "estimated, margin" in out and "view: " in out and "%" in out
     got = cv2.imread(str(tmp_path / "out" / "view_labels.png"), cv2.IMREAD_UNCHANGED)
     want = segment_image(seg.eval(), rgb, ds.camera, interpolation="bilinear")["labels"]
     assert got.dtype == np.uint8 and np.array_equal(got, want)
@@ -330,3 +330,40 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     assert "not a spherical seg model" in capsys.readouterr().err
     assert main(["predict", "det", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common]) == 2
     assert "not a spherical det model" in capsys.readouterr().err
+
+
+def test_predict_cli_on_a_rig(tmp_path, capsys):
+    """``predict --rig``: one frame of a Kalibr camchain's cameras, one sphere, an answer
+    per camera, as ``train.apply`` gives it for the rig."""
+    from usf_graph.frontend import render
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train import save_checkpoint
+    from usf_graph.train.apply import segment_image
+    from usf_graph.viz import labelled_panorama
+
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    pano = labelled_panorama(256, 128)
+    paths = []
+    for name, cam in rig.items():
+        im = (255 * render(pano, cameras.Equirectangular(256, 128), cam)).round().astype(np.uint8)
+        paths.append(str(tmp_path / f"{name}.png"))
+        cv2.imwrite(paths[-1], cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
+    with torch.no_grad():
+        seg.head.weight.mul_(30)
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    argv = ["predict", "seg", str(tmp_path / "seg.pt"), *paths, "--rig", "--camera",
+            str(FIXTURES / "kalibr_rig.yaml"), "--fov", "190", "--out", str(tmp_path / "out")]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.count("up: (") == 1 and "cam0: " in out and "cam1: " in out  # one sphere
+    rgb = [cv2.cvtColor(cv2.imread(p), cv2.COLOR_BGR2RGB) for p in paths]
+    want = segment_image(seg.eval(), rgb, rig)["labels"]
+    for name, lab in zip(rig, want):
+        assert np.array_equal(cv2.imread(str(tmp_path / "out" / f"{name}_labels.png"),
+                                         cv2.IMREAD_UNCHANGED), lab)
+    assert main(argv[:3] + paths[:1] + argv[5:]) == 2
+    assert "2 cameras (cam0, cam1) but 1 images" in capsys.readouterr().err
+    assert main(argv + ["--key", "cam0"]) == 2
+    assert "--key picks one camera" in capsys.readouterr().err

@@ -114,7 +114,9 @@ def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
     import cv2
     import torch
 
+    from usf_graph import cameras
     from usf_graph.cli import main
+    from usf_graph.frontend import render
     from usf_graph.models import SphericalDeepLabV3, SphericalDetector
     from usf_graph.train import save_checkpoint
     from usf_graph.viz import labelled_panorama
@@ -126,13 +128,17 @@ def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
     section = text.split("## Your own images: `usf-graph predict`", 1)[1].split("\n## ", 1)[0]
     lines = [ln for block in re.findall(r"```bash\n(.*?)```", section, re.S)
              for ln in block.splitlines() if ln.startswith("usf-graph ")]
-    assert [ln.split()[2] for ln in lines] == ["seg", "det"]
+    assert [ln.split()[2] for ln in lines] == ["seg", "det", "seg"]
     (tmp_path / "tests").symlink_to(ROOT / "tests")
     monkeypatch.chdir(tmp_path)
     for ln in setup:  # fisheye.yaml, and pano.png re-imaged as fisheye.png
         if " render " in ln:
             cv2.imwrite("pano.png", (255 * labelled_panorama(512, 256)[..., ::-1]).astype("uint8"))
         assert main(shlex.split(ln)[1:]) == 0, ln
+    pano = labelled_panorama(512, 256)
+    for name, cam in zip(("front", "back"), cameras.load_rig("tests/fixtures/kalibr_rig.yaml").values()):
+        view = render(pano, cameras.Equirectangular(512, 256), cam.with_fov(190))
+        cv2.imwrite(f"{name}.png", (255 * view[..., ::-1]).astype("uint8"))  # as the section's Python
     torch.manual_seed(0)
     seg = SphericalDeepLabV3(level=3, channels=(8, 8, 8), aspp_channels=8, low_channels=8,
                              gravity=True)
@@ -146,6 +152,8 @@ def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
     for ln in lines:
         assert main(shlex.split(ln)[1:]) == 0, ln
     assert Path("predictions/fisheye_labels.png").stat().st_size > 0
+    assert Path("predictions/front_labels.png").stat().st_size > 0
+    assert Path("predictions/back_seg.png").stat().st_size > 0
     assert Path("predictions/fisheye_seg.png").stat().st_size > 0
     doc = json.loads(Path("predictions/fisheye_boxes.json").read_text())
     assert doc["up"]["source"] == "given" and doc["interpolation"] == "area"

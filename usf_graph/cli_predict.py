@@ -22,9 +22,12 @@ def add_predict_parser(sub, fmt, camera_help: str, camera_options) -> None:
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
     p.add_argument("image", nargs="+",
                    help="RGB image(s) of the one camera (any format OpenCV reads, or .npy); "
-                        "several: frames, the model loaded once")
+                        "several: frames, the model loaded once (with --rig: one per camera)")
     p.add_argument("--camera", required=True, help=camera_help)
     camera_options(p)
+    p.add_argument("--rig", action="store_true",
+                   help="the images are one frame of a Kalibr camchain's cameras (--camera), "
+                        "one per camera in its order, lifted onto one sphere")
     p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="gravity's up in the camera's sphere frame (x forward, y left, z up), "
                         "e.g. from an IMU; default: the model's own estimate")
@@ -64,67 +67,88 @@ def cmd_predict(args) -> int:
         twice = sorted({s for s in stems if stems.count(s) > 1})
         raise ValueError(f"several images are named {twice}: their outputs would overwrite "
                          "each other in --out; predict them in separate runs")
+    if args.rig and args.key is not None:
+        raise ValueError("--key picks one camera; --rig lifts every camera of the camchain")
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
     model = ckpt.model  # loaded once for every image
     up_options(model, args)
     names = class_names(args.task, model.config["num_classes"])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    run = _predict_seg if args.task == "seg" else _predict_det
+    if args.rig:  # one frame of the rig: an image per camera, one sphere
+        run(model, args.image, names, out, args)
+        return 0
     for path in args.image:
         if len(args.image) > 1:
             print(f"== {path}")
-        (_predict_seg if args.task == "seg" else _predict_det)(model, path, names, out, args)
+        run(model, [path], names, out, args)
     return 0
 
 
-def _image_and_camera(path, args):
+def _images_and_camera(paths, args):
+    """The images, and their camera (one image) or rig (one per camera, ``--rig``)."""
+    from . import cameras
     from .cli import _camera, _read_image
 
-    image = _read_image(path)
-    return image, _camera(args.camera, args.key, args.fov, args.image_mask, image.shape)
+    images = [_read_image(p) for p in paths]
+    if not args.rig:
+        return images, _camera(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+    rig = {n: cameras.with_fov_and_mask(c, args.fov, args.image_mask)
+           for n, c in cameras.load_rig(args.camera).items()}
+    if len(images) != len(rig):
+        raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
+                         f"{len(images)} images were given, one per camera in that order")
+    return images, rig
 
 
-def _predict_seg(model, path, names, out: Path, args) -> None:
+def _predict_seg(model, paths, names, out: Path, args) -> None:
     import cv2
 
     from .train.apply import UNSEEN, segment_image
 
-    image, cam = _image_and_camera(path, args)
-    stem = Path(path).stem
-    r = segment_image(model, image, cam, up=args.up, interpolation=args.interpolation)
+    images, cam = _images_and_camera(paths, args)
+    r = segment_image(model, images if args.rig else images[0], cam, up=args.up,
+                      interpolation=args.interpolation)
     print(_report_up(r))
-    lab = r["labels"]
-    seen = lab != UNSEEN
-    shares = np.bincount(lab[seen], minlength=len(names)) / max(int(seen.sum()), 1)
-    top = np.argsort(-shares)[:5]
-    print("pixels: " + ", ".join(f"{names[c]} {100 * shares[c]:.1f}%" for c in top if shares[c] > 0))
-    cv2.imwrite(str(out / f"{stem}_labels.png"), lab)
-    _seg_figure(_as_uint8(image), lab, out / f"{stem}_seg.png", names)
-    print(f"wrote {out / f'{stem}_labels.png'} (class index per pixel, {UNSEEN}: unseen) and "
-          f"{out / f'{stem}_seg.png'}")
+    for path, image, lab in zip(paths, images, r["labels"] if args.rig else [r["labels"]]):
+        stem = Path(path).stem
+        seen = lab != UNSEEN
+        shares = np.bincount(lab[seen], minlength=len(names)) / max(int(seen.sum()), 1)
+        top = np.argsort(-shares)[:5]
+        print(f"{stem}: " + ", ".join(f"{names[c]} {100 * shares[c]:.1f}%" for c in top
+                                      if shares[c] > 0))
+        cv2.imwrite(str(out / f"{stem}_labels.png"), lab)
+        _seg_figure(_as_uint8(image), lab, out / f"{stem}_seg.png", names)
+        print(f"wrote {out / f'{stem}_labels.png'} (class index per pixel, {UNSEEN}: unseen) "
+              f"and {out / f'{stem}_seg.png'}")
 
 
-def _predict_det(model, path, names, out: Path, args) -> None:
+def _predict_det(model, paths, names, out: Path, args) -> None:
     import cv2
 
     from .train.apply import detect_image
     from .viz import draw_boxes
 
-    image, cam = _image_and_camera(path, args)
-    stem = Path(path).stem
-    r = detect_image(model, image, cam, up=args.up, interpolation=args.interpolation)
+    images, cam = _images_and_camera(paths, args)
+    r = detect_image(model, images if args.rig else images[0], cam, up=args.up,
+                     interpolation=args.interpolation)
     print(_report_up(r))
-    _write_boxes(r, names, out / f"{stem}_boxes.json", path, args.camera)
+    stem = Path(paths[0]).stem
+    _write_boxes(r, names, out / f"{stem}_boxes.json", paths, args.camera)
     keep = r["scores"] >= args.min_score
     for b, c, s in zip(r["boxes"][keep], r["classes"][keep], r["scores"][keep]):
         print(f"{names[c]:>14} {s:.2f}  centre lon {np.degrees(b[0]):+7.1f} lat "
               f"{np.degrees(b[1]):+6.1f} deg, {np.degrees(b[2]):.0f} x {np.degrees(b[3]):.0f} deg")
     print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
-    scale = max(1, -(-512 // max(cam.width, cam.height)))  # small images enlarged to about 512
-    drawn = draw_boxes(_as_uint8(image), cam, r["boxes"][keep], [names[c] for c in r["classes"][keep]],
-                       scale=scale)
-    cv2.imwrite(str(out / f"{stem}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
-    print(f"wrote {out / f'{stem}_boxes.json'} and {out / f'{stem}_boxes.png'}")
+    cams = list(cam.values()) if args.rig else [cam]
+    for path, image, c in zip(paths, images, cams):  # each camera draws what it sees
+        scale = max(1, -(-512 // max(c.width, c.height)))  # small images enlarged to about 512
+        drawn = draw_boxes(_as_uint8(image), c, r["boxes"][keep],
+                           [names[k] for k in r["classes"][keep]], scale=scale)
+        cv2.imwrite(str(out / f"{Path(path).stem}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
+    print(f"wrote {out / f'{stem}_boxes.json'} and " +
+          ", ".join(str(out / f"{Path(p).stem}_boxes.png") for p in paths))
 
 
 def _as_uint8(image: np.ndarray) -> np.ndarray:
@@ -138,13 +162,13 @@ def _as_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255).round().astype(np.uint8)
 
 
-def _write_boxes(r: dict, names, path: Path, image, camera) -> None:
+def _write_boxes(r: dict, names, path: Path, images, camera) -> None:
     """The detections as JSON, boxes in PANDORA's stored form (degrees, its signs)."""
     from .ops import to_pandora
 
     bbox = to_pandora(r["boxes"]).reshape(-1, 5) if len(r["boxes"]) else np.zeros((0, 5))
-    doc = {"image": str(image), "camera": str(camera),
-           "frame": "the camera's sphere frame (x forward, y left, z up); bbox as PANDORA "
+    doc = {"images": [str(p) for p in images], "camera": str(camera),
+           "frame": "the camera's (or rig's) sphere frame (x forward, y left, z up); bbox as PANDORA "
                     "stores it: [lon, lat, fov_x, fov_y, gamma] in degrees, lon growing to the "
                     "right, gamma counter-clockwise as displayed",
            "up": {k: v for k, v in r.items() if k in ("up", "source", "margin", "unsure")},

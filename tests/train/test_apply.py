@@ -144,3 +144,38 @@ def test_auto_interpolation_averages_where_the_image_is_finer_than_the_grid():
 def test_class_names():
     assert class_names("seg", 13)[3] == "ceiling" and len(class_names("det", 12)) == 12
     assert len(class_names("det", 47)) == 47 and class_names("det", 5)[4] == "class 4"
+
+
+def test_a_rig_is_one_sphere_and_answers_in_each_camera(views):
+    """Two back-to-back fisheyes of a Kalibr camchain: lifted onto one sphere (checked
+    against the rig's float64 table path), labels rendered back into each camera."""
+    from tests.helpers import FIXTURES
+    from usf_graph.cameras import load_rig
+    from usf_graph.frontend import RigFrontend, render
+    from usf_graph.viz import labelled_panorama
+
+    rig = {n: c.with_fov(190) for n, c in load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    pano = labelled_panorama(256, 128)
+    images = [(255 * render(pano, Equirectangular(256, 128), c)).round().astype(np.uint8)
+              for c in rig.values()]
+    net = _segmenter()
+    r = segment_image(net, images, rig, interpolation="bilinear")
+    fe = RigFrontend(rig, icosahedral(3))
+    x = fe.lift_batch([torch.as_tensor(im[None]).double() / 255 for im in images]).float()
+    with torch.no_grad():
+        want = net(x, None if fe.mask.all() else fe.mask).softmax(-1)[0]
+    assert np.allclose(r["probs"], want.numpy(), atol=1e-5)
+    assert isinstance(r["labels"], list) and len(r["labels"]) == 2
+    points = torch.as_tensor(want.argmax(-1).to(torch.uint8))
+    for lab, f, cam in zip(r["labels"], fe.frontends, rig.values()):
+        valid = cam.lens_normal_map()[1]
+        assert ((lab == UNSEEN) == ~valid).all()
+        assert np.array_equal(lab[valid], f.to_image(points, mode="nearest").numpy()[valid])
+    assert r["labels"][0].shape == (400, 400) and not np.array_equal(r["labels"][0], r["labels"][1])
+    assert segment_image(net, images, rig)["interpolation"] == "area"  # 400-pixel fisheyes
+    named = segment_image(net, dict(zip(rig, images)), rig, interpolation="bilinear")
+    assert np.allclose(named["probs"], r["probs"])
+    with pytest.raises(ValueError, match="2 cameras.*1 images"):
+        segment_image(net, images[:1], rig)
+    with pytest.raises(ValueError, match="with_fov_and_mask"):
+        segment_image(net, images, rig, image_mask=np.ones((400, 400), bool))

@@ -11,6 +11,7 @@ alias into what the model never saw.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 import torch
@@ -77,14 +78,43 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     """``(frontend, x [1, N, 3], mask [N] or None)``: ``image`` (see :func:`rgb01`) lifted
     through ``camera`` onto ``model``'s grid. ``interpolation``: a
     :class:`~usf_graph.frontend.SphericalFrontend` method, or ``auto``
-    (:func:`choose_interpolation`). ``image_mask [H, W]``: False on pixels to ignore."""
+    (:func:`choose_interpolation`; for a rig, ``area`` if any of its cameras needs it).
+    ``image_mask [H, W]``: False on pixels to ignore.
+
+    A rig: ``camera`` a list or ``{name: camera}`` of cameras mounted by their
+    ``rotation`` (:func:`usf_graph.cameras.load_rig`) and ``image`` one image per camera
+    (a list in that order, or ``{name: image}``), lifted onto one sphere
+    (:class:`~usf_graph.frontend.RigFrontend`, the frontend returned); their masks go
+    with the cameras (:func:`usf_graph.cameras.with_fov_and_mask`)."""
     grid = input_grid(model)
-    rgb = rgb01(image)  # before any table is built: a wrong image costs nothing
+    if not is_rig(camera):
+        rgb = rgb01(image)  # before any table is built: a wrong image costs nothing
+        if interpolation == "auto":
+            interpolation = choose_interpolation(camera, grid)
+        fe = SphericalFrontend(camera, grid, interpolation=interpolation, image_mask=image_mask)
+        return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
+    from ..frontend import RigFrontend
+
+    if image_mask is not None:
+        raise ValueError("a rig's image masks go with its cameras: cameras.with_fov_and_mask")
+    cams = list(camera.values()) if isinstance(camera, Mapping) else list(camera)
+    rgb = {k: rgb01(v) for k, v in image.items()} if isinstance(image, Mapping) else \
+        [rgb01(v) for v in image]
     if interpolation == "auto":
-        interpolation = choose_interpolation(camera, grid)
-    fe = SphericalFrontend(camera, grid, interpolation=interpolation, image_mask=image_mask)
-    x = fe.lift(rgb)[None]
-    return fe, x, None if fe.mask.all() else fe.mask
+        picks = {choose_interpolation(c, grid) for c in cams}
+        interpolation = "area" if "area" in picks else "bilinear"
+    fe = RigFrontend(camera, grid, interpolation=interpolation)
+    return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
+
+
+def is_rig(camera) -> bool:
+    """Whether ``camera`` is several cameras (a list or a mapping): a rig."""
+    return isinstance(camera, (list, tuple, Mapping))
+
+
+def _frontends(fe) -> list:
+    """The single-camera frontends that give the answer back: one, or a rig's."""
+    return list(getattr(fe, "frontends", [fe]))
 
 
 def _up(up, dtype) -> torch.Tensor | None:
@@ -116,9 +146,11 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     """A trained spherical segmenter on one image of ``camera``.
 
     ``up``: gravity's up in the camera's sphere frame (an IMU), else the model's estimate.
-    Returns ``{"labels": [H, W] uint8 in the camera's pixels (:data:`UNSEEN` where it has
-    no ray or the mask ignores it), "points": [N] uint8 per grid point (UNSEEN outside the
-    field of view), "probs": [N, C] float32, "up": ..., "interpolation": ...}``."""
+    A rig (:func:`lift_for`) is segmented as one sphere. Returns ``{"labels": [H, W]
+    uint8 in the camera's pixels (:data:`UNSEEN` where it has no ray or the mask ignores
+    it; for a rig a list, one per camera), "points": [N] uint8 per grid point (UNSEEN
+    outside the field of view), "probs": [N, C] float32, "up": ..., "interpolation":
+    ...}``."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
     model.eval()
     given = _up(up, x.dtype)
@@ -128,19 +160,23 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
         logits, grav = model(x, mask, up=given), None
     probs = logits[0].softmax(-1)
     points = probs.argmax(-1).to(torch.uint8)
-    labels = fe.to_image(points, mode="nearest").numpy()
-    seen = _seen_pixels(fe, image_mask)
-    labels[~seen] = UNSEEN
+    labels = []
+    for f in _frontends(fe):
+        lab = f.to_image(points, mode="nearest").numpy()
+        lab[~_seen_pixels(f, image_mask)] = UNSEEN
+        labels.append(lab)
     points[~fe.mask] = UNSEEN
-    return {"labels": labels, "points": points.numpy(), "probs": probs.float().numpy(),
-            "interpolation": fe.interpolation, **_up_info(given, grav)}
+    return {"labels": labels if is_rig(camera) else labels[0], "points": points.numpy(),
+            "probs": probs.float().numpy(), "interpolation": _frontends(fe)[0].interpolation,
+            **_up_info(given, grav)}
 
 
 @torch.no_grad()
 def detect_image(model, image, camera, up=None, interpolation: str = "auto", image_mask=None,
                  threshold: float = 0.05, k: int = 100, nms: float | None = 0.5) -> dict:
-    """A trained spherical detector on one image of ``camera``: ``{"boxes": [D, 5]
-    (radians, the camera's sphere frame; :mod:`usf_graph.ops.boxes`), "classes": [D],
+    """A trained spherical detector on one image of ``camera`` (or a rig's images, as one
+    sphere: :func:`lift_for`): ``{"boxes": [D, 5] (radians, the camera's or the rig's
+    sphere frame; :mod:`usf_graph.ops.boxes`), "classes": [D],
     "scores": [D], "up": ..., "interpolation": ...}``, best first. ``up`` as
     :func:`segment_image`'s; ``threshold``, ``k``, ``nms`` as
     :meth:`~usf_graph.models.SphericalDetector.decode`'s."""
@@ -149,7 +185,8 @@ def detect_image(model, image, camera, up=None, interpolation: str = "auto", ima
     given = _up(up, x.dtype)
     out = model(x, mask) if given is None else model(x, mask, up=given)
     found = model.decode(out, k=k, threshold=threshold, nms=nms)[0]
-    return {**found, "interpolation": fe.interpolation, **_up_info(given, out.get("gravity"))}
+    return {**found, "interpolation": _frontends(fe)[0].interpolation,
+            **_up_info(given, out.get("gravity"))}
 
 
 def _seen_pixels(fe: SphericalFrontend, image_mask=None) -> np.ndarray:
