@@ -82,7 +82,10 @@ def test_a_given_up_is_read_instead_of_the_estimate(views):
         want = net(x, up=(up / up.norm())[None]).softmax(-1)[0]
     assert np.allclose(r["probs"], want.numpy(), atol=1e-5)
     assert r["source"] == "given" and np.allclose(r["up"], (up / up.norm()).numpy())
-    est = segment_image(net, img, ds.camera, interpolation="bilinear")
+    est = segment_image(net.train(), img, ds.camera, interpolation="bilinear")
+    assert net.training  # evaluated in eval mode, its own mode given back
+    assert np.allclose(est["probs"], segment_image(net.eval(), img, ds.camera,
+                                                   interpolation="bilinear")["probs"])
     assert np.abs(est["probs"] - r["probs"]).max() > 1e-3
     for bad in ([0, 0, 0], [1, 2], [np.nan, 0, 1]):
         with pytest.raises(ValueError, match="up must be 3 finite numbers"):

@@ -1,6 +1,7 @@
-"""A trained spherical model on one image from any calibrated camera: the image is lifted
-onto the model's grid through its camera, and the answer comes back in that camera's
-terms (labels in its pixels, boxes in its sphere frame). What ``usf-graph predict`` runs.
+"""A trained spherical model on one image from any calibrated camera (or one frame of a
+rig): the image is lifted onto the model's grid through its camera, and the answer comes
+back in that camera's terms (labels in its pixels, boxes in its sphere frame). What
+``usf-graph predict`` runs.
 
 The protocols train on RGB in [0, 1] lifted bilinearly from images about as fine as the
 grid; :func:`lift_for` lifts any image the same way, and averages over each grid cell
@@ -10,8 +11,10 @@ alias into what the model never saw.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -21,6 +24,18 @@ from ..grids import from_spec
 
 #: Unseen pixels of a label image (the datasets' ignore index).
 UNSEEN = 255
+
+_GEOMETRY: dict = {}  # per-camera results, so that the frames of one camera compute them once
+
+
+def _per_camera(what: str, camera, build, extra=None):
+    """``build()``, once per camera geometry (:meth:`~usf_graph.cameras.Camera.key`)."""
+    key = (what, json.dumps(camera.key(), sort_keys=True), extra)
+    if key not in _GEOMETRY:
+        if len(_GEOMETRY) >= 64:
+            _GEOMETRY.clear()
+        _GEOMETRY[key] = build()
+    return _GEOMETRY[key]
 
 
 def class_names(task: str, num_classes: int) -> list[str]:
@@ -51,6 +66,10 @@ def choose_interpolation(camera, grid) -> str:
     om = camera.pixel_solid_angles()
     pixel = math.sqrt(float(np.median(om[om > 0])))
     return "area" if pixel < grid.spacing / 2 else "bilinear"
+
+
+def _auto(camera, grid) -> str:
+    return _per_camera("interpolation", camera, lambda: choose_interpolation(camera, grid), grid.spec)
 
 
 def rgb01(image) -> np.ndarray:
@@ -90,7 +109,7 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     if not is_rig(camera):
         rgb = rgb01(image)  # before any table is built: a wrong image costs nothing
         if interpolation == "auto":
-            interpolation = choose_interpolation(camera, grid)
+            interpolation = _auto(camera, grid)
         fe = SphericalFrontend(camera, grid, interpolation=interpolation, image_mask=image_mask)
         return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
     from ..frontend import RigFrontend
@@ -101,7 +120,7 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     rgb = {k: rgb01(v) for k, v in image.items()} if isinstance(image, Mapping) else \
         [rgb01(v) for v in image]
     if interpolation == "auto":
-        picks = {choose_interpolation(c, grid) for c in cams}
+        picks = {_auto(c, grid) for c in cams}
         interpolation = "area" if "area" in picks else "bilinear"
     fe = RigFrontend(camera, grid, interpolation=interpolation)
     return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
@@ -115,6 +134,18 @@ def is_rig(camera) -> bool:
 def _frontends(fe) -> list:
     """The single-camera frontends that give the answer back: one, or a rig's."""
     return list(getattr(fe, "frontends", [fe]))
+
+
+@contextmanager
+def _evaluating(model):
+    """The model in evaluation mode (its up estimate polishes, its norms use running
+    statistics), its own mode restored after."""
+    was = model.training
+    model.eval()
+    try:
+        yield
+    finally:
+        model.train(was)
 
 
 def _up(up, dtype) -> torch.Tensor | None:
@@ -152,12 +183,12 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     outside the field of view), "probs": [N, C] float32, "up": ..., "interpolation":
     ...}``."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
-    model.eval()
     given = _up(up, x.dtype)
-    if given is None:
-        logits, grav = model(x, mask, return_gravity=True)
-    else:
-        logits, grav = model(x, mask, up=given), None
+    with _evaluating(model):
+        if given is None:
+            logits, grav = model(x, mask, return_gravity=True)
+        else:
+            logits, grav = model(x, mask, up=given), None
     probs = logits[0].softmax(-1)
     points = probs.argmax(-1).to(torch.uint8)
     labels = []
@@ -181,9 +212,9 @@ def detect_image(model, image, camera, up=None, interpolation: str = "auto", ima
     :func:`segment_image`'s; ``threshold``, ``k``, ``nms`` as
     :meth:`~usf_graph.models.SphericalDetector.decode`'s."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
-    model.eval()
     given = _up(up, x.dtype)
-    out = model(x, mask) if given is None else model(x, mask, up=given)
+    with _evaluating(model):
+        out = model(x, mask) if given is None else model(x, mask, up=given)
     found = model.decode(out, k=k, threshold=threshold, nms=nms)[0]
     return {**found, "interpolation": _frontends(fe)[0].interpolation,
             **_up_info(given, out.get("gravity"))}
@@ -191,9 +222,6 @@ def detect_image(model, image, camera, up=None, interpolation: str = "auto", ima
 
 def _seen_pixels(fe: SphericalFrontend, image_mask=None) -> np.ndarray:
     """``[H, W]`` bool: pixels with a ray (and not ignored by the masks)."""
-    _, valid = fe.camera.lens_normal_map()
-    seen = np.asarray(valid, bool).reshape(fe.camera.height, fe.camera.width)
-    for m in (fe.camera.image_mask, image_mask):
-        if m is not None:
-            seen = seen & np.asarray(m, bool)
-    return seen
+    cam = fe.camera
+    seen = _per_camera("rays", cam, lambda: np.asarray(cam.lens_normal_map()[1], bool))
+    return seen if image_mask is None else seen & np.asarray(image_mask, bool)
