@@ -137,9 +137,10 @@ def _predict_det(model, paths, names, out: Path, args) -> None:
     stem = Path(paths[0]).stem
     _write_boxes(r, names, out / f"{stem}_boxes.json", paths, args.camera)
     keep = r["scores"] >= args.min_score
-    for b, c, s in zip(r["boxes"][keep], r["classes"][keep], r["scores"][keep]):
-        print(f"{names[c]:>14} {s:.2f}  centre lon {np.degrees(b[0]):+7.1f} lat "
-              f"{np.degrees(b[1]):+6.1f} deg, {np.degrees(b[2]):.0f} x {np.degrees(b[3]):.0f} deg")
+    if keep.any():
+        print(f"{'class':>14} score  [lon, lat, fov_x, fov_y, gamma] in degrees, as in the JSON")
+    for b, c, s in zip(_pandora(r["boxes"][keep]), r["classes"][keep], r["scores"][keep]):
+        print(f"{names[c]:>14} {s:.2f}   [" + ", ".join(f"{v:.1f}" for v in b) + "]")
     print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
     cams = list(cam.values()) if args.rig else [cam]
     for path, image, c in zip(paths, images, cams):  # each camera draws what it sees
@@ -162,11 +163,17 @@ def _as_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255).round().astype(np.uint8)
 
 
+def _pandora(boxes) -> np.ndarray:
+    """Boxes ``[D, 5]`` (radians, our frame) in PANDORA's stored form (degrees, its signs),
+    turned to ``|gamma| <= 45`` (:func:`~usf_graph.ops.canonical_boxes`)."""
+    from .ops import canonical_boxes, to_pandora
+
+    return to_pandora(canonical_boxes(boxes)).reshape(-1, 5) if len(boxes) else np.zeros((0, 5))
+
+
 def _write_boxes(r: dict, names, path: Path, images, camera) -> None:
     """The detections as JSON, boxes in PANDORA's stored form (degrees, its signs)."""
-    from .ops import to_pandora
-
-    bbox = to_pandora(r["boxes"]).reshape(-1, 5) if len(r["boxes"]) else np.zeros((0, 5))
+    bbox = _pandora(r["boxes"])
     doc = {"images": [str(p) for p in images], "camera": str(camera),
            "frame": "the camera's (or rig's) sphere frame (x forward, y left, z up); bbox as PANDORA "
                     "stores it: [lon, lat, fov_x, fov_y, gamma] in degrees, lon growing to the "

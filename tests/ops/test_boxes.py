@@ -12,6 +12,7 @@ from usf_graph.ops import (
     box_axes,
     box_corners,
     box_edges,
+    canonical_boxes,
     fit_box,
     from_pandora,
     points_in_boxes,
@@ -53,6 +54,22 @@ def test_sign_of_roll_in_pandora_terms():
 def test_pandora_round_trip():
     b = np.array([[170, 20, 30, 20, 45], [-179.5, -89, 10, 100, -90.0 + 1e-9], [0, 0, 1, 1, 0]])
     np.testing.assert_allclose(to_pandora(from_pandora(b)), b, atol=1e-9)
+
+
+def test_canonical_boxes_are_the_same_regions_with_a_small_roll():
+    rng = np.random.default_rng(3)
+    b = np.c_[rng.uniform(-np.pi, np.pi, 200), rng.uniform(-1.4, 1.4, 200),
+              rng.uniform(0.1, 2.0, (200, 2)), rng.uniform(-3 * np.pi, 3 * np.pi, 200)]
+    c = canonical_boxes(b)
+    assert (np.abs(c[:, 4]) <= np.pi / 4 + 1e-12).all()
+    p = from_latlon(torch.as_tensor(rng.uniform(-1.5, 1.5, 4000)),
+                    torch.as_tensor(rng.uniform(-np.pi, np.pi, 4000))).numpy()
+    assert np.array_equal(points_in_boxes(p, b), points_in_boxes(p, c))  # the same directions
+    assert points_in_boxes(p, b).any(0).all()
+    # a tall box at roll 80 degrees is a wide one at -10: widths swapped
+    np.testing.assert_allclose(canonical_boxes([0.1, 0.2, 0.3, 0.9, math.radians(80)]),
+                               [0.1, 0.2, 0.9, 0.3, math.radians(-10)], atol=1e-12)
+    np.testing.assert_allclose(canonical_boxes(c), c, atol=1e-12)
 
 
 def test_points_in_box_edges_are_great_circles():

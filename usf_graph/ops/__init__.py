@@ -6,6 +6,7 @@ from .boxes import (
                     box_edges,
                     box_planes,
                     boxes_from_axes,
+                    canonical_boxes,
                     fit_box,
                     from_pandora,
                     points_in_boxes,
@@ -14,5 +15,5 @@ from .boxes import (
 )
 from .iou import box_area, box_iou, pairwise_box_iou, spherical_nms
 
-__all__ = ["box_area", "box_iou", "pairwise_box_iou", "spherical_nms", "box_planes", "box_axes", "box_corners", "box_edges", "boxes_from_axes", "fit_box", "from_pandora",
+__all__ = ["box_area", "box_iou", "pairwise_box_iou", "spherical_nms", "box_planes", "box_axes", "box_corners", "box_edges", "boxes_from_axes", "canonical_boxes", "fit_box", "from_pandora",
            "points_in_boxes", "rotate_boxes", "to_pandora"]

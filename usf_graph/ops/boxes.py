@@ -22,8 +22,8 @@ import torch
 
 from ..geometry import from_latlon, normalize, rotation_from_axis_angle, to_latlon
 
-__all__ = ["box_axes", "box_planes", "boxes_from_axes", "from_pandora", "to_pandora", "points_in_boxes",
-           "rotate_boxes", "fit_box", "box_corners", "box_edges"]
+__all__ = ["box_axes", "box_planes", "boxes_from_axes", "canonical_boxes", "from_pandora", "to_pandora",
+           "points_in_boxes", "rotate_boxes", "fit_box", "box_corners", "box_edges"]
 
 
 def _as_boxes(boxes):
@@ -103,6 +103,18 @@ def to_pandora(boxes):
     b[..., 4] = -(np.mod(b[..., 4] + np.pi / 2, np.pi) - np.pi / 2)
     b[..., 0] = np.mod(b[..., 0] + np.pi, 2 * np.pi) - np.pi
     return np.degrees(b)
+
+
+def canonical_boxes(boxes):
+    """The same boxes with ``|roll| <= pi/4``: a box turned a quarter turn further with its
+    two fields of view swapped covers the same directions, and the detectors' roll is
+    only known modulo a quarter turn, so their boxes may come in either form."""
+    b = _as_boxes(boxes).copy()
+    roll = np.mod(b[..., 4] + np.pi / 2, np.pi) - np.pi / 2  # a half turn is the same box
+    swap = np.abs(roll) > np.pi / 4
+    b[..., 4] = np.where(swap, roll - np.sign(roll) * np.pi / 2, roll)
+    b[..., 2], b[..., 3] = np.where(swap, b[..., 3], b[..., 2]), np.where(swap, b[..., 2], b[..., 3])
+    return b
 
 
 def points_in_boxes(points, boxes, margin: float = 0.0) -> np.ndarray:
