@@ -198,6 +198,26 @@ def test_remap_fast_path_leaves_out_pixels_without_a_ray_and_masked_ones(interpo
             assert torch.equal(fe.lift(other), fe.lift(img))
 
 
+@pytest.mark.parametrize("interpolation", ["bilinear", "nearest"])
+def test_render_leaves_out_source_pixels_without_a_ray(interpolation):
+    """Re-imaging a fisheye as a panorama reads what the fisheye sees only: whatever its
+    corners hold (past the image circle) never reaches the panorama, and a constant
+    image stays constant up to the field's edge."""
+    fish = cameras.KannalaBrandt(20.0, 20.0, 31.5, 31.5, 64, 64, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
+    valid = fish.unproject(fish.pixel_grid())[1]
+    img = np.where(valid, 0.5, 1e6)[..., None]
+    pano = cameras.Equirectangular(128, 64)
+    out = render(img, fish, pano, interpolation=interpolation)[..., 0]
+    seen = out != 0
+    assert seen.mean() > 0.4
+    np.testing.assert_allclose(out[seen], 0.5, atol=1e-12)
+    left = (np.arange(64) < 32)[None, :].repeat(64, 0)  # an image mask: the left half
+    out = render(np.where(left & valid, 0.5, 1e6)[..., None], fish.with_image_mask(left), pano,
+                 interpolation=interpolation)[..., 0]
+    np.testing.assert_allclose(out[out != 0], 0.5, atol=1e-12)
+    assert 0.1 < (out != 0).mean() < seen.mean()
+
+
 def test_data_loader_offsets_and_to_image_and_render():
     cam, img = equirect_image(64)
     g = grids.icosahedral(2)

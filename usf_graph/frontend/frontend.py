@@ -17,7 +17,14 @@ from ..grids import Grid
 from ..sparse import quiet_sparse
 from .cache import GeometryCache, default_cache
 from .image import SphericalImage
-from .interpolation import bilinear_entries, build_table, check_method, nearest_entries
+from .interpolation import (
+    bilinear_entries,
+    build_table,
+    check_method,
+    nearest_entries,
+    valid_entries,
+    valid_pixels,
+)
 
 _REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32)
 _ROW = 1024  # cv2.remap maps must be narrower than SHRT_MAX, so fold N points into rows
@@ -188,9 +195,7 @@ class SphericalFrontend:
         if self.interpolation != "bilinear":
             return None  # nearest reads one pixel, which for a seen point is valid
         cam = self.camera
-        valid = cam.unproject(cam.pixel_grid())[1]
-        if self._image_mask is not None:
-            valid = valid & np.asarray(self._image_mask, bool)
+        valid = valid_pixels(cam, self._image_mask)
         border = cv2.BORDER_WRAP if cam.wraps_u else cv2.BORDER_CONSTANT
         w = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=border)
         rows = np.flatnonzero(self.mask.numpy() & (w.ravel()[:self.num_points] < 1 - 1e-4))
@@ -317,7 +322,8 @@ def _check_finite(x: torch.Tensor, mask: torch.Tensor) -> None:
 def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear"):
     """Re-image ``image`` taken by ``cam_src`` as ``cam_dst`` would see it, through the
     sphere: each destination pixel's ray is projected into the source camera. Pixels the
-    source does not see are 0. Returns numpy (or torch, for torch input) ``[H', W'(, C)]``."""
+    source does not see are 0; source pixels without a ray or that its image mask ignores
+    are left out, as in every lift. Returns numpy (or torch, for torch input) ``[H', W'(, C)]``."""
     arr, is_np = _as_image(image, cam_src)
     rays, valid = cam_dst.lens_normal_map()
     pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
@@ -325,6 +331,7 @@ def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "biline
     seen &= valid.ravel()
     entries = bilinear_entries if interpolation == "bilinear" else nearest_entries
     idx, w = entries(cam_src, np.nan_to_num(uv, nan=-1.0), seen)
+    w = valid_entries(cam_src, idx, w)  # as every lift: pixels without a ray never blend in
     t = torch.as_tensor(arr)
     flat = (t if t.is_floating_point() else t.double()).reshape(-1, t.shape[-1])
     out = (flat[torch.as_tensor(idx)] * torch.as_tensor(w, dtype=flat.dtype)[..., None]).sum(1)

@@ -114,15 +114,36 @@ def barycentric_entries(pos: np.ndarray, queries: np.ndarray, candidates: int = 
     return idx, w / w.sum(1, keepdims=True)
 
 
+def valid_pixels(cam: Camera, image_mask=None) -> np.ndarray:
+    """``[H, W]`` bool: the pixels that have a ray (not past a fisheye's image circle or the
+    usable field of view) and that neither the camera's :attr:`~Camera.image_mask` nor
+    ``image_mask`` ignores. Every lift and re-imaging reads these pixels only."""
+    ok = cam.unproject(cam.pixel_grid())[1]
+    for m in (cam.image_mask, image_mask):
+        if m is not None:
+            ok = ok & np.asarray(m, bool)
+    return ok
+
+
+def valid_entries(cam: Camera, idx: np.ndarray, w: np.ndarray, image_mask=None) -> np.ndarray:
+    """The weights ``w [M, P]`` of interpolation entries (``idx [M, P]``, e.g.
+    :func:`bilinear_entries`') with the pixels outside :func:`valid_pixels` left out and
+    each row renormalized over the rest; a row with no valid pixel is all 0."""
+    ok = valid_pixels(cam, image_mask).ravel()
+    if ok.all():
+        return w
+    w = w * ok[idx]
+    total = w.sum(1, keepdims=True)
+    return np.where(total > 0, w / np.where(total > 0, total, 1), 0.0)
+
+
 def build_table(cam: Camera, pos: np.ndarray, method: str, image_mask=None,
                 rbf_sigma: float | None = None, spacing: float | None = None) -> dict:
     """Everything the frontend needs to lift images from ``cam`` onto ``pos [N, 3]``."""
     check_method(method)
     uv, seen = cam.sees(pos)
     # pixels without a ray (past the image circle or the usable fov) never contribute
-    has_ray = cam.unproject(cam.pixel_grid())[1]
-    if image_mask is not None:
-        has_ray &= np.asarray(image_mask, bool)
+    has_ray = valid_pixels(cam, image_mask)
     image_mask = None if has_ray.all() else has_ray
     if image_mask is not None:
         m = np.asarray(image_mask, bool).ravel()

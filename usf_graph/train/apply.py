@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from ..frontend import SphericalFrontend
+from ..frontend.interpolation import valid_pixels
 from ..grids import from_spec
 
 #: Unseen pixels of a label image (the datasets' ignore index).
@@ -223,5 +224,5 @@ def detect_image(model, image, camera, up=None, interpolation: str = "auto", ima
 def _seen_pixels(fe: SphericalFrontend, image_mask=None) -> np.ndarray:
     """``[H, W]`` bool: pixels with a ray (and not ignored by the masks)."""
     cam = fe.camera
-    seen = _per_camera("rays", cam, lambda: np.asarray(cam.lens_normal_map()[1], bool))
+    seen = _per_camera("rays", cam, lambda: valid_pixels(cam))
     return seen if image_mask is None else seen & np.asarray(image_mask, bool)
