@@ -29,8 +29,9 @@ def add_predict_parser(sub, fmt, camera_help: str, camera_options) -> None:
                    help="the images are one frame of a Kalibr camchain's cameras (--camera), "
                         "one per camera in its order, lifted onto one sphere")
     p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                   help="gravity's up in the camera's sphere frame (x forward, y left, z up), "
-                        "e.g. from an IMU; default: the model's own estimate")
+                   help="gravity's up in the camera's sphere frame (x forward, y left, z up; "
+                        "with --rig the rig's, cam0's), e.g. from an IMU; default: the model's "
+                        "own estimate")
     p.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
                    help="the up estimate assumes a level camera with this strength (10 in the "
                         "README; 0 off)")
