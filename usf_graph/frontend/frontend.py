@@ -334,7 +334,8 @@ def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "biline
     w = valid_entries(cam_src, idx, w)  # as every lift: pixels without a ray never blend in
     t = torch.as_tensor(arr)
     flat = (t if t.is_floating_point() else t.double()).reshape(-1, t.shape[-1])
-    out = (flat[torch.as_tensor(idx)] * torch.as_tensor(w, dtype=flat.dtype)[..., None]).sum(1)
+    w = torch.as_tensor(w, dtype=flat.dtype)[..., None]
+    out = torch.where(w > 0, flat[torch.as_tensor(idx)] * w, 0).sum(1)  # a left-out NaN stays out
     out = out.reshape(cam_dst.height, cam_dst.width, -1)
     if not t.is_floating_point():
         out = out.round().clamp(0, torch.iinfo(t.dtype).max).to(t.dtype)
