@@ -269,12 +269,6 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def _predict(args) -> int:
-    from .cli_predict import cmd_predict
-
-    return cmd_predict(args)
-
-
 CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
                "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML; or "
@@ -441,9 +435,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return {"info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "render": cmd_render,
-                "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval,
-                "predict": _predict}[args.cmd](args)
+        run = getattr(args, "func", None) or {  # a command's own module may name it
+            "info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "render": cmd_render,
+            "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval}[args.cmd]
+        return run(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"usf-graph: error: {e}", file=sys.stderr)
         return 2

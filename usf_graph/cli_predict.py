@@ -46,6 +46,7 @@ def add_predict_parser(sub, fmt, camera_help: str, camera_options) -> None:
     p.add_argument("--out", default="predictions", metavar="DIR",
                    help="folder for <image name>_labels.png and _seg.png (seg), or "
                         "_boxes.json and _boxes.png (det)")
+    p.set_defaults(func=cmd_predict)
 
 
 def _report_up(info: dict) -> str:
