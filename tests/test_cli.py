@@ -365,6 +365,23 @@ def test_predict_cli_on_a_rig(tmp_path, capsys):
     for name, lab in zip(rig, want):
         assert np.array_equal(cv2.imread(str(tmp_path / "out" / f"{name}_labels.png"),
                                          cv2.IMREAD_UNCHANGED), lab)
+    # the detector on the rig: boxes in the rig's frame, drawn where each camera sees them
+    import json
+
+    from usf_graph.models import SphericalDetector
+    from usf_graph.train.apply import detect_image
+
+    det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
+                            gravity=True)
+    with torch.no_grad():
+        det.head.bias[:12].fill_(0.0)
+    save_checkpoint(tmp_path / "det.pt", det, det.config, {})
+    assert main(["predict", "det", str(tmp_path / "det.pt"), *argv[3:], "--min-score", "0"]) == 0
+    doc = json.loads((tmp_path / "out" / "cam0_boxes.json").read_text())
+    r = detect_image(det.eval(), rgb, rig)
+    assert doc["images"] == paths and len(doc["detections"]) == len(r["boxes"]) > 0
+    drawn = [cv2.imread(str(tmp_path / "out" / f"{n}_boxes.png")) for n in rig]
+    assert all(d.shape == (400, 400, 3) for d in drawn) and not np.array_equal(*drawn)
     assert main(argv[:3] + paths[:1] + argv[5:]) == 2
     assert "2 cameras (cam0, cam1) but 1 images" in capsys.readouterr().err
     assert main(argv + ["--key", "cam0"]) == 2

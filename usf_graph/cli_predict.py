@@ -146,7 +146,7 @@ def _predict_det(model, paths, names, out: Path, args) -> None:
     print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
     cams = list(cam.values()) if args.rig else [cam]
     for path, image, c in zip(paths, images, cams):  # each camera draws what it sees
-        scale = max(1, -(-512 // max(c.width, c.height)))  # small images enlarged to about 512
+        scale = max(1, round(512 / max(c.width, c.height)))  # small images enlarged to about 512
         drawn = draw_boxes(_as_uint8(image), c, r["boxes"][keep],
                            [names[k] for k in r["classes"][keep]], scale=scale)
         cv2.imwrite(str(out / f"{Path(path).stem}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
