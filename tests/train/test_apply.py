@@ -182,3 +182,16 @@ def test_a_rig_is_one_sphere_and_answers_in_each_camera(views):
         segment_image(net, images[:1], rig)
     with pytest.raises(ValueError, match="with_fov_and_mask"):
         segment_image(net, images, rig, image_mask=np.ones((400, 400), bool))
+
+
+def test_an_image_mask_is_left_out_and_unseen(views):
+    ds, net = views["c"], _segmenter()
+    img = ds.image[0].numpy()
+    left = np.zeros(img.shape[:2], bool)
+    left[:, :16] = True
+    r = segment_image(net, img, ds.camera, image_mask=left, interpolation="bilinear")
+    same = segment_image(net, img, ds.camera.with_image_mask(left), interpolation="bilinear")
+    assert np.array_equal(r["labels"], same["labels"]) and np.allclose(r["probs"], same["probs"])
+    assert (r["labels"][:, 16:] == UNSEEN).all() and (r["labels"][:, :16] != UNSEEN).any()
+    whole = segment_image(net, img, ds.camera, interpolation="bilinear")  # not the masked frontend
+    assert (whole["labels"][:, 16:] != UNSEEN).any()

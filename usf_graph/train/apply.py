@@ -30,10 +30,12 @@ _GEOMETRY: dict = {}  # per-camera results, so that the frames of one camera com
 
 
 def _per_camera(what: str, camera, build, extra=None):
-    """``build()``, once per camera geometry (:meth:`~usf_graph.cameras.Camera.key`)."""
-    key = (what, json.dumps(camera.key(), sort_keys=True), extra)
+    """``build()``, once per camera geometry (:meth:`~usf_graph.cameras.Camera.key`; a
+    list of cameras for a rig)."""
+    cams = camera if isinstance(camera, list) else [camera]
+    key = (what, json.dumps([c.key() for c in cams], sort_keys=True), extra)
     if key not in _GEOMETRY:
-        if len(_GEOMETRY) >= 64:
+        if len(_GEOMETRY) >= 16:  # a few cameras' frontends at most
             _GEOMETRY.clear()
         _GEOMETRY[key] = build()
     return _GEOMETRY[key]
@@ -111,7 +113,12 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
         rgb = rgb01(image)  # before any table is built: a wrong image costs nothing
         if interpolation == "auto":
             interpolation = _auto(camera, grid)
-        fe = SphericalFrontend(camera, grid, interpolation=interpolation, image_mask=image_mask)
+        if image_mask is not None:
+            camera = camera.with_image_mask(np.asarray(image_mask, bool) if camera.image_mask is None
+                                            else camera.image_mask & np.asarray(image_mask, bool))
+        # one frontend per camera: its remap maps are built on its first lift, not per frame
+        fe = _per_camera("frontend", camera, lambda: SphericalFrontend(camera, grid, interpolation),
+                         (grid.spec, interpolation))
         return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
     from ..frontend import RigFrontend
 
@@ -123,7 +130,8 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     if interpolation == "auto":
         picks = {_auto(c, grid) for c in cams}
         interpolation = "area" if "area" in picks else "bilinear"
-    fe = RigFrontend(camera, grid, interpolation=interpolation)
+    fe = _per_camera("rig", cams, lambda: RigFrontend(camera, grid, interpolation=interpolation),
+                     (grid.spec, interpolation, tuple(camera) if isinstance(camera, Mapping) else None))
     return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
 
 
@@ -195,7 +203,7 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     labels = []
     for f in _frontends(fe):
         lab = f.to_image(points, mode="nearest").numpy()
-        lab[~_seen_pixels(f, image_mask)] = UNSEEN
+        lab[~_seen_pixels(f)] = UNSEEN
         labels.append(lab)
     points[~fe.mask] = UNSEEN
     return {"labels": labels if is_rig(camera) else labels[0], "points": points.numpy(),
@@ -221,8 +229,7 @@ def detect_image(model, image, camera, up=None, interpolation: str = "auto", ima
             **_up_info(given, out.get("gravity"))}
 
 
-def _seen_pixels(fe: SphericalFrontend, image_mask=None) -> np.ndarray:
-    """``[H, W]`` bool: pixels with a ray (and not ignored by the masks)."""
+def _seen_pixels(fe: SphericalFrontend) -> np.ndarray:
+    """``[H, W]`` bool: pixels with a ray, less those its camera's image mask ignores."""
     cam = fe.camera
-    seen = _per_camera("rays", cam, lambda: valid_pixels(cam))
-    return seen if image_mask is None else seen & np.asarray(image_mask, bool)
+    return _per_camera("rays", cam, lambda: valid_pixels(cam))
