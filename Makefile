@@ -12,7 +12,7 @@ info: setup
 demo: setup
 	@$(VENV)/bin/usf-graph train mnist --out runs/mnist
 
-# the detection protocol in 15 minutes: half the channels, 16 + 3 epochs (README, "What fits in 15 minutes")
+# the detection protocol in 15 minutes: half the channels, 16 + 3 epochs (README, "Results in 15 minutes")
 demo-det: setup
 	@$(VENV)/bin/usf-graph train det --channel-scale 0.5 --epochs 16 --fov-epochs 3 --up-epochs 4 --up-extra 400 --out runs/det_15min
 
@@ -20,7 +20,7 @@ demo-det: setup
 demo-det-full: setup
 	@$(VENV)/bin/usf-graph train det --out runs/det
 
-# the segmentation protocol in 15 minutes: half the channels, 6 + 2 epochs (README, "What fits in 15 minutes")
+# the segmentation protocol in 15 minutes: half the channels, 6 + 2 epochs (README, "Results in 15 minutes")
 demo-seg: setup
 	@$(VENV)/bin/usf-graph train seg --channel-scale 0.5 --epochs 6 --fov-epochs 2 --up-epochs 4 --up-extra 400 --out runs/seg_15min
 

@@ -77,8 +77,8 @@ class GravityHead(nn.Module):
     room has three vanishing directions and the estimate's gross errors are a wrong one of
     them, about 90 degrees off, mostly chosen by a small margin: on the rooms protocols'
     test panoramas and fisheye views, 17 of the 20 estimates more than 60 degrees off had a
-    margin below :data:`UNSURE_MARGIN`, against 10-22% of all views (README, "How sure is
-    the up estimate?"). It is invariant, like the scores' ranking. Below it, prefer a known
+    margin below :data:`UNSURE_MARGIN`, against 10-22% of all views (docs/up_estimate.md,
+    "How sure is the up estimate?"). It is invariant, like the scores' ranking. Below it, prefer a known
     up (an IMU) where there is one.
 
     Shapes: features ``[B, M, C]`` on ``coarse``, ``mask [M]`` or ``None`` ->
