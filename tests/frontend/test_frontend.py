@@ -199,6 +199,27 @@ def test_remap_fast_path_leaves_out_pixels_without_a_ray_and_masked_ones(interpo
 
 
 @pytest.mark.parametrize("interpolation", ["bilinear", "nearest"])
+def test_remap_fast_path_on_a_masked_panorama_keeps_unseen_points_zero(interpolation):
+    """A panorama wraps around, so the remap path's unseen points read wrapped pixels; where
+    the image mask hides NaN or inf there, they must still come out 0, as on the table path,
+    and the seen points must not change."""
+    pano = cameras.Equirectangular(128, 64)
+    mask = np.ones((64, 128), bool)
+    mask[40:] = False  # the lower part: the robot's body
+    rng = np.random.default_rng(1)
+    img = rng.random((64, 128, 3)).astype(np.float32)
+    bad = img.copy()
+    bad[~mask] = np.where(rng.random(((~mask).sum(), 3)) < 0.5, np.nan, np.inf)
+    fe = SphericalFrontend(pano, grids.icosahedral(3), interpolation=interpolation,
+                           image_mask=mask, cache=GeometryCache(None))
+    assert 0.3 < fe.mask.float().mean() < 0.9
+    fast, table = fe.lift(bad), fe.lift(torch.from_numpy(bad).double())
+    assert torch.isfinite(fast).all() and (fast[~fe.mask] == 0).all()
+    assert (fast - table.float()).abs().max() < 1e-3
+    assert torch.equal(fast, fe.lift(img))
+
+
+@pytest.mark.parametrize("interpolation", ["bilinear", "nearest"])
 def test_render_leaves_out_source_pixels_without_a_ray(interpolation):
     """Re-imaging a fisheye as a panorama reads what the fisheye sees only: whatever its
     corners hold (past the image circle) never reaches the panorama, and a constant

@@ -232,7 +232,8 @@ class SphericalFrontend:
                 rows, pixels, A = self._border
                 x[rows] = torch.from_numpy((A @ arr.reshape(-1, arr.shape[-1])[pixels]).astype(np.float32))
             if self.camera.wraps_u and not self._all_seen:
-                x.mul_(self.mask[:, None])
+                # unseen points wrapped onto masked pixels, which may hold NaN (0 * NaN = NaN)
+                x.masked_fill_(~self.mask[:, None], 0.0)
             if arr.dtype.kind != "f":
                 return x  # integer pixels cannot be NaN
         else:
