@@ -110,6 +110,8 @@ def test_interpolations_fov_mask_and_errors():
     assert 0.15 < fe.mask.double().mean() < 0.35
     with pytest.raises(ValueError, match="expects"):
         fe(np.zeros((100, 128)))
+    with pytest.raises(ValueError, match="no channels"):
+        fe(np.zeros((128, 128, 0), np.uint8))
     with pytest.raises(ValueError, match="unknown interpolation 'bicubic'"):
         SphericalFrontend(cam, g, interpolation="bicubic", cache=GeometryCache(None))
     bad = img.copy()

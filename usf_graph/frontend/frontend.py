@@ -86,6 +86,8 @@ def _as_image(image, cam: Camera, batched: bool = False):
         raise ValueError(f"image has shape {tuple(np.shape(image))} but the camera expects "
                          f"{want} with H x W = {cam.height} x {cam.width}. Resize the image or "
                          "use the camera calibrated for this resolution.")
+    if arr.shape[-1] == 0:
+        raise ValueError(f"image has shape {tuple(np.shape(image))}: no channels to lift")
     return arr, is_np
 
 
