@@ -55,10 +55,19 @@ def add_train_options(t) -> None:
 
 def add_eval_options(e) -> None:
     """Options of ``eval det`` and ``eval seg``: which tests, which views, which up."""
+    e.add_argument("--dataset", default=None, choices=["rooms", "stanford2d3ds", "pandora"],
+                   help="det, seg: the test data (default: what the checkpoint was trained on; "
+                        "rooms for checkpoints that do not say). stanford2d3ds: the fold's test "
+                        "areas; pandora: the test split")
+    e.add_argument("--fold", type=int, default=None, choices=[1, 2, 3],
+                   help="stanford2d3ds: whose test areas (default: the checkpoint's fold)")
     e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d", "e"], default=None,
-                   help="det, seg: protocol tests (default: all; (e) is seg's)")
-    e.add_argument("--size", type=positive_int, default=None, help="det, seg: rooms image size (as trained)")
-    e.add_argument("--num-test", type=positive_int, default=50, help="det, seg: views per test")
+                   help="det, seg on rooms: protocol tests (default: all; (e) is seg's)")
+    e.add_argument("--size", type=positive_int, default=None,
+                   help="det, seg: rooms image size, stanford2d3ds panorama height (default: "
+                        "as trained)")
+    e.add_argument("--num-test", type=positive_int, default=None,
+                   help="det, seg on rooms: views per test (50)")
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
                    "view's true gravity, as from an IMU, not their estimate")
@@ -132,6 +141,38 @@ def cmd_train_det(args) -> int:
     return 0
 
 
+REAL_DATA = {"seg": "stanford2d3ds", "det": "pandora"}
+
+
+def eval_data(ckpt, args) -> str:
+    """What ``eval seg|det`` scores ``ckpt`` on: ``--dataset``, else the data it was trained
+    on. A clear error for the other task's data, for options only the rooms protocols read,
+    and for a model whose classes are not the data's."""
+    from .scenes import DETECTION_CLASSES, PANDORA_CLASSES, SEMANTIC_CLASSES
+
+    data, real = args.dataset or ckpt.dataset, REAL_DATA[ckpt.task]
+    if data not in ("rooms", real):
+        raise ValueError(f"{data} is not {ckpt.task} data: 'usf-graph eval {ckpt.task}' scores "
+                         f"rooms or {real}")
+    if data != "rooms":
+        given = [o for o, v in (("--test", args.test), ("--num-test", args.num_test),
+                                ("--size", data == "pandora" and args.size)) if v]
+        if given:
+            raise ValueError(f"{', '.join(given)}: rooms options; {data} is scored on its own "
+                             "test data as released")
+    if args.fold is not None and data != "stanford2d3ds":
+        raise ValueError("--fold picks Stanford 2D-3D-S's test areas; give --dataset stanford2d3ds")
+    classes = {"rooms": SEMANTIC_CLASSES if ckpt.task == "seg" else DETECTION_CLASSES,
+               "stanford2d3ds": SEMANTIC_CLASSES, "pandora": PANDORA_CLASSES}[data]
+    n = ckpt.model.config["num_classes"]
+    if n != len(classes):
+        raise ValueError(f"{ckpt.path} predicts {n} classes (trained on "
+                         f"{ckpt.dataset}); {data} has {len(classes)}")
+    if data != ckpt.dataset:
+        print(f"{ckpt.path} was trained on {ckpt.dataset}; scoring it on {data}")
+    return data
+
+
 def up_options(model, args) -> None:
     """``eval --level-prior`` and ``--sign-check``: set on ``model``'s up estimate
     (:func:`~usf_graph.models.set_level_prior`, :func:`~usf_graph.models.set_sign_check`);
@@ -154,22 +195,31 @@ def cmd_eval_det(args) -> int:
     ckpt = load_protocol_model(args.checkpoint).require("det")
     model, cfg, planar = ckpt.model, ckpt.config, ckpt.planar
     up_options(model, args)
-    sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, num_train=0,
-                         num_test=args.num_test, seed=args.seed)
-    for k in args.test or list(PROTOCOL):
-        if k not in PROTOCOL:
-            raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {k!r}")
-        ds = sets[k]
+    if eval_data(ckpt, args) == "pandora":
+        from .datasets import Pandora
+
+        if planar:
+            raise ValueError("the planar detector reads the rooms' panoramas of its training "
+                             "size only; score a spherical checkpoint on pandora")
+        tests = {"pandora test": Pandora(args.root or "data/pandora", "test", grid=model.input_grid)}
+    else:
+        sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, num_train=0,
+                             num_test=args.num_test or 50, seed=args.seed)
+        for k in args.test or list(PROTOCOL):
+            if k not in PROTOCOL:
+                raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {k!r}")
+        tests = {f"({k})": sets[k] for k in args.test or list(PROTOCOL)}
+    for k, ds in tests.items():
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
         up = views_up(ds) if args.known_up and not planar else None
         r = score(predict(model, data, up=up), data, model.num_classes)
-        print(f"({k}) " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
+        print(f"{k} " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
         if getattr(model, "gravity", None) is not None:
-            print(f"({k}) " + format_up_report(up_report(model.gravity, data.x, data.mask,
-                                                         views_up(ds))))
+            print(f"{k} " + format_up_report(up_report(model.gravity, data.x, data.mask,
+                                                       views_up(ds))))
         if args.boxes:
             q = box_quality(model, data)
-            print(f"({k}) each true box decoded at its centre point: IoU median "
+            print(f"{k} each true box decoded at its centre point: IoU median "
                   f"{np.median(q['iou']):.2f}, {100 * np.mean(q['iou'] >= 0.5):.0f}% at 0.5 or more; "
                   f"errors (medians): centre {np.median(q['centre_deg']):.1f} deg, log size "
                   f"{np.median(q['log_size_err']):.2f}, log aspect {np.median(q['log_aspect_err']):.2f}")

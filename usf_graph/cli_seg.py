@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import json
 
-from .cli_det import given_or_default, rooms_only_options, run_kwargs, up_kwargs, up_options
+from .cli_det import (
+    eval_data,
+    given_or_default,
+    rooms_only_options,
+    run_kwargs,
+    up_kwargs,
+    up_options,
+)
 
 
 def cmd_train_seg(args) -> int:
@@ -44,19 +51,29 @@ def cmd_train_seg(args) -> int:
 def cmd_eval_seg(args) -> int:
     from .train.checkpoints import load_protocol_model
     from .train.gravity import format_up_report
-    from .train.seg import PROTOCOL, evaluate_protocol, protocol_sets
+    from .train.seg import PROTOCOL, evaluate_protocol, evaluate_set, protocol_sets
 
     ckpt = load_protocol_model(args.checkpoint).require("seg")
     model, name = ckpt.model, ckpt.name
     up_options(model, args)
-    tests = args.test or list(PROTOCOL)
-    sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size,
-                         ckpt.config.get("level", 5), num_train=0, num_test=args.num_test,
-                         seed=args.seed, tests=tests)
-    res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
+    level = ckpt.config.get("level", 5)
+    if eval_data(ckpt, args) == "stanford2d3ds":
+        from .datasets import Stanford2D3DS
+
+        fold = args.fold or ckpt.fold or 1
+        size = args.size or (ckpt.size if ckpt.dataset == "stanford2d3ds" else 256)
+        test = Stanford2D3DS(args.root or "data/stanford2d3ds", fold, "test",
+                             grid=f"icosahedral:{level}", size=size)
+        res = {f"fold {fold} test": evaluate_set(model, test, f"{name} fold {fold}", args.known_up)[0]}
+    else:
+        tests = args.test or list(PROTOCOL)
+        sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, level, num_train=0,
+                             num_test=args.num_test or 50, seed=args.seed, tests=tests)
+        res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
+        res = {f"({k})": r for k, r in res.items()}
     for k, r in res.items():
-        print(f"({k}) " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
-                                    ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))
+        print(f"{k} " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
+                                  ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))
         if "up" in r:
-            print(f"({k}) " + format_up_report(r["up"]))
+            print(f"{k} " + format_up_report(r["up"]))
     return 0

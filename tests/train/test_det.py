@@ -2,6 +2,7 @@
 fixture in PANDORA's format."""
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -161,8 +162,28 @@ def test_pandora_command_on_the_fixture(tmp_path, capsys):
     assert np.isfinite(res["spherical"]["AP50"])
     # the upright detector, its up estimate trained first on the same panoramas (no mask)
     cfg = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)["config"]
-    assert cfg["upright"] and cfg["gravity"]
+    assert cfg["upright"] and cfg["gravity"] and cfg["dataset"] == "pandora"
     assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 25
+    # eval scores it on PANDORA's test split, as train did, also when saved before
+    # checkpoints named their data (told by its 47 classes)
+    from usf_graph.models import SphericalDetector
+    from usf_graph.train.engine import save_checkpoint
+
+    blob = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)
+    del blob["config"]["dataset"]
+    torch.save(blob, tmp_path / "old.pt")
+    for ckpt in (tmp_path / "out" / "spherical.pt", tmp_path / "old.pt"):
+        capsys.readouterr()
+        assert main(["eval", "det", str(ckpt), "--root", str(root)]) == 0
+        line = next(ln for ln in capsys.readouterr().out.splitlines() if "AP50" in ln)
+        assert line.startswith("pandora test ") and f"AP50 {100 * res['spherical']['AP50']:.2f}," in line
+    rooms = SphericalDetector(num_classes=12)
+    save_checkpoint(tmp_path / "rooms.pt", rooms, rooms.config, {})
+    for argv, match in (([str(tmp_path / "rooms.pt"), "--dataset", "pandora"],
+                         "predicts 12 classes .* pandora has 47"),
+                        ([str(ckpt), "--size", "64"], "--size: rooms options")):
+        assert main(["eval", "det", *argv, "--root", str(root)]) == 2
+        assert re.search(match, capsys.readouterr().err), match
 
 
 def test_detection_step_with_an_up_estimate_joint_or_frozen(tmp_path):

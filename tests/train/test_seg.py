@@ -2,6 +2,7 @@
 checkpoints read back by ``eval seg``, and the Stanford 2D-3D-S command on fixtures."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from tests.datasets.test_stanford import NAMES, _write_pano
 from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
 from usf_graph.scenes import IGNORE
+from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.fov import camera_field
 from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
@@ -256,7 +258,7 @@ def test_pretrained_up_estimate_is_frozen_and_spared_in_training(tmp_path):
     hook.remove()
 
 
-def test_stanford_command_on_fixtures(tmp_path):
+def test_stanford_command_on_fixtures(tmp_path, capsys):
     root = tmp_path / "s2d3ds"
     root.mkdir()
     (root / "semantic_labels.json").write_text(json.dumps(NAMES))
@@ -269,7 +271,20 @@ def test_stanford_command_on_fixtures(tmp_path):
     r = res["spherical_unet"]["fold1"]
     assert set(r) >= {"mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU"}
     assert np.isfinite(r["mIoU"]) and res["spherical_unet"]["mean"]["mIoU"] == r["mIoU"]
-    assert (tmp_path / "out" / "fold1_spherical_unet.pt").is_file()
+    ckpt = str(tmp_path / "out" / "fold1_spherical_unet.pt")
+    # eval scores a Stanford checkpoint on its own fold's test areas, as train did
+    capsys.readouterr()
+    assert main(["eval", "seg", ckpt, "--root", str(root)]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "mIoU" in ln)
+    assert line.startswith("fold 1 test: ") or line.startswith("fold 1 test ")
+    assert f"mIoU {100 * r['mIoU']:.2f}," in line and f"mAcc {100 * r['mAcc']:.2f}" in line
+    assert load_protocol_model(ckpt).dataset == "stanford2d3ds" and load_protocol_model(ckpt).fold == 1
+    assert main(["eval", "seg", ckpt, "--root", str(root), "--known-up"]) == 0  # +z, as released
+    assert "fold 1 test up estimate" in capsys.readouterr().out
+    for argv, match in ((["--test", "a"], "rooms options"), (["--dataset", "pandora"], "not seg data"),
+                        (["--dataset", "rooms", "--fold", "2"], "--fold")):
+        assert main(["eval", "seg", ckpt, "--root", str(root), *argv]) == 2
+        assert re.search(match, capsys.readouterr().err), match
 
 
 @pytest.mark.parametrize("name", list(MODELS))

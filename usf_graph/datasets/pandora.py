@@ -95,6 +95,12 @@ class Pandora(Dataset):
         return self.root
 
     @property
+    def gravity(self) -> torch.Tensor:
+        """``[S, 3]`` float64: +z for every panorama, gravity-aligned as released (the known
+        up that ``usf-graph eval --known-up`` hands a model)."""
+        return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(len(self.x), 3)
+
+    @property
     def raw_file_names(self):
         return [f"annotations/{self.split}.json"]
 

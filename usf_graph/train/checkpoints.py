@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from torch import nn
 
 from ..models import PlanarDetector, SphericalDetector
+from ..scenes import PANDORA_CLASSES
 from . import det, seg
 from .engine import defaults, load_checkpoint
 
@@ -22,7 +23,8 @@ class ProtocolCheckpoint:
     ``"planar_detector"``; ``config``: the saved config, as saved
     (hand it back to :func:`~usf_graph.train.save_checkpoint` to save a model of the same
     kind); ``size``: the panorama height it was trained at (the saved one, else the
-    task's protocol default); ``metrics``: the metrics saved with it."""
+    task's protocol default); ``metrics``: the metrics saved with it; ``dataset``: what it
+    was trained on, ``rooms``, ``stanford2d3ds`` (with its ``fold``) or ``pandora``."""
 
     path: str
     task: str
@@ -31,6 +33,8 @@ class ProtocolCheckpoint:
     config: dict
     size: int
     metrics: dict
+    dataset: str = "rooms"
+    fold: int | None = None
 
     @property
     def planar(self) -> bool:
@@ -60,6 +64,7 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     blob = load_checkpoint(path)
     cfg = dict(blob["config"])
     name, size = cfg.pop("model", None), cfg.pop("size", None)
+    dataset, fold = cfg.pop("dataset", None), cfg.pop("fold", None)
     if name in seg.MODELS:
         task, model = "seg", seg.MODELS[name].from_config(cfg)
     elif name is None and "num_classes" in cfg:
@@ -72,5 +77,7 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
                          f"names model {name!r})")
     if weights:
         model.load_state_dict(blob["state_dict"])
+    if dataset is None:  # saved before checkpoints named their data: PANDORA's by its classes
+        dataset = "pandora" if task == "det" and model.num_classes == len(PANDORA_CLASSES) else "rooms"
     return ProtocolCheckpoint(str(path), task, name, model, blob["config"],
-                              size or _default_size(task), blob.get("metrics", {}))
+                              size or _default_size(task), blob.get("metrics", {}), dataset, fold)

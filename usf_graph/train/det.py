@@ -372,7 +372,7 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
         return {}
     res = {"samples": {"train": len(train), "test": len(test)},
            "spherical": score(predict(net, test, progress=progress), test, C)}
-    save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"])
+    save_checkpoint(out / "spherical.pt", net, {**net.config, "dataset": "pandora"}, res["spherical"])
     return write_results(out, res, t0)
 
 

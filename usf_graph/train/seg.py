@@ -280,12 +280,22 @@ def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = T
         model = net
         if not is_planar(net) and PROTOCOL[k][2]:
             model = net.refined(PROTOCOL[k][2])
-        up = views_up(sets[k]) if known_up and not is_planar(net) else None
-        pix, pts = predict(model, sets[k], progress=progress, desc=f"{name} ({k})", up=up)
-        res[k], preds[k] = score(pix, sets[k], pts), pix
-        if getattr(model, "gravity", None) is not None:
-            res[k]["up"] = up_report(model.gravity, sets[k].x, sets[k].mask[0], views_up(sets[k]))
+        res[k], preds[k] = evaluate_set(model, sets[k], f"{name} ({k})", known_up, progress)
     return res, preds
+
+
+def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
+                 progress: bool = True) -> tuple[dict, np.ndarray]:
+    """:func:`score` and the pixel predictions of a trained model on one test set (a rooms
+    test or :class:`~usf_graph.datasets.Stanford2D3DS`); ``known_up``: a spherical model
+    reads the views' gravity (:func:`views_up`). A model with an up estimate also gets its
+    :func:`~usf_graph.train.gravity.up_report` (``"up"``)."""
+    up = views_up(ds) if known_up and not is_planar(model) else None
+    pix, pts = predict(model, ds, progress=progress, desc=desc, up=up)
+    r = score(pix, ds, pts)
+    if getattr(model, "gravity", None) is not None:
+        r["up"] = up_report(model.gravity, ds.x, ds.mask[0], views_up(ds))
+    return r, pix
 
 
 def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_CLASSES)):
@@ -438,8 +448,8 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                 continue
             pix, pts = predict(net, test, progress=progress, desc=f"{name} fold {fold}")
             r = results.setdefault(name, {})[f"fold{fold}"] = score(pix, test, pts)
-            save_checkpoint(out / f"fold{fold}_{name}.pt", net, {"model": name, "size": size,
-                                                                  **net.config}, r)
+            save_checkpoint(out / f"fold{fold}_{name}.pt", net, {
+                "model": name, "size": size, "dataset": "stanford2d3ds", "fold": fold, **net.config}, r)
     if rank != 0:
         return {}
     for name in models:
