@@ -340,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("task", choices=TASKS,
                    help="mnist: Spherical MNIST; det: spherical-box detection; seg: semantic segmentation")
     t.add_argument("--root", default=None,
-                   help="data and processed files (default: data/mnist, data/rooms, data/pandora)")
+                   help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds)")
     t.add_argument("--out", default=None, help="logs, checkpoints, figure (default: runs/<task>)")
     t.add_argument("--level", type=int, default=d["level"],
                    help="icosahedral level of the first conv")
@@ -364,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Evaluate a checkpoint written by 'usf-graph train'.")
     e.add_argument("task", choices=TASKS, help="the checkpoint's task")
     e.add_argument("checkpoint", help="a checkpoint .pt from train")
-    e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms)")
+    e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds)")
     add_eval_options(e)
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
                    "rotations: none, one per digit (so3), one per 500 (chunk500)")
