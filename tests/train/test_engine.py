@@ -144,3 +144,45 @@ def test_scaled_channels_is_a_width_multiplier_of_the_defaults():
     for bad in (0.0, -1.0, float("nan"), float("inf"), 5.0):
         with pytest.raises(ValueError, match="channel scale must be in"):
             scaled_channels(PlanarUNet, bad)
+
+
+def test_resume_goes_on_as_an_uninterrupted_run_would(tmp_path):
+    """A run stopped after its first epoch and resumed ends with the weights of one that
+    ran through, bitwise: with random fields of view cut by the collate_fn (its draws are
+    saved) and steps that draw from torch's generator (the known up's jitter). A finished
+    run resumes by loading; another plan or config is refused."""
+    from functools import partial
+
+    from usf_graph.train.engine import fit
+    from usf_graph.train.seg import (
+        ThroughRandomFields,
+        make_model,
+        protocol_sets,
+        segmentation_step,
+    )
+
+    train = protocol_sets(tmp_path / "rooms", size=16, level=3, num_train=4, num_test=1,
+                          tests=(), progress=False)["train"]
+    step = partial(segmentation_step, class_weight=None)
+
+    def run(log_dir, resume=False, stop_after=None, lr=3e-3):
+        torch.manual_seed(1)
+        net = make_model("spherical_unet", level=3)
+
+        def stop(epoch, row):  # an interruption (Ctrl-C) after that epoch
+            if epoch + 1 == stop_after:
+                raise KeyboardInterrupt
+        cut = ThroughRandomFields(train.grid.pos, share=0.5, seed=3)
+        fit(net, train, epochs=3, batch_size=2, lr=lr, seed=0, log_dir=log_dir, config=net.config,
+            resume=resume, progress=False, step=step, collate_fn=cut, on_epoch=stop)
+        return net.state_dict()
+
+    through = run(tmp_path / "through")
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path / "cut", stop_after=1)
+    assert load_checkpoint(tmp_path / "cut" / "last.pt")["epoch"] == 1
+    resumed = run(tmp_path / "cut", resume=True)
+    assert all(torch.equal(through[k], resumed[k]) for k in through)
+    assert all(torch.equal(through[k], v) for k, v in run(tmp_path / "cut", resume=True).items())
+    with pytest.raises(ValueError, match="was written with plan .* resume with the same options"):
+        run(tmp_path / "cut", resume=True, lr=1e-3)

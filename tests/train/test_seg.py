@@ -77,6 +77,13 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
         assert (tmp_path / "out" / f"{name}.pt").is_file()
     assert (tmp_path / "out" / "seg_results.png").is_file()
     assert "(e) finer grid" in format_table(res) and "| planar_unet |" in format_table(res)
+    # resuming a finished run loads every stage (the up estimate's, both phases) and scores
+    # the same models again, to the digit
+    again = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, level=3, num_train=3,
+                num_test=2, epochs=1, batch_size=2, progress=False, up_extra=2, up_caps=0.5,
+                fov_epochs=1, resume=True)
+    for name in ("spherical_unet", "spherical_deeplab", "planar_unet"):
+        assert again[name] == res[name]
     # eval seg reads a checkpoint back and reproduces the protocol's numbers
     capsys.readouterr()
     assert main(["eval", "seg", str(tmp_path / "out" / "spherical_unet.pt"), "--root",

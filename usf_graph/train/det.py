@@ -38,7 +38,7 @@ from .engine import (
     setup_distributed,
     write_results,
 )
-from .fov import FOV_SHARE, RandomFields, second_phase
+from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
 from .gravity import (
     given_up,
     known_up,
@@ -130,7 +130,7 @@ class DetectionSet(Dataset):
         return x, self.mask, self.boxes[rows].float(), self.box_class[rows], image
 
 
-class ThroughRandomFields:
+class ThroughRandomFields(FieldDraws):
     """A ``collate_fn`` over a spherical :class:`DetectionSet` that sees a share of the
     batches through one random field of view (:func:`~usf_graph.train.fov.random_field_of_view`,
     a pinhole's or a fisheye's, over the grid points ``pos [N, 3]``), with the boxes whose
@@ -257,7 +257,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         progress: bool = True, upright: bool = True, up_train: int = 400,
         up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
         upright_convs: int | None = UPRIGHT_CONVS, fov_epochs: int = FOV_EPOCHS,
-        fov_share: float = FOV_SHARE, up_sign: float = 0.0, channel_scale: float = 1.0) -> dict:
+        fov_share: float = FOV_SHARE, up_sign: float = 0.0, channel_scale: float = 1.0,
+        resume: bool = False) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
     ``channel_scale``: both detectors' channel counts times this
@@ -283,7 +284,10 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     (:func:`~usf_graph.train.engine.freeze_norms`), as every test view is normalized with
     them; with the statistics of parts of the sphere, or trained through fields of view
     from the start, it learns much less (README). The planar one, which has no field of
-    view to cut, sees whole panoramas, so that both train as long."""
+    view to cut, sees whole panoramas, so that both train as long.
+
+    ``resume``: continue an interrupted run under ``out``, every stage from its ``last.pt``
+    (:func:`~usf_graph.train.engine.fit`; finished ones just load)."""
     check_channel_scale(channel_scale)  # before any rendering
     rank, _ = setup_distributed()
     seed_everything(seed)
@@ -303,7 +307,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         results["samples"]["up_extra"] = up_extra
         pretrain_up(spherical, sets["train"][:up_train], up_epochs, batch_size, seed=seed,
                     progress=progress, log_dir=out / "up_estimate", caps=up_caps,
-                    sign_weight=up_sign, extra=up_views(root, up_extra, progress=progress))
+                    sign_weight=up_sign, extra=up_views(root, up_extra, progress=progress),
+                    resume=resume)
     models = {"spherical": (spherical, DetectionSet.spherical, epochs)}
     if planar:
         w, h = 2 * size, size
@@ -318,13 +323,13 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         t = time.time()
         fit(net, data["train"], None, epochs=ep, batch_size=batch_size, lr=lr, seed=seed,
             log_dir=out / name, config=net.config, progress=progress, name=name,
-            step=detection_step, collate_fn=data["train"].collate)
+            step=detection_step, collate_fn=data["train"].collate, resume=resume)
         if fov_epochs:  # the planar detector has no field of view to cut: whole panoramas
             cut = ThroughRandomFields(data["train"], sets["train"].grid.pos, fov_share, seed) \
                 if name == "spherical" else None
             second_phase(net, data["train"], fov_epochs, out / name, name, cut=cut,
                          collate_fn=data["train"].collate, batch_size=batch_size, seed=seed,
-                         config=net.config, progress=progress, step=detection_step)
+                         config=net.config, progress=progress, step=detection_step, resume=resume)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
@@ -346,11 +351,13 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
 
 def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
                 batch_size: int = 8, lr: float = 2e-3, seed: int = 0, grid: str = "icosahedral:5",
-                progress: bool = True, upright: bool = True, up_epochs: int = 24) -> dict:
+                progress: bool = True, upright: bool = True, up_epochs: int = 24,
+                resume: bool = False) -> dict:
     """Train the spherical detector on PANDORA's train split (unrotated, as released) and
     score its test split: COCO AP/AP50/AP75 with the spherical IoU and USF's mAP@10.
     Writes ``results.json`` and ``spherical.pt`` under ``out``. ``upright``: as in
-    :func:`run`, the up estimate trained first on the same panoramas."""
+    :func:`run`, the up estimate trained first on the same panoramas; ``resume`` as
+    :func:`run`'s."""
     from ..datasets import Pandora
 
     rank, _ = setup_distributed()
@@ -364,10 +371,10 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
                             upright_convs=UPRIGHT_CONVS if upright else None)
     if upright:
         pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
-                    log_dir=out / "up_estimate")
+                    log_dir=out / "up_estimate", resume=resume)
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=out / "spherical", config=net.config, progress=progress, name="spherical",
-        step=detection_step, collate_fn=train.collate)
+        step=detection_step, collate_fn=train.collate, resume=resume)
     if rank != 0:
         return {}
     res = {"samples": {"train": len(train), "test": len(test)},

@@ -89,11 +89,12 @@ def teardown_distributed() -> None:
 
 
 def save_checkpoint(path, model: nn.Module, config: dict, metrics: dict,
-                    optimizer=None, scheduler=None, epoch: int = 0) -> None:
-    """Atomically write state_dict, config, metrics (and optimizer state for resuming)."""
+                    optimizer=None, scheduler=None, epoch: int = 0, extra: dict | None = None) -> None:
+    """Atomically write state_dict, config, metrics (and optimizer state for resuming;
+    ``extra``: more entries, e.g. :func:`fit`'s random states)."""
     model = model.module if hasattr(model, "module") else model
     blob = {"state_dict": model.state_dict(), "config": config, "metrics": metrics,
-            "epoch": epoch}
+            "epoch": epoch, **(extra or {})}
     if optimizer is not None:
         blob["optimizer"] = optimizer.state_dict()
     if scheduler is not None:
@@ -205,7 +206,13 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     by PyG's loader into :class:`~torch_geometric.data.Batch` objects by default).
 
     Logs ``metrics.csv`` / ``metrics.json`` (and TensorBoard when installed) under
-    ``log_dir`` and writes ``last.pt`` each epoch; ``resume=True`` continues from it.
+    ``log_dir`` and writes ``last.pt`` each epoch; ``resume=True`` continues from it, after
+    its last finished epoch (a finished run just loads its weights). With the model, the
+    optimizer and the schedule it restores torch's random state and the draws of a
+    ``collate_fn`` that has a ``state_dict`` (e.g. the protocols' ``ThroughRandomFields``),
+    so the run goes on as it would have without the interruption. A ``last.pt`` of another
+    ``config`` or plan (epochs, batch size, learning rate, seed, training set size) is an
+    error, not a silent mix.
     Under ``torchrun`` the model is wrapped in DistributedDataParallel and each process
     takes its share of every global batch of ``batch_size``. ``frozen_norms``: batch
     normalizations keep their running statistics (:func:`freeze_norms`).
@@ -220,11 +227,23 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, steps) / max(steps, 1))))
     log_dir = Path(log_dir) if log_dir is not None else None
     start, history = 0, []
+    plan = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "seed": seed, "samples": len(train)}
+    stateful = collate_fn if hasattr(collate_fn, "state_dict") else None
     if resume and log_dir is not None and (log_dir / "last.pt").exists():
-        blob = load_checkpoint(log_dir / "last.pt", model.module if world > 1 else model)
+        blob = load_checkpoint(log_dir / "last.pt")
+        for what, saved, now in (("config", blob["config"], config or {}),
+                                 ("plan", blob.get("plan"), plan)):
+            if saved != now:
+                raise ValueError(f"{log_dir / 'last.pt'} was written with {what} {saved}, this "
+                                 f"run has {now}: resume with the same options, or train "
+                                 "into another folder")
+        (model.module if world > 1 else model).load_state_dict(blob["state_dict"])
         opt.load_state_dict(blob["optimizer"])
         sched.load_state_dict(blob["scheduler"])
         start, history = blob["epoch"], blob["metrics"].get("history", [])
+        torch.set_rng_state(blob["rng"])
+        if stateful is not None:
+            stateful.load_state_dict(blob["collate"])
     writer = _tensorboard(log_dir) if rank == 0 else None
     for epoch in range(start, epochs):
         model.train()
@@ -261,8 +280,11 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
                            ", ".join(f"{k}={v:.4g}" for k, v in row.items() if k != "epoch"))
             if log_dir is not None:
                 _log(log_dir, history, writer)
+                state = {"plan": plan, "rng": torch.get_rng_state()}
+                if stateful is not None:
+                    state["collate"] = stateful.state_dict()
                 save_checkpoint(log_dir / "last.pt", model, config or {}, {"history": history},
-                                opt, sched, epoch + 1)
+                                opt, sched, epoch + 1, extra=state)
             if on_epoch is not None:
                 on_epoch(epoch, row)
     if world > 1:

@@ -80,6 +80,21 @@ def camera_field(camera: Camera, pos: torch.Tensor, turn: str = "yaw",
     return torch.as_tensor(np.asarray(camera.with_rotation(R).sees(pos.double().numpy())[1], bool))
 
 
+class FieldDraws:
+    """The state of a ``collate_fn`` that cuts batches through :class:`RandomFields`
+    (``self.fields``): :func:`~usf_graph.train.engine.fit` saves it with ``last.pt`` and
+    restores it on resume, so that a resumed run draws the fields an uninterrupted one
+    would."""
+
+    fields: RandomFields
+
+    def state_dict(self) -> dict:
+        return {"generator": self.fields.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.fields.generator.set_state(state["generator"])
+
+
 class RandomFields:
     """Fields of view to train a share of the batches through: ``fields(mask)`` is ``None``
     (leave this batch whole) with probability ``1 - share``, else one

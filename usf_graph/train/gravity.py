@@ -161,19 +161,19 @@ def up_views(root, num: int, grid="icosahedral:5", progress: bool = True):
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                 progress: bool = True, log_dir=None, caps: float = 0.0,
                 cap_degrees: tuple[float, float] = UP_CAP_DEGREES, extra=None,
-                sign_weight: float = 0.0) -> None:
+                sign_weight: float = 0.0, resume: bool = False) -> None:
     """Trains ``net.gravity`` alone on ``train`` (views of known gravity), and ``extra``
     views when given (e.g. :class:`~usf_graph.datasets.RoomsGravity`), for ``epochs``,
     then freezes it: the segmenter's own training then reads the known gravity and never
     runs it. The up estimate is small (tens of ms a step), so it can see many views at
     little cost, which it needs (README). ``caps``, ``cap_degrees`` and ``sign_weight``:
-    see :func:`up_step`."""
+    see :func:`up_step`; ``resume``: as :func:`~usf_graph.train.engine.fit`'s."""
     from .engine import fit
 
     if extra is not None:
         train = UpViews(train, extra)
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-        log_dir=log_dir, progress=progress, name="up estimate",
+        log_dir=log_dir, progress=progress, name="up estimate", resume=resume,
         step=partial(up_step, caps=caps, cap_degrees=tuple(cap_degrees), sign_weight=sign_weight))
     net.gravity.requires_grad_(False)
 

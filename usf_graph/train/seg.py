@@ -46,7 +46,7 @@ from .engine import (
     setup_distributed,
     write_results,
 )
-from .fov import FOV_SHARE, RandomFields, second_phase
+from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
 from .gravity import (
     given_up,
     known_up,
@@ -111,7 +111,7 @@ def split_batch(batch):
     return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
 
 
-class ThroughRandomFields:
+class ThroughRandomFields(FieldDraws):
     """A ``collate_fn`` over a spherical segmentation dataset (PyG samples with ``x``,
     ``y`` and ``mask``, e.g. :class:`~usf_graph.datasets.RoomsSegmentation`) that sees a
     share of the batches through one random field of view
@@ -312,7 +312,7 @@ def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_
 def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, lr: float,
                 seed: int, progress: bool, balance: float, up_epochs: int, shared: dict,
                 label: str | None = None, up_kw: dict | None = None, fov_epochs: int = 0,
-                fov_share: float = FOV_SHARE) -> None:
+                fov_share: float = FOV_SHARE, resume: bool = False) -> None:
     """The protocols' recipe for one model on ``train``, logging under ``out / name``:
     class weights ``balance`` (:func:`balanced_weights`); for a spherical model first the up
     estimate, trained alone for ``up_epochs`` on the first use (under ``out /
@@ -326,22 +326,26 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
     its batches seen through random fields of view (:class:`ThroughRandomFields`), its
     normalizations frozen (:func:`~usf_graph.train.engine.freeze_norms`: a cut batch's
     statistics are those of one part of one room); a planar one, which has no field of
-    view to cut, on the whole panoramas, so that every model trains as long."""
+    view to cut, on the whole panoramas, so that every model trains as long.
+
+    ``resume``: every stage continues from its ``last.pt``
+    (:func:`~usf_graph.train.engine.fit`)."""
     if getattr(net, "gravity", None) is not None and up_epochs:
         if "up" not in shared:
             pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
-                        log_dir=out / "up_estimate", **(up_kw or {}))
+                        log_dir=out / "up_estimate", resume=resume, **(up_kw or {}))
             shared["up"] = net.gravity.state_dict()
         net.gravity.load_state_dict(shared["up"])
         net.gravity.requires_grad_(False)
     step = partial(segmentation_step, class_weight=balanced_weights(train, balance))
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-        log_dir=out / name, config=net.config, progress=progress, name=label or name, step=step)
+        log_dir=out / name, config=net.config, progress=progress, name=label or name, step=step,
+        resume=resume)
     if fov_epochs:
         cut = None if is_planar(net) else ThroughRandomFields(train.grid.pos, fov_share, seed)
         second_phase(net, train, fov_epochs, out / name, label or name, cut=cut,
                      batch_size=batch_size, seed=seed, config=net.config, progress=progress,
-                     step=step)
+                     step=step, resume=resume)
 
 
 def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
@@ -349,7 +353,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
         balance: float = 0.5, up_epochs: int = 8, upright: bool = True, up_extra: int = 800,
         up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE,
-        up_sign: float = 0.0, channel_scale: float = 1.0) -> dict:
+        up_sign: float = 0.0, channel_scale: float = 1.0, resume: bool = False) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
     ``upright``, ``channel_scale``: as :func:`make_model`'s, for every model (0.5, with
@@ -366,7 +370,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     protocol's; 1 was a lead in session 26, docs/seg_det_log.md). Every model starts from
     the same seed, whatever the models before it drew. ``fov_epochs``, ``fov_share``: every model's
     second phase, the spherical ones' through random fields of view (:func:`train_model`;
-    0 skips it)."""
+    0 skips it). ``resume``: continue an interrupted run under ``out``, every stage from
+    its ``last.pt`` (:func:`~usf_graph.train.engine.fit`; finished ones just load)."""
     check_channel_scale(channel_scale)  # these two before any rendering
     if unknown := sorted(set(models) - set(MODELS)):
         raise ValueError(f"unknown models {unknown}: choose from {sorted(MODELS)}")
@@ -388,7 +393,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         t = time.time()
         train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
                     balance, up_epochs, shared, up_kw=up_kw, fov_epochs=fov_epochs,
-                    fov_share=fov_share)
+                    fov_share=fov_share, resume=resume)
         if rank != 0:
             continue
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
@@ -420,14 +425,14 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                  models=("spherical_unet",), level: int = 5, size: int = 256, epochs: int = 12,
                  batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                  progress: bool = True, balance: float = 0.5, up_epochs: int = 24,
-                 upright: bool = True) -> dict:
+                 upright: bool = True, resume: bool = False) -> dict:
     """Train on each fold's training areas of Stanford 2D-3D-S (RGB, unrotated as released)
     and score its test areas: mIoU and mAcc from the fold's confusion matrix on the
     ``2 size x size`` panoramas' pixels, the sphere's area-weighted mIoU, and USF's per-image
     mean. With several folds, also their mean (the usual 3-fold number). Writes
     ``results.json`` and one checkpoint per fold and model under ``out``. Each model is
     trained as in the rooms protocol (:func:`train_model`: class weights, the up estimate
-    first, per fold; ``upright`` as :func:`make_model`'s)."""
+    first, per fold; ``upright`` as :func:`make_model`'s; ``resume`` as :func:`run`'s)."""
     from ..datasets import Stanford2D3DS
 
     rank, _ = setup_distributed()
@@ -443,7 +448,8 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
         for name in models:
             net = make_model(name, level, upright)
             train_model(net, train, out / f"fold{fold}", name, epochs, batch_size, lr, seed,
-                        progress, balance, up_epochs, shared, label=f"{name} fold {fold}")
+                        progress, balance, up_epochs, shared, label=f"{name} fold {fold}",
+                        resume=resume)
             if rank != 0:
                 continue
             pix, pts = predict(net, test, progress=progress, desc=f"{name} fold {fold}")
