@@ -136,6 +136,8 @@ def cmd_scenes(args) -> int:
 
     out = Path(args.out)
     cams = protocol_cameras(args.size)
+    if args.layout != "views":
+        return _export_layout(args, out, cams["equirectangular"])
     rows, panoramas = [], []
     for i in range(args.num):
         scene = scenes.make_room(args.seed, i)
@@ -154,6 +156,27 @@ def cmd_scenes(args) -> int:
     viz.contact_sheet(rows, out / "contact_sheet.png", titles=[f"room {i}" for i in range(args.num)],
                       legend=dict(zip(scenes.SEMANTIC_CLASSES, scenes.PALETTE)))
     print(f"wrote {out}/contact_sheet.png, per-view rgb/label/depth PNGs, pandora_boxes.json")
+    return 0
+
+
+def _export_layout(args, out: Path, camera) -> int:
+    """``scenes --layout stanford2d3ds|pandora``: the rooms' panoramas as that release."""
+    from tqdm.auto import tqdm
+
+    from . import scenes
+    from .scenes.export import export_pandora, export_stanford
+
+    views = [scenes.render(scenes.make_room(args.seed, i), camera)
+             for i in tqdm(range(args.num), desc="rendering rooms", leave=False)]
+    if args.layout == "stanford2d3ds":
+        export_stanford(views, camera, out)
+        print(f"wrote {args.num} panoramas in Stanford 2D-3D-S's layout (areas 1-6, room i in "
+              f"area i mod 7) under {out}; e.g. usf-graph train seg --dataset stanford2d3ds "
+              f"--root {out} --fold 1")
+    else:
+        n = export_pandora(views, camera, out)
+        print(f"wrote {n['train']} train and {n['test']} test panoramas in PANDORA's layout "
+              f"under {out}; e.g. usf-graph train det --dataset pandora --root {out}")
     return 0
 
 
@@ -323,6 +346,11 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--seed", type=int, default=0, help="rooms are scene 0..num-1 of this seed")
     sc.add_argument("--size", type=int, default=512,
                     help="image height in pixels (the panorama is twice as wide)")
+    sc.add_argument("--layout", default="views", choices=["views", "stanford2d3ds", "pandora"],
+                    help="views: every lens's images and the contact sheet; stanford2d3ds, "
+                         "pandora: the rooms' panoramas in that dataset's released layout, for "
+                         "'usf-graph train seg|det --dataset ...' (2048 and 960 pixels high as "
+                         "released; any --size is read)")
 
     k = sub.add_parser("cache", help="show (and clear) the geometry cache", formatter_class=fmt,
                        description="Show the geometry cache on disk: lift tables, graphs and "

@@ -35,3 +35,38 @@ def test_missing_depth_is_65535_and_fisheye_boxes_are_refused():
     fish = cameras.Fisheye(100, 99.5, 99.5, 200, 200)
     with pytest.raises(ValueError, match="equirectangular"):
         pandora_json([], fish)
+
+
+def test_rooms_as_stanford_and_pandora_releases_read_back_through_the_real_loaders(tmp_path):
+    """`usf-graph scenes --layout stanford2d3ds|pandora` writes rooms in the releases' layouts;
+    the real datasets' loaders read back the rendered labels, images and boxes."""
+    from usf_graph.cli import main
+    from usf_graph.datasets import Pandora, Stanford2D3DS
+    from usf_graph.datasets.stanford import FOLDS
+
+    cam = cameras.Equirectangular(64, 32)
+    views = [scenes.render(scenes.make_room(0, i), cam) for i in range(7)]
+    assert main(["scenes", "--out", str(tmp_path / "s"), "--num", "7", "--size", "32",
+                 "--layout", "stanford2d3ds"]) == 0
+    for fold in (1, 3):
+        test = Stanford2D3DS(tmp_path / "s", fold, "test", grid="icosahedral:2", size=32, progress=False)
+        rooms = [i for i in range(7) if ("1", "2", "3", "4", "5a", "5b", "6")[i] in FOLDS[fold][1]]
+        assert test.names == [f"camera_{i:06d}_procedural_{i}" for i in rooms]
+        for k, i in enumerate(rooms):  # the same size: nothing resized, so exactly the views
+            assert np.array_equal(test.label_image[k].numpy(), views[i].label)
+            assert np.array_equal(test.image[k].numpy(), views[i].rgb)
+    assert (views[0].label == scenes.IGNORE).sum() == 0  # a panorama: every pixel a class
+    assert main(["scenes", "--out", str(tmp_path / "p"), "--num", "7", "--size", "32",
+                 "--layout", "pandora"]) == 0
+    for split, rooms in (("train", [0, 1, 2, 3, 5, 6]), ("test", [4])):
+        ds = Pandora(tmp_path / "p", split, grid="icosahedral:2", progress=False)
+        assert len(ds) == len(rooms)
+        for k, i in enumerate(rooms):
+            d = ds[k]
+            np.testing.assert_allclose(d.boxes.numpy(), views[i].boxes, atol=1e-6)
+            want = [scenes.PANDORA_CLASSES.index(scenes.DETECTION_CLASSES[c]) for c in views[i].box_class]
+            assert d.box_class.tolist() == want
+    with pytest.raises(ValueError, match="equirectangular"):
+        from usf_graph.scenes.export import export_stanford
+
+        export_stanford(views[:1], cameras.Fisheye(100, 99.5, 99.5, 200, 200), tmp_path / "x")

@@ -31,14 +31,15 @@ from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, SEMANTIC_CLASSES
+from ..scenes.export import STANFORD_AREAS, STANFORD_MISSING
 from .stacked import load_or_rebuild, pre_transform_stacked
 
-AREAS = ("1", "2", "3", "4", "5a", "5b", "6")
+AREAS = STANFORD_AREAS
 #: The three area-disjoint folds: (train areas, test areas).
 FOLDS = {1: (("1", "2", "3", "4", "6"), ("5a", "5b")),
          2: (("1", "3", "5a", "5b", "6"), ("2", "4")),
          3: (("2", "4", "5a", "5b"), ("1", "3", "6"))}
-MISSING = 0x0D0D0D  # the colour of pixels without data
+MISSING = STANFORD_MISSING  # the colour of pixels without data
 GET_IT = ("Stanford 2D-3D-S is distributed by its authors on request (https://github.com/alexsax/"
           "2D-3D-Semantics: fill in the form, then download the area_*_no_xyz archives; the "
           "original S3 bucket is gone). Unpack them so that {root}/area_1/pano/rgb/ etc. exist, "
