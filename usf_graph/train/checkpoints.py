@@ -24,7 +24,8 @@ class ProtocolCheckpoint:
     (hand it back to :func:`~usf_graph.train.save_checkpoint` to save a model of the same
     kind); ``size``: the panorama height it was trained at (the saved one, else the
     task's protocol default); ``metrics``: the metrics saved with it; ``dataset``: what it
-    was trained on, ``rooms``, ``stanford2d3ds`` (with its ``fold``) or ``pandora``."""
+    was trained on, ``rooms``, ``stanford2d3ds`` (with its ``fold``) or ``pandora``; ``seed``:
+    a rooms run's seed (None where the checkpoint predates recording it)."""
 
     path: str
     task: str
@@ -35,6 +36,7 @@ class ProtocolCheckpoint:
     metrics: dict
     dataset: str = "rooms"
     fold: int | None = None
+    seed: int | None = None
 
     @property
     def planar(self) -> bool:
@@ -64,7 +66,8 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     blob = load_checkpoint(path)
     cfg = dict(blob["config"])
     name, size = cfg.pop("model", None), cfg.pop("size", None)
-    dataset, fold = cfg.pop("dataset", None), cfg.pop("fold", None)
+    data = blob.get("data", {})  # what it was trained on: dataset, and fold or seed
+    dataset, fold, seed = data.get("dataset"), data.get("fold"), data.get("seed")
     if name in seg.MODELS:
         task, model = "seg", seg.MODELS[name].from_config(cfg)
     elif name is None and "num_classes" in cfg:
@@ -80,4 +83,5 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     if dataset is None:  # saved before checkpoints named their data: PANDORA's by its classes
         dataset = "pandora" if task == "det" and model.num_classes == len(PANDORA_CLASSES) else "rooms"
     return ProtocolCheckpoint(str(path), task, name, model, blob["config"],
-                              size or _default_size(task), blob.get("metrics", {}), dataset, fold)
+                              size or _default_size(task), blob.get("metrics", {}), dataset, fold,
+                              seed)

@@ -40,6 +40,7 @@ from .engine import (
 )
 from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
 from .gravity import (
+    check_extra_rooms,
     given_up,
     known_up,
     pretrain_up,
@@ -288,7 +289,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
 
     ``resume``: continue an interrupted run under ``out``, every stage from its ``last.pt``
     (:func:`~usf_graph.train.engine.fit`; finished ones just load)."""
-    check_channel_scale(channel_scale)  # before any rendering
+    check_channel_scale(channel_scale)  # these before any rendering
+    check_extra_rooms(seed, up_extra if upright else 0)
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -340,7 +342,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
             if getattr(net, "gravity", None) is not None:
                 results[name][k]["up"] = up_report(net.gravity, data[k].x, data[k].mask,
                                                    views_up(sets[k]))
-        save_checkpoint(out / f"{name}.pt", net, net.config, results[name])
+        save_checkpoint(out / f"{name}.pt", net, net.config, results[name],
+                        extra={"data": {"dataset": "rooms", "seed": seed}})
     if rank != 0:
         return {}
     from ..viz import plot_detections
@@ -379,7 +382,8 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
         return {}
     res = {"samples": {"train": len(train), "test": len(test)},
            "spherical": score(predict(net, test, progress=progress), test, C)}
-    save_checkpoint(out / "spherical.pt", net, {**net.config, "dataset": "pandora"}, res["spherical"])
+    save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"],
+                    extra={"data": {"dataset": "pandora"}})
     return write_results(out, res, t0)
 
 

@@ -148,6 +148,16 @@ class UpViews(Dataset):
                     up=torch.tensor([[0.0, 0.0, 1.0]]) if up is None else up.view(1, 3))
 
 
+def check_extra_rooms(seed: int, up_extra: int) -> None:
+    """Refuses a rooms protocol of ``seed`` whose test rooms would be the up estimate's
+    extra panoramas (:class:`~usf_graph.datasets.RoomsGravity`'s rooms)."""
+    from ..datasets.rooms import GRAVITY_SEED, split_seed
+
+    if up_extra and split_seed("test", seed) == GRAVITY_SEED:
+        raise ValueError(f"the test rooms of seed {seed} are the up estimate's extra panoramas "
+                         f"(the rooms of seed {GRAVITY_SEED}); pick another seed")
+
+
 def up_views(root, num: int, grid="icosahedral:5", progress: bool = True):
     """``num`` cheap upright panoramas on ``grid`` (:class:`~usf_graph.datasets.RoomsGravity`,
     rendered once under ``root``) for the protocols' up estimate, or ``None`` for 0."""

@@ -48,6 +48,7 @@ from .engine import (
 )
 from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
 from .gravity import (
+    check_extra_rooms,
     given_up,
     known_up,
     pretrain_up,
@@ -372,7 +373,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     second phase, the spherical ones' through random fields of view (:func:`train_model`;
     0 skips it). ``resume``: continue an interrupted run under ``out``, every stage from
     its ``last.pt`` (:func:`~usf_graph.train.engine.fit`; finished ones just load)."""
-    check_channel_scale(channel_scale)  # these two before any rendering
+    check_channel_scale(channel_scale)  # these before any rendering
+    check_extra_rooms(seed, up_extra)
     if unknown := sorted(set(models) - set(MODELS)):
         raise ValueError(f"unknown models {unknown}: choose from {sorted(MODELS)}")
     rank, _ = setup_distributed()
@@ -399,7 +401,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
         results[name], preds[name] = evaluate_protocol(net, sets, progress=progress, name=name)
         save_checkpoint(out / f"{name}.pt", net, {"model": name, "size": size, **net.config},
-                        results[name])
+                        results[name], extra={"data": {"dataset": "rooms", "seed": seed}})
     if rank != 0:
         return {}
     from ..viz import plot_segmentation
@@ -454,8 +456,8 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                 continue
             pix, pts = predict(net, test, progress=progress, desc=f"{name} fold {fold}")
             r = results.setdefault(name, {})[f"fold{fold}"] = score(pix, test, pts)
-            save_checkpoint(out / f"fold{fold}_{name}.pt", net, {
-                "model": name, "size": size, "dataset": "stanford2d3ds", "fold": fold, **net.config}, r)
+            save_checkpoint(out / f"fold{fold}_{name}.pt", net, {"model": name, "size": size, **net.config},
+                            r, extra={"data": {"dataset": "stanford2d3ds", "fold": fold}})
     if rank != 0:
         return {}
     for name in models:
