@@ -81,18 +81,21 @@ def main(argv=None) -> dict:
     p.add_argument("--known-up", action="store_true", help="read each view's true gravity")
     p.add_argument("--root", default="data/rooms")
     p.add_argument("--num-test", type=int, default=50)
+    p.add_argument("--seed", type=int, default=None,
+                   help="the rooms' seed (default: the checkpoint's own)")
     p.add_argument("--size", type=int, default=None,
                    help="panorama height (default: the checkpoint's, or det's 128)")
     args = p.parse_args(argv)
     ckpt = load_protocol_model(args.checkpoint).require(spherical=True)
-    net, size = ckpt.model, args.size or ckpt.size
+    net, size, seed = ckpt.model, args.size or ckpt.size, ckpt.rooms_seed(args.seed)
     if ckpt.task == "seg":
         sets = seg.protocol_sets(args.root, size, ckpt.config.get("level", 5), num_train=0,
-                                 num_test=args.num_test, tests=("a", args.test), progress=False)
+                                 num_test=args.num_test, seed=seed, tests=("a", args.test),
+                                 progress=False)
         score, unit = _segmenter_score, "mIoU (area-weighted)"
     else:
         sets = det.protocol_sets(args.root, size, num_train=0, num_test=args.num_test,
-                                 progress=False)
+                                 seed=seed, progress=False)
         score, unit = _detector_score, "AP50"
     net.eval()
     up = views_up(sets["a"]) if args.known_up else None

@@ -84,7 +84,8 @@ def main(argv=None) -> dict:
                    help="yaw: the lens level, turned about gravity; so3: mounted at random")
     p.add_argument("--out", default=None, help="default: <checkpoint without .pt>_through_<test>")
     p.add_argument("--root", default="data/rooms")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=None,
+                   help="the rooms' seed (default: the checkpoint's own)")
     p.add_argument("--num-train", type=int, default=None,
                    help="training views (default: the protocol's, 400 seg, 200 det)")
     p.add_argument("--rendered", type=int, default=defaults(det.run)["up_train"],
@@ -105,6 +106,7 @@ def main(argv=None) -> dict:
                          "`usf-graph train seg` or `train det` first")
     saved = load_protocol_model(ckpt, weights=False).require(spherical=True)
     net, size = saved.model, args.size or saved.size
+    args.seed = saved.rooms_seed(args.seed)
     run = _seg if saved.task == "seg" else _det
     args.num_train = args.num_train or defaults(seg.run if run is _seg else det.run)["num_train"]
     args.rendered = max(args.rendered, args.num_train)

@@ -54,7 +54,8 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg'")
     p.add_argument("--root", default="data/rooms")
-    p.add_argument("--seed", type=int, default=0, help="the protocol's seed (its rooms)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="the protocol's seed, its rooms (default: the checkpoint's own)")
     p.add_argument("--num-train", type=int, default=400)
     p.add_argument("--num-test", type=int, default=50)
     p.add_argument("--epochs", type=int, default=4, help="on whole panoramas")
@@ -67,6 +68,7 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     ckpt = load_protocol_model(a.checkpoint).require("seg", spherical=True)
     model, cfg, size = ckpt.model, ckpt.config, ckpt.size
+    a.seed = ckpt.rooms_seed(a.seed)
     model.eval()
     set_level_prior(model, a.level_prior)
     sets = seg.protocol_sets(a.root, size, cfg["level"], a.num_train, a.num_test, a.seed,

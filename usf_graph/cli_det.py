@@ -173,23 +173,6 @@ def eval_data(ckpt, args) -> str:
     return data
 
 
-def rooms_seed(ckpt, args) -> int:
-    """The seed of the rooms ``eval`` scores ``ckpt`` on: ``--seed``, else the checkpoint's
-    own. An error where those test rooms are the ones it trained on (the training rooms of
-    seed s + 1 are the test rooms of seed s); a note where the checkpoint does not say."""
-    from .datasets.rooms import split_seed
-
-    seed = args.seed if args.seed is not None else (ckpt.seed if ckpt.seed is not None else 0)
-    if ckpt.seed is None:
-        print(f"note: {ckpt.path} does not record its training seed (saved before session 34); "
-              f"scoring it on the test rooms of seed {seed}, which are the training rooms of "
-              f"seed {split_seed('test', seed)}")
-    elif split_seed("test", seed) == split_seed("train", ckpt.seed):
-        raise ValueError(f"the test rooms of seed {seed} are the rooms {ckpt.path} trained on "
-                         f"(seed {ckpt.seed}); score it with --seed {ckpt.seed}")
-    return seed
-
-
 def up_options(model, args) -> None:
     """``eval --level-prior`` and ``--sign-check``: set on ``model``'s up estimate
     (:func:`~usf_graph.models.set_level_prior`, :func:`~usf_graph.models.set_sign_check`);
@@ -221,7 +204,7 @@ def cmd_eval_det(args) -> int:
         tests = {"pandora test": Pandora(args.root or "data/pandora", "test", grid=model.input_grid)}
     else:
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, num_train=0,
-                             num_test=args.num_test or 50, seed=rooms_seed(ckpt, args))
+                             num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed))
         for k in args.test or list(PROTOCOL):
             if k not in PROTOCOL:
                 raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {k!r}")

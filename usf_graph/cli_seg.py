@@ -8,7 +8,6 @@ from .cli_det import (
     eval_data,
     given_or_default,
     rooms_only_options,
-    rooms_seed,
     run_kwargs,
     up_kwargs,
     up_options,
@@ -69,7 +68,7 @@ def cmd_eval_seg(args) -> int:
     else:
         tests = args.test or list(PROTOCOL)
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, level, num_train=0,
-                             num_test=args.num_test or 50, seed=rooms_seed(ckpt, args), tests=tests)
+                             num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed), tests=tests)
         res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
         res = {f"({k})": r for k, r in res.items()}
     for k, r in res.items():

@@ -50,3 +50,19 @@ def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
     save_checkpoint(tmp_path / "m.pt", model, {"model": "sign_check"}, {})
     with pytest.raises(ValueError, match="not a checkpoint of 'usf-graph train seg|det'.*'sign_check'"):
         load_protocol_model(tmp_path / "m.pt")
+
+
+def test_rooms_seed_defaults_to_the_checkpoints_and_refuses_its_training_rooms(capsys):
+    """The test rooms of seed s are the training rooms of seed s + 1 (split_seed)."""
+    from usf_graph.datasets.rooms import split_seed
+    from usf_graph.train.checkpoints import ProtocolCheckpoint
+
+    def ckpt(seed):
+        return ProtocolCheckpoint("m.pt", "seg", "spherical_unet", None, {}, 96, {}, "rooms", None, seed)
+
+    assert split_seed("test", 0) == split_seed("train", 1) == 1
+    assert ckpt(1).rooms_seed() == 1 and ckpt(1).rooms_seed(2) == 2 and ckpt(1).rooms_seed(1) == 1
+    with pytest.raises(ValueError, match="test rooms of seed 0 are the rooms m.pt trained on"):
+        ckpt(1).rooms_seed(0)
+    assert ckpt(None).rooms_seed() == 0 and ckpt(None).rooms_seed(3) == 3
+    assert "training rooms of seed 4" in capsys.readouterr().out

@@ -42,6 +42,23 @@ class ProtocolCheckpoint:
     def planar(self) -> bool:
         return self.name in ("planar_unet", "planar_detector")
 
+    def rooms_seed(self, seed: int | None = None) -> int:
+        """The seed of the rooms to score this checkpoint on: ``seed``, else its own (0 where
+        it predates the record, with a note). An error where those test rooms are the ones
+        it trained on: the training rooms of seed s + 1 are the test rooms of seed s
+        (:func:`~usf_graph.datasets.rooms.split_seed`)."""
+        from ..datasets.rooms import split_seed
+
+        chosen = seed if seed is not None else (self.seed if self.seed is not None else 0)
+        if self.seed is None:
+            print(f"note: {self.path} does not record its training seed (saved before session "
+                  f"34); scoring it on the test rooms of seed {chosen}, which are the training "
+                  f"rooms of seed {split_seed('test', chosen)}")
+        elif split_seed("test", chosen) == split_seed("train", self.seed):
+            raise ValueError(f"the test rooms of seed {chosen} are the rooms {self.path} trained "
+                             f"on (seed {self.seed}); score it with seed {self.seed}")
+        return chosen
+
     def require(self, task: str | None = None, spherical: bool = False) -> ProtocolCheckpoint:
         """Itself, or a clear error if it is not of ``task`` (``"seg"``, ``"det"``) or,
         with ``spherical``, if it is planar."""
