@@ -70,3 +70,7 @@ def test_rooms_as_stanford_and_pandora_releases_read_back_through_the_real_loade
         from usf_graph.scenes.export import export_stanford
 
         export_stanford(views[:1], cameras.Fisheye(100, 99.5, 99.5, 200, 200), tmp_path / "x")
+    from usf_graph.scenes.export import export_pandora
+
+    with pytest.raises(ValueError, match="test_every"):
+        export_pandora(views[:1], cam, tmp_path / "x", test_every=1)

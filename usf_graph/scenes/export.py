@@ -119,6 +119,8 @@ def export_pandora(views: list[View], camera, root, test_every: int = 5) -> dict
     import cv2
 
     _check_panorama(camera)
+    if test_every < 2:
+        raise ValueError(f"test_every must be at least 2 (every test_every-th view a test one), got {test_every}")
     root = Path(root)
     (root / "images").mkdir(parents=True, exist_ok=True)
     splits: dict[str, list] = {"train": [], "test": []}
