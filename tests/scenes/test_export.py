@@ -6,7 +6,13 @@ import pytest
 
 from usf_graph import cameras, scenes
 from usf_graph.ops import from_pandora
-from usf_graph.scenes.export import depth_png, pandora_json, save_view
+from usf_graph.scenes.export import (
+    depth_png,
+    export_pandora,
+    export_stanford,
+    pandora_json,
+    save_view,
+)
 
 
 def test_files_are_in_the_real_formats(tmp_path):
@@ -67,10 +73,6 @@ def test_rooms_as_stanford_and_pandora_releases_read_back_through_the_real_loade
             want = [scenes.PANDORA_CLASSES.index(scenes.DETECTION_CLASSES[c]) for c in views[i].box_class]
             assert d.box_class.tolist() == want
     with pytest.raises(ValueError, match="equirectangular"):
-        from usf_graph.scenes.export import export_stanford
-
         export_stanford(views[:1], cameras.Fisheye(100, 99.5, 99.5, 200, 200), tmp_path / "x")
-    from usf_graph.scenes.export import export_pandora
-
     with pytest.raises(ValueError, match="test_every"):
         export_pandora(views[:1], cam, tmp_path / "x", test_every=1)
