@@ -334,6 +334,44 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     assert "not a spherical det model" in capsys.readouterr().err
 
 
+def test_predict_reads_an_alpha_channel_as_an_image_mask(tmp_path, capsys):
+    """An RGBA image's fully transparent pixels are left out, as ``--image-mask`` leaves them:
+    the labels equal those of the RGB image with that mask, whatever the hidden pixels hold."""
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train import save_checkpoint
+
+    ds = _fisheye_views(tmp_path)
+    rgb = ds.image[0].numpy()
+    ds.camera.save(tmp_path / "fish.yaml")
+    hidden = np.zeros(rgb.shape[:2], bool)
+    hidden[:, : rgb.shape[1] // 3] = True  # the left third, e.g. the robot's body
+    rgba = np.dstack([np.where(hidden[..., None], 255, rgb), np.where(hidden, 0, 255)]).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "rgba.png"), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+    cv2.imwrite(str(tmp_path / "rgb.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(tmp_path / "mask.png"), np.where(hidden, 0, 255).astype(np.uint8))
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
+    with torch.no_grad():
+        seg.head.weight.mul_(30)
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", "size": 32, **seg.config}, {})
+    common = ["--camera", str(tmp_path / "fish.yaml"), "--interpolation", "bilinear"]
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "rgba.png"), *common,
+                 "--out", str(tmp_path / "a")]) == 0
+    assert f"hides {int(hidden.sum())} pixels" in capsys.readouterr().out
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "rgb.png"), *common,
+                 "--out", str(tmp_path / "b"), "--image-mask", str(tmp_path / "mask.png")]) == 0
+    a = cv2.imread(str(tmp_path / "a" / "rgba_labels.png"), cv2.IMREAD_UNCHANGED)
+    b = cv2.imread(str(tmp_path / "b" / "rgb_labels.png"), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(a, b) and (a[hidden] == 255).all() and (a[~hidden] != 255).any()
+
+
+def _fisheye_views(tmp_path):
+    from usf_graph.train.seg import protocol_sets
+
+    return protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=1,
+                         tests=("c",), progress=False)["c"]
+
+
 def test_predict_cli_on_a_rig(tmp_path, capsys):
     """``predict --rig``: one frame of a Kalibr camchain's cameras, one sphere, an answer
     per camera, as ``train.apply`` gives it for the rig."""

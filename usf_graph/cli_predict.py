@@ -91,16 +91,32 @@ def cmd_predict(args) -> int:
 
 
 def _images_and_camera(paths, args):
-    """The images, and their camera (one image) or rig (one per camera, ``--rig``)."""
+    """The images, and their camera (one image) or rig (one per camera, ``--rig``). An
+    image's alpha channel, where it is not opaque everywhere, masks the camera's pixels
+    that it makes fully transparent (they hold no picture)."""
     images = [read_image(p) for p in paths]
     if not args.rig:
-        return images, camera_from_spec(args.camera, args.key, args.fov, args.image_mask,
-                                        images[0].shape)
+        cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+        return images, _alpha_masked(cam, images[0], paths[0])
     rig = rig_from_spec(args.camera, args.fov, args.image_mask)
     if len(images) != len(rig):
         raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
                          f"{len(images)} images were given, one per camera in that order")
-    return images, rig
+    return images, {n: _alpha_masked(c, im, p) for (n, c), im, p in zip(rig.items(), images, paths)}
+
+
+def _alpha_masked(camera, image, path):
+    """``camera`` with the pixels that ``image``'s alpha channel makes fully transparent
+    masked too (as ``--image-mask`` would); unchanged without alpha or where all is opaque."""
+    if image.ndim != 3 or image.shape[2] != 4 or image.shape[:2] != (camera.height, camera.width):
+        return camera  # no alpha; a wrong size is the lift's error to report
+    opaque = image[..., 3] > 0
+    if opaque.all():
+        return camera
+    print(f"{Path(path).name}: its alpha channel hides {int((~opaque).sum())} pixels; they are "
+          "left out")
+    mask = opaque if camera.image_mask is None else opaque & camera.image_mask
+    return camera.with_image_mask(mask)
 
 
 def _predict_seg(model, paths, names, out: Path, args) -> None:
