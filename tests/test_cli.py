@@ -449,3 +449,9 @@ def test_train_resume_reaches_the_run(monkeypatch, tmp_path, task, module):
     for flag in ([], ["--resume"]):
         assert main(["train", task, "--out", str(tmp_path), *data.get(module, []), *flag]) == 0
         assert seen.pop("resume") is bool(flag)
+
+
+def test_eval_mnist_refuses_the_options_of_eval_det_and_seg(tmp_path, capsys):
+    for argv, named in ((["--test", "a"], "--test"), (["--known-up", "--fold", "2"], "--fold, --known-up")):
+        assert main(["eval", "mnist", str(tmp_path / "m.pt"), *argv]) == 2
+        assert f"{named}: options of 'eval det|seg'" in capsys.readouterr().err
