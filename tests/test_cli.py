@@ -433,10 +433,11 @@ def test_train_resume_reaches_the_run(monkeypatch, tmp_path, task, module):
     tested for what resuming does: tests/train)."""
     import usf_graph.train.det as det
     import usf_graph.train.mnist as mnist
+    import usf_graph.train.real as real
     import usf_graph.train.seg as seg
 
     target, fn = {"mnist": (mnist, "run"), "seg": (seg, "run"), "det": (det, "run"),
-                  "stanford": (seg, "run_stanford"), "pandora": (det, "run_pandora")}[module]
+                  "stanford": (real, "run_stanford"), "pandora": (real, "run_pandora")}[module]
     seen = {}
 
     @functools.wraps(getattr(target, fn))  # its signature: the parser reads its defaults

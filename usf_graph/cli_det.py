@@ -113,7 +113,8 @@ def run_kwargs(args, run) -> dict:
 
 def cmd_train_det(args) -> int:
     from .train import teardown_distributed
-    from .train.det import format_table, run, run_pandora
+    from .train.det import format_table, run
+    from .train.real import run_pandora
 
     if args.dataset == "stanford2d3ds":
         raise ValueError("Stanford 2D-3D-S is a segmentation dataset: use 'usf-graph train seg'")

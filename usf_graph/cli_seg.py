@@ -16,7 +16,8 @@ from .cli_det import (
 
 def cmd_train_seg(args) -> int:
     from .train import teardown_distributed
-    from .train.seg import MODELS, format_table, run, run_stanford
+    from .train.real import run_stanford
+    from .train.seg import MODELS, format_table, run
 
     if args.dataset == "pandora":
         raise ValueError("PANDORA is a detection dataset: use 'usf-graph train det'")

@@ -2,9 +2,6 @@
 fixture in PANDORA's format."""
 
 import json
-import re
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,8 +20,6 @@ from usf_graph.train.det import (
     run,
 )
 from usf_graph.train.fov import camera_field
-
-FIXTURE = Path(__file__).parents[1] / "fixtures" / "pandora"
 
 
 def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
@@ -155,40 +150,6 @@ def test_random_fields_of_view_cut_batches_and_their_boxes(tmp_path):
         ThroughRandomFields(data, pos, share=1.5)
     with pytest.raises(ValueError, match="grid's points"):
         ThroughRandomFields(data, pos[:10])
-
-
-def test_pandora_command_on_the_fixture(tmp_path, capsys):
-    root = tmp_path / "pandora"
-    shutil.copytree(FIXTURE, root)
-    assert main(["train", "det", "--dataset", "pandora", "--root", str(root), "--out",
-                 str(tmp_path / "out"), "--epochs", "1", "--batch-size", "2"]) == 0
-    res = json.loads((tmp_path / "out" / "results.json").read_text())
-    assert set(res["spherical"]) >= {"AP", "AP50", "usf_mAP@10"}
-    assert np.isfinite(res["spherical"]["AP50"])
-    # the upright detector, its up estimate trained first on the same panoramas (no mask)
-    blob = torch.load(tmp_path / "out" / "spherical.pt", weights_only=True)
-    cfg = blob["config"]
-    assert cfg["upright"] and cfg["gravity"] and blob["data"] == {"dataset": "pandora"}
-    assert len((tmp_path / "out" / "up_estimate" / "metrics.csv").read_text().splitlines()) == 25
-    # eval scores it on PANDORA's test split, as train did, also when saved before
-    # checkpoints named their data (told by its 47 classes)
-    from usf_graph.models import SphericalDetector
-    from usf_graph.train.engine import save_checkpoint
-
-    del blob["data"]
-    torch.save(blob, tmp_path / "old.pt")
-    for ckpt in (tmp_path / "out" / "spherical.pt", tmp_path / "old.pt"):
-        capsys.readouterr()
-        assert main(["eval", "det", str(ckpt), "--root", str(root)]) == 0
-        line = next(ln for ln in capsys.readouterr().out.splitlines() if "AP50" in ln)
-        assert line.startswith("pandora test ") and f"AP50 {100 * res['spherical']['AP50']:.2f}," in line
-    rooms = SphericalDetector(num_classes=12)
-    save_checkpoint(tmp_path / "rooms.pt", rooms, rooms.config, {})
-    for argv, match in (([str(tmp_path / "rooms.pt"), "--dataset", "pandora"],
-                         "predicts 12 classes .* pandora has 47"),
-                        ([str(ckpt), "--size", "64"], "--size: rooms options")):
-        assert main(["eval", "det", *argv, "--root", str(root)]) == 2
-        assert re.search(match, capsys.readouterr().err), match
 
 
 def test_detection_step_with_an_up_estimate_joint_or_frozen(tmp_path):

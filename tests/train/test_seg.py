@@ -2,14 +2,12 @@
 checkpoints read back by ``eval seg``, and the Stanford 2D-3D-S command on fixtures."""
 
 import json
-import re
 
 import numpy as np
 import pytest
 import torch
 from torch_geometric.loader import DataLoader
 
-from tests.datasets.test_stanford import NAMES, _write_pano
 from usf_graph.cli import main
 from usf_graph.models import SphericalUNet
 from usf_graph.scenes import IGNORE
@@ -279,38 +277,8 @@ def test_pretrained_up_estimate_is_frozen_and_spared_in_training(tmp_path):
     hook.remove()
 
 
-def test_stanford_command_on_fixtures(tmp_path, capsys):
-    root = tmp_path / "s2d3ds"
-    root.mkdir()
-    (root / "semantic_labels.json").write_text(json.dumps(NAMES))
-    for area, stem in (("1", "a"), ("2", "b"), ("3", "c"), ("4", "d"), ("6", "e"), ("5a", "f"),
-                       ("5b", "g")):
-        _write_pano(root, area, stem, W=64, H=32, seed=len(stem) + ord(stem))
-    assert main(["train", "seg", "--dataset", "stanford2d3ds", "--root", str(root), "--out",
-                 str(tmp_path / "out"), "--size", "16", "--epochs", "1", "--batch-size", "2"]) == 0
-    res = json.loads((tmp_path / "out" / "results.json").read_text())
-    r = res["spherical_unet"]["fold1"]
-    assert set(r) >= {"mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU"}
-    assert np.isfinite(r["mIoU"]) and res["spherical_unet"]["mean"]["mIoU"] == r["mIoU"]
-    ckpt = str(tmp_path / "out" / "fold1_spherical_unet.pt")
-    # eval scores a Stanford checkpoint on its own fold's test areas, as train did
-    capsys.readouterr()
-    assert main(["eval", "seg", ckpt, "--root", str(root)]) == 0
-    line = next(ln for ln in capsys.readouterr().out.splitlines() if "mIoU" in ln)
-    assert line.startswith("fold 1 test: ") or line.startswith("fold 1 test ")
-    assert f"mIoU {100 * r['mIoU']:.2f}," in line and f"mAcc {100 * r['mAcc']:.2f}" in line
-    assert load_protocol_model(ckpt).dataset == "stanford2d3ds" and load_protocol_model(ckpt).fold == 1
-    assert main(["eval", "seg", ckpt, "--root", str(root), "--known-up"]) == 0  # +z, as released
-    assert "fold 1 test up estimate" in capsys.readouterr().out
-    for argv, match in ((["--test", "a"], "rooms options"), (["--dataset", "pandora"], "not seg data"),
-                        (["--dataset", "rooms", "--fold", "2"], "--fold")):
-        assert main(["eval", "seg", ckpt, "--root", str(root), *argv]) == 2
-        assert re.search(match, capsys.readouterr().err), match
-
-
 @pytest.mark.parametrize("name", list(MODELS))
 def test_make_model_scales_the_channels_and_the_checkpoint_keeps_them(tmp_path, name):
-    from usf_graph.train.checkpoints import load_protocol_model
     from usf_graph.train.engine import save_checkpoint
 
     full, half = make_model(name, level=3), make_model(name, level=3, channel_scale=0.5)

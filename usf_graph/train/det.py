@@ -27,7 +27,7 @@ from ..geometry import geodesic_distance
 from ..models import PlanarDetector, SphericalDetector
 from ..models.centernet import box_centres, nearest_points
 from ..ops import box_iou
-from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES
+from ..scenes import DETECTION_CLASSES
 from .det_metrics import coco_ap, usf_map
 from .engine import (
     check_channel_scale,
@@ -350,41 +350,6 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
 
     return write_results(out, results, t0, "det_results.png",
                          lambda p: plot_detections(sets, preds["spherical"], p))
-
-
-def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
-                batch_size: int = 8, lr: float = 2e-3, seed: int = 0, grid: str = "icosahedral:5",
-                progress: bool = True, upright: bool = True, up_epochs: int = 24,
-                resume: bool = False) -> dict:
-    """Train the spherical detector on PANDORA's train split (unrotated, as released) and
-    score its test split: COCO AP/AP50/AP75 with the spherical IoU and USF's mAP@10.
-    Writes ``results.json`` and ``spherical.pt`` under ``out``. ``upright``: as in
-    :func:`run`, the up estimate trained first on the same panoramas; ``resume`` as
-    :func:`run`'s."""
-    from ..datasets import Pandora
-
-    rank, _ = setup_distributed()
-    seed_everything(seed)
-    out, t0 = Path(out), time.time()
-    train_set = Pandora(root, "train", grid=grid, progress=progress)
-    train = DetectionSet.spherical(train_set)
-    test = DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
-    C = len(PANDORA_CLASSES)
-    net = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
-                            upright_convs=UPRIGHT_CONVS if upright else None)
-    if upright:
-        pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
-                    log_dir=out / "up_estimate", resume=resume)
-    fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-        log_dir=out / "spherical", config=net.config, progress=progress, name="spherical",
-        step=detection_step, collate_fn=train.collate, resume=resume)
-    if rank != 0:
-        return {}
-    res = {"samples": {"train": len(train), "test": len(test)},
-           "spherical": score(predict(net, test, progress=progress), test, C)}
-    save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"],
-                    extra={"data": {"dataset": "pandora"}})
-    return write_results(out, res, t0)
 
 
 def format_table(results: dict, metric: str = "AP50") -> str:

@@ -1,0 +1,99 @@
+"""Training on the released datasets, which cannot be downloaded on our machines: the
+folds of Stanford 2D-3D-S (segmentation, :func:`run_stanford`) and PANDORA (detection,
+:func:`run_pandora`), each model trained by the rooms protocols' recipe. ``usf-graph
+scenes --layout stanford2d3ds|pandora`` writes procedural rooms in their layouts, on which
+these run offline."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..models import SphericalDetector
+from ..scenes import PANDORA_CLASSES
+from . import det, seg
+from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .gravity import pretrain_up
+
+
+def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
+                 models=("spherical_unet",), level: int = 5, size: int = 256, epochs: int = 12,
+                 batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
+                 progress: bool = True, balance: float = 0.5, up_epochs: int = 24,
+                 upright: bool = True, resume: bool = False) -> dict:
+    """Train on each fold's training areas of Stanford 2D-3D-S (RGB, unrotated as released)
+    and score its test areas: mIoU and mAcc from the fold's confusion matrix on the
+    ``2 size x size`` panoramas' pixels, the sphere's area-weighted mIoU, and USF's per-image
+    mean. With several folds, also their mean (the usual 3-fold number). Writes
+    ``results.json`` and one checkpoint per fold and model under ``out``. Each model is
+    trained as in the rooms protocol (:func:`~usf_graph.train.seg.train_model`: class
+    weights, the up estimate first, per fold; ``upright`` as
+    :func:`~usf_graph.train.seg.make_model`'s; ``resume`` as :func:`~usf_graph.train.seg.run`'s)."""
+    from ..datasets import Stanford2D3DS
+
+    rank, _ = setup_distributed()
+    seed_everything(seed)
+    out, t0 = Path(out), time.time()
+    kw = dict(grid=f"icosahedral:{level}", size=size, progress=progress)
+    results = {"folds": list(folds), "level": level, "size": size, "epochs": epochs,
+               "balance": balance, "up_epochs": up_epochs, "upright": upright}
+    for fold in folds:
+        train = Stanford2D3DS(root, fold, "train", **kw)
+        test = Stanford2D3DS(root, fold, "test", **kw)
+        shared = {}
+        for name in models:
+            net = seg.make_model(name, level, upright)
+            seg.train_model(net, train, out / f"fold{fold}", name, epochs, batch_size, lr, seed,
+                        progress, balance, up_epochs, shared, label=f"{name} fold {fold}",
+                        resume=resume)
+            if rank != 0:
+                continue
+            pix, pts = seg.predict(net, test, progress=progress, desc=f"{name} fold {fold}")
+            r = results.setdefault(name, {})[f"fold{fold}"] = seg.score(pix, test, pts)
+            save_checkpoint(out / f"fold{fold}_{name}.pt", net, {"model": name, "size": size, **net.config},
+                            r, extra={"data": {"dataset": "stanford2d3ds", "fold": fold}})
+    if rank != 0:
+        return {}
+    for name in models:
+        per = [results[name][f"fold{f}"] for f in folds]
+        results[name]["mean"] = {m: float(np.mean([r[m] for r in per]))
+                                 for m in ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU")
+                                 if all(m in r for r in per)}
+    return write_results(out, results, t0)
+
+
+def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
+                batch_size: int = 8, lr: float = 2e-3, seed: int = 0, grid: str = "icosahedral:5",
+                progress: bool = True, upright: bool = True, up_epochs: int = 24,
+                resume: bool = False) -> dict:
+    """Train the spherical detector on PANDORA's train split (unrotated, as released) and
+    score its test split: COCO AP/AP50/AP75 with the spherical IoU and USF's mAP@10.
+    Writes ``results.json`` and ``spherical.pt`` under ``out``. ``upright``: as in
+    :func:`~usf_graph.train.det.run`, the up estimate trained first on the same panoramas;
+    ``resume`` as its."""
+    from ..datasets import Pandora
+
+    rank, _ = setup_distributed()
+    seed_everything(seed)
+    out, t0 = Path(out), time.time()
+    train_set = Pandora(root, "train", grid=grid, progress=progress)
+    train = det.DetectionSet.spherical(train_set)
+    test = det.DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
+    C = len(PANDORA_CLASSES)
+    net = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
+                            upright_convs=det.UPRIGHT_CONVS if upright else None)
+    if upright:
+        pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
+                    log_dir=out / "up_estimate", resume=resume)
+    fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
+        log_dir=out / "spherical", config=net.config, progress=progress, name="spherical",
+        step=det.detection_step, collate_fn=train.collate, resume=resume)
+    if rank != 0:
+        return {}
+    res = {"samples": {"train": len(train), "test": len(test)},
+           "spherical": det.score(det.predict(net, test, progress=progress), test, C)}
+    save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"],
+                    extra={"data": {"dataset": "pandora"}})
+    return write_results(out, res, t0)
