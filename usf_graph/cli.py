@@ -239,12 +239,12 @@ def cmd_eval(args) -> int:
 
     if args.task != "mnist":
         return _task_command(args.task, "eval")(args)
-    given = [o for o, v in (("--dataset", args.dataset), ("--fold", args.fold), ("--test", args.test),
-                            ("--size", args.size), ("--num-test", args.num_test),
-                            ("--boxes", args.boxes), ("--known-up", args.known_up),
-                            ("--level-prior", args.level_prior), ("--sign-check", args.sign_check)) if v]
-    if given:  # rather than ignore them
-        raise ValueError(f"{', '.join(given)}: options of 'eval det|seg', not of 'eval mnist'")
+    from .cli_det import given
+
+    other = given(args, "dataset", "fold", "test", "size", "num_test", "boxes", "known_up",
+                  "level_prior", "sign_check")
+    if other:  # rather than ignore them
+        raise ValueError(f"{', '.join(other)}: options of 'eval det|seg', not of 'eval mnist'")
     from .datasets import SphericalMNIST
     from .models import SphericalClassifier
     from .train import evaluate, load_checkpoint

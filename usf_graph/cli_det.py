@@ -94,6 +94,12 @@ def up_kwargs(args, run) -> dict:
     return given_or_default(args, run, ("up_extra", "up_caps", "up_epochs", "up_sign"))
 
 
+def given(args, *names) -> list[str]:
+    """The options among ``names`` (their attribute names) that the command line gave a
+    value, as flags (``num_test`` -> ``--num-test``)."""
+    return ["--" + n.replace("_", "-") for n in names if getattr(args, n)]
+
+
 def rooms_only_options(args) -> None:
     """Refuse, on real data, the options that only the rooms protocols read (rather than
     ignore them)."""
@@ -156,11 +162,10 @@ def eval_data(ckpt, args) -> str:
         raise ValueError(f"{data} is not {ckpt.task} data: 'usf-graph eval {ckpt.task}' scores "
                          f"rooms or {real}")
     if data != "rooms":
-        given = [o for o, v in (("--test", args.test), ("--num-test", args.num_test),
-                                ("--size", data == "pandora" and args.size)) if v]
-        if given:
-            raise ValueError(f"{', '.join(given)}: rooms options; {data} is scored on its own "
-                             "test data as released")
+        rooms_only = given(args, "test", "num_test", *(("size",) if data == "pandora" else ()))
+        if rooms_only:
+            raise ValueError(f"{', '.join(rooms_only)}: rooms options; {data} is scored on its "
+                             "own test data as released")
     if args.fold is not None and data != "stanford2d3ds":
         raise ValueError("--fold picks Stanford 2D-3D-S's test areas; give --dataset stanford2d3ds")
     classes = {"rooms": SEMANTIC_CLASSES if ckpt.task == "seg" else DETECTION_CLASSES,
@@ -204,12 +209,12 @@ def cmd_eval_det(args) -> int:
                              "size only; score a spherical checkpoint on pandora")
         tests = {"pandora test": Pandora(args.root or "data/pandora", "test", grid=model.input_grid)}
     else:
+        names = args.test or list(PROTOCOL)
+        if wrong := [k for k in names if k not in PROTOCOL]:  # before any rendering
+            raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {wrong[0]!r}")
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, num_train=0,
                              num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed))
-        for k in args.test or list(PROTOCOL):
-            if k not in PROTOCOL:
-                raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {k!r}")
-        tests = {f"({k})": sets[k] for k in args.test or list(PROTOCOL)}
+        tests = {f"({k})": sets[k] for k in names}
     for k, ds in tests.items():
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
         up = views_up(ds) if args.known_up and not planar else None
