@@ -62,9 +62,8 @@ def save_view(view: View, out, stem: str) -> dict:
 
 def pandora_json(panoramas: list[tuple[str, View]], camera) -> dict:
     """PANDORA-style annotations of equirectangular views: ``[(file_name, view), ...]``."""
-    if not isinstance(camera, Equirectangular) or not np.allclose(camera.rotation, np.eye(3)):
-        raise ValueError("PANDORA boxes are defined on full equirectangular panoramas with the "
-                         "identity rotation; render those to export boxes")
+    _check_panorama(camera, "PANDORA boxes are defined on full equirectangular panoramas with "
+                            "the identity rotation; render those to export boxes")
     images, anns = [], []
     for i, (name, view) in enumerate(panoramas, 1):
         images.append({"id": i, "file_name": name, "width": camera.width, "height": camera.height})
@@ -96,7 +95,7 @@ def export_stanford(views: list[View], camera, root) -> list[Path]:
     ``area_<STANFORD_AREAS[i % 7]>/pano/{rgb,semantic,depth}/camera_<i>_procedural_<i>_frame_
     equirectangular_domain_{rgb,semantic,depth}.png`` (semantic as :func:`stanford_semantic`,
     depth as :func:`depth_png`), and ``semantic_labels.json``. Returns the RGB paths."""
-    _check_panorama(camera)
+    _check_panorama(camera, _RELEASES)
     root, paths = Path(root), []
     for i, view in enumerate(views):
         pano = root / f"area_{STANFORD_AREAS[i % len(STANFORD_AREAS)]}" / "pano"
@@ -118,7 +117,7 @@ def export_pandora(views: list[View], camera, root, test_every: int = 5) -> dict
     view is a test view. Returns the number of views per split."""
     import cv2
 
-    _check_panorama(camera)
+    _check_panorama(camera, _RELEASES)
     if test_every < 2:
         raise ValueError(f"test_every must be at least 2 (every test_every-th view a test one), got {test_every}")
     root = Path(root)
@@ -134,7 +133,11 @@ def export_pandora(views: list[View], camera, root, test_every: int = 5) -> dict
     return {k: len(v) for k, v in splits.items()}
 
 
-def _check_panorama(camera) -> None:
+_RELEASES = ("the releases hold full upright equirectangular panoramas; render the views "
+             "through cameras.Equirectangular(2 H, H)")
+
+
+def _check_panorama(camera, why: str) -> None:
+    """A full equirectangular camera with the identity rotation, else ``ValueError(why)``."""
     if not isinstance(camera, Equirectangular) or not np.allclose(camera.rotation, np.eye(3)):
-        raise ValueError("the releases hold full upright equirectangular panoramas; render the "
-                         "views through cameras.Equirectangular(2 H, H)")
+        raise ValueError(why)
