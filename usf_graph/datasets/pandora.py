@@ -26,7 +26,13 @@ from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage
 from ..grids import Grid, from_spec
 from ..ops import from_pandora
-from .stacked import add_boxes, load_or_rebuild, pack_boxes, pre_transform_stacked
+from .stacked import (
+    UprightAsReleased,
+    add_boxes,
+    load_or_rebuild,
+    pack_boxes,
+    pre_transform_stacked,
+)
 
 GET_IT = ("PANDORA is distributed by its authors (https://github.com/tdsuper/SphericalObjectDetection); "
           "download it there and unpack it so that {root}/images/ holds the panoramas and "
@@ -61,7 +67,7 @@ def read_annotations(path) -> dict:
             for n, (b, c) in out.items()}
 
 
-class Pandora(Dataset):
+class Pandora(UprightAsReleased, Dataset):
     r"""PANDORA panoramas lifted to a spherical grid, with their spherical boxes.
 
     Args:
@@ -93,12 +99,6 @@ class Pandora(Dataset):
     @property
     def raw_dir(self) -> str:
         return self.root
-
-    @property
-    def gravity(self) -> torch.Tensor:
-        """``[S, 3]`` float64: +z for every panorama, gravity-aligned as released (the known
-        up that ``usf-graph eval --known-up`` hands a model)."""
-        return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(len(self.x), 3)
 
     @property
     def raw_file_names(self):

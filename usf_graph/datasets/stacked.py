@@ -1,4 +1,5 @@
-"""PyG ``pre_transform`` for datasets stored as one ``[S, ...]`` tensor per field."""
+"""What the datasets stored as one ``[S, ...]`` tensor per field share: PyG ``pre_transform``
+on them, loading, boxes, and the gravity of panoramas released upright."""
 
 from __future__ import annotations
 
@@ -73,3 +74,14 @@ def add_boxes(data: Data, store, idx: int) -> Data:
     a, b = int(store.box_ptr[idx]), int(store.box_ptr[idx + 1])
     data.boxes, data.box_class = store.boxes[a:b].float(), store.box_class[a:b]
     return data
+
+
+class UprightAsReleased:
+    """For datasets of panoramas released gravity-aligned (Stanford 2D-3D-S, PANDORA), whose
+    split is ``self.x [S, ...]``."""
+
+    @property
+    def gravity(self) -> torch.Tensor:
+        """``[S, 3]`` float64: +z for every panorama, gravity-aligned as released (the known
+        up that ``usf-graph eval --known-up`` hands a model)."""
+        return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(len(self.x), 3)

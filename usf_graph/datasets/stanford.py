@@ -32,7 +32,7 @@ from ..frontend.image import SphericalImage
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from ..scenes.export import STANFORD_AREAS, STANFORD_MISSING
-from .stacked import load_or_rebuild, pre_transform_stacked
+from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked
 
 AREAS = STANFORD_AREAS
 #: The three area-disjoint folds: (train areas, test areas).
@@ -100,7 +100,7 @@ def panoramas(root, areas) -> list[tuple[Path, Path]]:
     return out
 
 
-class Stanford2D3DS(Dataset):
+class Stanford2D3DS(UprightAsReleased, Dataset):
     r"""Stanford 2D-3D-S panoramas lifted to a spherical grid, with per-point labels.
 
     Args:
@@ -146,12 +146,6 @@ class Stanford2D3DS(Dataset):
     @property
     def raw_dir(self) -> str:
         return self.root
-
-    @property
-    def gravity(self) -> torch.Tensor:
-        """``[S, 3]`` float64: +z for every panorama, gravity-aligned as released (the known
-        up that ``usf-graph eval --known-up`` hands a model)."""
-        return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(len(self.x), 3)
 
     @property
     def raw_file_names(self):
