@@ -115,8 +115,7 @@ def _alpha_masked(camera, image, path):
         return camera
     print(f"{Path(path).name}: its alpha channel hides {int((~opaque).sum())} pixels; they are "
           "left out")
-    mask = opaque if camera.image_mask is None else opaque & camera.image_mask
-    return camera.with_image_mask(mask)
+    return camera.with_image_mask(opaque, combine=True)
 
 
 def _predict_seg(model, paths, names, out: Path, args) -> None:

@@ -362,6 +362,20 @@ def test_repr_shows_the_usable_field_of_view_and_mask():
     assert repr(masked).endswith(".with_fov(170.0).with_image_mask(<200x200 mask>)")
 
 
+def test_an_image_mask_replaces_the_current_one_or_combines_with_it():
+    import numpy as np
+
+    from usf_graph import cameras
+
+    left, top = np.zeros((4, 6), bool), np.zeros((4, 6), np.uint8)
+    left[:, :3], top[:2] = True, 255
+    cam = cameras.Pinhole(5, 5, 2.5, 1.5, 6, 4).with_image_mask(left)
+    assert np.array_equal(cam.with_image_mask(top).image_mask, top > 0)
+    assert np.array_equal(cam.with_image_mask(top, combine=True).image_mask, left & (top > 0))
+    with pytest.raises(ValueError, match="all zero"):
+        cam.with_image_mask(~left, combine=True)
+
+
 @pytest.mark.xfail(strict=True, reason="known defect: with strong tangential distortion the "
                    "Mei map folds inside the radial monotone limit, project() still accepts "
                    "rays there and unproject() returns the other preimage; the fold must be "

@@ -279,9 +279,10 @@ class Camera:
             raise ValueError(f"fov_deg must be at most 360 degrees, got {plain(fov_deg)}")
         return self._copy(fov_limit=math.radians(fov) / 2)
 
-    def with_image_mask(self, mask) -> Camera:
+    def with_image_mask(self, mask, combine: bool = False) -> Camera:
         """A copy that ignores the pixels where ``mask [H, W]`` is False (vignetting, the
-        robot's body); ``None`` removes the mask."""
+        robot's body); ``None`` removes the mask. ``combine``: it also keeps ignoring the
+        pixels its current mask ignores."""
         if mask is None:
             return self._copy(image_mask=None)
         m = np.asarray(mask)
@@ -289,6 +290,8 @@ class Camera:
             raise ValueError(f"image mask has shape {m.shape} but the camera's image is "
                              f"{self.height} x {self.width} (rows x columns)")
         m = mask_from_image(m)
+        if combine and self.image_mask is not None:
+            m = m & self.image_mask
         if not m.any():
             raise ValueError("the image mask is all zero: the camera would see nothing")
         return self._copy(image_mask=m)

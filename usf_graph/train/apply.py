@@ -114,8 +114,7 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
         if interpolation == "auto":
             interpolation = _auto(camera, grid)
         if image_mask is not None:
-            camera = camera.with_image_mask(np.asarray(image_mask, bool) if camera.image_mask is None
-                                            else camera.image_mask & np.asarray(image_mask, bool))
+            camera = camera.with_image_mask(image_mask, combine=True)
         # one frontend per camera: its remap maps are built on its first lift, not per frame
         fe = _per_camera("frontend", camera, lambda: SphericalFrontend(camera, grid, interpolation),
                          (grid.spec, interpolation))
