@@ -51,12 +51,13 @@ def _segmenter_score(net, sets, test, up):
 
 
 def _detector_score(net, sets, test, up):
-    """The four inputs' AP50 on the lens's boxes, detections whose centre it sees."""
+    """The four inputs' AP50 on the lens's boxes (those it cuts ignored, as the protocol
+    does), detections whose centre it sees."""
     a, lens = det.DetectionSet.spherical(sets["a"]), det.DetectionSet.spherical(sets[test])
     cam = sets[test].camera
 
     def ap50(x, mask):
-        data = det.DetectionSet(x, lens.boxes, lens.box_class, lens.box_ptr, mask)
+        data = det.DetectionSet(x, lens.boxes, lens.box_class, lens.box_ptr, mask, lens.seen)
         found = det.predict(net, data, progress=False, up=up)
         for d in found:
             _, keep = cam.sees(box_centres(torch.as_tensor(d["boxes"]).double()).numpy())

@@ -219,6 +219,7 @@ def cmd_eval_det(args) -> int:
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
         up = views_up(ds) if args.known_up and not planar else None
         r = score(predict(model, data, up=up), data, model.num_classes)
+        print(f"{k} {data.describe_ignored()}")
         print(f"{k} " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
         if getattr(model, "gravity", None) is not None:
             print(f"{k} " + format_up_report(up_report(model.gravity, data.x, data.mask,

@@ -6,7 +6,9 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from usf_graph.cameras import Pinhole
 from usf_graph.geometry import from_latlon, random_rotation
+from usf_graph.grids import fibonacci
 from usf_graph.ops import (
     box_area,
     box_axes,
@@ -17,6 +19,7 @@ from usf_graph.ops import (
     from_pandora,
     points_in_boxes,
     rotate_boxes,
+    share_in_view,
     to_pandora,
 )
 
@@ -150,3 +153,23 @@ def test_bad_boxes_raise():
         box_axes([1, 2, 3])
     with pytest.raises(ValueError, match="NaN"):
         rotate_boxes([0, 0, np.nan, 1, 0], np.eye(3))
+
+
+def test_share_in_view_exact_cases_and_a_dense_reference():
+    boxes = from_pandora(np.array([[0, 0, 30, 20, 25], [40, -10, 60, 100, -70], [-55, 35, 50, 40, 30],
+                                   [170, 30, 150, 80, 10]], np.float64))
+    assert np.allclose(share_in_view(boxes, lambda d: np.ones(len(d), bool)), 1.0)
+    assert np.allclose(share_in_view(boxes, lambda d: np.zeros(len(d), bool)), 0.0)
+    # a box centred on the equator is symmetric under the half turn about its centre,
+    # which swaps the two hemispheres: exactly half of it above the horizon
+    assert share_in_view(boxes[:1], lambda d: d[:, 2] > 0)[0] == pytest.approx(0.5, abs=1e-12)
+    # a real lens (a 116-degree pinhole looking along +x), against the share of a dense
+    # Fibonacci set of directions: inside, cut twice, behind it
+    cam = Pinhole(30.0, 30.0, 47.5, 47.5, 96, 96)
+    pts = fibonacci(400_000).pos.double().numpy()
+    inside = points_in_boxes(pts, boxes)
+    _, seen = cam.sees(pts)
+    want = [seen[inside[:, k]].mean() for k in range(len(boxes))]
+    got = share_in_view(boxes, lambda d: cam.sees(d)[1], n=128)
+    assert want[0] == 1 and 0.1 < want[1] < 0.9 and 0.1 < want[2] < 0.9 and want[3] == 0
+    assert np.allclose(got, want, atol=2e-3)

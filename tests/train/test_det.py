@@ -10,6 +10,7 @@ import torch
 from usf_graph.cli import main
 from usf_graph.models import SphericalDetector
 from usf_graph.models.centernet import box_centres
+from usf_graph.ops import share_in_view
 from usf_graph.train.det import (
     PROTOCOL,
     DetectionSet,
@@ -19,6 +20,7 @@ from usf_graph.train.det import (
     protocol_sets,
     run,
 )
+from usf_graph.train.det_metrics import FULLY_SEEN
 from usf_graph.train.fov import camera_field
 
 
@@ -64,6 +66,11 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     assert again["spherical"] == res["spherical"] and again["planar"] == res["planar"]
     # the zero-shot tests see fewer boxes than the panorama of the same views
     assert saved["boxes"]["c"] <= saved["boxes"]["a"] and saved["boxes"]["b"] == saved["boxes"]["a"]
+    # and only they have boxes the camera cuts, which scoring ignores
+    assert saved["ignored_boxes"]["a"] == saved["ignored_boxes"]["b"] == 0
+    assert saved["ignored_boxes"]["d"] == int(DetectionSet.spherical(sets_d := protocol_sets(
+        tmp_path / "rooms", size=32, num_train=0, num_test=2, progress=False)["d"]).ignored().sum())
+    assert 0 < saved["ignored_boxes"]["d"] < len(sets_d.boxes)
     # eval det reads the checkpoints back (--known-up: each view's true gravity)
     for name in ("spherical", "planar"):
         capsys.readouterr()
@@ -71,6 +78,7 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
                      str(tmp_path / "rooms"), "--size", "32", "--num-test", "2", "--test", "a",
                      "b", "--known-up"]) == 0
         out = capsys.readouterr().out
+        assert f"(a) {saved['boxes']['a']} true boxes, 0 of them ignored" in out
         # the estimate's report, as the protocol recorded it (the planar one has none)
         for k in ("a", "b"):
             if name == "planar":
@@ -113,6 +121,16 @@ def test_detection_sets_batch_boxes_and_fields_of_view(tmp_path):
     assert len(head) == 1 and torch.equal(head.x, sph.x[:1]) and head.mask is sph.mask
     assert torch.equal(head.boxes, sph.boxes[:n0]) and head.box_ptr.tolist() == [0, n0]
     assert len(sph.first(5)) == 2
+    # the share of each box the lens sees, and the boxes it cuts, ignored in scoring
+    cam = sets["d"].camera
+    pin = DetectionSet.spherical(sets["d"])
+    share = share_in_view(sets["d"].boxes.numpy(), lambda d: cam.sees(d)[1])
+    assert np.array_equal(pin.seen, share) and (share < FULLY_SEEN).any() and (share >= FULLY_SEEN).any()
+    assert np.array_equal(DetectionSet.planar(sets["d"], 64, 32).seen, share)
+    assert np.array_equal(np.concatenate([pin.ignored(0), pin.ignored(1)]), share < FULLY_SEEN)
+    assert np.array_equal(pin.first(1).ignored(0), pin.ignored(0))
+    whole = DetectionSet.spherical(sets["a"])
+    assert whole.seen is None and not whole.ignored(0).any() and len(whole.ignored(0)) == int(whole.box_ptr[1])
 
 
 def test_random_fields_of_view_cut_batches_and_their_boxes(tmp_path):

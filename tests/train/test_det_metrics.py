@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from usf_graph.ops import box_iou, from_pandora
+from usf_graph.geometry import from_latlon
+from usf_graph.ops import box_iou, from_pandora, points_in_boxes
 from usf_graph.train.det_metrics import coco_ap, usf_map
 
 
@@ -71,3 +72,29 @@ def test_usf_map_per_image_and_class_with_end_points():
     # no detections at all: AP 0 for every (image, class) with ground truth
     empty = [(np.zeros((0, 5)), np.zeros(0, int), np.zeros(0)) for _ in GT]
     assert usf_map(GT, empty, 2) == 0.0
+
+
+def test_ignored_boxes_are_neither_hits_nor_misses():
+    # image 0: box A (class 0) found exactly; box B (class 0) cut by the camera, ignored
+    A, B = P([0, 0, 20, 20, 0]), P([60, 0, 40, 30, 0])
+    truth = [(np.concatenate([A, B]), np.array([0, 0]))]
+    ig = [np.array([False, True])]
+    found_a = [(A, np.array([0]), np.array([0.5]))]
+    assert coco_ap(truth, found_a, 1, ig)["AP50"] == pytest.approx(1.0)  # B is not missed
+    assert coco_ap(truth, found_a, 1)["AP50"] == pytest.approx(51 / 101)  # counted: recall 1/2
+    # a detection of the part of B the camera sees (inside B, IoU with B under 0.5), ranked
+    # first: matched to the ignored box, so no false positive
+    part = P([50, 0, 20, 20, 0])
+    assert float(box_iou(part, B)) < 0.5 and points_in_boxes(from_latlon(0.0, np.radians(-50)), B)[0, 0]
+    both = [(np.concatenate([part, A]), np.array([0, 0]), np.array([0.9, 0.5]))]
+    assert coco_ap(truth, both, 1, ig)["AP50"] == pytest.approx(1.0)
+    # without the flag it is a false positive ranked above the hit
+    assert coco_ap(truth, both, 1)["AP50"] == pytest.approx(51 * 0.5 / 101)
+    # a detection elsewhere still is one, and an ignored box never counts as a hit
+    far = P([-90, 0, 20, 20, 0])
+    r = coco_ap(truth, [(np.concatenate([far, A]), np.array([0, 0]), np.array([0.9, 0.5]))], 1, ig)
+    assert r["AP50"] == pytest.approx(0.5)  # precision 1/2 up to recall 1
+    only_b = coco_ap(truth, [(B, np.array([0]), np.array([0.9]))], 1, ig)
+    assert only_b["AP50"] == pytest.approx(0.0) and only_b["AR50"] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="2 true boxes but 1"):
+        coco_ap(truth, found_a, 1, [np.array([True])])

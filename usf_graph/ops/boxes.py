@@ -23,7 +23,7 @@ import torch
 from ..geometry import from_latlon, normalize, rotation_from_axis_angle, to_latlon
 
 __all__ = ["box_axes", "box_planes", "boxes_from_axes", "canonical_boxes", "from_pandora", "to_pandora",
-           "points_in_boxes", "rotate_boxes", "fit_box", "box_corners", "box_edges"]
+           "points_in_boxes", "share_in_view", "rotate_boxes", "fit_box", "box_corners", "box_edges"]
 
 
 def _as_boxes(boxes):
@@ -128,6 +128,30 @@ def points_in_boxes(points, boxes, margin: float = 0.0) -> np.ndarray:
     hy = np.tan(np.clip(b[:, 3] / 2 + margin, 0, np.pi / 2))
     eps = 1e-12 * np.abs(z)
     return (z > 0) & (np.abs(x) <= hx * z + eps) & (np.abs(y) <= hy * z + eps)
+
+
+def share_in_view(boxes, sees, n: int = 64) -> np.ndarray:
+    r"""The share of each box's solid angle that a field of view covers, ``[B]`` in [0, 1].
+
+    ``sees`` maps directions ``[P, 3]`` (in the boxes' frame) to bool ``[P]``: for a
+    camera, ``lambda d: camera.sees(d)[1]``. The box is sampled at the midpoints of an
+    ``n x n`` grid of angles :math:`(\alpha, \beta)` across its tangent plane, each
+    weighted by its solid angle :math:`d\Omega = \sec^2\alpha \sec^2\beta\, (1 +
+    \tan^2\alpha + \tan^2\beta)^{-3/2}\, d\alpha\, d\beta`, so the share is exact but for
+    the border of the field of view, resolved to ``fov / n``."""
+    b = np.asarray(_as_boxes(boxes), np.float64).reshape(-1, 5)
+    t = (np.arange(n) + 0.5) / n - 0.5
+    out = np.zeros(len(b))
+    for s in range(0, len(b), 256):  # about 25 MB of directions at a time
+        c, e, m = box_axes(b[s:s + 256])
+        u, v = np.tan(t * b[s:s + 256, 2:3]), np.tan(t * b[s:s + 256, 3:4])  # [K, n]
+        r2 = 1 + u[:, :, None] ** 2 + v[:, None, :] ** 2
+        w = (1 + u ** 2)[:, :, None] * (1 + v ** 2)[:, None, :] / r2 ** 1.5
+        d = (c[:, None, None] + u[:, :, None, None] * e[:, None, None]
+             + v[:, None, :, None] * m[:, None, None]) / np.sqrt(r2)[..., None]
+        seen = np.asarray(sees(d.reshape(-1, 3)), bool).reshape(w.shape)
+        out[s:s + 256] = (w * seen).sum((1, 2)) / w.sum((1, 2))
+    return out
 
 
 def rotate_boxes(boxes, R):

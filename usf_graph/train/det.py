@@ -26,9 +26,9 @@ from ..frontend import render
 from ..geometry import geodesic_distance
 from ..models import PlanarDetector, SphericalDetector
 from ..models.centernet import box_centres, nearest_points
-from ..ops import box_iou
+from ..ops import box_iou, share_in_view
 from ..scenes import DETECTION_CLASSES
-from .det_metrics import coco_ap, usf_map
+from .det_metrics import FULLY_SEEN, coco_ap, usf_map
 from .engine import (
     check_channel_scale,
     fit,
@@ -67,14 +67,19 @@ class DetectionSet(Dataset):
     ``x``: ``[S, N, C]`` spherical signals or ``[S, H, W, 3]`` uint8 images (made
     ``[B, 3, H, W]`` in [0, 1] per batch); ``mask``: the field of view shared by all
     samples (``[N]`` or ``[H, W]``; ``None``: everything seen); boxes as
-    :func:`~usf_graph.datasets.stacked.pack_boxes` stores them.
+    :func:`~usf_graph.datasets.stacked.pack_boxes` stores them; ``seen [K]``: the share of
+    each box in the camera's field of view (``None``: all of every box), which decides the
+    boxes :meth:`ignored` in scoring.
     """
 
-    def __init__(self, x, boxes, box_class, box_ptr, mask=None):
+    def __init__(self, x, boxes, box_class, box_ptr, mask=None, seen=None):
         self.x, self.mask = x, mask
         self.boxes, self.box_class, self.box_ptr = boxes.double(), box_class.long(), box_ptr.long()
         if len(box_ptr) != len(x) + 1:
             raise ValueError(f"box_ptr has {len(box_ptr)} entries for {len(x)} samples")
+        if seen is not None and len(seen) != len(boxes):
+            raise ValueError(f"seen has {len(seen)} entries for {len(boxes)} boxes")
+        self.seen = None if seen is None else np.asarray(seen, np.float64)
 
     @classmethod
     def spherical(cls, ds) -> DetectionSet:
@@ -85,8 +90,9 @@ class DetectionSet(Dataset):
             if not (mask == mask[0]).all():
                 raise ValueError("the samples have different fields of view; a batch shares one mask")
             mask = mask[0]
-        return cls(ds.x, ds.boxes, ds.box_class, ds.box_ptr,
-                   None if mask is None or mask.all() else mask)
+        part = mask is not None and not mask.all()
+        return cls(ds.x, ds.boxes, ds.box_class, ds.box_ptr, mask if part else None,
+                   boxes_seen(ds) if part else None)
 
     @classmethod
     def planar(cls, ds, width: int, height: int, progress: bool = True) -> DetectionSet:
@@ -100,14 +106,14 @@ class DetectionSet(Dataset):
             ds.image, desc="re-imaging as panoramas", leave=False, disable=not progress)])
         _, seen = cam.sees(pano.lens_normal_map()[0].reshape(-1, 3))
         return cls(torch.as_tensor(imgs), ds.boxes, ds.box_class, ds.box_ptr,
-                   torch.as_tensor(seen.reshape(height, width)))
+                   torch.as_tensor(seen.reshape(height, width)), None if seen.all() else boxes_seen(ds))
 
     def first(self, n: int) -> DetectionSet:
         """The first ``n`` samples (all when there are fewer)."""
         n = min(n, len(self.x))
         end = int(self.box_ptr[n])
         return DetectionSet(self.x[:n], self.boxes[:end], self.box_class[:end],
-                            self.box_ptr[: n + 1], self.mask)
+                            self.box_ptr[: n + 1], self.mask, None if self.seen is None else self.seen[:end])
 
     def __len__(self) -> int:
         return len(self.x)
@@ -119,6 +125,18 @@ class DetectionSet(Dataset):
         a, b = int(self.box_ptr[i]), int(self.box_ptr[i + 1])
         return self.boxes[a:b].numpy(), self.box_class[a:b].numpy()
 
+    def ignored(self, i: int | None = None) -> np.ndarray:
+        """Bool ``[G]``: the true boxes of sample ``i`` (``None``: of all samples) that the
+        camera sees less than :data:`~usf_graph.train.det_metrics.FULLY_SEEN` of, ignored
+        in scoring."""
+        a, b = (0, len(self.boxes)) if i is None else (int(self.box_ptr[i]), int(self.box_ptr[i + 1]))
+        return np.zeros(b - a, bool) if self.seen is None else self.seen[a:b] < FULLY_SEEN
+
+    def describe_ignored(self) -> str:
+        """How many true boxes there are, and how many of them are ignored."""
+        return (f"{len(self.boxes)} true boxes, {int(self.ignored().sum())} of them ignored (the "
+                f"camera sees less than {FULLY_SEEN:.0%} of them)")
+
     def collate(self, idx: list[int]):
         """Indices -> ``(x, mask, boxes [K, 5], classes [K], image [K])``."""
         idx = torch.as_tensor(idx)
@@ -129,6 +147,15 @@ class DetectionSet(Dataset):
             torch.zeros(0, dtype=torch.long)
         image = torch.repeat_interleave(torch.arange(len(idx)), b - a)
         return x, self.mask, self.boxes[rows].float(), self.box_class[rows], image
+
+
+def boxes_seen(ds) -> np.ndarray:
+    """The share of each of a split's boxes (``ds.boxes``, in the view's frame) that its
+    camera ``ds.camera`` sees (:func:`~usf_graph.ops.share_in_view`)."""
+    if getattr(ds, "camera", None) is None:
+        raise ValueError(f"{type(ds).__name__} sees part of the sphere but has no camera to tell "
+                         "which share of each box it sees; give it a 'camera' attribute")
+    return share_in_view(ds.boxes.numpy(), lambda d: ds.camera.sees(d)[1])
 
 
 class ThroughRandomFields(FieldDraws):
@@ -226,11 +253,12 @@ def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool 
 
 
 def score(dets: list[dict], data: DetectionSet, num_classes: int) -> dict:
-    """COCO AP/AP50/AP75 and AR50 (pycocotools, spherical IoU; :func:`coco_ap`) and USF's
-    mAP@10 and mAP@50."""
+    """COCO AP/AP50/AP75 and AR50 (pycocotools, spherical IoU; :func:`coco_ap`), the true
+    boxes the camera cuts ignored (:meth:`DetectionSet.ignored`), and USF's mAP@10 and
+    mAP@50 on every true box, as USF counts them."""
     truth = [data.truth(i) for i in range(len(data))]
     d = [(r["boxes"], r["classes"], r["scores"]) for r in dets]
-    res = coco_ap(truth, d, num_classes)
+    res = coco_ap(truth, d, num_classes, [data.ignored(i) for i in range(len(data))])
     res.update({"usf_mAP@10": usf_map(truth, d, num_classes, 0.10),
                 "usf_mAP@50": usf_map(truth, d, num_classes, 0.50)})
     return res
@@ -299,6 +327,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     C = len(DETECTION_CLASSES)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
+               "ignored_boxes": {},  # per test: cut by the camera's border (DetectionSet.ignored)
                "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
                "up_sign": up_sign, "channel_scale": channel_scale}
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
@@ -339,6 +368,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         for k in PROTOCOL:
             preds[name][k] = predict(net, data[k], progress=progress, desc=f"{name} ({k})")
             results[name][k] = score(preds[name][k], data[k], C)
+            results["ignored_boxes"][k] = int(data[k].ignored().sum())
             if getattr(net, "gravity", None) is not None:
                 results[name][k]["up"] = up_report(net.gravity, data[k].x, data[k].mask,
                                                    views_up(sets[k]))

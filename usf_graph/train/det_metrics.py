@@ -4,6 +4,12 @@ This is how the panorama detection community evaluates (PANDORA, Sph2Pob): the m
 the 101-point precision curves and the averaging are pycocotools' own; only the IoU of two
 boxes is replaced by :func:`usf_graph.ops.pairwise_box_iou` in float64, and every box's
 area is set to 1, so only the "all" area range is meaningful.
+
+A camera narrower than the sphere cuts some objects at its border, and their true boxes
+reach past what it sees. Those boxes can be *ignored* (``coco_ap(..., ignore=)``), as
+KITTI's "don't care" regions and COCO's crowd regions are: a detection on one is neither
+a hit nor a false one, and missing it costs nothing. The protocols ignore the true boxes
+of which the camera sees less than :data:`FULLY_SEEN` (:func:`~usf_graph.ops.share_in_view`).
 """
 
 from __future__ import annotations
@@ -14,16 +20,22 @@ import io
 import numpy as np
 import torch
 
-from ..ops import pairwise_box_iou
+from ..ops import box_area, pairwise_box_iou
 
-__all__ = ["coco_ap", "usf_map"]
+__all__ = ["FULLY_SEEN", "coco_ap", "usf_map"]
+
+#: A true box counts when the camera sees at least this share of its solid angle; one cut
+#: more by the border of the field of view is ignored (``coco_ap(..., ignore=)``).
+FULLY_SEEN = 0.9
 
 
 def _cocoeval():
     from pycocotools.cocoeval import COCOeval
 
     class SphericalCOCOeval(COCOeval):
-        """``COCOeval`` whose ``bbox`` IoU is the exact spherical one."""
+        """``COCOeval`` whose ``bbox`` IoU is the exact spherical one; against a crowd
+        (ignored) box, as pycocotools does for crowds, the share of the detection inside
+        it, so that a detection of the part the camera sees matches it."""
 
         def computeIoU(self, imgId, catId):  # noqa: N802 - pycocotools' name
             gt, dt = self._gts[imgId, catId], self._dts[imgId, catId]
@@ -33,8 +45,13 @@ def _cocoeval():
             dt = [dt[i] for i in order][: self.params.maxDets[-1]]
             if not gt or not dt:
                 return np.zeros((len(dt), len(gt)))
-            return pairwise_box_iou(np.array([d["bbox"] for d in dt]), np.array([g["bbox"] for g in gt]),
-                                    dtype=torch.float64).numpy()
+            d, g = np.array([d["bbox"] for d in dt]), np.array([g["bbox"] for g in gt])
+            iou = pairwise_box_iou(d, g, dtype=torch.float64).numpy()
+            crowd = np.array([bool(x["iscrowd"]) for x in gt])
+            if crowd.any():  # |D n G| = IoU (|D| + |G|) / (1 + IoU), over |D|
+                ad, ag = box_area(d)[:, None], box_area(g[crowd])[None]
+                iou[:, crowd] = iou[:, crowd] * (ad + ag) / (1 + iou[:, crowd]) / ad
+            return iou
 
     return SphericalCOCOeval
 
@@ -49,7 +66,7 @@ def _coco(images, anns, cats):
     return c
 
 
-def coco_ap(truth, detections, num_classes: int) -> dict:
+def coco_ap(truth, detections, num_classes: int, ignore=None) -> dict:
     """COCO AP, AP50 and AP75 of spherical detections, and AR50: the share of true boxes
     found at IoU 0.5 by the 100 best detections of their image (pycocotools' recall at
     that threshold, averaged over the classes that have true boxes). AR50 against AP50
@@ -60,6 +77,8 @@ def coco_ap(truth, detections, num_classes: int) -> dict:
         truth: per image, ``(boxes [G, 5], classes [G])`` (radians, any frame).
         detections: per image, ``(boxes [D, 5], classes [D], scores [D])`` in the same frame.
         num_classes: classes are ``0 .. num_classes - 1``.
+        ignore: per image, bool ``[G]``: true boxes to ignore (pycocotools' crowds; module
+            docstring). ``None``: every box counts.
 
     Returns ``{"AP": ..., "AP50": ..., "AP75": ..., "AR50": ...}`` in [0, 1] (-1 where no
     class has a ground-truth box, as pycocotools reports it).
@@ -68,11 +87,18 @@ def coco_ap(truth, detections, num_classes: int) -> dict:
         raise ValueError(f"{len(truth)} images of ground truth but {len(detections)} of detections")
     images = [{"id": i + 1} for i in range(len(truth))]
     cats = [{"id": k + 1, "name": str(k)} for k in range(num_classes)]
+    if ignore is None:
+        ignore = [np.zeros(len(np.asarray(gc).reshape(-1)), bool) for _, gc in truth]
+    if len(ignore) != len(truth):
+        raise ValueError(f"{len(truth)} images of ground truth but {len(ignore)} of ignore flags")
     gts, dts = [], []
-    for i, ((gb, gc), (db, dc, ds)) in enumerate(zip(truth, detections)):
-        for b, c in zip(np.asarray(gb, np.float64).reshape(-1, 5), np.asarray(gc).reshape(-1)):
+    for i, ((gb, gc), (db, dc, ds), ig) in enumerate(zip(truth, detections, ignore)):
+        gb, gc, ig = np.asarray(gb, np.float64).reshape(-1, 5), np.asarray(gc).reshape(-1), np.asarray(ig, bool)
+        if ig.shape != gc.shape:
+            raise ValueError(f"image {i}: {len(gc)} true boxes but {ig.size} ignore flags")
+        for b, c, x in zip(gb, gc, ig):
             gts.append({"id": len(gts) + 1, "image_id": i + 1, "category_id": int(c) + 1,
-                        "bbox": b.tolist(), "area": 1.0, "iscrowd": 0})
+                        "bbox": b.tolist(), "area": 1.0, "iscrowd": int(x)})
         for b, c, s in zip(np.asarray(db, np.float64).reshape(-1, 5), np.asarray(dc).reshape(-1),
                            np.asarray(ds, np.float64).reshape(-1)):
             dts.append({"id": len(dts) + 1, "image_id": i + 1, "category_id": int(c) + 1,
@@ -103,8 +129,8 @@ def usf_map(truth, detections, num_classes: int, iou_threshold: float = 0.10) ->
     all-point precision envelope with end points added, then the mean over the pairs.
 
     It is not COCO AP (which pools all images of a class and averages over thresholds)
-    and reads higher; it is here to compare with USF's published numbers. Arguments as
-    :func:`coco_ap`."""
+    and reads higher; it is here to compare with USF's published numbers, so, as USF's,
+    it counts every true box (no ``ignore``). Arguments as :func:`coco_ap`."""
     aps = []
     for (gb, gc), (db, dc, ds) in zip(truth, detections):
         gb, gc = np.asarray(gb, np.float64).reshape(-1, 5), np.asarray(gc).reshape(-1)
