@@ -4,6 +4,7 @@ U-Net at the same number of pixels and the same channels, on CPU or a GPU.
     python benchmarks/seg_step.py [--device cuda] [--batch 8] [--level 5] [--reps 5]
                                   [--model spherical_unet|spherical_deeplab]
                                   [--channel-scale 1.0]
+                                  [--form auto|wide|blockwise]
 
 Spherical: :class:`SphericalUNet` as ``usf-graph train seg`` builds and trains it (jet,
 gradient pairs, up estimate) on ``icosahedral:level`` (N points): its up estimate is
@@ -23,7 +24,7 @@ import argparse
 import math
 
 import torch
-from timing import step_time
+from timing import add_form_option, apply_form, step_time
 
 from usf_graph.models import PlanarUNet, SphericalUNet
 from usf_graph.train import defaults, scaled_channels
@@ -41,7 +42,9 @@ def main():
                    help="the spherical model (the 2x target is the U-Net's)")
     p.add_argument("--channel-scale", type=float, default=1.0,
                    help="both models' channels times this (as train seg's option)")
+    add_form_option(p)
     a = p.parse_args()
+    apply_form(a.form)
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
     torch.manual_seed(0)
@@ -59,7 +62,8 @@ def main():
     ts = step_time(GivenUp(sph, g), xs, ys, segmentation_loss, a.reps, dev, warmup=2)
     tp = step_time(planar, xp, yp, segmentation_loss, a.reps, dev, warmup=2)
     where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {a.threads} threads"
-    print(f"{where}, batch {B}, best of {a.reps} steps, channels {sph.config['channels']}")
+    print(f"{where}, batch {B}, best of {a.reps} steps, channels {sph.config['channels']}, "
+          f"sparse kernel: {a.form}")
     print("| model | points | parameters | step (ms) | samples/s |")
     print("|---|---|---|---|---|")
     for name, m, n, t in ((f"{type(sph).__name__} (icosahedral:{a.level})", sph, N, ts),

@@ -40,3 +40,19 @@ def step_time(model, x, y, loss_fn, reps: int, device, warmup: int = 3) -> float
         opt.step()
 
     return best_time(step, reps, device, warmup=warmup)
+
+
+FORMS = {"auto": None, "wide": True, "blockwise": False}
+
+
+def add_form_option(parser) -> None:
+    """``--form``: the sparse kernel's form (``usf_graph.nn.aggregate.WIDE``)."""
+    parser.add_argument("--form", default="auto", choices=list(FORMS),
+                        help="the sparse kernel's form: auto takes one product per call on a "
+                             "GPU and one per (sample, basis) block on the CPU")
+
+
+def apply_form(form: str) -> None:
+    from usf_graph.nn import aggregate
+
+    aggregate.WIDE = FORMS[form]

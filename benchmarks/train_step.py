@@ -1,7 +1,7 @@
 """Time one training step (forward, backward, Adam) of the Spherical MNIST classifier next to
 its planar baseline, on CPU or a GPU.
 
-    python benchmarks/train_step.py [--device cuda] [--batch 64] [--reps 10]
+    python benchmarks/train_step.py [--device cuda] [--batch 64] [--reps 10] [--form auto|wide|blockwise]
 
 The spherical model is the demo's (``usf-graph train mnist`` defaults: input level 5, first
 conv at level 4, down to level 2, jet and gradient pairs); the planar CNN is the demo's
@@ -14,7 +14,7 @@ import argparse
 import inspect
 
 import torch
-from timing import step_time
+from timing import add_form_option, apply_form, step_time
 
 from usf_graph.models import PlanarCNN, SphericalClassifier
 from usf_graph.train.mnist import run as mnist_run
@@ -26,7 +26,9 @@ def main():
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--reps", type=int, default=10)
     p.add_argument("--threads", type=int, default=2, help="CPU threads")
+    add_form_option(p)
     a = p.parse_args()
+    apply_form(a.form)
     torch.set_num_threads(a.threads)
     dev = torch.device(a.device)
     d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}
@@ -43,7 +45,7 @@ def main():
     ts = step_time(sph, xs, y, ce, a.reps, dev)
     tp = step_time(planar, xp, y, ce, a.reps, dev)
     where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {a.threads} threads"
-    print(f"{where}, batch {B}, best of {a.reps} steps")
+    print(f"{where}, batch {B}, best of {a.reps} steps, sparse kernel: {a.form}")
     print("| model | points | parameters | step (ms) | samples/s |")
     print("|---|---|---|---|---|")
     for name, m, n, t in (("SphericalClassifier", sph, sph.num_points, ts),

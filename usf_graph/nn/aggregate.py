@@ -13,8 +13,13 @@ from torch import nn
 from torch.autograd.function import once_differentiable
 
 from ..sparse import quiet_sparse
+from .wide import wide_aggregate
 
 TILE_ROWS = 16384  # rows per tile; 1k-16k measured, 16k fastest (benchmarks/README.md)
+#: Which form :func:`basis_aggregate` takes. ``None``: one sparse product per call
+#: (:mod:`usf_graph.nn.wide`) on a GPU, where launches are what costs, and one product per
+#: (sample, tile, basis) block on the CPU, where caches are; ``True``/``False`` force one.
+WIDE: bool | None = None
 
 
 class EdgePlan(nn.Module):
@@ -57,6 +62,7 @@ class EdgePlan(nn.Module):
                 blocks = [(int(starts[t]), int(starts[t + 1]), cuts[t], cuts[t + 1], h)
                           for t, h in enumerate(halos)]
         self.num_nodes, self.num_edges = n, int(key.numel())
+        self.wide_cache: dict = {}  # the one-product form's structures (nn.wide.structure)
         self.register_buffer("order", order, persistent=False)
         self.register_buffer("edge_index", edge_index, persistent=False)
         self.bounds = []
@@ -74,6 +80,11 @@ class EdgePlan(nn.Module):
         """Whether this plan was built for ``edge_index`` on ``num_nodes`` points (by value)."""
         return num_nodes == self.num_nodes and edge_index.shape == self.edge_index.shape and \
             bool(torch.equal(edge_index.to(self.edge_index.device), self.edge_index))
+
+    def sorted_edges(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(row, col)``: every edge's centre i and neighbour j, sorted row-major."""
+        j, i = self.edge_index.to(torch.long)
+        return (i, j) if self.order is None else (i[self.order], j[self.order])
 
     def _transpose(self, t: int) -> None:
         """The transposed structure of tile ``t``, built when a backward pass first needs it
@@ -121,9 +132,20 @@ def _crow(rows: torch.Tensor, n: int) -> torch.Tensor:
 
 def basis_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,
                     plan: EdgePlan) -> torch.Tensor:
-    r"""``y_b = sum_k A_k (x_b W_k)``: ``x [B, N, C_in]``, ``weight [K, C_in, C_out]``,
-    ``coef [E, K]`` (``A_k[i, j]`` of edge ``j -> i``) -> ``[B, N, C_out]``.
-    Differentiable in ``x``, ``weight`` and ``coef``."""
+    r"""``y_b = sum_k A_bk (x_b W_k)``: ``x [B, N, C_in]``, ``weight [K, C_in, C_out]``,
+    ``coef [E, K]`` shared by the batch or ``[B, E, K]`` per sample (``A_bk[i, j]`` of
+    edge ``j -> i``) -> ``[B, N, C_out]``. Differentiable in ``x``, ``weight`` and ``coef``.
+    The form follows :data:`WIDE`."""
+    K = weight.shape[0]
+    if coef.shape[-2:] != (plan.num_edges, K) or coef.dim() not in (2, 3) or \
+            (coef.dim() == 3 and len(coef) != len(x)):
+        raise ValueError(f"coef must be [{plan.num_edges}, {K}] or [{len(x)}, {plan.num_edges}, "
+                         f"{K}], got {tuple(coef.shape)}")
+    if WIDE or (WIDE is None and x.device.type != "cpu"):
+        return wide_aggregate(x, weight, coef, plan)
+    if coef.dim() == 3:  # one sample at a time: each has its own matrices
+        return torch.cat([_BasisAggregate.apply(x[b:b + 1], weight, coef[b], plan)
+                          for b in range(len(x))])
     return _BasisAggregate.apply(x, weight, coef, plan)
 
 

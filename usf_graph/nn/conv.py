@@ -375,9 +375,8 @@ class UprightConv(SphericalConv):
         coef = coef.to(x.dtype)
         ang = (basis.reshape(-1, 3) @ up.to(x.dtype).t()).view(len(coef), -1, len(x))  # [E, 2K, B]
         w = self.weight.view(3 * self.num_basis, self.in_channels, self.out_channels).to(x.dtype)
-        out = torch.cat([basis_aggregate(x[b:b + 1].contiguous(), w,
-                                         torch.cat([coef, ang[..., b]], 1), self.plan)
-                         for b in range(len(x))])
+        full = torch.cat([coef.expand(len(x), -1, -1), ang.permute(2, 0, 1)], 2)  # [B, E, 3K]
+        out = basis_aggregate(x.contiguous(), w, full, self.plan)
         return out if self.bias is None else out + self.bias
 
     def _bound_basis(self, coef: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
