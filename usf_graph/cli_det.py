@@ -141,7 +141,7 @@ def cmd_train_det(args) -> int:
         return 0
     print(f"\nDetection on procedural rooms, trained on upright panoramas ({res['samples']['train']} "
           f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
-    for metric in ("AP50", "AP", "usf_mAP@10"):
+    for metric in ("AP50", "AP50_every_box", "AP", "usf_mAP@10"):
         print(f"{metric}:\n{format_table(res, metric)}\n")
     if "figure" in res:
         print(f"figure: {res['figure']}")

@@ -11,6 +11,7 @@ from usf_graph.cli import main
 from usf_graph.models import SphericalDetector
 from usf_graph.models.centernet import box_centres
 from usf_graph.ops import share_in_view
+from usf_graph.scenes import DETECTION_CLASSES
 from usf_graph.train.det import (
     PROTOCOL,
     DetectionSet,
@@ -19,6 +20,7 @@ from usf_graph.train.det import (
     predict,
     protocol_sets,
     run,
+    score,
 )
 from usf_graph.train.det_metrics import FULLY_SEEN
 from usf_graph.train.fov import camera_field
@@ -54,7 +56,10 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
             assert (up is None) == (name == "planar")
             if up is not None:
                 assert up["views"] == 2 and 0 <= up["gross_unsure"] <= min(up["gross"], up["unsure"]) <= 2
-            assert set(r) == {"AP", "AP50", "AP75", "AR50", "usf_mAP@10", "usf_mAP@50"}
+            assert set(r) == {"AP", "AP50", "AP50_every_box", "AP75", "AR50", "usf_mAP@10",
+                              "usf_mAP@50"}
+            if k in ("a", "b"):  # the panoramas cut no box: both rules agree
+                assert r["AP50_every_box"] == r["AP50"]
             assert all(-1 <= v <= 1 for v in r.values())
         assert (tmp_path / "out" / f"{name}.pt").is_file()
     assert (tmp_path / "out" / "det_results.png").is_file()
@@ -129,6 +134,12 @@ def test_detection_sets_batch_boxes_and_fields_of_view(tmp_path):
     assert np.array_equal(DetectionSet.planar(sets["d"], 64, 32).seen, share)
     assert np.array_equal(np.concatenate([pin.ignored(0), pin.ignored(1)]), share < FULLY_SEEN)
     assert np.array_equal(pin.first(1).ignored(0), pin.ignored(0))
+    # finding exactly the boxes the lens sees whole scores 1 with them ignored, less without
+    found = [dict(zip(("boxes", "classes"), pin.truth(i)), scores=np.ones(len(pin.ignored(i))))
+             for i in range(len(pin))]
+    found = [{k: v[~pin.ignored(i)] for k, v in f.items()} for i, f in enumerate(found)]
+    got = score(found, pin, len(DETECTION_CLASSES))
+    assert got["AP50"] == pytest.approx(1.0) and got["AP50_every_box"] < 0.99
     whole = DetectionSet.spherical(sets["a"])
     assert whole.seen is None and not whole.ignored(0).any() and len(whole.ignored(0)) == int(whole.box_ptr[1])
 
