@@ -71,11 +71,13 @@ def is_distributed() -> bool:
 
 
 def setup_distributed() -> tuple[int, int]:
-    """Join the process group when launched by ``torchrun`` (gloo on CPU, nccl on GPU)."""
+    """Join the process group when launched by ``torchrun``: gloo, since :func:`fit` trains
+    on the CPU (NCCL, which the group took whenever CUDA was present, takes only CUDA
+    tensors, so DistributedDataParallel failed on a machine with a GPU)."""
     if "WORLD_SIZE" not in os.environ or int(os.environ["WORLD_SIZE"]) <= 1:
         return 0, 1
     if not is_distributed():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        dist.init_process_group("gloo")
     return dist.get_rank(), dist.get_world_size()
 
 
