@@ -45,7 +45,8 @@ class DistanceConv(MessagePassing):
       coefficients. Geometry is never matched to inputs by memory address.
 
     With ``kernel="basis"`` a forward pass is K sparse products and K dense GEMMs per
-    sample (:func:`~usf_graph.nn.aggregate.basis_aggregate`); gradients reach ``x``, the
+    sample on the CPU, and one of each for the whole batch on a GPU
+    (:func:`~usf_graph.nn.aggregate.basis_aggregate`); gradients reach ``x``, the
     weights and the coefficients, hence ``edge_weight``, ``node_weight`` and a learnable
     basis. ``kernel="mlp"`` makes a per-edge :math:`C_{in} \times C_{out}` weight from an MLP
     of the distance (slower; for expressivity studies), by message passing, as does
@@ -318,7 +319,7 @@ class UprightConv(SphericalConv):
 
     Both forms of the graph, as :class:`DistanceConv`: ``conv.bind(edge_index, edge_weight,
     node_weight, mask, pos=pos)`` once, then ``conv(x, up, mask=None)``, 3K sparse products
-    per sample where :class:`SphericalConv` costs K; or PyG's ``conv(x, up, edge_index,
+    per sample on the CPU where :class:`SphericalConv` costs K (one per batch on a GPU); or PyG's ``conv(x, up, edge_index,
     edge_weight, node_weight, mask, pos=pos, batch=batch)`` for a batch of different graphs,
     with one up per graph (the geometry computed in the call).
 
