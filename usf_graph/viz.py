@@ -152,7 +152,8 @@ def labelled_panorama(width: int = 1024, height: int = 512) -> np.ndarray:
     return (img * (1 - outline) + np.clip(ink / 127.0 - 1, 0, 1)[..., None]).astype(np.float32)
 
 
-TRUTH, DETECTION = (0, 255, 0), (255, 255, 0)  # box colours (RGB) of the detection figures
+# box colours (RGB) of the detection figures: true boxes, detections, true boxes the camera cuts
+TRUTH, DETECTION, CUT = (0, 255, 0), (255, 255, 0), (255, 60, 60)
 
 
 def draw_boxes(image: np.ndarray, camera, boxes, names=None, colour=DETECTION,
@@ -231,28 +232,38 @@ def view_panels(view, camera, name: str) -> list:
     return [(f"{name}: RGB + boxes", rgb), (f"{name}: labels", colourize(view.label))]
 
 
-def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_score: float = 0.3):
+def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_score: float = 0.3,
+                    ignored: dict | None = None):
     """The detection protocol's figure: for a few test views, the true boxes (green) and
     the detections scoring at least ``min_score`` (yellow, named) on the panorama, the
-    rotated panorama and the fisheye image. ``sets``/``preds``: protocol key -> dataset /
-    list of detections (see :mod:`usf_graph.train.det`)."""
+    rotated panorama, the fisheye and the pinhole image. ``sets``/``preds``: protocol key ->
+    dataset / list of detections (see :mod:`usf_graph.train.det`); ``ignored``: protocol
+    key -> bool ``[K]`` over the split's true boxes, those that scoring ignores because the
+    camera cuts them (drawn red)."""
     from .scenes import DETECTION_CLASSES
 
     rows = []
     for i in samples:
         row = []
-        for key, title in (("a", "panorama"), ("b", "rotated"), ("c", "fisheye 190")):
+        for key, title in (("a", "panorama"), ("b", "rotated"), ("c", "fisheye 190"),
+                           ("d", "pinhole 90")):
+            if key not in sets:
+                continue
             ds, det = sets[key], preds[key][i]
             a, b = int(ds.box_ptr[i]), int(ds.box_ptr[i + 1])
-            img = draw_boxes(ds.image[i].numpy(), ds.camera, ds.boxes[a:b], colour=TRUTH,
+            cut = np.zeros(b - a, bool) if ignored is None else np.asarray(ignored[key][a:b], bool)
+            img = draw_boxes(ds.image[i].numpy(), ds.camera, ds.boxes[a:b][~cut], colour=TRUTH,
                              thickness=1)
+            img = draw_boxes(img, ds.camera, ds.boxes[a:b][cut], colour=CUT, thickness=1)
             keep = det["scores"] >= min_score
             img = draw_boxes(img, ds.camera, det["boxes"][keep],
                              [DETECTION_CLASSES[c] for c in det["classes"][keep]], thickness=1)
             row.append((title, img))
         rows.append(row)
-    return contact_sheet(rows, path, titles=[f"test view {i}" for i in samples],
-                         legend={"truth": TRUTH, f"detections (score >= {min_score:g})": DETECTION})
+    legend = {"truth": TRUTH, f"detections (score >= {min_score:g})": DETECTION}
+    if ignored is not None:
+        legend["truth the camera cuts (ignored in scoring)"] = CUT
+    return contact_sheet(rows, path, titles=[f"test view {i}" for i in samples], legend=legend)
 
 
 def plot_segmentation(sets: dict, preds: dict, path=None, sample: int = 0):

@@ -351,7 +351,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w,
                                            **scaled_channels(PlanarDetector, channel_scale)),
                             lambda ds: DetectionSet.planar(ds, w, h, progress), planar_epochs or epochs)
-    preds = {}
+    preds, ignored = {}, {}
     for name, (net, make, ep) in models.items():
         data = {k: make(d) for k, d in sets.items()}
         data["train"] = data["train"].first(num_train)
@@ -372,7 +372,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         for k in PROTOCOL:
             preds[name][k] = predict(net, data[k], progress=progress, desc=f"{name} ({k})")
             results[name][k] = score(preds[name][k], data[k], C)
-            results["ignored_boxes"][k] = int(data[k].ignored().sum())
+            ignored[k] = data[k].ignored()
+            results["ignored_boxes"][k] = int(ignored[k].sum())
             if getattr(net, "gravity", None) is not None:
                 results[name][k]["up"] = up_report(net.gravity, data[k].x, data[k].mask,
                                                    views_up(sets[k]))
@@ -383,7 +384,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     from ..viz import plot_detections
 
     return write_results(out, results, t0, "det_results.png",
-                         lambda p: plot_detections(sets, preds["spherical"], p))
+                         lambda p: plot_detections(sets, preds["spherical"], p, ignored=ignored))
 
 
 def format_table(results: dict, metric: str = "AP50") -> str:
