@@ -14,29 +14,17 @@ import argparse
 import math
 
 import torch
-from timing import best_time
+from timing import best_time, in_form
 
 from usf_graph import grids
 from usf_graph.frontend import grid_graph
-from usf_graph.nn import SphericalConv, UprightConv, aggregate, geodesic_radius_graph
+from usf_graph.nn import SphericalConv, UprightConv, geodesic_radius_graph
 
 DEVICE = torch.device("cpu")
 
 
 def timeit(fn, reps: int) -> float:
     return best_time(fn, reps, DEVICE)
-
-
-def in_form(wide: bool, f):
-    """``f`` with :func:`basis_aggregate` forced to one form: one sparse product per call
-    (``wide``) or one per (sample, basis) block."""
-    def run(*args):
-        aggregate.WIDE = wide
-        try:
-            return f(*args)
-        finally:
-            aggregate.WIDE = None
-    return run
 
 
 def fwd_bwd(f, x):
@@ -91,8 +79,8 @@ def main():
     rows["UprightConv (static, bound)"] = (timeit(lambda: fu(x), a.reps),
                                            timeit(fwd_bwd(fu, x), a.reps))
     # the form the device does not take by default, for the side-by-side (aggregate.WIDE)
-    other = dev.type == "cpu"
-    name = "one product per call" if other else "blockwise"
+    other = "wide" if dev.type == "cpu" else "blockwise"
+    name = "one product per call" if other == "wide" else "blockwise"
     for k, f in ((f"SphericalConv (static, {name})", conv), (f"UprightConv (static, {name})", fu)):
         f = in_form(other, f)
         rows[k] = (timeit(lambda f=f: f(x), a.reps), timeit(fwd_bwd(f, x), a.reps))

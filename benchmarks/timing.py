@@ -53,6 +53,18 @@ def add_form_option(parser) -> None:
 
 
 def apply_form(form: str) -> None:
+    """Sets the sparse kernel's form for what follows (``auto``, ``wide``, ``blockwise``)."""
     from usf_graph.nn import aggregate
 
     aggregate.WIDE = FORMS[form]
+
+
+def in_form(form: str, f):
+    """``f`` run with the sparse kernel in ``form``, the default form restored after."""
+    def run(*args):
+        apply_form(form)
+        try:
+            return f(*args)
+        finally:
+            apply_form("auto")
+    return run

@@ -47,7 +47,9 @@ class EdgePlan(nn.Module):
         # graphs from geodesic_radius_graph (and PyG batches of them) are already row-major
         sorted_ = key.numel() < 2 or bool((key[1:] >= key[:-1]).all())
         order = None if sorted_ else torch.argsort(key)
-        row, col = (i, j) if order is None else (i[order], j[order])
+        self.register_buffer("order", order, persistent=False)
+        self.register_buffer("edge_index", edge_index, persistent=False)
+        row, col = self.sorted_edges()
         blocks = [(0, n, 0, len(row), None)]
         if n >= 4 * tile_rows:
             starts = torch.arange(0, n + tile_rows, tile_rows, device=row.device).clamp_max(n)
@@ -63,8 +65,6 @@ class EdgePlan(nn.Module):
                           for t, h in enumerate(halos)]
         self.num_nodes, self.num_edges = n, int(key.numel())
         self.wide_cache: dict = {}  # the one-product form's structures (nn.wide.structure)
-        self.register_buffer("order", order, persistent=False)
-        self.register_buffer("edge_index", edge_index, persistent=False)
         self.bounds = []
         for t, (s, e, a, b, cols) in enumerate(blocks):
             r, c = row[a:b] - s, col[a:b]

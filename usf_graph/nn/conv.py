@@ -319,8 +319,9 @@ class UprightConv(SphericalConv):
 
     Both forms of the graph, as :class:`DistanceConv`: ``conv.bind(edge_index, edge_weight,
     node_weight, mask, pos=pos)`` once, then ``conv(x, up, mask=None)``, 3K sparse products
-    per sample on the CPU where :class:`SphericalConv` costs K (one per batch on a GPU); or PyG's ``conv(x, up, edge_index,
-    edge_weight, node_weight, mask, pos=pos, batch=batch)`` for a batch of different graphs,
+    per sample on the CPU where :class:`SphericalConv` costs K (one per batch on a GPU); or
+    PyG's ``conv(x, up, edge_index, edge_weight, node_weight, mask, pos=pos, batch=batch)``
+    for a batch of different graphs,
     with one up per graph (the geometry computed in the call).
 
     Shapes: ``x [B, N, C_in]`` and ``up [B, 3]`` (unit), or ``x [sum N_i, C_in]`` and ``up

@@ -65,6 +65,11 @@ def structure(plan, kind: str, batch: int, K: int, per_sample: bool, device) -> 
     return out
 
 
+def _sorted_flat(coef: torch.Tensor, plan) -> torch.Tensor:
+    """The coefficients in the plan's edge order (``[E, K]`` or ``[B, E, K]``)."""
+    return coef if plan.order is None else coef.index_select(-2, plan.order)
+
+
 def _matrix(struct, flat: torch.Tensor) -> torch.Tensor:
     crow, col, src, shape = struct
     return torch.sparse_csr_tensor(crow, col, flat[src], shape)
@@ -84,8 +89,7 @@ class _WideAggregate(torch.autograd.Function):
         B, N, c_in = x.shape
         K, _, c_out = weight.shape
         per_sample = coef.dim() == 3
-        cs = coef if plan.order is None else coef.index_select(-2, plan.order)
-        flat = cs.reshape(-1)
+        flat = _sorted_flat(coef, plan).reshape(-1)
         ctx.aggregate_first = agg = 3 * c_in < 2 * c_out  # the narrower side, as blockwise
         xf = x.reshape(B * N, c_in)
         with quiet_sparse():
@@ -107,8 +111,7 @@ class _WideAggregate(torch.autograd.Function):
         B, N, c_in = x.shape
         K, _, c_out = weight.shape
         per_sample = coef.dim() == 3
-        cs = coef if plan.order is None else coef.index_select(-2, plan.order)
-        flat = cs.reshape(-1)
+        flat = _sorted_flat(coef, plan).reshape(-1)
         need_x, need_w, need_c = ctx.needs_input_grad[:3]
         xf, gf = x.reshape(B * N, c_in), grad.reshape(B * N, c_out)
         gx = gw = gc = None
@@ -135,7 +138,7 @@ class _WideAggregate(torch.autograd.Function):
                 crow, col, src, shape = structure(plan, kind, B, K, per_sample, x.device)
                 pattern = torch.sparse_csr_tensor(crow, col, flat.new_zeros(len(src)), shape)
                 vals = torch.sparse.sampled_addmm(pattern, left, right.t(), beta=0).values()
-                gc = flat.new_zeros(flat.shape).index_add_(0, src, vals).view(cs.shape)
+                gc = flat.new_zeros(flat.shape).index_add_(0, src, vals).view(coef.shape)
                 if plan.order is not None:
                     gc = torch.empty_like(gc).index_copy_(gc.dim() - 2, plan.order, gc)
         return (None if gx is None else gx.view(B, N, c_in),
