@@ -221,7 +221,7 @@ def cmd_train(args) -> int:
               epochs=args.epochs or 12, batch_size=args.batch_size or 32, seed=args.seed, source=args.source,
               planar=not args.no_planar, input_level=args.input_level,
               min_level=args.min_level, pairs=args.pairs, pair_stages=args.pair_stages,
-              resume=args.resume)
+              resume=args.resume, device=args.device)
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
         return 0
@@ -247,11 +247,12 @@ def cmd_eval(args) -> int:
         raise ValueError(f"{', '.join(other)}: options of 'eval det|seg', not of 'eval mnist'")
     from .datasets import SphericalMNIST
     from .models import SphericalClassifier
-    from .train import evaluate, load_checkpoint
+    from .train import evaluate, load_checkpoint, resolve_device
 
     blob = load_checkpoint(args.checkpoint)
     model = SphericalClassifier.from_config(blob["config"])
     model.load_state_dict(blob["state_dict"])
+    model.to(resolve_device(args.device))
     ds = SphericalMNIST(args.root or "data/mnist", "test", grid=f"icosahedral:{model.input_level}",
                         rotate=args.rotate, seed=args.seed or 0, source=args.source)
     m = evaluate(model, TensorDataset(ds.x, ds.y))
@@ -393,6 +394,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true",
                    help="continue an interrupted run in --out with the same options: every "
                         "stage from its last finished epoch (last.pt), finished ones loaded")
+    t.add_argument("--device", default="cpu",
+                   help="where the models train and are scored: cpu, cuda, cuda:N, or auto "
+                        "(a GPU when torch sees one); under torchrun, cuda is each process's "
+                        "own GPU")
     t.add_argument("--pairs", type=int, default=d["pairs"],
                    help="gradient pairs per GradientPairs layer (0: none)")
     t.add_argument("--pair-stages", type=int, default=d["pair_stages"],

@@ -74,6 +74,9 @@ def add_eval_options(e) -> None:
     e.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
                    help="det, seg: the up estimate assumes level cameras (optical axis "
                         "horizontal) with this strength; 10 in the README, 0 (default) off")
+    e.add_argument("--device", default="cpu",
+                   help="where the model runs: cpu, cuda, cuda:N, or auto (a GPU when torch "
+                        "sees one)")
     e.add_argument("--sign-check", default=None, metavar="PATH",
                    help="det, seg: pass the up estimate through this sign check on wide fields "
                         "of view (a file of 'examples/up_sign.py --save')")
@@ -114,7 +117,8 @@ def run_kwargs(args, run) -> dict:
 
     d = defaults(run)
     return dict(epochs=args.epochs or d["epochs"], batch_size=args.batch_size or d["batch_size"],
-                seed=args.seed, progress=True, lr=args.lr or d["lr"], resume=args.resume)
+                seed=args.seed, progress=True, lr=args.lr or d["lr"], resume=args.resume,
+                device=args.device)
 
 
 def cmd_train_det(args) -> int:
@@ -194,12 +198,13 @@ def up_options(model, args) -> None:
 
 
 def cmd_eval_det(args) -> int:
+    from .train import resolve_device
     from .train.checkpoints import load_protocol_model
     from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
     from .train.gravity import format_up_report, up_report, views_up
 
     ckpt = load_protocol_model(args.checkpoint).require("det")
-    model, cfg, planar = ckpt.model, ckpt.config, ckpt.planar
+    model, cfg, planar = ckpt.model.to(resolve_device(args.device)), ckpt.config, ckpt.planar
     up_options(model, args)
     if eval_data(ckpt, args) == "pandora":
         from .datasets import Pandora

@@ -50,12 +50,13 @@ def cmd_train_seg(args) -> int:
 
 
 def cmd_eval_seg(args) -> int:
+    from .train import resolve_device
     from .train.checkpoints import load_protocol_model
     from .train.gravity import format_up_report
     from .train.seg import PROTOCOL, evaluate_protocol, evaluate_set, protocol_sets
 
     ckpt = load_protocol_model(args.checkpoint).require("seg")
-    model, name = ckpt.model, ckpt.name
+    model, name = ckpt.model.to(resolve_device(args.device)), ckpt.name
     up_options(model, args)
     level = ckpt.config.get("level", 5)
     if eval_data(ckpt, args) == "stanford2d3ds":

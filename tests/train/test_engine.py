@@ -186,3 +186,99 @@ def test_resume_goes_on_as_an_uninterrupted_run_would(tmp_path):
     assert all(torch.equal(through[k], v) for k, v in run(tmp_path / "cut", resume=True).items())
     with pytest.raises(ValueError, match="was written with plan .* resume with the same options"):
         run(tmp_path / "cut", resume=True, lr=1e-3)
+
+
+def test_resolve_device_gives_what_the_machine_has_and_names_what_it_lacks(monkeypatch):
+    from usf_graph.train.engine import resolve_device
+
+    cpu = torch.device("cpu")
+    assert resolve_device(None) == cpu and resolve_device("cpu") == cpu
+    for bad, why in (("tpu", "unknown device 'tpu'"), ("meta", "trains on cpu or cuda"),
+                     ("mps", "trains on cpu or cuda")):
+        with pytest.raises(ValueError, match=why):
+            resolve_device(bad)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == cpu
+    with pytest.raises(ValueError, match="sees no CUDA GPU.*use --device cpu"):
+        resolve_device("cuda")
+    # a machine with two GPUs, in the second process of a torchrun
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert resolve_device("cuda") == torch.device("cuda", 1) == resolve_device("auto")
+    assert resolve_device("cuda:0") == torch.device("cuda", 0)
+    with pytest.raises(ValueError, match="has 2 GPU"):
+        resolve_device("cuda:2")
+
+
+def test_to_device_moves_every_tensor_of_a_batch_and_nothing_else():
+    from torch_geometric.data import Batch, Data
+
+    from usf_graph.train.engine import model_device, to_device
+
+    pyg = Batch.from_data_list([Data(x=torch.rand(3, 2), pos=torch.rand(3, 3)) for _ in range(2)])
+    batch = (torch.rand(2), None, [pyg, 3], {"mask": torch.ones(4, dtype=torch.bool), "name": "a"})
+    meta = torch.device("meta")  # a device every torch has, CPU-only ones too
+    out = to_device(batch, meta)
+    assert type(out) is tuple and type(out[2]) is list and out[1] is None
+    assert out[2][1] == 3 and out[3]["name"] == "a"
+    moved = [out[0], out[2][0].x, out[2][0].pos, out[2][0].batch, out[2][0].ptr, out[3]["mask"]]
+    assert all(t.device == meta for t in moved)
+    assert out[3]["mask"].dtype == torch.bool
+    assert batch[0].device.type == "cpu"  # tensors are copied; a PyG batch moves itself, as .to() does
+    assert out[2][0] is pyg and pyg.x.device == meta
+    assert model_device(torch.nn.Linear(2, 3)).type == "cpu"
+    assert model_device(torch.nn.Linear(2, 3, device=meta)) == meta
+    assert model_device(torch.nn.Identity()).type == "cpu"
+
+
+DEVICES = ("cpu", "cuda")  # the GPU test's pair (a CPU run of the test itself: ("cpu", "cpu"))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU (CI has none)")
+def test_on_a_gpu_training_and_prediction_follow_the_cpu(tmp_path):
+    """The segmentation and detection recipes through ``fit(device="cuda")``: the same draws
+    (batches, fields of view, the up's jitter) as on the CPU, so the weights after two
+    epochs and the predictions agree up to float32 rounding."""
+    from functools import partial
+
+    from usf_graph.models import SphericalDetector
+    from usf_graph.train import det, seg
+    from usf_graph.train.engine import fit
+    from usf_graph.train.gravity import up_report, views_up
+
+    sets = seg.protocol_sets(tmp_path / "rooms", size=16, level=3, num_train=4, num_test=2,
+                             tests=("d",), progress=False)
+    step = partial(seg.segmentation_step, class_weight=torch.ones(13))
+    nets, preds, ups = [], [], []
+    for dev in DEVICES:
+        torch.manual_seed(1)
+        net = seg.make_model("spherical_unet", level=3)
+        cut = seg.ThroughRandomFields(sets["train"].grid.pos, share=0.5, seed=3)
+        fit(net, sets["train"], epochs=2, batch_size=2, lr=1e-3, seed=0, progress=False,
+            step=step, collate_fn=cut, device=dev)
+        assert all(p.device.type == dev for p in net.parameters())
+        nets.append({k: v.cpu() for k, v in net.state_dict().items()})
+        preds.append(seg.predict(net, sets["d"], progress=False)[1])
+        ups.append(up_report(net.gravity, sets["d"].x, sets["d"].mask[0], views_up(sets["d"])))
+    for k, v in nets[0].items():
+        assert torch.allclose(v.double(), nets[1][k].double(), rtol=1e-3, atol=1e-4), k
+    assert (preds[0] == preds[1]).mean() > 0.99
+    assert ups[0]["gross"] == ups[1]["gross"]
+
+    rooms = det.protocol_sets(tmp_path / "rooms", size=16, grid="icosahedral:3", num_train=4,
+                              num_test=2, progress=False)
+    data = det.DetectionSet.spherical(rooms["train"])
+    found = []
+    for dev in DEVICES:
+        torch.manual_seed(1)
+        net = SphericalDetector(num_classes=12, input_level=3, head_level=2, min_level=1,
+                                channels=(4, 6, 8), pairs=2, gradient_fields=2, gravity=True,
+                                upright=True)
+        fit(net, data, epochs=2, batch_size=2, lr=1e-3, seed=0, progress=False,
+            step=det.detection_step, collate_fn=data.collate, device=dev)
+        found.append(det.predict(net, det.DetectionSet.spherical(rooms["d"]), progress=False,
+                                 threshold=0.0, k=5))
+    assert len(found[0]) == len(found[1]) == 2
+    for a, b in zip(*found):
+        assert abs(a["scores"][0] - b["scores"][0]) < 1e-3

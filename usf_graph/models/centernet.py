@@ -77,7 +77,7 @@ def heatmap_targets(points: torch.Tensor, boxes: torch.Tensor, classes: torch.Te
     d = geodesic_distance(c[:, None], points[None])  # [K, M]
     sigma = torch.clamp(SIGMA_SHARE * (boxes[:, 2] * boxes[:, 3]).sqrt().to(points.dtype), min=spacing / 2)
     g = torch.exp(-0.5 * (d / sigma[:, None]) ** 2)
-    g[torch.arange(len(c)), nearest] = 1.0
+    g[torch.arange(len(c), device=g.device), nearest] = 1.0
     target.scatter_reduce_(0, (image * num_classes + classes)[:, None].expand(-1, M), g, "amax")
     # per image and point, the box with the highest Gaussian
     best = points.new_zeros(num_images, M).scatter_reduce(0, image[:, None].expand(-1, M), g, "amax")

@@ -6,12 +6,16 @@ from .engine import (
                      fit,
                      freeze_norms,
                      load_checkpoint,
+                     model_device,
+                     resolve_device,
                      save_checkpoint,
                      scaled_channels,
                      seed_everything,
                      setup_distributed,
                      teardown_distributed,
+                     to_device,
 )
 
 __all__ = ["defaults", "fit", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint",
-           "scaled_channels", "seed_everything", "setup_distributed", "teardown_distributed"]
+           "scaled_channels", "seed_everything", "setup_distributed", "teardown_distributed",
+           "resolve_device", "model_device", "to_device"]

@@ -25,17 +25,20 @@ from ..cameras import Equirectangular
 from ..frontend import render
 from ..geometry import geodesic_distance
 from ..models import PlanarDetector, SphericalDetector
-from ..models.centernet import box_centres, nearest_points
+from ..models.centernet import box_centres, fields_on_cpu, nearest_points
 from ..ops import box_iou, share_in_view
 from ..scenes import DETECTION_CLASSES
 from .det_metrics import FULLY_SEEN, coco_ap, usf_map
 from .engine import (
     check_channel_scale,
     fit,
+    model_device,
+    resolve_device,
     save_checkpoint,
     scaled_channels,
     seed_everything,
     setup_distributed,
+    to_device,
     write_results,
 )
 from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
@@ -191,7 +194,7 @@ def detection_step(model, batch):
     if getattr(core, "gravity", None) is None:
         loss, stats = core.loss(model(x, mask), boxes, classes, image)
         return loss, stats, len(x)
-    g, noisy = known_up(batch, len(x), x.dtype)  # views of the rooms protocol are upright
+    g, noisy = known_up(batch, x)  # views of the rooms protocol are upright
     out = model(x, mask, up=noisy)
     loss, stats = core.loss(out, boxes, classes, image)
     if trains_up(model):  # else pretrained and frozen: not run, no loss of its own
@@ -204,11 +207,12 @@ def predict(model, data: DetectionSet, batch_size: int = 16, progress: bool = Tr
             desc: str = "detect", up: torch.Tensor | None = None, **decode) -> list[dict]:
     """Detections for every sample of ``data`` (see ``SphericalDetector.decode``); ``up
     [3]`` or ``[S, 3]``: the views' known gravity, read instead of the estimate
-    (``gravity=True``; :func:`~usf_graph.train.gravity.views_up`)."""
+    (``gravity=True``; :func:`~usf_graph.train.gravity.views_up`). Runs on the device the
+    model is on."""
     model.eval()
-    out = []
+    out, dev = [], model_device(model)
     for s in tqdm(range(0, len(data), batch_size), desc=desc, leave=False, disable=not progress):
-        x, mask, *_ = data.collate(list(range(s, min(s + batch_size, len(data)))))
+        x, mask, *_ = to_device(data.collate(list(range(s, min(s + batch_size, len(data))))), dev)
         out += model.decode(model(x, mask, **given_up(up, x, s)), **decode)
     return out
 
@@ -227,13 +231,14 @@ def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool 
     ``log_aspect_err`` (of ``|log fov_x - log fov_y| / 2``)."""
     model.eval()
     pts = getattr(model, "head_pos", None)
-    pts = model.points if pts is None else pts
+    pts = (model.points if pts is None else pts).cpu()
+    dev = model_device(model)
     res = {k: [] for k in ("iou", "iou_true_centre", "centre_deg", "log_size_err", "log_aspect_err")}
     for s in tqdm(range(0, len(data), batch_size), desc="box quality", leave=False, disable=not progress):
         x, mask, boxes, classes, image = data.collate(list(range(s, min(s + batch_size, len(data)))))
         if not len(boxes):
             continue
-        out = model(x, mask)
+        out = fields_on_cpu(model(*to_device((x, mask), dev)))
         boxes = boxes.double()
         near = nearest_points(boxes, pts)
         # one copy of the fields per true box, with a single peak at its centre point
@@ -291,7 +296,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
         upright_convs: int | None = UPRIGHT_CONVS, fov_epochs: int = FOV_EPOCHS,
         fov_share: float = FOV_SHARE, up_sign: float = 0.0, channel_scale: float = 1.0,
-        resume: bool = False) -> dict:
+        resume: bool = False, device: str | None = None) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
     ``channel_scale``: both detectors' channel counts times this
@@ -320,9 +325,12 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     view to cut, sees whole panoramas, so that both train as long.
 
     ``resume``: continue an interrupted run under ``out``, every stage from its ``last.pt``
-    (:func:`~usf_graph.train.engine.fit`; finished ones just load)."""
+    (:func:`~usf_graph.train.engine.fit`; finished ones just load). ``device``: where the
+    detectors train and predict (:func:`~usf_graph.train.engine.resolve_device`; default
+    the CPU)."""
     check_channel_scale(channel_scale)  # these before any rendering
     check_extra_rooms(seed, up_extra if upright else 0)
+    dev = resolve_device(device)
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -336,7 +344,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
                "up_sign": up_sign, "channel_scale": channel_scale}
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
                                   upright_convs=upright_convs if upright else None,
-                                  **scaled_channels(SphericalDetector, channel_scale))
+                                  **scaled_channels(SphericalDetector, channel_scale)).to(dev)
     if upright:
         results["samples"]["up_train"] = up_train
         results["samples"]["up_extra"] = up_extra
@@ -349,7 +357,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         w, h = 2 * size, size
         seed_everything(seed)  # the same initialization whatever the up estimate's training drew
         models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w,
-                                           **scaled_channels(PlanarDetector, channel_scale)),
+                                           **scaled_channels(PlanarDetector, channel_scale)).to(dev),
                             lambda ds: DetectionSet.planar(ds, w, h, progress), planar_epochs or epochs)
     preds, ignored = {}, {}
     for name, (net, make, ep) in models.items():

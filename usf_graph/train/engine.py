@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import inspect
+import itertools
 import json
 import math
 import os
@@ -66,14 +67,65 @@ def seed_everything(seed: int, deterministic: bool = True) -> None:
         torch.use_deterministic_algorithms(True, warn_only=True)
 
 
+def resolve_device(device: str | torch.device | None = None) -> torch.device:
+    """The device a run trains and predicts on: ``None`` or ``"cpu"``: the CPU; ``"cuda"``:
+    the GPU (under ``torchrun``, the process's own, ``cuda:LOCAL_RANK``); ``"cuda:N"``;
+    ``"auto"``: a GPU when torch sees one, else the CPU. A device this machine does not
+    have is a ValueError that says so, not a failure deep inside the first step."""
+    if device is None:
+        return torch.device("cpu")
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"unknown device {device!r}: give cpu, cuda, cuda:N or auto") from e
+    if dev.type == "cpu":
+        return dev
+    if dev.type != "cuda":
+        raise ValueError(f"device {device!r}: usf-graph trains on cpu or cuda (its sparse "
+                         "products need one of them)")
+    if not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: this torch sees no CUDA GPU "
+                         "(torch.cuda.is_available() is False); use --device cpu, or install a "
+                         "CUDA build of torch on a machine with a GPU")
+    if dev.index is None:
+        dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+    if dev.index >= torch.cuda.device_count():
+        raise ValueError(f"device {dev}: this machine has {torch.cuda.device_count()} GPU(s)")
+    return dev
+
+
+def model_device(model: nn.Module) -> torch.device:
+    """Where ``model``'s parameters (else buffers) are; the CPU for a model with neither."""
+    t = next(itertools.chain(model.parameters(), model.buffers()), None)
+    return torch.device("cpu") if t is None else t.device
+
+
+def to_device(batch, device: torch.device):
+    """``batch`` with every tensor on ``device``: a tensor, a PyG ``Data`` or ``Batch`` (moved
+    in place, as its ``to`` does), or tuples, lists and dicts of them (nested); anything
+    else (None, numbers) as it is."""
+    from torch_geometric.data.data import BaseData
+
+    if torch.is_tensor(batch) or isinstance(batch, BaseData):
+        return batch.to(device)
+    if isinstance(batch, (tuple, list)):
+        return type(batch)(to_device(b, device) for b in batch)
+    if isinstance(batch, dict):
+        return {k: to_device(v, device) for k, v in batch.items()}
+    return batch
+
+
 def is_distributed() -> bool:
     return dist.is_available() and dist.is_initialized()
 
 
 def setup_distributed() -> tuple[int, int]:
-    """Join the process group when launched by ``torchrun``: gloo, since :func:`fit` trains
-    on the CPU (NCCL, which the group took whenever CUDA was present, takes only CUDA
-    tensors, so DistributedDataParallel failed on a machine with a GPU)."""
+    """Join the process group when launched by ``torchrun``: gloo, which reduces gradients
+    on the CPU and on GPUs alike (NCCL, which the group took whenever CUDA was present,
+    takes only CUDA tensors, so DistributedDataParallel failed there on the CPU; the group
+    is joined before a run knows its device)."""
     if "WORLD_SIZE" not in os.environ or int(os.environ["WORLD_SIZE"]) <= 1:
         return 0, 1
     if not is_distributed():
@@ -175,12 +227,12 @@ def evaluate(model: nn.Module, dataset: Dataset, batch_size: int = 256,
              desc: str = "eval", progress: bool = True, step: Step = classification_step,
              collate_fn=None) -> dict:
     """Mean loss and stats of ``step`` over a dataset (for the default step, the loss and
-    accuracy of a classifier over ``(x, y)`` pairs)."""
+    accuracy of a classifier over ``(x, y)`` pairs), on the device the model is on."""
     model.eval()
-    mean = _Mean()
+    mean, dev = _Mean(), model_device(model)
     loader = _loader(dataset, batch_size, collate_fn)
     for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
-        mean.add(*step(model, batch))
+        mean.add(*step(model, batch if dev.type == "cpu" else to_device(batch, dev)))
     return mean.means()
 
 
@@ -201,7 +253,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         batch_size: int = 32, lr: float = 3e-3, weight_decay: float = 1e-4, seed: int = 0,
         log_dir=None, config: dict | None = None, resume: bool = False, progress: bool = True,
         name: str = "model", on_epoch: Callable[[int, dict], None] | None = None,
-        step: Step = classification_step, collate_fn=None, frozen_norms: bool = False) -> dict:
+        step: Step = classification_step, collate_fn=None, frozen_norms: bool = False,
+        device: str | torch.device | None = None) -> dict:
     """Train a model with AdamW and a cosine schedule; ``step(model, batch) -> (loss,
     stats, n)`` says what a batch's loss is (default: :func:`classification_step`), and
     ``collate_fn`` how samples make a batch (the DataLoader's; PyG datasets are batched
@@ -218,11 +271,19 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     Under ``torchrun`` the model is wrapped in DistributedDataParallel and each process
     takes its share of every global batch of ``batch_size``. ``frozen_norms``: batch
     normalizations keep their running statistics (:func:`freeze_norms`).
+
+    ``device`` (:func:`resolve_device`; ``None``: where the model is) moves the model there
+    and each batch after the ``collate_fn``, so that random fields of view and other draws
+    stay on the CPU's generators; the step sees the batch on the device. A GPU run's
+    numbers are not the CPU's to the digit (other kernels, the GPU's random draws).
     """
     rank, world = setup_distributed()
     seed_everything(seed)
+    dev = model_device(model) if device is None else resolve_device(device)
+    model.to(dev)
     if world > 1:
-        model = nn.parallel.DistributedDataParallel(model)
+        model = nn.parallel.DistributedDataParallel(
+            model, device_ids=None if dev.type == "cpu" else [dev.index])
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
     steps = epochs * math.ceil(len(train) / batch_size)
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -244,6 +305,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         sched.load_state_dict(blob["scheduler"])
         start, history = blob["epoch"], blob["metrics"].get("history", [])
         torch.set_rng_state(blob["rng"])
+        if dev.type == "cuda" and "cuda_rng" in blob:
+            torch.cuda.set_rng_state(blob["cuda_rng"], dev)
         if stateful is not None:
             stateful.load_state_dict(blob["collate"])
     writer = _tensorboard(log_dir) if rank == 0 else None
@@ -255,7 +318,7 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
                    desc=f"{name} epoch {epoch + 1}/{epochs}", disable=not progress or rank != 0)
         mean = _Mean()
         for i, batch in enumerate(bar):
-            loss, stats, n = step(model, batch)
+            loss, stats, n = step(model, batch if dev.type == "cpu" else to_device(batch, dev))
             if not torch.isfinite(loss.detach()).all():
                 # one bad step makes every weight NaN; stop before a checkpoint keeps them
                 raise FloatingPointError(
@@ -283,6 +346,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
             if log_dir is not None:
                 _log(log_dir, history, writer)
                 state = {"plan": plan, "rng": torch.get_rng_state()}
+                if dev.type == "cuda":
+                    state["cuda_rng"] = torch.cuda.get_rng_state(dev)
                 if stateful is not None:
                     state["collate"] = stateful.state_dict()
                 save_checkpoint(log_dir / "last.pt", model, config or {}, {"history": history},

@@ -31,7 +31,7 @@ def random_cap(pos: torch.Tensor, min_deg: float = CAP_DEGREES[0], max_deg: floa
     """A field of view ``[N]`` (bool) over points ``pos [N, 3]``: a cap of uniform random
     angular radius in ``[min_deg, max_deg]`` about a uniform random direction."""
     c = torch.nn.functional.normalize(torch.randn(3, generator=generator, dtype=torch.float64), dim=0)
-    return pos.double() @ c > math.cos(math.radians(_uniform(min_deg, max_deg, generator)))
+    return pos.double() @ c.to(pos.device) > math.cos(math.radians(_uniform(min_deg, max_deg, generator)))
 
 
 def random_pinhole(min_deg: float = FRUSTUM_DEGREES[0], max_deg: float = FRUSTUM_DEGREES[1],

@@ -16,6 +16,7 @@ from tqdm.auto import tqdm
 from ..geometry import geodesic_distance
 from ..models.gravity import UNSURE_MARGIN
 from ..nn.batching import to_static
+from .engine import fit, model_device
 from .fov import RandomFields, random_cap
 
 #: Weight of the up estimate's loss (:meth:`GravityHead.loss`) in a training step.
@@ -30,13 +31,15 @@ UP_JITTER = 0.05
 GROSS_DEGREES = 60.0
 
 
-def known_up(batch, n: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(g, jittered g)``, each ``[n, 3]``: the batch's ``up`` when it has one, else +z
-    (gravity-aligned views)."""
+def known_up(batch, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(g, jittered g)``, each ``[B, 3]`` in the dtype and on the device of the batch's
+    signals ``x [B, ...]``: the batch's ``up`` when it has one, else +z (gravity-aligned
+    views)."""
     g = getattr(batch, "up", None)
-    g = torch.tensor([0.0, 0.0, 1.0]).expand(n, 3) if g is None else g.view(-1, 3)
-    g = g.to(dtype)
-    return g, g + UP_JITTER * torch.randn_like(g)
+    g = torch.tensor([0.0, 0.0, 1.0]).expand(len(x), 3) if g is None else g.view(-1, 3)
+    g = g.to(x.device, x.dtype)
+    # drawn by the CPU's generator wherever x is, so a GPU run jitters as the CPU's does
+    return g, g + UP_JITTER * torch.randn(g.shape, dtype=g.dtype).to(g.device)
 
 
 def views_up(ds) -> torch.Tensor:
@@ -55,7 +58,7 @@ def given_up(up: torch.Tensor | None, x: torch.Tensor, start: int = 0) -> dict:
     in the batch (``{}`` when ``up`` is None: the model reads its estimate)."""
     if up is None:
         return {}
-    up = up.to(x.dtype)
+    up = up.to(x.device, x.dtype)
     return {"up": up[start:start + len(x)] if up.dim() == 2 else up.expand(len(x), 3)}
 
 
@@ -69,14 +72,16 @@ def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tens
     :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
     if mask is not None and mask.all():
         mask = None  # every point seen: the estimate runs unmasked, as the models run it
+    dev = model_device(gravity)
+    mask = None if mask is None else mask.to(dev)
     was_training = gravity.training
     gravity.eval()  # the polished estimate, as at test time
     ups, margins = [], []
     try:
         for s in range(0, len(x), batch_size):
-            out = gravity(x[s:s + batch_size].float(), mask)
-            ups.append(out["up"])
-            margins.append(out["margin"])
+            out = gravity(x[s:s + batch_size].to(dev).float(), mask)
+            ups.append(out["up"].cpu())
+            margins.append(out["margin"].cpu())
     finally:
         gravity.train(was_training)
     err = torch.rad2deg(geodesic_distance(torch.cat(ups).double(), g.double()))
@@ -116,11 +121,12 @@ def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = 
     B = batch.num_graphs
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
     seen = getattr(batch, "mask", None)  # panoramas may come without one
-    mask = torch.ones(x.shape[1], dtype=torch.bool) if seen is None else seen.view(B, -1)[0]
+    mask = torch.ones(x.shape[1], dtype=torch.bool, device=x.device) if seen is None else \
+        seen.view(B, -1)[0]
     if caps and float(torch.rand(())) < caps:
         both = mask & random_cap(batch.pos[: x.shape[1]], *cap_degrees)
         mask = both if both.any() else mask
-    g, _ = known_up(batch, B, x.dtype)
+    g, _ = known_up(batch, x)
     out = model(x, None if mask.all() else mask)
     stats = {}
     loss = up_loss(getattr(model, "module", model).head, out, g, stats, sign_weight)
@@ -178,8 +184,6 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
     runs it. The up estimate is small (tens of ms a step), so it can see many views at
     little cost, which it needs (README). ``caps``, ``cap_degrees`` and ``sign_weight``:
     see :func:`up_step`; ``resume``: as :func:`~usf_graph.train.engine.fit`'s."""
-    from .engine import fit
-
     if extra is not None:
         train = UpViews(train, extra)
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,

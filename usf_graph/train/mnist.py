@@ -15,6 +15,7 @@ from ..models import PlanarCNN, SphericalClassifier
 from .engine import (
     evaluate,
     fit,
+    resolve_device,
     save_checkpoint,
     seed_everything,
     setup_distributed,
@@ -31,16 +32,20 @@ def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
 def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
         batch_size: int = 32, seed: int = 0, source: str = "auto", planar: bool = True,
         progress: bool = True, input_level: int | None = 5, min_level: int | None = 2,
-        pairs: int = 16, pair_stages: int = 2, resume: bool = False) -> dict:
+        pairs: int = 16, pair_stages: int = 2, resume: bool = False,
+        device: str | None = None) -> dict:
     """Train the spherical classifier (and the planar baseline) on unrotated digits and
     report NR/NR and NR/R accuracy. The digits are lifted to ``input_level`` (the jet is
     taken there), the convolutions start on
     ``level`` and pool down to ``min_level``; ``pairs``/``pair_stages``: the
     :class:`~usf_graph.nn.GradientPairs` layers. Writes results.json, checkpoints and a figure.
     ``resume``: continue an interrupted run under ``out`` (:func:`~usf_graph.train.engine.fit`).
+    ``device``: where the models train and are scored
+    (:func:`~usf_graph.train.engine.resolve_device`; default the CPU).
 
     Under ``torchrun`` every process trains its share; rank 0 alone evaluates and writes
     (the other ranks return ``{}``)."""
+    dev = resolve_device(device)
     rank, _ = setup_distributed()
     seed_everything(seed)
     out = Path(out)
@@ -59,11 +64,13 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
     def train_and_score(name, net, data):
         """Fit on unrotated digits; rank 0 scores NR and R and writes ``<name>.pt``."""
         fit(net, data["train"], data["NR"], epochs=epochs, batch_size=batch_size, seed=seed,
-            log_dir=out / name, config=net.config, progress=progress, name=name, resume=resume)
+            log_dir=out / name, config=net.config, progress=progress, name=name, resume=resume,
+            device=dev)
         if rank == 0:
             results[name] = {k: evaluate(net, data[k], desc=f"{name} {k}",
                                          progress=progress)["acc"] for k in ("NR", "R")}
             save_checkpoint(out / f"{name}.pt", net, net.config, results[name])
+        net.cpu()  # the figure runs it on the CPU's test digits
 
     train_and_score("spherical", model, sets)
     if planar:

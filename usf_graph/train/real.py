@@ -14,7 +14,14 @@ import numpy as np
 from ..models import SphericalDetector
 from ..scenes import PANDORA_CLASSES
 from . import det, seg
-from .engine import fit, save_checkpoint, seed_everything, setup_distributed, write_results
+from .engine import (
+    fit,
+    resolve_device,
+    save_checkpoint,
+    seed_everything,
+    setup_distributed,
+    write_results,
+)
 from .gravity import pretrain_up
 
 
@@ -22,7 +29,7 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                  models=("spherical_unet",), level: int = 5, size: int = 256, epochs: int = 12,
                  batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                  progress: bool = True, balance: float = 0.5, up_epochs: int = 24,
-                 upright: bool = True, resume: bool = False) -> dict:
+                 upright: bool = True, resume: bool = False, device: str | None = None) -> dict:
     """Train on each fold's training areas of Stanford 2D-3D-S (RGB, unrotated as released)
     and score its test areas: mIoU and mAcc from the fold's confusion matrix on the
     ``2 size x size`` panoramas' pixels, the sphere's area-weighted mIoU, and USF's per-image
@@ -30,9 +37,11 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
     ``results.json`` and one checkpoint per fold and model under ``out``. Each model is
     trained as in the rooms protocol (:func:`~usf_graph.train.seg.train_model`: class
     weights, the up estimate first, per fold; ``upright`` as
-    :func:`~usf_graph.train.seg.make_model`'s; ``resume`` as :func:`~usf_graph.train.seg.run`'s)."""
+    :func:`~usf_graph.train.seg.make_model`'s; ``resume`` and ``device`` as
+    :func:`~usf_graph.train.seg.run`'s)."""
     from ..datasets import Stanford2D3DS
 
+    dev = resolve_device(device)
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -44,7 +53,7 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
         test = Stanford2D3DS(root, fold, "test", **kw)
         shared = {}
         for name in models:
-            net = seg.make_model(name, level, upright)
+            net = seg.make_model(name, level, upright).to(dev)
             seg.train_model(net, train, out / f"fold{fold}", name, epochs, batch_size, lr, seed,
                         progress, balance, up_epochs, shared, label=f"{name} fold {fold}",
                         resume=resume)
@@ -67,14 +76,15 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
 def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
                 batch_size: int = 8, lr: float = 2e-3, seed: int = 0, grid: str = "icosahedral:5",
                 progress: bool = True, upright: bool = True, up_epochs: int = 24,
-                resume: bool = False) -> dict:
+                resume: bool = False, device: str | None = None) -> dict:
     """Train the spherical detector on PANDORA's train split (unrotated, as released) and
     score its test split: COCO AP/AP50/AP75 with the spherical IoU and USF's mAP@10.
     Writes ``results.json`` and ``spherical.pt`` under ``out``. ``upright``: as in
     :func:`~usf_graph.train.det.run`, the up estimate trained first on the same panoramas;
-    ``resume`` as its."""
+    ``resume`` and ``device`` as its."""
     from ..datasets import Pandora
 
+    dev = resolve_device(device)
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
@@ -83,7 +93,7 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
     test = det.DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
     C = len(PANDORA_CLASSES)
     net = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
-                            upright_convs=det.UPRIGHT_CONVS if upright else None)
+                            upright_convs=det.UPRIGHT_CONVS if upright else None).to(dev)
     if upright:
         pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
                     log_dir=out / "up_estimate", resume=resume)

@@ -40,6 +40,8 @@ from ..scenes import IGNORE, SEMANTIC_CLASSES
 from .engine import (
     check_channel_scale,
     fit,
+    model_device,
+    resolve_device,
     save_checkpoint,
     scaled_channels,
     seed_everything,
@@ -90,12 +92,12 @@ def segmentation_loss(logits: torch.Tensor, target: torch.Tensor, ignore_index: 
     if not torch.isfinite(logits).all():
         raise ValueError("the model produced NaN or inf logits; lower the learning rate or "
                          "check the inputs")
-    cw = None if class_weight is None else class_weight.to(logits.dtype)
+    cw = None if class_weight is None else class_weight.to(logits.device, logits.dtype)
     loss = nn.functional.cross_entropy(logits, target, ignore_index=ignore_index, reduction="none")
     keep = (target != ignore_index).to(logits.dtype)
     w = keep if cw is None else keep * cw[target.clamp(0, len(cw) - 1)]
     if point_weight is not None:
-        w = w * point_weight.to(logits.dtype)
+        w = w * point_weight.to(logits.device, logits.dtype)
     return (loss * w).sum() / w.sum().clamp_min(1e-12)
 
 
@@ -159,11 +161,11 @@ def segmentation_step(model, batch, class_weight: torch.Tensor | None = None):
     if planar:
         logits, target = model(image), label
     elif trains_up(model):
-        g, noisy = known_up(batch, len(x), x.dtype)
+        g, noisy = known_up(batch, x)
         (logits, grav), target = model(x, mask, up=noisy, return_gravity=True), y
         aux = up_loss(net.gravity.head, grav, g, stats)
     elif getattr(net, "gravity", None) is not None:
-        logits, target = model(x, mask, up=known_up(batch, len(x), x.dtype)[1]), y
+        logits, target = model(x, mask, up=known_up(batch, x)[1]), y
     else:
         logits, target = model(x, mask), y
     loss = segmentation_loss(logits, target, class_weight=class_weight) + aux
@@ -181,9 +183,9 @@ def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "
     other lenses re-imaged as ``pano`` (default: ``2 H x H`` for the camera's height H,
     the protocol's training size). ``up [3]`` or ``[S, 3]``: the views' known gravity
     (:func:`~usf_graph.train.gravity.views_up`), read by a spherical model with
-    ``gravity=True`` instead of its estimate (an IMU)."""
+    ``gravity=True`` instead of its estimate (an IMU). Runs on the device the model is on."""
     model.eval()
-    cam, S = ds.camera, len(ds)
+    cam, S, dev = ds.camera, len(ds), model_device(model)
     pixels, points = [], []
     if is_planar(model):
         if isinstance(cam, Equirectangular):
@@ -194,17 +196,17 @@ def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "
             imgs = ds.image[s:s + batch_size].numpy()
             if pano is not cam:
                 imgs = np.stack([render(im, cam, pano) for im in imgs])
-            x = torch.as_tensor(imgs).permute(0, 3, 1, 2).float() / 255
-            pred = model(x).argmax(1).to(torch.uint8).numpy()
+            x = torch.as_tensor(imgs).permute(0, 3, 1, 2).to(dev).float() / 255
+            pred = model(x).argmax(1).to(torch.uint8).cpu().numpy()
             if pano is not cam:
                 pred = np.stack([render(p, pano, cam, interpolation="nearest") for p in pred])
             pixels.append(pred)
         return np.concatenate(pixels), None
     mask = ds.mask[0]
-    mask = None if mask.all() else mask
+    mask = None if mask.all() else mask.to(dev)
     for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
-        x = ds.x[s:s + batch_size].float()
-        pred = model(x, mask, **given_up(up, x, s)).argmax(-1).to(torch.uint8)
+        x = ds.x[s:s + batch_size].to(dev).float()
+        pred = model(x, mask, **given_up(up, x, s)).argmax(-1).to(torch.uint8).cpu()
         points.append(pred)
         pixels += [ds.frontend.to_image(p, mode="nearest").numpy() for p in pred]
     return np.stack(pixels), torch.cat(points).numpy()
@@ -354,7 +356,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         lr: float = 3e-3, seed: int = 0, models=tuple(MODELS), progress: bool = True,
         balance: float = 0.5, up_epochs: int = 8, upright: bool = True, up_extra: int = 800,
         up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE,
-        up_sign: float = 0.0, channel_scale: float = 1.0, resume: bool = False) -> dict:
+        up_sign: float = 0.0, channel_scale: float = 1.0, resume: bool = False,
+        device: str | None = None) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
     ``upright``, ``channel_scale``: as :func:`make_model`'s, for every model (0.5, with
@@ -372,9 +375,12 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     the same seed, whatever the models before it drew. ``fov_epochs``, ``fov_share``: every model's
     second phase, the spherical ones' through random fields of view (:func:`train_model`;
     0 skips it). ``resume``: continue an interrupted run under ``out``, every stage from
-    its ``last.pt`` (:func:`~usf_graph.train.engine.fit`; finished ones just load)."""
+    its ``last.pt`` (:func:`~usf_graph.train.engine.fit`; finished ones just load).
+    ``device``: where the models train and predict
+    (:func:`~usf_graph.train.engine.resolve_device`; default the CPU)."""
     check_channel_scale(channel_scale)  # these before any rendering
     check_extra_rooms(seed, up_extra)
+    dev = resolve_device(device)
     if unknown := sorted(set(models) - set(MODELS)):
         raise ValueError(f"unknown models {unknown}: choose from {sorted(MODELS)}")
     rank, _ = setup_distributed()
@@ -391,7 +397,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     up_kw = dict(caps=up_caps, extra=extra, sign_weight=up_sign)
     for name in models:
         seed_everything(seed)
-        net = make_model(name, level, upright, channel_scale)
+        net = make_model(name, level, upright, channel_scale).to(dev)
         t = time.time()
         train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
                     balance, up_epochs, shared, up_kw=up_kw, fov_epochs=fov_epochs,
