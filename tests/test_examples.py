@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -230,3 +231,55 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
     train = RoomsSegmentation(tmp_path / "rooms", "train", camera=test.camera,
                               grid="icosahedral:3", num_scenes=3, progress=False)
     assert [str(f) for f in rendered] == train.processed_paths
+
+
+def test_up_by_view_example_counts_each_view_once_and_scores_as_the_protocol(tmp_path, capsys):
+    """Its bins hold every view once and their gross errors are up_report's; on all views its
+    AP50 is the protocol's score, with the estimate and with the true up; the share of floor
+    and ceiling is read off the label image."""
+    from usf_graph.models import SphericalDetector
+    from usf_graph.scenes import SEMANTIC_CLASSES
+    from usf_graph.train import det
+    from usf_graph.train.engine import save_checkpoint
+    from usf_graph.train.gravity import up_report, views_up
+
+    torch.manual_seed(0)
+    net = SphericalDetector(num_classes=12, gravity=True, upright=True)
+    save_checkpoint(tmp_path / "net.pt", net, {**net.config, "size": 32}, {})
+    ex = load("up_by_view")
+    res = ex.main([str(tmp_path / "net.pt"), "--root", str(tmp_path / "rooms"), "--num-test", "3"])
+    ds = det.protocol_sets(tmp_path / "rooms", 32, num_train=0, num_test=3, progress=False)["d"]
+    assert sum(b["views"] for b in res["bins"]) == 3
+    want = up_report(net.eval().gravity, ds.x, ds.mask[0], views_up(ds))
+    assert sum(b["gross"] for b in res["bins"]) == want["gross"]
+    assert all(b["upside_down"] <= b["gross"] for b in res["bins"])
+    data = det.DetectionSet.spherical(ds)
+    for name, up in (("estimate", None), ("true up", views_up(ds))):
+        score = det.score(det.predict(net, data, progress=False, up=up), data, 12)["AP50"]
+        assert res["AP50"][name]["all"] == pytest.approx(score)
+    assert "wall close-ups" in capsys.readouterr().out
+    # AP50 on a subset of views: the truth found scores 1, a view's boxes missed score 0
+    pano = det.DetectionSet.spherical(det.protocol_sets(tmp_path / "rooms", 32, num_train=0,
+                                                        num_test=3, progress=False)["a"])
+    found = [dict(zip(("boxes", "classes"), pano.truth(i)), scores=np.ones(len(pano.truth(i)[0])))
+             for i in range(3)]
+    n = [len(pano.truth(i)[0]) for i in range(3)]
+    assert ex.ap50_on(found, pano, [0, 1, 2], 12) == (pytest.approx(1.0), sum(n))
+    first = next(i for i in range(3) if n[i])
+    found[first] = {k: v[:0] for k, v in found[first].items()}
+    assert ex.ap50_on(found, pano, [first], 12)[0] == 0.0
+    rest = [i for i in range(3) if i != first and n[i]]
+    assert ex.ap50_on(found, pano, rest, 12)[0] == pytest.approx(1.0)
+    floor, ceiling, wall = (SEMANTIC_CLASSES.index(c) for c in ("floor", "ceiling", "wall"))
+    labels = torch.tensor([[[floor, wall], [wall, wall]], [[ceiling, floor], [floor, 255]]])
+    np.testing.assert_allclose(ex.floor_and_ceiling(_Sized(labels)), [0.25, 0.75])
+
+
+class _Sized:
+    """A stand-in split with only a label image."""
+
+    def __init__(self, label_image):
+        self.label_image = label_image
+
+    def __len__(self):
+        return len(self.label_image)
