@@ -273,9 +273,10 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     normalizations keep their running statistics (:func:`freeze_norms`).
 
     ``device`` (:func:`resolve_device`; ``None``: where the model is) moves the model there
-    and each batch after the ``collate_fn``, so that random fields of view and other draws
-    stay on the CPU's generators; the step sees the batch on the device. A GPU run's
-    numbers are not the CPU's to the digit (other kernels, the GPU's random draws).
+    and each batch after the ``collate_fn``; the protocols' steps draw only from the CPU's
+    generators (the known up's jitter, the fields of view), so a GPU run draws what a CPU
+    run does and a resumed one goes on as on the CPU. Its numbers still differ from the
+    CPU's in the last digits (other kernels).
     """
     rank, world = setup_distributed()
     seed_everything(seed)
@@ -305,8 +306,6 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         sched.load_state_dict(blob["scheduler"])
         start, history = blob["epoch"], blob["metrics"].get("history", [])
         torch.set_rng_state(blob["rng"])
-        if dev.type == "cuda" and "cuda_rng" in blob:
-            torch.cuda.set_rng_state(blob["cuda_rng"], dev)
         if stateful is not None:
             stateful.load_state_dict(blob["collate"])
     writer = _tensorboard(log_dir) if rank == 0 else None
@@ -346,8 +345,6 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
             if log_dir is not None:
                 _log(log_dir, history, writer)
                 state = {"plan": plan, "rng": torch.get_rng_state()}
-                if dev.type == "cuda":
-                    state["cuda_rng"] = torch.cuda.get_rng_state(dev)
                 if stateful is not None:
                     state["collate"] = stateful.state_dict()
                 save_checkpoint(log_dir / "last.pt", model, config or {}, {"history": history},
