@@ -188,12 +188,14 @@ def up_options(model, args) -> None:
     (:func:`~usf_graph.models.set_level_prior`, :func:`~usf_graph.models.set_sign_check`);
     an error if there is none to set them on."""
     from .models import set_level_prior, set_sign_check
+    from .train import model_device
     from .train.gravity import load_sign_check
 
     needs = "{} needs a spherical model with an up estimate (gravity=True); this checkpoint has none"
     if args.level_prior and not set_level_prior(model, args.level_prior):
         raise ValueError(needs.format("--level-prior"))
-    if args.sign_check and not set_sign_check(model, load_sign_check(args.sign_check)):
+    if args.sign_check and not set_sign_check(
+            model, load_sign_check(args.sign_check).to(model_device(model))):
         raise ValueError(needs.format("--sign-check"))
 
 

@@ -39,6 +39,9 @@ def add_predict_parser(sub, fmt) -> None:
                         "README; 0 off)")
     p.add_argument("--sign-check", default=None, metavar="PATH",
                    help="pass the up estimate through this sign check (examples/up_sign.py --save)")
+    p.add_argument("--device", default="cpu",
+                   help="where the model runs: cpu, cuda, cuda:N, or auto (a GPU when torch "
+                        "sees one)")
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted; auto: area where the image is over twice as "
                         "fine as the grid (no aliasing), else bilinear as in training")
@@ -63,6 +66,7 @@ def _report_up(info: dict) -> str:
 
 def cmd_predict(args) -> int:
     from .cli_det import up_options
+    from .train import resolve_device
     from .train.apply import class_names
     from .train.checkpoints import load_protocol_model
 
@@ -74,7 +78,7 @@ def cmd_predict(args) -> int:
     if args.rig and args.key is not None:
         raise ValueError("--key picks one camera; --rig lifts every camera of the camchain")
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
-    model = ckpt.model  # loaded once for every image
+    model = ckpt.model.to(resolve_device(args.device))  # loaded once for every image
     up_options(model, args)
     names = class_names(args.task, model.config["num_classes"])
     out = Path(args.out)

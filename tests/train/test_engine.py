@@ -239,18 +239,20 @@ DEVICES = ("cpu", "cuda")  # the GPU test's pair (a CPU run of the test itself: 
 def test_on_a_gpu_training_and_prediction_follow_the_cpu(tmp_path):
     """The segmentation and detection recipes through ``fit(device="cuda")``: the same draws
     (batches, fields of view, the up's jitter) as on the CPU, so the weights after two
-    epochs and the predictions agree up to float32 rounding."""
+    epochs and the predictions (the protocols' and ``usf-graph predict``'s) agree up to
+    float32 rounding."""
     from functools import partial
 
     from usf_graph.models import SphericalDetector
     from usf_graph.train import det, seg
+    from usf_graph.train.apply import segment_image
     from usf_graph.train.engine import fit
     from usf_graph.train.gravity import up_report, views_up
 
     sets = seg.protocol_sets(tmp_path / "rooms", size=16, level=3, num_train=4, num_test=2,
                              tests=("d",), progress=False)
     step = partial(seg.segmentation_step, class_weight=torch.ones(13))
-    nets, preds, ups = [], [], []
+    nets, preds, ups, own = [], [], [], []
     for dev in DEVICES:
         torch.manual_seed(1)
         net = seg.make_model("spherical_unet", level=3)
@@ -261,10 +263,12 @@ def test_on_a_gpu_training_and_prediction_follow_the_cpu(tmp_path):
         nets.append({k: v.cpu() for k, v in net.state_dict().items()})
         preds.append(seg.predict(net, sets["d"], progress=False)[1])
         ups.append(up_report(net.gravity, sets["d"].x, sets["d"].mask[0], views_up(sets["d"])))
+        own.append(segment_image(net, sets["d"].image[0].numpy(), sets["d"].camera)["points"])
     for k, v in nets[0].items():
         assert torch.allclose(v.double(), nets[1][k].double(), rtol=1e-3, atol=1e-4), k
     assert (preds[0] == preds[1]).mean() > 0.99
     assert ups[0]["gross"] == ups[1]["gross"]
+    assert (own[0] == own[1]).mean() > 0.99  # usf-graph predict's path
 
     rooms = det.protocol_sets(tmp_path / "rooms", size=16, grid="icosahedral:3", num_train=4,
                               num_test=2, progress=False)

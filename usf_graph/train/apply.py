@@ -22,6 +22,7 @@ import torch
 from ..frontend import SphericalFrontend
 from ..frontend.interpolation import valid_pixels
 from ..grids import from_spec
+from .engine import model_device
 
 #: Unseen pixels of a label image (the datasets' ignore index).
 UNSEEN = 255
@@ -101,7 +102,8 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     through ``camera`` onto ``model``'s grid. ``interpolation``: a
     :class:`~usf_graph.frontend.SphericalFrontend` method, or ``auto``
     (:func:`choose_interpolation`; for a rig, ``area`` if any of its cameras needs it).
-    ``image_mask [H, W]``: False on pixels to ignore.
+    ``image_mask [H, W]``: False on pixels to ignore. ``x`` and ``mask`` are on the device
+    the model is on.
 
     A rig: ``camera`` a list or ``{name: camera}`` of cameras mounted by their
     ``rotation`` (:func:`usf_graph.cameras.load_rig`) and ``image`` one image per camera
@@ -118,7 +120,7 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
         # one frontend per camera: its remap maps are built on its first lift, not per frame
         fe = _per_camera("frontend", camera, lambda: SphericalFrontend(camera, grid, interpolation),
                          (grid.spec, interpolation))
-        return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
+        return _on_model(model, fe, fe.lift(rgb)[None])
     from ..frontend import RigFrontend
 
     if image_mask is not None:
@@ -131,7 +133,14 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
         interpolation = "area" if "area" in picks else "bilinear"
     fe = _per_camera("rig", cams, lambda: RigFrontend(camera, grid, interpolation=interpolation),
                      (grid.spec, interpolation, tuple(camera) if isinstance(camera, Mapping) else None))
-    return fe, fe.lift(rgb)[None], None if fe.mask.all() else fe.mask
+    return _on_model(model, fe, fe.lift(rgb)[None])
+
+
+def _on_model(model, fe, x):
+    """``(fe, x, mask)`` with the lifted ``x`` and the field of view on ``model``'s device
+    (the mask None where the frontend sees everything)."""
+    dev = model_device(model)
+    return fe, x.to(dev), None if fe.mask.all() else fe.mask.to(dev)
 
 
 def is_rig(camera) -> bool:
@@ -156,14 +165,15 @@ def _evaluating(model):
         model.train(was)
 
 
-def _up(up, dtype) -> torch.Tensor | None:
+def _up(up, x: torch.Tensor) -> torch.Tensor | None:
+    """A given ``up`` as ``[1, 3]`` unit vector in ``x``'s dtype and on its device."""
     if up is None:
         return None
     u = torch.as_tensor(np.asarray(up, np.float64).reshape(-1))
     if u.shape != (3,) or not torch.isfinite(u).all() or u.norm() < 1e-9:
         raise ValueError(f"up must be 3 finite numbers, not all 0 (the gravity's up in the "
                          f"camera's sphere frame: x forward, y left, z up), got {up}")
-    return (u / u.norm()).to(dtype)[None]
+    return (u / u.norm()).to(x.device, x.dtype)[None]
 
 
 def _up_info(given, grav) -> dict:
@@ -191,13 +201,13 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     outside the field of view), "probs": [N, C] float32, "up": ..., "interpolation":
     ...}``."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
-    given = _up(up, x.dtype)
+    given = _up(up, x)
     with _evaluating(model):
         if given is None:
             logits, grav = model(x, mask, return_gravity=True)
         else:
             logits, grav = model(x, mask, up=given), None
-    probs = logits[0].softmax(-1)
+    probs = logits[0].softmax(-1).cpu()
     points = probs.argmax(-1).to(torch.uint8)
     labels = []
     for f in _frontends(fe):
@@ -220,7 +230,7 @@ def detect_image(model, image, camera, up=None, interpolation: str = "auto", ima
     :func:`segment_image`'s; ``threshold``, ``k``, ``nms`` as
     :meth:`~usf_graph.models.SphericalDetector.decode`'s."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
-    given = _up(up, x.dtype)
+    given = _up(up, x)
     with _evaluating(model):
         out = model(x, mask) if given is None else model(x, mask, up=given)
     found = model.decode(out, k=k, threshold=threshold, nms=nms)[0]
