@@ -456,3 +456,28 @@ def test_eval_mnist_refuses_the_options_of_eval_det_and_seg(tmp_path, capsys):
     for argv, named in ((["--test", "a"], "--test"), (["--known-up", "--fold", "2"], "--fold, --known-up")):
         assert main(["eval", "mnist", str(tmp_path / "m.pt"), *argv]) == 2
         assert f"{named}: options of 'eval det|seg'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("task", ["seg", "det", "mnist"])
+def test_a_device_the_machine_lacks_is_refused_before_any_work(tmp_path, capsys, monkeypatch, task):
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    root, out = tmp_path / "data", tmp_path / "run"
+    rc = main(["train", task, "--device", "cuda", "--root", str(root), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "sees no CUDA GPU" in err and "--device cpu" in err
+    assert not root.exists() and not out.exists()  # nothing rendered or written
+    assert main(["train", task, "--device", "tpu", "--root", str(root)]) == 2
+    assert "unknown device 'tpu'" in capsys.readouterr().err
+
+
+def test_eval_refuses_a_device_the_machine_lacks(tmp_path, capsys, monkeypatch):
+    from usf_graph.models import SphericalClassifier
+    from usf_graph.train import save_checkpoint
+
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    net = SphericalClassifier(level=2, input_level=2, min_level=1, pairs=0)
+    save_checkpoint(tmp_path / "m.pt", net, net.config, {})
+    assert main(["eval", "mnist", str(tmp_path / "m.pt"), "--device", "cuda",
+                 "--root", str(tmp_path / "data")]) == 2
+    assert "sees no CUDA GPU" in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()

@@ -364,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "render tables, by kind and size.")
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
-    from .cli_det import add_eval_options, add_train_options
+    from .cli_det import add_device_option, add_eval_options, add_train_options
     from .cli_predict import add_predict_parser
     from .train import defaults
     from .train.mnist import run as mnist_run
@@ -394,10 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true",
                    help="continue an interrupted run in --out with the same options: every "
                         "stage from its last finished epoch (last.pt), finished ones loaded")
-    t.add_argument("--device", default="cpu",
-                   help="where the models train and are scored: cpu, cuda, cuda:N, or auto "
-                        "(a GPU when torch sees one); under torchrun, cuda is each process's "
-                        "own GPU")
+    add_device_option(t, "the models train and are scored")
     t.add_argument("--pairs", type=int, default=d["pairs"],
                    help="gradient pairs per GradientPairs layer (0: none)")
     t.add_argument("--pair-stages", type=int, default=d["pair_stages"],

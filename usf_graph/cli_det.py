@@ -53,6 +53,14 @@ def add_train_options(t) -> None:
                         "lead in session 26, docs/seg_det_log.md)")
 
 
+def add_device_option(p, what: str = "the model runs") -> None:
+    """``--device`` of ``train``, ``eval`` and ``predict``
+    (:func:`~usf_graph.train.engine.resolve_device`)."""
+    p.add_argument("--device", default="cpu",
+                   help=f"where {what}: cpu, cuda, cuda:N, or auto (a GPU when torch sees one); "
+                        "under torchrun, cuda is each process's own GPU")
+
+
 def add_eval_options(e) -> None:
     """Options of ``eval det`` and ``eval seg``: which tests, which views, which up."""
     e.add_argument("--dataset", default=None, choices=["rooms", "stanford2d3ds", "pandora"],
@@ -74,9 +82,7 @@ def add_eval_options(e) -> None:
     e.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
                    help="det, seg: the up estimate assumes level cameras (optical axis "
                         "horizontal) with this strength; 10 in the README, 0 (default) off")
-    e.add_argument("--device", default="cpu",
-                   help="where the model runs: cpu, cuda, cuda:N, or auto (a GPU when torch "
-                        "sees one)")
+    add_device_option(e)
     e.add_argument("--sign-check", default=None, metavar="PATH",
                    help="det, seg: pass the up estimate through this sign check on wide fields "
                         "of view (a file of 'examples/up_sign.py --save')")

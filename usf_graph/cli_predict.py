@@ -12,6 +12,7 @@ from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_imag
 
 def add_predict_parser(sub, fmt) -> None:
     """The ``predict`` subcommand and its options."""
+    from .cli_det import add_device_option
     from .frontend.interpolation import METHODS
 
     p = sub.add_parser("predict", help="run a trained seg or det model on your own image",
@@ -39,9 +40,7 @@ def add_predict_parser(sub, fmt) -> None:
                         "README; 0 off)")
     p.add_argument("--sign-check", default=None, metavar="PATH",
                    help="pass the up estimate through this sign check (examples/up_sign.py --save)")
-    p.add_argument("--device", default="cpu",
-                   help="where the model runs: cpu, cuda, cuda:N, or auto (a GPU when torch "
-                        "sees one)")
+    add_device_option(p)
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted; auto: area where the image is over twice as "
                         "fine as the grid (no aliasing), else bilinear as in training")
