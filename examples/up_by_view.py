@@ -4,13 +4,15 @@ A level 90-degree pinhole looks along the viewpoint's random yaw, so some of the
 pinhole views face a wall from a metre or two and show no floor or ceiling at all; the
 image then holds little to tell up from the wall's own horizontal direction. This sorts a
 test's views by the share of their pixels labelled floor or ceiling and counts, per bin,
-the views on which the estimate is over 60 degrees off. For a detection checkpoint it
-also scores AP50 (the protocol's rule) on the views that show under 2% floor and ceiling,
-on the others, and on all, with the estimate and with the views' true gravity.
+the views on which the estimate is over 60 degrees off. It also scores the checkpoint on
+the views that show under 2% floor and ceiling, on the others, and on all, with the
+estimate and with the views' true gravity: AP50 for a detector (the protocol's rule),
+mIoU on the camera's pixels for a segmenter (one confusion matrix per subset).
 
     .venv/bin/python examples/up_by_view.py runs/s35_det15/spherical.pt --test d
+    .venv/bin/python examples/up_by_view.py runs/seg_15min/spherical_deeplab.pt --test d
 
-About a minute (det) once the protocol's rooms are rendered (``data/rooms``); session 36's
+About a minute once the protocol's rooms are rendered (``data/rooms``); session 36's
 numbers: docs/up_estimate.md, "Which pinhole views fail".
 """
 
@@ -27,6 +29,7 @@ from usf_graph.train import det, seg
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.det_metrics import coco_ap
 from usf_graph.train.gravity import GROSS_DEGREES, views_up
+from usf_graph.train.seg_metrics import confusion_matrix, scores
 
 BINS = (0.0, 0.02, 0.10, 0.25, 1.01)  # shares of a view's pixels that are floor or ceiling
 WALL = BINS[1]  # under this, a "wall close-up"
@@ -57,6 +60,14 @@ def ap50_on(dets, data, views, num_classes: int) -> tuple[float, int]:
     found = [(dets[i]["boxes"], dets[i]["classes"], dets[i]["scores"]) for i in views]
     ignored = [data.ignored(i) for i in views]
     return coco_ap(truth, found, num_classes, ignored)["AP50"], int(sum((~i).sum() for i in ignored))
+
+
+def miou_on(pixels: np.ndarray, ds, views) -> float:
+    """mIoU over ``views`` of a segmentation split from its pixel predictions ``[S, H, W]``:
+    one confusion matrix summed over those views, as the protocol scores a whole test."""
+    conf = sum(confusion_matrix(pixels[i], ds.label_image[i].numpy(), len(SEMANTIC_CLASSES))
+               for i in views)
+    return scores(conf)["mIoU"]
 
 
 def main(argv=None) -> dict:
@@ -91,18 +102,25 @@ def main(argv=None) -> dict:
                             "gross": gross, "upside_down": flipped})
         print(f"  [{lo:.2f}, {min(hi, 1.0):.2f}): {sel.sum():3d} views, {gross:3d} of them over "
               f"({flipped} over {FLIPPED:.0f}: upside down)")
-    if ckpt.task == "det":
-        data = det.DetectionSet.spherical(ds)
-        wall = share < WALL
-        parts = {"wall close-ups": np.flatnonzero(wall), "the rest": np.flatnonzero(~wall),
-                 "all": np.arange(len(ds))}
-        for name, up in (("estimate", None), ("true up", views_up(ds))):
+    wall = share < WALL
+    parts = {"wall close-ups": np.flatnonzero(wall), "the rest": np.flatnonzero(~wall),
+             "all": np.arange(len(ds))}
+    data = det.DetectionSet.spherical(ds) if ckpt.task == "det" else None
+    metric = "AP50" if ckpt.task == "det" else "mIoU"
+    parts = {k: v for k, v in parts.items() if len(v)}  # a test may have no wall close-ups
+    for name, up in (("estimate", None), ("true up", views_up(ds))):
+        if ckpt.task == "det":
             dets = det.predict(model, data, progress=False, up=up)
-            for part, views in parts.items():
-                ap, boxes = ap50_on(dets, data, views, model.num_classes)
-                res.setdefault("AP50", {}).setdefault(name, {})[part] = ap
-                print(f"  {name:8s} {part:15s} {len(views):3d} views, {boxes:4d} boxes: "
-                      f"AP50 {100 * ap:.2f}")
+        else:
+            pixels = seg.predict(model, ds, progress=False, up=up)[0]
+        for part, views in parts.items():
+            if ckpt.task == "det":
+                value, boxes = ap50_on(dets, data, views, model.num_classes)
+                what = f"{boxes:4d} boxes"
+            else:
+                value, what = miou_on(pixels, ds, views), "pixels"
+            res.setdefault(metric, {}).setdefault(name, {})[part] = value
+            print(f"  {name:8s} {part:15s} {len(views):3d} views, {what}: {metric} {100 * value:.2f}")
     return res
 
 

@@ -257,7 +257,9 @@ def test_up_by_view_example_counts_each_view_once_and_scores_as_the_protocol(tmp
     for name, up in (("estimate", None), ("true up", views_up(ds))):
         score = det.score(det.predict(net, data, progress=False, up=up), data, 12)["AP50"]
         assert res["AP50"][name]["all"] == pytest.approx(score)
-    assert "wall close-ups" in capsys.readouterr().out
+    out = capsys.readouterr().out  # these 3 views all show floor or ceiling: no close-ups
+    assert "the rest" in out and "wall close-ups" not in out
+    assert res["bins"][0]["views"] == 0
     # AP50 on a subset of views: the truth found scores 1, a view's boxes missed score 0
     pano = det.DetectionSet.spherical(det.protocol_sets(tmp_path / "rooms", 32, num_train=0,
                                                         num_test=3, progress=False)["a"])
@@ -273,6 +275,26 @@ def test_up_by_view_example_counts_each_view_once_and_scores_as_the_protocol(tmp
     floor, ceiling, wall = (SEMANTIC_CLASSES.index(c) for c in ("floor", "ceiling", "wall"))
     labels = torch.tensor([[[floor, wall], [wall, wall]], [[ceiling, floor], [floor, 255]]])
     np.testing.assert_allclose(ex.floor_and_ceiling(_Sized(labels)), [0.25, 0.75])
+
+
+def test_up_by_view_example_scores_a_segmenter_as_the_protocol(tmp_path):
+    """For a seg checkpoint, mIoU over all views is the protocol's score of the test, with
+    the estimate and with the true up, and the bins hold every view once."""
+    from usf_graph.train import seg
+    from usf_graph.train.engine import save_checkpoint
+    from usf_graph.train.gravity import views_up
+
+    torch.manual_seed(0)
+    net = seg.make_model("spherical_unet", level=3)
+    save_checkpoint(tmp_path / "net.pt", net, {"model": "spherical_unet", "size": 16, **net.config}, {})
+    res = load("up_by_view").main([str(tmp_path / "net.pt"), "--root", str(tmp_path / "rooms"),
+                                   "--num-test", "3"])
+    ds = seg.protocol_sets(tmp_path / "rooms", 16, 3, num_train=0, num_test=3, tests=("d",),
+                           progress=False)["d"]
+    assert sum(b["views"] for b in res["bins"]) == 3
+    for name, up in (("estimate", None), ("true up", views_up(ds))):
+        want = seg.score(seg.predict(net.eval(), ds, progress=False, up=up)[0], ds)["mIoU"]
+        assert res["mIoU"][name]["all"] == pytest.approx(want)
 
 
 class _Sized:
