@@ -182,6 +182,24 @@ def test_edge_votes_point_at_the_axis_all_edges_run_through(seed):
     assert v[side].max() < 0.65 * v.max()
 
 
+@pytest.mark.parametrize("level", [4, 5])
+def test_edge_votes_stay_finite_and_bounded_in_float32(level):
+    """Each edge's vote is its weight times s2 exp(-kappa e), s2 and e squared sines, so the
+    votes over the weights' sum lie in [0, 1]. In float32 a candidate that is itself an edge
+    point (the grids are nested) had a^T T a rounded below 0, and exp(-kappa e) blew it up:
+    NaN votes on these ramps from a gradient of 10 per radian, on level 4 too (session 36;
+    on the detection protocol's views, e reached -0.66)."""
+    g, ev = _edge_votes(level)
+    ev, p = ev.float(), g.pos.float()
+    gen = torch.Generator().manual_seed(level)
+    for scale in (1.0, 10.0, 50.0):  # colour ramps: strong edges everywhere, candidates too
+        d = torch.nn.functional.normalize(torch.randn(3, 3, generator=gen), dim=0)
+        x = (scale * p @ d)[None] + 0.01 * torch.rand(1, len(p), 3, generator=gen)
+        with torch.no_grad():
+            v = ev(x, torch.zeros(1, len(p), 1)) / ev.scale
+        assert torch.isfinite(v).all() and v.min() >= 0 and v.max() <= 1 + 1e-6, scale
+
+
 def test_edge_votes_ignore_hidden_points():
     """Edges outside the field of view do not vote: changing the image far inside the
     hidden part changes nothing."""

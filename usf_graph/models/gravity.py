@@ -215,7 +215,9 @@ class EdgeVotes(nn.Module):
             -1, -1, f.shape[-1]))))[..., 0] * vis  # hidden points never vote
         a = self.candidates.to(x.dtype)
         s2 = (1 - self.cos[:, idx].permute(1, 0, 2).to(x.dtype) ** 2).clamp_min(0)  # [B, Nc, K]
-        e = torch.einsum("ni,bkij,nj->bnk", a, T, a) / (tr[:, None] * s2 + 1e-6)
+        # a squared sine, >= 0: T's rounding makes a^T T a slightly negative where a is
+        # near the edge point (s2 -> 0), and exp(-kappa e) would blow that up (inf at level 5)
+        e = (torch.einsum("ni,bkij,nj->bnk", a, T, a) / (tr[:, None] * s2 + 1e-6)).clamp_min(0)
         votes = (om[:, None] * s2 * torch.exp(-self.kappa * e)).sum(-1)
         return self.scale * votes / om.sum(-1, keepdim=True).clamp_min(1e-6)
 
