@@ -70,6 +70,24 @@ def miou_on(pixels: np.ndarray, ds, views) -> float:
     return scores(conf)["mIoU"]
 
 
+def detection_scores(model, ds):
+    """``up -> (views -> (AP50, counted boxes))`` for a detector on the split ``ds``."""
+    data = det.DetectionSet.spherical(ds)
+
+    def with_up(up):
+        dets = det.predict(model, data, progress=False, up=up)
+        return lambda views: ap50_on(dets, data, views, model.num_classes)
+    return with_up
+
+
+def segmentation_scores(model, ds):
+    """``up -> (views -> (mIoU, None))`` for a segmenter on the split ``ds``."""
+    def with_up(up):
+        pixels = seg.predict(model, ds, progress=False, up=up)[0]
+        return lambda views: (miou_on(pixels, ds, views), None)
+    return with_up
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
@@ -105,21 +123,15 @@ def main(argv=None) -> dict:
     wall = share < WALL
     parts = {"wall close-ups": np.flatnonzero(wall), "the rest": np.flatnonzero(~wall),
              "all": np.arange(len(ds))}
-    data = det.DetectionSet.spherical(ds) if ckpt.task == "det" else None
-    metric = "AP50" if ckpt.task == "det" else "mIoU"
     parts = {k: v for k, v in parts.items() if len(v)}  # a test may have no wall close-ups
+    metric, scored = ("AP50", detection_scores) if ckpt.task == "det" else ("mIoU", segmentation_scores)
+    score_views = scored(model, ds)
     for name, up in (("estimate", None), ("true up", views_up(ds))):
-        if ckpt.task == "det":
-            dets = det.predict(model, data, progress=False, up=up)
-        else:
-            pixels = seg.predict(model, ds, progress=False, up=up)[0]
+        on = score_views(up)
         for part, views in parts.items():
-            if ckpt.task == "det":
-                value, boxes = ap50_on(dets, data, views, model.num_classes)
-                what = f"{boxes:4d} boxes"
-            else:
-                value, what = miou_on(pixels, ds, views), "pixels"
+            value, boxes = on(views)
             res.setdefault(metric, {}).setdefault(name, {})[part] = value
+            what = "pixels" if boxes is None else f"{boxes:4d} boxes"
             print(f"  {name:8s} {part:15s} {len(views):3d} views, {what}: {metric} {100 * value:.2f}")
     return res
 
