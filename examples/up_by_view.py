@@ -21,14 +21,12 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-import torch
 
-from usf_graph.geometry import geodesic_distance
 from usf_graph.scenes import SEMANTIC_CLASSES
 from usf_graph.train import det, seg
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.det_metrics import coco_ap
-from usf_graph.train.gravity import GROSS_DEGREES, views_up
+from usf_graph.train.gravity import GROSS_DEGREES, up_errors, views_up
 from usf_graph.train.seg_metrics import confusion_matrix, scores
 
 BINS = (0.0, 0.02, 0.10, 0.25, 1.01)  # shares of a view's pixels that are floor or ceiling
@@ -41,16 +39,6 @@ def floor_and_ceiling(ds) -> np.ndarray:
     lab = ds.label_image.numpy().reshape(len(ds), -1)
     keep = np.isin(lab, [SEMANTIC_CLASSES.index("floor"), SEMANTIC_CLASSES.index("ceiling")])
     return keep.mean(1)
-
-
-@torch.no_grad()
-def up_errors(model, ds, batch: int = 16) -> np.ndarray:
-    """The estimate's error per view, degrees ``[S]``."""
-    mask = None if ds.mask[0].all() else ds.mask[0]
-    model.gravity.eval()
-    ups = torch.cat([model.gravity(ds.x[s:s + batch].float(), mask)["up"]
-                     for s in range(0, len(ds), batch)])
-    return torch.rad2deg(geodesic_distance(ups.double(), views_up(ds).double())).numpy()
 
 
 def ap50_on(dets, data, views, num_classes: int) -> tuple[float, int]:
@@ -109,7 +97,8 @@ def main(argv=None) -> dict:
         ds = seg.protocol_sets(args.root, ckpt.size, ckpt.config.get("level", 5), num_train=0,
                                num_test=args.num_test, seed=seed, tests=(args.test,),
                                progress=False)[args.test]
-    share, err = floor_and_ceiling(ds), up_errors(model, ds)
+    share = floor_and_ceiling(ds)
+    err = up_errors(model.gravity, ds.x, ds.mask[0], views_up(ds))[0].numpy()
     res = {"bins": []}
     print(f"({args.test}) views by their share of floor and ceiling pixels, and the up "
           f"estimate's errors over {GROSS_DEGREES:.0f} degrees:")

@@ -189,6 +189,16 @@ def eval_data(ckpt, args) -> str:
     return data
 
 
+def ready_model(ckpt, args):
+    """``ckpt``'s model on ``--device``, with the up estimate's test-time options
+    (:func:`up_options`): what ``eval`` and ``predict`` run."""
+    from .train import resolve_device
+
+    model = ckpt.model.to(resolve_device(args.device))
+    up_options(model, args)
+    return model
+
+
 def up_options(model, args) -> None:
     """``eval --level-prior`` and ``--sign-check``: set on ``model``'s up estimate
     (:func:`~usf_graph.models.set_level_prior`, :func:`~usf_graph.models.set_sign_check`);
@@ -206,14 +216,12 @@ def up_options(model, args) -> None:
 
 
 def cmd_eval_det(args) -> int:
-    from .train import resolve_device
     from .train.checkpoints import load_protocol_model
     from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
     from .train.gravity import format_up_report, up_report, views_up
 
     ckpt = load_protocol_model(args.checkpoint).require("det")
-    model, cfg, planar = ckpt.model.to(resolve_device(args.device)), ckpt.config, ckpt.planar
-    up_options(model, args)
+    model, cfg, planar = ready_model(ckpt, args), ckpt.config, ckpt.planar
     if eval_data(ckpt, args) == "pandora":
         from .datasets import Pandora
 

@@ -64,8 +64,7 @@ def _report_up(info: dict) -> str:
 
 
 def cmd_predict(args) -> int:
-    from .cli_det import up_options
-    from .train import resolve_device
+    from .cli_det import ready_model
     from .train.apply import class_names
     from .train.checkpoints import load_protocol_model
 
@@ -77,8 +76,7 @@ def cmd_predict(args) -> int:
     if args.rig and args.key is not None:
         raise ValueError("--key picks one camera; --rig lifts every camera of the camchain")
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
-    model = ckpt.model.to(resolve_device(args.device))  # loaded once for every image
-    up_options(model, args)
+    model = ready_model(ckpt, args)  # loaded once for every image
     names = class_names(args.task, model.config["num_classes"])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -7,10 +7,10 @@ import json
 from .cli_det import (
     eval_data,
     given_or_default,
+    ready_model,
     rooms_only_options,
     run_kwargs,
     up_kwargs,
-    up_options,
 )
 
 
@@ -50,14 +50,12 @@ def cmd_train_seg(args) -> int:
 
 
 def cmd_eval_seg(args) -> int:
-    from .train import resolve_device
     from .train.checkpoints import load_protocol_model
     from .train.gravity import format_up_report
     from .train.seg import PROTOCOL, evaluate_protocol, evaluate_set, protocol_sets
 
     ckpt = load_protocol_model(args.checkpoint).require("seg")
-    model, name = ckpt.model.to(resolve_device(args.device)), ckpt.name
-    up_options(model, args)
+    model, name = ready_model(ckpt, args), ckpt.name
     level = ckpt.config.get("level", 5)
     if eval_data(ckpt, args) == "stanford2d3ds":
         from .datasets import Stanford2D3DS

@@ -63,13 +63,12 @@ def given_up(up: torch.Tensor | None, x: torch.Tensor, start: int = 0) -> dict:
 
 
 @torch.no_grad()
-def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
-              batch_size: int = 16) -> dict:
-    """How an up estimate (an :class:`~usf_graph.models.UpNet`, e.g. ``model.gravity``) fared
-    on views ``x [S, N, C]`` (``mask [N]``, e.g. a split's ``mask[0]``, or ``None``) of known
-    gravity ``g [S, 3]``: the median error in degrees, the number of ``gross`` errors (over
-    :data:`GROSS_DEGREES`), of views it is ``unsure`` of (``margin`` below
-    :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
+def up_errors(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
+              batch_size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per view, the error in degrees of an up estimate (an :class:`~usf_graph.models.UpNet`,
+    e.g. ``model.gravity``, run polished as at test time, on its own device) on views ``x [S,
+    N, C]`` (``mask [N]`` or ``None``) of known gravity ``g [S, 3]``, and its ``margin`` ->
+    ``(error [S], margin [S])`` on the CPU."""
     if mask is not None and mask.all():
         mask = None  # every point seen: the estimate runs unmasked, as the models run it
     dev = model_device(gravity)
@@ -84,8 +83,17 @@ def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tens
             margins.append(out["margin"].cpu())
     finally:
         gravity.train(was_training)
-    err = torch.rad2deg(geodesic_distance(torch.cat(ups).double(), g.double()))
-    gross, unsure = err > GROSS_DEGREES, torch.cat(margins) < UNSURE_MARGIN
+    return torch.rad2deg(geodesic_distance(torch.cat(ups).double(), g.double())), torch.cat(margins)
+
+
+def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
+              batch_size: int = 16) -> dict:
+    """How an up estimate fared on views of known gravity (:func:`up_errors`'s arguments):
+    the median error in degrees, the number of ``gross`` errors (over
+    :data:`GROSS_DEGREES`), of views it is ``unsure`` of (``margin`` below
+    :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
+    err, margin = up_errors(gravity, x, mask, g, batch_size)
+    gross, unsure = err > GROSS_DEGREES, margin < UNSURE_MARGIN
     return {"views": len(err), "median_err_deg": round(float(err.quantile(0.5)), 2),
             "gross": int(gross.sum()), "unsure": int(unsure.sum()),
             "gross_unsure": int((gross & unsure).sum())}
@@ -264,6 +272,6 @@ def load_sign_check(path):
     return check.eval()
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES", "jittered", "pretrain_sign",
            "load_sign_check"]
