@@ -1,7 +1,9 @@
 """SphericalConv vs Conv2d (same pixel count): the static-graph path (one bound graph,
 x [B, N, C]), the general PyG path (a batch of B graphs as [B N, C], geometry computed in
-the call), UprightConv (oriented kernels in up's frame) in both forms, the naive per-edge
-PyG path, per-edge MLP weights and, when installed, torch-harmonics DISCO. Times in one run; reports ratios.
+the call; the layer keeps the last graph's plan), the same with a new graph each call,
+UprightConv (oriented kernels in up's frame) in both forms, the naive per-edge PyG path,
+per-edge MLP weights and, when installed, torch-harmonics DISCO. Times in one run; reports
+ratios.
 
     python benchmarks/conv.py [--level 6] [--batch 8] [--channels 64] [--threads 2]
 
@@ -96,6 +98,11 @@ def main():
     gu = lambda x: uconv(x, up, eib, ewb, node_weight=areab, pos=posb, batch=batch)  # noqa: E731
     rows[f"UprightConv (general, PyG batch of {B})"] = (timeit(lambda: gu(xg), 1),
                                                         timeit(fwd_bwd(gu, xg), 1))
+    # the same call when every batch is another graph: the plan built anew each time
+    for k, f, layer in (("SphericalConv", g, conv), ("UprightConv", gu, uconv)):
+        f = new_graph_each_call(f, layer)
+        rows[f"{k} (general, a new graph each call)"] = (timeit(lambda f=f: f(xg), 1),
+                                                         timeit(fwd_bwd(f, xg), 1))
     try:
         from torch_harmonics import DiscreteContinuousConvS2
 
@@ -132,6 +139,15 @@ def main():
     if disco is not None:
         print(f"\nDISCO / SphericalConv: fwd {disco[0] / ours[0]:.2f}x, "
               f"fwd+bwd {disco[1] / ours[1]:.2f}x")
+
+
+def new_graph_each_call(f, layer):
+    """``f`` with ``layer``'s kept PyG-form plan dropped before each call, as when every
+    batch is another graph (point clouds; the general rows reuse it: the same grid)."""
+    def run(x):
+        layer._plans.clear()
+        return f(x)
+    return run
 
 
 def disco_conv(cls, C, shape, K, radius):

@@ -137,6 +137,39 @@ def test_never_stale_fresh_masks_and_fresh_graphs():
         assert (pconv(xp, kei, kew) - _dense_on(xp, p, pconv, adj)).abs().max() < 1e-12
 
 
+def test_pyg_form_reuses_its_plan_only_for_the_same_graph_by_value():
+    """The PyG form keeps the last graph's plan: a loader's batches of one grid share it, a
+    new graph or the caller's tensor edited in place gets a new one, with every gradient."""
+    gen = torch.Generator().manual_seed(3)
+    pos = random_sphere(150, 6, dtype=torch.float64)
+    ei, ew, area = graph(pos, 0.5)
+    conv = SphericalConv(3, 4, 0.5, num_basis=3).double()
+    up_conv = UprightConv(3, 4, 0.5, num_basis=3).double()
+    up = _unit(torch.randn(1, 3, generator=gen, dtype=torch.float64))
+    perm = torch.randperm(150, generator=gen)
+    moved = torch.empty_like(pos)
+    moved[perm] = pos  # point k is now numbered perm[k]
+    for step in range(3):
+        x = torch.randn(150, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+        p = moved if step == 2 else pos
+        y = conv(x, ei if step != 1 else ei.clone(), ew, node_weight=area[perm.argsort()]
+                 if step == 2 else area)
+        ref = dense_reference(x, p, conv, area[perm.argsort()] if step == 2 else area)
+        g = torch.randn(y.shape, generator=gen, dtype=torch.float64)
+        gx, = torch.autograd.grad((y * g).sum(), x)
+        gx_ref, = torch.autograd.grad((ref * g).sum(), x)
+        assert (y - ref).abs().max() < 1e-12 and (gx - gx_ref).abs().max() < 1e-12
+        y_up = up_conv(x, up, ei, ew, pos=p)
+        assert (y_up - upright_reference(x[None], up, p, up_conv)[0]).abs().max() < 1e-12
+        if step == 0:
+            plan = conv._plans["last"]
+        elif step == 1:  # the same graph in another tensor: the same plan
+            assert conv._plans["last"] is plan
+            ei.copy_(perm[ei])  # the caller's tensor, edited in place: the moved points' graph
+        else:
+            assert conv._plans["last"] is not plan
+
+
 def _dense_on(x, pos, conv, adj):
     """The dense formula in R3 (hat basis, normalize="mean") over the pairs in ``adj``."""
     K, r = conv.num_basis, conv.radius

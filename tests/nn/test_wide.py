@@ -119,6 +119,10 @@ def test_a_layer_takes_the_one_product_form_when_asked(wide_everywhere, monkeypa
     conv = SphericalConv(3, 4, 0.5).double().bind(ei, ew)
     conv(torch.randn(2, 80, 3, dtype=torch.float64))
     assert calls == [1]
+    assert "tiles=not built yet" in repr(conv.plan)  # the one-product form never tiles
+    aggregate.WIDE = False
+    conv(torch.randn(2, 80, 3, dtype=torch.float64))
+    assert calls == [1] and "tiles=1" in repr(conv.plan)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU (CI has none)")

@@ -49,6 +49,22 @@ class EdgePlan(nn.Module):
         order = None if sorted_ else torch.argsort(key)
         self.register_buffer("order", order, persistent=False)
         self.register_buffer("edge_index", edge_index, persistent=False)
+        self.num_nodes, self.num_edges = n, int(key.numel())
+        self.tile_rows = tile_rows
+        self.wide_cache: dict = {}  # the one-product form's structures (nn.wide.structure)
+        self._bounds: list | None = None  # the tiling: built by the first blockwise call
+
+    @property
+    def bounds(self) -> list:
+        """``(s, e, a, b, width)`` per tile: rows ``s:e``, sorted edges ``a:b``, halo width.
+        Built on first use: the one-product form (:mod:`usf_graph.nn.wide`) never tiles,
+        so a plan built per call on a GPU skips the tiling's per-tile syncs."""
+        if self._bounds is None:
+            self._tile()
+        return self._bounds
+
+    def _tile(self) -> None:
+        n, tile_rows = self.num_nodes, self.tile_rows
         row, col = self.sorted_edges()
         blocks = [(0, n, 0, len(row), None)]
         if n >= 4 * tile_rows:
@@ -63,18 +79,17 @@ class EdgePlan(nn.Module):
             if total <= 2 * n:
                 blocks = [(int(starts[t]), int(starts[t + 1]), cuts[t], cuts[t + 1], h)
                           for t, h in enumerate(halos)]
-        self.num_nodes, self.num_edges = n, int(key.numel())
-        self.wide_cache: dict = {}  # the one-product form's structures (nn.wide.structure)
-        self.bounds = []
+        bounds = []
         for t, (s, e, a, b, cols) in enumerate(blocks):
             r, c = row[a:b] - s, col[a:b]
             width = n
             if cols is not None:
                 c, width = torch.searchsorted(cols, c), len(cols)
-            self.bounds.append((s, e, a, b, width))
+            bounds.append((s, e, a, b, width))
             for name, value in (("cols", cols), ("row", r), ("col", c), ("crow", _crow(r, e - s)),
                                 ("perm_t", None), ("crow_t", None), ("col_t", None)):
                 self.register_buffer(f"{name}{t}", value, persistent=False)
+        self._bounds = bounds
 
     def matches(self, edge_index: torch.Tensor, num_nodes: int) -> bool:
         """Whether this plan was built for ``edge_index`` on ``num_nodes`` points (by value)."""
@@ -121,7 +136,8 @@ class EdgePlan(nn.Module):
         return out
 
     def extra_repr(self) -> str:
-        return f"num_nodes={self.num_nodes}, num_edges={self.num_edges}, tiles={len(self.bounds)}"
+        tiles = "not built yet" if self._bounds is None else len(self._bounds)
+        return f"num_nodes={self.num_nodes}, num_edges={self.num_edges}, tiles={tiles}"
 
 
 def _crow(rows: torch.Tensor, n: int) -> torch.Tensor:

@@ -103,6 +103,7 @@ class DistanceConv(MessagePassing):
                      "bound_mask", "_coef"):
             self.register_buffer(name, None, persistent=False)
         self._coef_key = None
+        self._plans: dict = {}  # PyG form: the last graph's plan (a dict: not a submodule)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -227,7 +228,7 @@ class DistanceConv(MessagePassing):
         if self.kernel_type == "mlp" or not fast:
             out = self._propagate(x, edge_index, coef, N)
         else:
-            plan = plan if plan is not None else EdgePlan(edge_index, N)
+            plan = plan if plan is not None else self._plan_of(edge_index, N)
             w = self.weight.view(self.num_basis, self.in_channels, self.out_channels)
             xb = (x if x.dim() == 3 else x.unsqueeze(0)).contiguous()
             out = basis_aggregate(xb, w.to(x.dtype), coef, plan)
@@ -235,6 +236,16 @@ class DistanceConv(MessagePassing):
         if self.bias is not None:
             out = out + self.bias
         return out
+
+    def _plan_of(self, edge_index: torch.Tensor, N: int) -> EdgePlan:
+        """The PyG form's plan: the last call's when ``edge_index`` is the same by value (a
+        loader's batches of one grid are), else a new one on a copy of it, so that changing
+        the caller's tensor in place cannot leave a stale plan matching."""
+        plan = self._plans.get("last")
+        if plan is None or plan.edge_index.device != edge_index.device or \
+                not plan.matches(edge_index, N):
+            plan = self._plans["last"] = EdgePlan(edge_index.clone(), N)
+        return plan
 
     def _propagate(self, x, edge_index, coef, N):
         """Plain per-edge message passing: the reference path (and the mlp kernel)."""
@@ -416,7 +427,7 @@ class UprightConv(SphericalConv):
         side = torch.einsum("emc,ec->em", _edge_directions(edge_index, pos).to(x.dtype), g)
         full = torch.cat([coef, oriented_basis(coef, side, i, N)], 1)  # [E, 3K]
         w = self.weight.view(len(full[0]), self.in_channels, self.out_channels).to(x.dtype)
-        out = basis_aggregate(x[None].contiguous(), w, full, EdgePlan(edge_index, N))[0]
+        out = basis_aggregate(x[None].contiguous(), w, full, self._plan_of(edge_index, N))[0]
         return out if self.bias is None else out + self.bias
 
 
