@@ -235,6 +235,15 @@ def test_to_device_moves_every_tensor_of_a_batch_and_nothing_else():
 DEVICES = ("cpu", "cuda")  # the GPU test's pair (a CPU run of the test itself: ("cpu", "cpu"))
 
 
+def before_a_norm(net) -> set[str]:
+    """Names of the conv biases that a BatchNorm follows. The norm takes their gradient to 0
+    up to rounding, and Adam scales rounding to steps of the learning rate's size, so
+    they wander differently on two devices without changing what the network computes."""
+    return {f"{name}.convs.{k}.bias" if name else f"convs.{k}.bias"
+            for name, m in net.named_modules() if hasattr(m, "convs") and hasattr(m, "norms")
+            for k in range(len(m.convs))}
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU (CI has none)")
 def test_on_a_gpu_training_and_prediction_follow_the_cpu(tmp_path):
     """The segmentation and detection recipes through ``fit(device="cuda")``: the same draws
@@ -252,20 +261,24 @@ def test_on_a_gpu_training_and_prediction_follow_the_cpu(tmp_path):
     sets = seg.protocol_sets(tmp_path / "rooms", size=16, level=3, num_train=4, num_test=2,
                              tests=("d",), progress=False)
     step = partial(seg.segmentation_step, class_weight=torch.ones(13))
-    nets, preds, ups, own = [], [], [], []
+    nets, preds, ups, own, losses = [], [], [], [], []
     for dev in DEVICES:
         torch.manual_seed(1)
         net = seg.make_model("spherical_unet", level=3)
         cut = seg.ThroughRandomFields(sets["train"].grid.pos, share=0.5, seed=3)
-        fit(net, sets["train"], epochs=2, batch_size=2, lr=1e-3, seed=0, progress=False,
-            step=step, collate_fn=cut, device=dev)
+        losses.append(fit(net, sets["train"], epochs=2, batch_size=2, lr=1e-3, seed=0,
+                          progress=False, step=step, collate_fn=cut, device=dev)["history"])
         assert all(p.device.type == dev for p in net.parameters())
-        nets.append({k: v.cpu() for k, v in net.state_dict().items()})
+        nets.append({k: v.detach().cpu() for k, v in net.named_parameters()
+                     if k not in before_a_norm(net)})
         preds.append(seg.predict(net, sets["d"], progress=False)[1])
         ups.append(up_report(net.gravity, sets["d"].x, sets["d"].mask[0], views_up(sets["d"])))
         own.append(segment_image(net, sets["d"].image[0].numpy(), sets["d"].camera)["points"])
-    for k, v in nets[0].items():
-        assert torch.allclose(v.double(), nets[1][k].double(), rtol=1e-3, atol=1e-4), k
+    for a, b in zip(*losses):
+        assert abs(a["train_loss"] - b["train_loss"]) < 1e-4 * abs(a["train_loss"]), (a, b)
+    off = [k for k, v in nets[0].items()
+           if not torch.allclose(v.double(), nets[1][k].double(), rtol=1e-3, atol=1e-4)]
+    assert not off, off
     assert (preds[0] == preds[1]).mean() > 0.99
     assert ups[0]["gross"] == ups[1]["gross"]
     assert (own[0] == own[1]).mean() > 0.99  # usf-graph predict's path
