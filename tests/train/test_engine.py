@@ -238,7 +238,10 @@ DEVICES = ("cpu", "cuda")  # the GPU test's pair (a CPU run of the test itself: 
 def before_a_norm(net) -> set[str]:
     """Names of the conv biases that a BatchNorm follows. The norm takes their gradient to 0
     up to rounding, and Adam scales rounding to steps of the learning rate's size, so
-    they wander differently on two devices without changing what the network computes."""
+    they wander differently on two devices without changing what the network computes.
+    (The up estimate's head is left out of the weights' comparison too: its window follows
+    the argmax of its scores, which rounding flips between near ties. Its errors are
+    compared instead. Both seen on an H200, session 37.)"""
     return {f"{name}.convs.{k}.bias" if name else f"convs.{k}.bias"
             for name, m in net.named_modules() if hasattr(m, "convs") and hasattr(m, "norms")
             for k in range(len(m.convs))}
@@ -270,17 +273,18 @@ def test_on_a_gpu_training_and_prediction_follow_the_cpu(tmp_path):
                           progress=False, step=step, collate_fn=cut, device=dev)["history"])
         assert all(p.device.type == dev for p in net.parameters())
         nets.append({k: v.detach().cpu() for k, v in net.named_parameters()
-                     if k not in before_a_norm(net)})
+                     if k not in before_a_norm(net) and not k.startswith("gravity.head.")})
         preds.append(seg.predict(net, sets["d"], progress=False)[1])
         ups.append(up_report(net.gravity, sets["d"].x, sets["d"].mask[0], views_up(sets["d"])))
         own.append(segment_image(net, sets["d"].image[0].numpy(), sets["d"].camera)["points"])
     for a, b in zip(*losses):
         assert abs(a["train_loss"] - b["train_loss"]) < 1e-4 * abs(a["train_loss"]), (a, b)
-    off = [k for k, v in nets[0].items()
-           if not torch.allclose(v.double(), nets[1][k].double(), rtol=1e-3, atol=1e-4)]
+    off = {k: float((v - nets[1][k]).norm() / v.norm()) for k, v in nets[0].items()
+           if not torch.allclose(v.double(), nets[1][k].double(), rtol=1e-3, atol=1e-4)}
     assert not off, off
     assert (preds[0] == preds[1]).mean() > 0.99
-    assert ups[0]["gross"] == ups[1]["gross"]
+    assert ups[0]["gross"] == ups[1]["gross"], (ups[0], ups[1])
+    assert abs(ups[0]["median_err_deg"] - ups[1]["median_err_deg"]) < 1.0, (ups[0], ups[1])
     assert (own[0] == own[1]).mean() > 0.99  # usf-graph predict's path
 
     rooms = det.protocol_sets(tmp_path / "rooms", size=16, grid="icosahedral:3", num_train=4,
