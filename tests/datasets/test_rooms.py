@@ -5,7 +5,7 @@ from torch_geometric.loader import DataLoader
 
 from usf_graph import cameras, scenes
 from usf_graph.datasets import RoomsDetection, RoomsGravity, RoomsSegmentation
-from usf_graph.datasets.rooms import view_pose, view_up
+from usf_graph.datasets.rooms import WORKERS_ENV, render_workers, view_pose, view_up
 from usf_graph.scenes import IGNORE, SEMANTIC_CLASSES
 
 KW = dict(num_scenes=3, grid="icosahedral:3", progress=False)
@@ -148,3 +148,37 @@ def test_gravity_views_are_cut_from_a_larger_stored_split(tmp_path, monkeypatch)
     assert torch.equal(small.x, big.x[:2]) and small.processed_paths != big.processed_paths
     with pytest.raises(ZeroDivisionError):  # another seed's rooms are not cut from it
         RoomsGravity(tmp_path, 2, seed=3, **kw)
+
+
+def test_splits_rendered_by_worker_processes_equal_those_rendered_here(tmp_path, monkeypatch):
+    """Each view depends only on its seed and index, so two worker processes store the
+    same split, boxes and up views as this process alone; a worker's error reaches here."""
+    cam = cameras.Equirectangular(64, 32)
+    kw = dict(camera=cam, num_scenes=5, grid="icosahedral:2", progress=False)
+    monkeypatch.setenv(WORKERS_ENV, "1")
+    alone = RoomsDetection(tmp_path / "alone", **kw)
+    up_alone = RoomsGravity(tmp_path / "alone", 5, camera=cam, grid="icosahedral:2", progress=False)
+    monkeypatch.setenv(WORKERS_ENV, "2")
+    assert render_workers(5) == 2
+    two = RoomsDetection(tmp_path / "two", **kw)
+    up_two = RoomsGravity(tmp_path / "two", 5, camera=cam, grid="icosahedral:2", progress=False)
+    for k in ("x", "y", "mask", "image", "label_image", "boxes", "box_class", "box_ptr"):
+        assert torch.equal(getattr(alone, k), getattr(two, k)), k
+    assert torch.equal(up_alone.x, up_two.x)
+    monkeypatch.setattr("usf_graph.datasets.rooms.render", lambda *a, **k: 1 / 0)  # forked along
+    with pytest.raises(ZeroDivisionError):
+        RoomsSegmentation(tmp_path / "broken", **kw)
+
+
+def test_render_workers_reads_its_variable_and_names_a_bad_value(monkeypatch):
+    import os
+
+    monkeypatch.delenv(WORKERS_ENV, raising=False)
+    assert render_workers(31) == 1
+    assert render_workers(32) == min(8, os.cpu_count() or 1)
+    monkeypatch.setenv(WORKERS_ENV, "3")
+    assert render_workers(1) == 3
+    for bad in ("0", "two", "-1", ""):
+        monkeypatch.setenv(WORKERS_ENV, bad)
+        with pytest.raises(ValueError, match=f"{WORKERS_ENV} must be a whole number"):
+            render_workers(100)

@@ -74,6 +74,65 @@ def grid_labels(scene, position, rotation, pos: np.ndarray, mask: np.ndarray) ->
     return y
 
 
+#: Environment variable: processes that render a split's views (1: this process alone).
+WORKERS_ENV = "USF_GRAPH_RENDER_WORKERS"
+
+
+def render_workers(num_views: int) -> int:
+    """How many processes render ``num_views`` views: ``$USF_GRAPH_RENDER_WORKERS`` when
+    set, else up to 8 (the machine's cores) for 32 views or more and 1 below, where
+    starting processes would cost more than it saves. Each view depends only on its seed
+    and index, so the views are the same whatever the number."""
+    import os
+
+    raw = os.environ.get(WORKERS_ENV)
+    if raw is not None:
+        if not raw.strip().isdigit() or int(raw) < 1:
+            raise ValueError(f"{WORKERS_ENV} must be a whole number of processes >= 1, got "
+                             f"{raw!r}; unset it to use the machine's cores")
+        return int(raw)
+    return min(8, os.cpu_count() or 1) if num_views >= 32 else 1
+
+
+class _ViewJob:
+    """Renders view ``i`` of a split (a picklable callable, for worker processes):
+    the room, the image, and the exact labels of the grid points when ``pos`` is given."""
+
+    def __init__(self, seed: int, rotate: str, camera: Camera, boxes: bool,
+                 pos: np.ndarray | None = None, mask: np.ndarray | None = None):
+        self.seed, self.rotate, self.camera, self.boxes = seed, rotate, camera, boxes
+        self.pos, self.mask = pos, mask
+
+    def __call__(self, i: int):
+        scene = make_room(self.seed, i)
+        p, R = view_pose(scene, self.rotate, i, self.seed)
+        view = render(scene, self.camera, position=p, rotation=R, boxes=self.boxes)
+        y = None if self.pos is None else grid_labels(scene, p, R, self.pos, self.mask)
+        return view, y
+
+
+def _single_threaded() -> None:
+    torch.set_num_threads(1)  # a worker is one of several processes: no oversubscription
+
+
+def render_views(job: _ViewJob, n: int, desc: str, progress: bool):
+    """``job(i)`` for ``i`` in ``range(n)``, in order, in :func:`render_workers` processes
+    (forked where the platform has fork, as PyTorch's DataLoader does; else here), with a
+    progress bar."""
+    import multiprocessing
+
+    workers = min(render_workers(n), n)
+    if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers, multiprocessing.get_context("fork"),
+                                 initializer=_single_threaded) as pool:
+            yield from tqdm(pool.map(job, range(n), chunksize=max(1, n // (8 * workers))),
+                            total=n, desc=desc, disable=not progress, leave=False)
+        return
+    yield from tqdm(map(job, range(n)), total=n, desc=desc, disable=not progress, leave=False)
+
+
 def _cache_stem(prefix: str, **key) -> str:
     """A processed file's name, less its extension, that changes with everything the
     rendering depends on."""
@@ -149,13 +208,11 @@ class _Rooms(_Rendered):
         scene_seed = self.scene_seed
         pos, mask = self.grid.pos.numpy(), self.frontend.mask.numpy()
         xs, ys, masks, imgs, labs, boxes, classes = [], [], [], [], [], [], []
-        for i in tqdm(range(self.num_scenes), desc=f"rendering {self.split} rooms",
-                      disable=not self.progress, leave=False):
-            scene = make_room(scene_seed, i)
-            p, R = view_pose(scene, self.rotate, i, scene_seed)
-            view = render(scene, self.camera, position=p, rotation=R, boxes=self.renders_boxes)
+        job = _ViewJob(scene_seed, self.rotate, self.camera, self.renders_boxes, pos, mask)
+        for view, y in render_views(job, self.num_scenes, f"rendering {self.split} rooms",
+                                    self.progress):
             xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
-            ys.append(grid_labels(scene, p, R, pos, mask))
+            ys.append(y)
             masks.append(mask)
             imgs.append(view.rgb)
             labs.append(view.label)
@@ -270,14 +327,11 @@ class RoomsGravity(_Rendered):
 
     def _render(self) -> torch.Tensor:
         """Every view rendered and lifted, ``[num_scenes, N, 3]`` float16."""
-        xs = []
-        for i in tqdm(range(self.num_scenes), desc="rendering rooms for the up estimate",
-                      disable=not self.progress, leave=False):
-            scene = make_room(self.seed, i)
-            p, R = view_pose(scene, "none", i, self.seed)
-            view = render(scene, self.camera, position=p, rotation=R, boxes=False)
-            xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
-        return torch.stack(xs).to(torch.float16)
+        job = _ViewJob(self.seed, "none", self.camera, boxes=False)
+        views = render_views(job, self.num_scenes, "rendering rooms for the up estimate",
+                             self.progress)
+        return torch.stack([self.frontend.lift(view.rgb.astype(np.float32) / 255)
+                            for view, _ in views]).to(torch.float16)
 
     def _from_larger_split(self) -> torch.Tensor | None:
         """The first views of a larger stored split of the same seed, camera and grid (view
