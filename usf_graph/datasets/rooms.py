@@ -117,12 +117,14 @@ def _single_threaded() -> None:
 
 def render_views(job: _ViewJob, n: int, desc: str, progress: bool):
     """``job(i)`` for ``i`` in ``range(n)``, in order, in :func:`render_workers` processes
-    (forked where the platform has fork, as PyTorch's DataLoader does; else here), with a
+    (forked on Linux, as PyTorch's DataLoader does; elsewhere fork is unsafe with some
+    system libraries and spawn would rerun an unguarded script, so all here), with a
     progress bar."""
     import multiprocessing
+    import sys
 
     workers = min(render_workers(n), n)
-    if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
+    if workers > 1 and sys.platform.startswith("linux"):
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(workers, multiprocessing.get_context("fork"),
