@@ -35,7 +35,10 @@ class DistanceConv(MessagePassing):
 
     * PyG's form: ``conv(x, edge_index, edge_weight[, node_weight, mask])``, any graph on
       every call (a batch of different graphs as ``[sum N_i, C]``). The per-edge
-      coefficients and the sparse structure are computed in that call, with autograd.
+      coefficients are computed in that call, with autograd. The sparse structure
+      (:class:`~usf_graph.nn.aggregate.EdgePlan`) of the last call's graph is kept and
+      reused while ``edge_index`` stays equal by value (a loader's batches of one grid),
+      checked against the layer's own copy; another graph replaces it.
     * The static-graph fast path: ``conv.bind(edge_index, edge_weight, node_weight, mask)``
       once (one camera and grid), then ``conv(x)`` with ``x [B, N, C]``. The structure
       and, while nothing needs their gradient, the coefficients live in non-persistent
