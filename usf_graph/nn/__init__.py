@@ -9,7 +9,7 @@ from ..graph import (
     radius_for_neighbors,
 )
 from .aggregate import EdgePlan, basis_aggregate
-from .conv import DistanceConv, PointConv, SphericalConv, UprightConv
+from .conv import DistanceConv, PointConv, SphericalConv
 from .jet import (
     FillHidden,
     GradientPairs,
@@ -31,6 +31,7 @@ from .pool import (
     global_max_pool_masked,
     global_mean_pool_area,
 )
+from .upright import UprightConv
 
 __all__ = ["FillHidden", "LocalJet", "GradientPairs", "SurfaceJet", "UpJet", "jet_operator", "tangent_frame", "up_frame", "DistanceKernel", "DistanceConv",
            "SphericalConv", "UprightConv", "PointConv", "EdgePlan", "basis_aggregate", "GridPool",
