@@ -376,14 +376,39 @@ def test_an_image_mask_replaces_the_current_one_or_combines_with_it():
         cam.with_image_mask(~left, combine=True)
 
 
-@pytest.mark.xfail(strict=True, reason="known defect: with strong tangential distortion the "
-                   "Mei map folds inside the radial monotone limit, project() still accepts "
-                   "rays there and unproject() returns the other preimage; the fold must be "
-                   "marked invalid")
-def test_mei_fold_with_tangential_distortion():
-    xi, dist = 0.0, (-0.0859375, 0.003366564122427071, 0.0, 0.00390625)
-    cam = C.Mei(150.0, 150.0, 640, 480, 1280, 960, xi=xi, dist=dist)
-    rays = random_rays(np.random.default_rng(0), 2000, math.pi * 0.999)
-    m = np.hypot(rays[:, 0], rays[:, 1]) / (rays[:, 2] + xi)
-    keep = (rays[:, 2] > 1e-3) & (m < 0.9 * min(cam.r_max, 5.0))
-    check_round_trips(cam, rays[keep][:300])
+# The radial part r(1 + k1 r^2 + k2 r^4) of this calibration is barely monotone (its
+# slope dips to 0.013), and p2 folds the 2-D map at r = 2.45502 (a 1440 x 8001 scan), far
+# inside the radial part's limit (none): past it a pixel has two preimages.
+FOLDING = (-0.0859375, 0.003366564122427071, 0.0, 0.00390625)
+
+
+@pytest.mark.parametrize("make", [
+    lambda: C.Mei(150.0, 150.0, 640, 480, 1280, 960, xi=0.0, dist=FOLDING),
+    lambda: C.Pinhole(150.0, 150.0, 640, 480, 1280, 960, dist=FOLDING)], ids=["mei", "pinhole"])
+def test_a_tangential_fold_inside_the_radial_limit_ends_the_domain(make):
+    from usf_graph.cameras.distortion import distort
+
+    cam = make()
+    assert 2.450 < cam.r_max <= 2.45502
+    rng = np.random.default_rng(0)
+    # inside the disc every ray goes to its pixel and back
+    rays = random_rays(rng, 2000, math.radians(80))
+    m = np.hypot(rays[:, 0], rays[:, 1]) / rays[:, 2]
+    check_round_trips(cam, rays[m < 0.99 * cam.r_max][:300])
+    # the folded part (Jacobian determinant <= 0) is refused both ways
+    x, y = rng.uniform(-4.5, 4.5, (2, 20000))
+    _, _, (a, b, c, e) = distort(cam.dist, x, y, jacobian=True)
+    fold = a * e - b * c <= 0
+    assert fold.sum() > 100
+    x, y = x[fold], y[fold]
+    uv, ok = cam.project(np.stack([x, y, np.ones_like(x)], -1))
+    assert not ok.any()
+    # a pixel the fold reaches: no ray from the fold, only its preimage inside the disc
+    xd, yd = distort(cam.dist, x, y)
+    pix = np.stack([cam.fx * xd + cam.cx, cam.fy * yd + cam.cy], -1)
+    back, ok = cam.unproject(pix)
+    assert ok.any()  # some of these pixels also have a preimage inside the disc
+    mb = np.hypot(back[ok, 0], back[ok, 1]) / back[ok, 2]
+    assert (mb < cam.r_max).all()
+    uv2, ok2 = cam.project(back[ok])
+    assert ok2.all() and np.abs(uv2 - pix[ok]).max() < 1e-6

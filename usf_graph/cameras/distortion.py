@@ -43,7 +43,9 @@ def distort(d: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = False)
 
 
 def distortion_radius_limit(d: np.ndarray, upper: float = 50.0) -> float:
-    """Normalized radius up to which the radial part r * rad(r^2) is increasing.
+    """Normalized radius of the disc on which the distortion is one-to-one: up to where the
+    radial part r * rad(r^2) stops increasing and, with tangential or thin-prism terms, the
+    2x2 Jacobian's determinant first reaches 0 (:func:`fold_radius`).
 
     Past it the distortion folds back, so pixels there have two preimages: the model's
     honest domain ends there.
@@ -53,7 +55,29 @@ def distortion_radius_limit(d: np.ndarray, upper: float = 50.0) -> float:
     radial = d.copy()
     radial[[2, 3, 8, 9, 10, 11]] = 0.0
     lim = monotone_limit(lambda t: distort(radial, t, np.zeros_like(t))[0], upper, 200001)
+    if np.any(d[[2, 3, 8, 9, 10, 11]]):
+        lim = min(lim, fold_radius(d, lim))
     return math.inf if lim >= upper else lim
+
+
+def fold_radius(d: np.ndarray, upper: float, angles: int = 360, n: int = 1001) -> float:
+    """Largest sampled radius r <= ``upper`` such that the distortion's Jacobian determinant
+    is positive on the whole disc of radius r (scanned on ``angles`` rays of ``n`` radii,
+    then again finely below the first fold found). Tangential terms can fold the map
+    inside the radial part's monotone limit: there a pixel has two preimages."""
+    phi = np.linspace(0.0, 2 * math.pi, angles, endpoint=False)[:, None]
+    good, hi = 0.0, upper
+    for _ in range(2):  # coarse, then fine between 0 and the first fold found
+        r = np.linspace(0.0, hi, n)[None]
+        _, _, (a, b, c, e) = distort(d, r * np.cos(phi), r * np.sin(phi), jacobian=True)
+        bad = ~(a * e - b * c > 0)  # NaN counts as a fold
+        if not bad.any():
+            return hi
+        first = int(np.where(bad.any(1), bad.argmax(1), n).min())
+        if first == 0:
+            return 0.0
+        good, hi = float(r[0, first - 1]), float(r[0, first])
+    return good
 
 
 def undistort(d: np.ndarray, xd: np.ndarray, yd: np.ndarray, r_max: float,

@@ -34,7 +34,9 @@ class Mei(Camera):
 
     The ray is put on the unit sphere, projected from the point (0, 0, -xi), distorted
     with radtan ``dist = (k1, k2, p1, p2)`` and mapped by K (with optional ``skew``).
-    Valid rays satisfy s_z > -xi' (xi' = xi, or 1/xi when xi > 1).
+    Valid rays satisfy s_z > -xi' (xi' = xi, or 1/xi when xi > 1), and their projected
+    point stays inside the disc where the distortion is one-to-one (``r_max``, as the
+    pinhole's).
     """
 
     model = "mei"

@@ -17,8 +17,10 @@ class Pinhole(Camera):
 
     ``dist`` follows OpenCV's order ``k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4]]]``
     (rational radial, tangential, thin prism; OpenCV's tilt terms are not supported).
-    Valid rays have z > 0 and a normalized radius inside the region where the radial
-    distortion is still monotonic, so every valid pixel has exactly one ray.
+    Valid rays have z > 0 and a normalized radius inside the disc where the distortion is
+    still one-to-one (the radial part increasing and, with tangential or thin-prism
+    terms, the Jacobian's determinant positive: ``r_max``), so every valid pixel has
+    exactly one ray.
     """
 
     model = "pinhole"
