@@ -153,6 +153,27 @@ def test_bad_boxes_raise():
         box_axes([1, 2, 3])
     with pytest.raises(ValueError, match="NaN"):
         rotate_boxes([0, 0, np.nan, 1, 0], np.eye(3))
+    with pytest.raises(ValueError, match="NaN"):
+        points_in_boxes([[np.nan, 0, 1]], [0, 0, 1, 1, 0])
+
+
+@pytest.mark.parametrize("R, what", [
+    (2 * np.eye(3), "not a rotation"), (np.diag([1.0, 1.0, -1.0]), "not a rotation"),
+    (np.full((3, 3), np.nan), "NaN"), (np.eye(4), "3x3")])
+def test_rotate_boxes_refuses_what_is_not_a_rotation(R, what):
+    b = np.array([[0.1, 0.2, 0.3, 0.4, 0.5], [1.0, -0.5, 0.2, 0.6, -0.3]])
+    with pytest.raises(ValueError, match=what):
+        rotate_boxes(b, R)
+
+
+def test_box_ops_take_tensors_as_they_take_arrays():
+    b = np.array([[0.1, 0.2, 0.3, 0.4, 0.5], [3.0, -0.5, 0.2, 0.6, -0.3]])
+    R = random_rotation(seed=3)
+    got = rotate_boxes(torch.as_tensor(b), R)
+    assert np.abs(got - rotate_boxes(b, R.numpy())).max() < 1e-12
+    p = np.random.default_rng(0).normal(size=(500, 3))
+    inside = points_in_boxes(torch.as_tensor(p), torch.as_tensor(b))
+    assert np.array_equal(inside, points_in_boxes(p, b)) and inside.any()
 
 
 def test_share_in_view_exact_cases_and_a_dense_reference():

@@ -37,6 +37,14 @@ def test_area_closed_form(fov, want):
     assert float(box_area(P(0, 0, *fov, 0))) == pytest.approx(want, abs=5e-7)
 
 
+@pytest.mark.parametrize("fov", [(200, 30), (30, -10)])
+def test_area_refuses_a_field_of_view_outside_0_to_180_degrees(fov):
+    with pytest.raises(ValueError, match=r"fields of view in \[0, 180\] degrees"):
+        box_area(P(0, 0, *fov, 0))
+    with pytest.raises(ValueError, match=r"fields of view in \[0, 180\] degrees"):
+        box_area(torch.as_tensor(P(0, 0, *fov, 0)))
+
+
 def test_area_matches_pandoras_formula():
     a, b = np.radians(70), np.radians(35)
     pandora = 4 * np.arccos(-np.sin(a / 2) * np.sin(b / 2)) - 2 * np.pi  # PANDORA's formula
@@ -137,6 +145,14 @@ def test_nms_keeps_the_best_of_each_cluster():
     scores = torch.tensor([0.9, 0.95, 0.5, 0.8, 0.1])
     keep = spherical_nms(boxes, scores, 0.5)
     assert keep.tolist() == [1, 3, 4]  # 1 beats 0; 3 beats 2 across the seam
+
+
+def test_nms_refuses_scores_that_do_not_match_the_boxes():
+    boxes = np.array([P(0, 0, 20, 20, 0), P(2, 0, 20, 20, 0)])
+    with pytest.raises(ValueError, match=r"shape \[2\]"):
+        spherical_nms(boxes, torch.tensor([0.9]), 0.5)
+    with pytest.raises(ValueError, match="NaN"):
+        spherical_nms(boxes, torch.tensor([0.9, float("nan")]), 0.5)
 
 
 def test_bad_boxes():

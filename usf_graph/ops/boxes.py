@@ -121,7 +121,9 @@ def points_in_boxes(points, boxes, margin: float = 0.0) -> np.ndarray:
     """``[P, B]`` True where direction ``points[p]`` lies in ``boxes[b]``; ``margin``
     (radians) widens each side's half field of view (negative shrinks it)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    b = _as_boxes(boxes).reshape(-1, 5)
+    if not np.isfinite(p).all():
+        raise ValueError("points contain NaN or infinite values")
+    b = np.asarray(_as_boxes(boxes), np.float64).reshape(-1, 5)
     c, e, n = box_axes(b)
     z, x, y = p @ c.T, p @ e.T, p @ n.T
     hx = np.tan(np.clip(b[:, 2] / 2 + margin, 0, np.pi / 2))
@@ -156,11 +158,28 @@ def share_in_view(boxes, sees, n: int = 64) -> np.ndarray:
 
 def rotate_boxes(boxes, R):
     """The boxes seen in a frame rotated by ``R`` (``R @ p`` maps old directions to new):
-    exact, since a rotation maps great circles to great circles."""
-    b = _as_boxes(boxes)
-    R = np.asarray(R, np.float64)
+    exact, since a rotation maps great circles to great circles. Boxes and ``R`` as numpy
+    or CPU tensors; returns float64 numpy."""
+    b = np.asarray(_as_boxes(boxes), np.float64)
+    R = _rotation_matrix(R)
     c, e, _ = box_axes(b)
     return boxes_from_axes(c @ R.T, e @ R.T, b[..., 2], b[..., 3])
+
+
+def _rotation_matrix(R) -> np.ndarray:
+    """``R`` as float64 numpy, refused unless it is a 3x3 rotation (orthonormal to 1e-5,
+    determinant +1): a reflection or a scaling would move boxes without a word."""
+    R = np.asarray(R.detach().cpu() if torch.is_tensor(R) else R, np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"R must be a 3x3 rotation matrix, got shape {R.shape}")
+    if not np.isfinite(R).all():
+        raise ValueError("R contains NaN or infinite values")
+    err, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
+    if err > 1e-5 or det < 0:
+        raise ValueError(f"R is not a rotation (max |R R^T - I| = {err:.2g}, det = {det:.3g}); "
+                         "give an orthonormal matrix with determinant +1, e.g. from "
+                         "usf_graph.geometry.random_rotation or scipy's Rotation.as_matrix()")
+    return R
 
 
 def box_corners(boxes):

@@ -36,6 +36,12 @@ def box_area(boxes):
     (equal to PANDORA's inverse-cosine form, written without it; see the tests)."""
     b = _as_boxes(boxes)
     xp = torch if torch.is_tensor(b) else np
+    fov = b[..., 2:4]
+    if bool((fov < 0).any()) or bool((fov > math.pi).any()):
+        # the formula is symmetric about 180 degrees: a wider box would get a narrower one's area
+        raise ValueError("box area needs fields of view in [0, 180] degrees (a box's edges are "
+                         f"great circles, so it spans at most a hemisphere), got fields of view "
+                         f"from {float(fov.min()):.4g} to {float(fov.max()):.4g} rad")
     s = xp.sin(b[..., 2] / 2) * xp.sin(b[..., 3] / 2)
     return 4 * (xp.asin(s) if xp is torch else np.arcsin(s))
 
@@ -116,7 +122,11 @@ def pairwise_box_iou(a, b, dtype=None, chunk: int = 65536) -> torch.Tensor:
 def spherical_nms(boxes, scores, iou_threshold: float) -> torch.Tensor:
     """Indices of the boxes kept by greedy non-maximum suppression with the spherical IoU,
     highest score first (as ``torchvision.ops.nms``)."""
-    boxes, scores = _tensor(boxes), torch.as_tensor(scores)
+    boxes, scores = _tensor(boxes).reshape(-1, 5), torch.as_tensor(scores)
+    if scores.shape != (len(boxes),):
+        raise ValueError(f"scores must have shape [{len(boxes)}] (one per box), got {tuple(scores.shape)}")
+    if not bool(torch.isfinite(scores).all()):
+        raise ValueError("scores contain NaN or infinite values")
     order = torch.argsort(scores, descending=True)
     iou = pairwise_box_iou(boxes[order], boxes[order])
     alive = torch.ones(len(order), dtype=torch.bool)
