@@ -56,6 +56,22 @@ def test_no_detections_and_mismatched_lengths():
         coco_ap(GT, [], 2)
 
 
+@pytest.mark.parametrize("metric", [coco_ap, usf_map])
+def test_bad_classes_scores_and_lengths_are_refused(metric):
+    box = P([0, 0, 20, 20, 0])
+    truth = [(box, np.array([0]))]
+    with pytest.raises(ValueError, match="NaN"):  # pycocotools scored it a hit
+        metric(truth, [(box, np.array([0]), np.array([np.nan]))], 2)
+    with pytest.raises(ValueError, match=r"0 \.\. 1, got \[5\]"):  # pycocotools: AP -1
+        metric([(box, np.array([5]))], [(box, np.array([0]), np.array([0.9]))], 2)
+    with pytest.raises(ValueError, match="0 .. 1"):
+        metric(truth, [(box, np.array([-1]), np.array([0.9]))], 2)
+    with pytest.raises(ValueError, match="1 detected boxes but 1 classes and 2 scores"):
+        metric(truth, [(box, np.array([0]), np.array([0.9, 0.8]))], 2)
+    with pytest.raises(ValueError, match="2 images"):
+        metric(GT, [], 2)
+
+
 def test_usf_map_per_image_and_class_with_end_points():
     perfect = [(b, c, np.ones(len(c))) for b, c in GT]
     assert usf_map(GT, perfect, 2) == pytest.approx(1.0)

@@ -42,6 +42,9 @@ def test_weighted_confusion_and_absent_classes():
         confusion_matrix(np.array([7]), np.array([0]), 4)
     with pytest.raises(ValueError, match="differ in size"):
         confusion_matrix(np.zeros(3), np.zeros(4), 4)
+    for bad in (np.nan, -1.0):
+        with pytest.raises(ValueError, match="finite and >= 0"):
+            confusion_matrix(pred, target, 4, weight=np.array([0.5, bad, 1.0]))
 
 
 def test_per_image_mean_differs_from_dataset_level():

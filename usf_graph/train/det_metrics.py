@@ -93,14 +93,13 @@ def coco_ap(truth, detections, num_classes: int, ignore=None) -> dict:
         raise ValueError(f"{len(truth)} images of ground truth but {len(ignore)} of ignore flags")
     gts, dts = [], []
     for i, ((gb, gc), (db, dc, ds), ig) in enumerate(zip(truth, detections, ignore)):
-        gb, gc, ig = np.asarray(gb, np.float64).reshape(-1, 5), np.asarray(gc).reshape(-1), np.asarray(ig, bool)
+        (gb, gc, _), ig = _image(i, gb, gc, num_classes, "true"), np.asarray(ig, bool)
         if ig.shape != gc.shape:
             raise ValueError(f"image {i}: {len(gc)} true boxes but {ig.size} ignore flags")
         for b, c, x in zip(gb, gc, ig):
             gts.append({"id": len(gts) + 1, "image_id": i + 1, "category_id": int(c) + 1,
                         "bbox": b.tolist(), "area": 1.0, "iscrowd": int(x)})
-        for b, c, s in zip(np.asarray(db, np.float64).reshape(-1, 5), np.asarray(dc).reshape(-1),
-                           np.asarray(ds, np.float64).reshape(-1)):
+        for b, c, s in zip(*_image(i, db, dc, num_classes, "detected", ds)):
             dts.append({"id": len(dts) + 1, "image_id": i + 1, "category_id": int(c) + 1,
                         "bbox": b.tolist(), "score": float(s), "area": 1.0, "iscrowd": 0})
     ev = _cocoeval()(_coco(images, gts, cats), _coco(images, dts, cats), "bbox")
@@ -112,6 +111,23 @@ def coco_ap(truth, detections, num_classes: int, ignore=None) -> dict:
     ar50 = float(rec[rec > -1].mean()) if (rec > -1).any() else -1.0
     return {"AP": float(ev.stats[0]), "AP50": float(ev.stats[1]), "AP75": float(ev.stats[2]),
             "AR50": ar50}
+
+
+def _image(i: int, boxes, classes, num_classes: int, what: str, scores=None):
+    """One image's ``boxes [K, 5]``, ``classes [K]`` (and ``scores [K]``) as arrays, refused
+    unless they match in length, the classes are in ``0 .. num_classes - 1`` and the scores
+    are finite: pycocotools would score a NaN as a hit and drop an unknown class."""
+    b, c = np.asarray(boxes, np.float64).reshape(-1, 5), np.asarray(classes).reshape(-1)
+    s = None if scores is None else np.asarray(scores, np.float64).reshape(-1)
+    if len(c) != len(b) or (s is not None and len(s) != len(b)):
+        raise ValueError(f"image {i}: {len(b)} {what} boxes but {len(c)} classes"
+                         + ("" if s is None else f" and {len(s)} scores"))
+    if len(c) and ((c < 0) | (c >= num_classes) | (c != np.round(c))).any():
+        raise ValueError(f"image {i}: {what} classes must be whole numbers in 0 .. "
+                         f"{num_classes - 1}, got {sorted(set(c.tolist()))}")
+    if s is not None and not np.isfinite(s).all():
+        raise ValueError(f"image {i}: detection scores contain NaN or infinite values")
+    return b, c.astype(np.int64), s
 
 
 def _voc_ap(tp: np.ndarray, num_truth: int) -> float:
@@ -132,10 +148,11 @@ def usf_map(truth, detections, num_classes: int, iou_threshold: float = 0.10) ->
     and reads higher; it is here to compare with USF's published numbers, so, as USF's,
     it counts every true box (no ``ignore``). Arguments as :func:`coco_ap`."""
     aps = []
-    for (gb, gc), (db, dc, ds) in zip(truth, detections):
-        gb, gc = np.asarray(gb, np.float64).reshape(-1, 5), np.asarray(gc).reshape(-1)
-        db, dc = np.asarray(db, np.float64).reshape(-1, 5), np.asarray(dc).reshape(-1)
-        ds = np.asarray(ds, np.float64).reshape(-1)
+    if len(truth) != len(detections):
+        raise ValueError(f"{len(truth)} images of ground truth but {len(detections)} of detections")
+    for i, ((gb, gc), (db, dc, ds)) in enumerate(zip(truth, detections)):
+        gb, gc, _ = _image(i, gb, gc, num_classes, "true")
+        db, dc, ds = _image(i, db, dc, num_classes, "detected", ds)
         for k in range(num_classes):
             g = gb[gc == k]
             if not len(g):

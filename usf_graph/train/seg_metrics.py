@@ -31,6 +31,8 @@ def confusion_matrix(pred, target, num_classes: int, ignore_index: int = 255,
         raise ValueError(f"pred and target differ in size: {np.shape(pred)} vs {np.shape(target)}")
     w = None if weight is None else np.broadcast_to(np.asarray(weight, np.float64),
                                                     np.shape(target)).ravel()
+    if w is not None and not (np.isfinite(w) & (w >= 0)).all():
+        raise ValueError("weight must be finite and >= 0 (a point's area)")
     keep = (t != ignore_index) & (t >= 0) & (t < num_classes)
     if ((p[keep] < 0) | (p[keep] >= num_classes)).any():
         raise ValueError(f"predictions must be class indices in [0, {num_classes})")
