@@ -137,3 +137,7 @@ def test_spherical_models_reject_bad_input():
         SphericalUNet(**{**UNET, "gravity": False, "upright": True})
     with pytest.raises(ValueError, match="upright backbone needs up"):
         SphericalUNet(**{**UNET, "upright": True}).backbone(torch.zeros(1, n, 4))
+    # a known up must be a direction: a zero vector used to surface as "x has NaN"
+    for up in (torch.zeros(1, 3), torch.tensor([[0.0, float("nan"), 1.0]]), torch.ones(2, 3)):
+        with pytest.raises(ValueError, match="up must be finite, nonzero"):
+            m.eval()(torch.zeros(1, n, 3), up=up)

@@ -318,8 +318,10 @@ class WithUp(nn.Module):
                 raise ValueError("up is only read by models built with gravity=True")
             return x, None, None
         m = check_input(x, mask, len(self.in_pos), *self._input)
-        if up is not None and (up.shape != (len(x), 3) or not torch.isfinite(up).all()):
-            raise ValueError(f"up must be finite [B, 3] = {(len(x), 3)}, got {tuple(up.shape)}")
+        if up is not None and (up.shape != (len(x), 3) or not torch.isfinite(up).all()
+                               or not bool((up.norm(dim=-1) > 0).all())):
+            raise ValueError(f"up must be finite, nonzero vectors [B, 3] = {(len(x), 3)} (each "
+                             f"view's gravity direction), got shape {tuple(up.shape)}")
         trained = self.training and self.trains_up
         grav = self.gravity(x, m) if up is None or trained or estimate else None
         up = grav["up"] if up is None else up.to(x.dtype)
