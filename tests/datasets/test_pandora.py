@@ -70,6 +70,11 @@ def test_bad_annotations_are_named(root):
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="5 finite numbers"):
         read_annotations(path)
+    for bad in ([0, 95, 20, 20, 0], [0, 0, 0, 20, 0], [0, 0, 20, 180, 0], [0, 0, -5, 20, 0]):
+        doc["annotations"][0]["bbox"] = bad
+        path.write_text(json.dumps(doc))
+        with pytest.raises(ValueError, match=r"annotation 1 of train.json .* fields of view in \(0, 180\)"):
+            read_annotations(path)
     path.write_text("{not json")
     with pytest.raises(ValueError, match="not a PANDORA annotation file"):
         read_annotations(path)

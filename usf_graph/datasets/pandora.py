@@ -59,6 +59,10 @@ def read_annotations(path) -> dict:
         if not isinstance(box, list) or len(box) != 5 or not np.all(np.isfinite(np.asarray(box, float))):
             raise ValueError(f"{where} has bbox {box}; PANDORA boxes are 5 finite numbers "
                              f"[lon, lat, fov_x, fov_y, gamma] in degrees")
+        if not -90 <= box[1] <= 90 or not (0 < box[2] < 180 and 0 < box[3] < 180):
+            raise ValueError(f"{where} has bbox {box}; PANDORA boxes have lat in [-90, 90] and "
+                             f"fields of view in (0, 180) degrees (a box is bounded by great "
+                             f"circles); correct or remove that annotation")
         if not isinstance(cat, int) or not 1 <= cat <= 47:
             raise ValueError(f"{where} has category_id {cat}; PANDORA's are 1..47")
         out[names[a["image_id"]]][0].append(box)
