@@ -261,6 +261,14 @@ def test_data_loader_offsets_and_to_image_and_render():
     assert np.abs(back - img).mean() < 0.05
     labels = fe.to_image(torch.arange(N), mode="nearest")
     assert labels.dtype == torch.int64 and set(labels.unique().tolist()) <= set(range(N))
+    nan = torch.zeros(N)
+    nan[3] = float("nan")
+    with pytest.raises(ValueError, match="NaN or inf at 1 grid points the camera sees"):
+        fe.to_image(nan)
+    pin = SphericalFrontend(cameras.Pinhole(20, 20, 15.5, 11.5, 32, 24), g, cache=GeometryCache(None))
+    hidden = torch.zeros(N)
+    hidden[~pin.mask] = float("nan")  # never read: the pinhole does not see them
+    assert torch.isfinite(pin.to_image(hidden)).all()
     fish = cameras.Fisheye(40, 63.5, 63.5, 128, 128, fov_deg=190)
     out = render(img, cam, fish)
     lnm, valid = fish.lens_normal_map()

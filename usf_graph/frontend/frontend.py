@@ -281,6 +281,11 @@ class SphericalFrontend:
         v = v[:, None] if squeeze else v
         if v.shape[0] != self.num_points:
             raise ValueError(f"values have {v.shape[0]} points, the grid has {self.num_points}")
+        if v.is_floating_point():  # hidden points are never read, so they may hold anything
+            bad = int((~torch.isfinite(v[self.mask.to(v.device)])).any(-1).sum())
+            if bad:
+                raise ValueError(f"values have NaN or inf at {bad} grid points the camera sees; "
+                                 "they would spread into the image")
         if mode not in self._render:
             key = {"camera": self.camera.key(), "grid": self.grid.key(), "mode": mode,
                    "mask": _digest(self.mask.numpy())}
