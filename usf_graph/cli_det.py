@@ -4,16 +4,30 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 import numpy as np
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: an integer of at least 1 (sizes and view counts)."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+def at_least(lo: float, kind=int, above: bool = False, most: float | None = None):
+    """An argparse type: a finite ``kind`` of at least ``lo`` (above it with ``above``; at
+    most ``most``), so that ``--epochs -1`` or ``--lr 0`` stop at the command line."""
+    def parse(text: str):
+        value = kind(text)
+        if not math.isfinite(value) or value < lo or (above and value == lo) or \
+                (most is not None and value > most):
+            want = f"{'above' if above else 'at least'} {lo}" + ("" if most is None else f" and at most {most}")
+            raise argparse.ArgumentTypeError(f"must be {want}, got {text}")
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type when kind() itself fails
+    return parse
+
+
+#: sizes, view counts, epochs of a model's training, batch sizes
+positive_int = at_least(1)
+#: counts that may be 0 (extra views, second-phase epochs, grid levels, pair layers)
+count = at_least(0)
 
 
 def add_train_options(t) -> None:
@@ -28,14 +42,14 @@ def add_train_options(t) -> None:
                         "det 128, seg 96 (stanford2d3ds: 256)")
     g.add_argument("--num-train", type=positive_int, default=None, help="rooms: training views (det 200, seg 400)")
     g.add_argument("--num-test", type=positive_int, default=None, help="rooms: views per test (50)")
-    g.add_argument("--lr", type=float, default=None, help="AdamW learning rate (det 2e-3, seg 3e-3)")
+    g.add_argument("--lr", type=at_least(0.0, float, above=True), default=None, help="AdamW learning rate (det 2e-3, seg 3e-3)")
     g.add_argument("--fold", default="1", choices=["1", "2", "3", "all"],
                    help="stanford2d3ds: the area-disjoint fold, or all three")
     g.add_argument("--models", nargs="+", default=None,
                    choices=["spherical_unet", "spherical_deeplab", "planar_unet"],
                    help="seg: models to train (default: all three on rooms, the spherical U-Net "
                         "on stanford2d3ds)")
-    g.add_argument("--fov-epochs", type=int, default=None,
+    g.add_argument("--fov-epochs", type=count, default=None,
                    help="rooms: epochs of the second phase at a lower learning rate, the "
                         "spherical models' with half their batches through random fields of "
                         "view (every model; 6, 0 skips it)")
@@ -43,12 +57,12 @@ def add_train_options(t) -> None:
                    help="rooms: every model's channel counts times S (1; 0.5 in the README's "
                         "15-minute recipes, 'make demo-seg' and 'make demo-det')")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
-    u.add_argument("--up-extra", type=int, default=None,
+    u.add_argument("--up-extra", type=count, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")
-    u.add_argument("--up-caps", type=float, default=None,
+    u.add_argument("--up-caps", type=at_least(0.0, float, most=1.0), default=None,
                    help="share of its batches seen through random 40-100 degree caps (0.5)")
-    u.add_argument("--up-epochs", type=int, default=None, help="its epochs (det 12, seg 8)")
-    u.add_argument("--up-sign", type=float, default=None,
+    u.add_argument("--up-epochs", type=positive_int, default=None, help="its epochs (det 12, seg 8)")
+    u.add_argument("--up-sign", type=at_least(0.0, float), default=None,
                    help="weight of a loss term against scoring down above up (0; 1 was a "
                         "lead in session 26, docs/seg_det_log.md)")
 
@@ -79,7 +93,7 @@ def add_eval_options(e) -> None:
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
                    "view's true gravity, as from an IMU, not their estimate")
-    e.add_argument("--level-prior", type=float, default=0.0, metavar="BETA",
+    e.add_argument("--level-prior", type=at_least(0.0, float), default=0.0, metavar="BETA",
                    help="det, seg: the up estimate assumes level cameras (optical axis "
                         "horizontal) with this strength; 10 in the README, 0 (default) off")
     add_device_option(e)

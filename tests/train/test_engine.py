@@ -24,8 +24,13 @@ def test_checkpoint_round_trip(tmp_path):
     m.eval(), m2.eval()
     assert torch.equal(m(x), m2(x))
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(ValueError, match="not a readable usf-graph checkpoint"):
+    with pytest.raises(ValueError, match="not a readable usf-graph checkpoint: corrupt") as e:
         load_checkpoint(tmp_path / "bad.pt")
+    # torch's own advice (load with weights_only=False) is not passed on as a fix
+    assert "Re-running" not in str(e.value) and "do not load a file you do not trust" in str(e.value)
+    (tmp_path / "cut.pt").write_bytes((tmp_path / "m.pt").read_bytes()[:100])
+    with pytest.raises(ValueError, match=r"truncated.*\(PytorchStreamReader failed"):
+        load_checkpoint(tmp_path / "cut.pt")
     with pytest.raises(FileNotFoundError):
         load_checkpoint(tmp_path / "missing.pt")
     # a checkpoint from before the gradient pairs (no "pairs" in its config) still loads

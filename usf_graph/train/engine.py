@@ -9,6 +9,7 @@ import json
 import math
 import os
 import random
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -164,7 +165,13 @@ def load_checkpoint(path, model: nn.Module | None = None) -> dict:
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001
-        raise ValueError(f"{path} is not a readable usf-graph checkpoint ({e})") from e
+        # torch's own message suggests weights_only=False, which runs whatever the file holds
+        why = re.search(r"WeightsUnpickler error:\s*(.+)", str(e))
+        why = why.group(1).strip() if why else \
+            (str(e).splitlines() or [type(e).__name__])[0].split(". ")[0][:200]
+        raise ValueError(f"{path} is not a readable usf-graph checkpoint: corrupt, truncated, or "
+                         f"not written by usf-graph ({why}). Train it again or copy it again; "
+                         "do not load a file you do not trust with weights_only=False") from e
     if not isinstance(blob, dict) or "state_dict" not in blob:
         raise ValueError(f"{path} is not a usf-graph checkpoint (no state_dict)")
     if model is not None:
