@@ -245,7 +245,9 @@ def test_train_refuses_sizes_and_counts_below_one(option, capsys):
     (["train", "det", "--up-epochs", "0"], "--up-epochs: must be at least 1, got 0"),
     (["train", "mnist", "--level", "-1"], "--level: must be at least 0, got -1"),
     (["scenes", "--num", "0", "--out", "x"], "--num: must be at least 1, got 0"),
-    (["eval", "det", "x.pt", "--level-prior", "-1"], "--level-prior: must be at least 0.0")])
+    (["eval", "det", "x.pt", "--level-prior", "-1"], "--level-prior: must be at least 0.0"),
+    (["predict", "det", "x.pt", "y.png", "--camera", "equirectangular", "--min-score", "2"],
+     "--min-score: must be at least 0.0 and at most 1.0, got 2")])
 def test_numbers_out_of_range_stop_at_the_command_line(argv, said, capsys):
     with pytest.raises(SystemExit):
         main(argv)
