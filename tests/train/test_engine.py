@@ -1,6 +1,7 @@
 """The training engine: checkpoints and a two-process DDP step."""
 
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -96,6 +97,24 @@ def test_a_diverging_run_stops_with_a_clear_error_and_keeps_the_last_epoch(tmp_p
             step=step)
     blob = load_checkpoint(tmp_path / "last.pt")
     assert blob["epoch"] == 1 and all(torch.isfinite(v).all() for v in blob["state_dict"].values())
+
+
+@pytest.mark.parametrize("kw, said", [
+    (dict(epochs=0), "epochs and batch_size must be whole numbers of at least 1, got 0 and 2"),
+    (dict(epochs=-1), "got -1 and 2"), (dict(batch_size=0), "got 1 and 0"),
+    (dict(lr=0.0), "the learning rate must be a finite number above 0, got 0.0"),
+    (dict(lr=float("nan")), "the learning rate"), (dict(train=[]), "the training set is empty")])
+def test_fit_refuses_a_plan_that_trains_nothing(kw, said):
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.train.engine import fit
+
+    model = torch.nn.Linear(2, 1)
+    args = dict(train=TensorDataset(torch.randn(4, 2), torch.randn(4, 1)), epochs=1,
+                batch_size=2, lr=0.01, progress=False, name="tiny")
+    with pytest.raises(ValueError, match=re.escape(said)) as e:
+        fit(model, **{**args, **kw})
+    assert str(e.value).startswith("tiny: ")
 
 
 @pytest.mark.parametrize("frozen", [False, True])

@@ -7,6 +7,7 @@ import inspect
 import itertools
 import json
 import math
+import numbers
 import os
 import random
 import re
@@ -285,6 +286,13 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     run does and a resumed one goes on as on the CPU. Its numbers still differ from the
     CPU's in the last digits (other kernels).
     """
+    if not all(isinstance(v, numbers.Integral) and v >= 1 for v in (epochs, batch_size)):
+        raise ValueError(f"{name}: epochs and batch_size must be whole numbers of at least 1, "
+                         f"got {epochs} and {batch_size}")
+    if not (math.isfinite(lr) and lr > 0):
+        raise ValueError(f"{name}: the learning rate must be a finite number above 0, got {lr}")
+    if not len(train):
+        raise ValueError(f"{name}: the training set is empty")
     rank, world = setup_distributed()
     seed_everything(seed)
     dev = model_device(model) if device is None else resolve_device(device)
