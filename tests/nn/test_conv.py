@@ -377,6 +377,8 @@ def test_bad_inputs_name_the_problem():
         (lambda: conv(torch.randn(n, 2), ei, ew, node_weight=torch.ones(n + 1)), r"\[42\]"),
         (lambda: conv(torch.randn(n - 2, 2), ei, ew), "outside"),
         (lambda: conv(torch.randn(n, 2), ei, ew * float("nan")), "NaN"),
+        (lambda: conv(torch.randn(n, 2), ei, ew, node_weight=-torch.ones(n)), "areas: finite and >= 0"),
+        (lambda: conv.bind(ei, ew, node_weight=torch.full((n,), float("inf"))), "areas"),
         (lambda: conv.bind(ei, ew)(torch.randn(2, n + 5, 2)), f"{n + 5} points, the bound graph has {n}"),
         (lambda: conv.bind(ei, ew)(torch.randn(n, 2), ei[:, :0]), "edge_weight"),
     ]

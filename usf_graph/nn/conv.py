@@ -157,8 +157,9 @@ class DistanceConv(MessagePassing):
             if t is not None and t.shape != (n,):
                 raise ValueError(f"{name} must have shape [{n}] (one value per point), got "
                                  f"{tuple(t.shape)}")
-        if node_weight is not None and not torch.isfinite(node_weight).all():
-            raise ValueError("node_weight has NaN or inf")
+        if node_weight is not None and not (torch.isfinite(node_weight) & (node_weight >= 0)).all():
+            raise ValueError("node_weight must hold areas: finite and >= 0 (NaN, inf or a "
+                             "negative value found)")
 
     def _edge_coefficients(self, edge_index, edge_weight, num_nodes, node_weight, mask):
         """Per-edge factors phi_k(d_ij) w_j / norm_i ``[E, K]`` (K = hidden for mlp)."""
