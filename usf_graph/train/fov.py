@@ -133,7 +133,9 @@ def second_phase(net, train, epochs: int, log_dir, name: str, cut=None, collate_
     (:func:`~usf_graph.train.engine.freeze_norms`), as a cut batch's statistics are those
     of one part of one view. Without it (a planar model, with no field of view to cut) the
     model trains on the whole views through ``collate_fn``, so that every model trains as
-    long."""
+    long. ``epochs`` 0: no second phase."""
+    if not epochs:
+        return
     fit(net, train, None, epochs=epochs, lr=FOV_LR, log_dir=Path(log_dir) / "second_phase",
         name=f"{name}, second phase", frozen_norms=cut is not None,
         collate_fn=collate_fn if cut is None else cut, **fit_kw)
