@@ -197,6 +197,22 @@ def test_detectors_learn_a_batch(kind):
     assert losses[-1] < 0.5 * losses[0]
 
 
+@pytest.mark.parametrize("kind", ["spherical", "planar"])
+def test_detector_losses_refuse_boxes_that_do_not_fit_the_batch(kind):
+    if kind == "spherical":
+        m, x = SphericalDetector(**SMALL), torch.randn(2, len(grids.icosahedral(3).pos), 3)
+    else:
+        m, x = PlanarDetector(num_classes=3, height=32, width=64, channels=(4, 8)), torch.randn(2, 3, 32, 64)
+    out, b = m(x), BOXES[:2].float()
+    for classes, image, said in [
+            ((0, 3), (0, 1), r"classes must be in \[0, 3\), got 0 to 3"),
+            ((0, -1), (0, 1), r"got -1 to 0"),  # used to wrap around to the last class
+            ((0, 1), (0, 2), r"image indices must be in \[0, 2\)"),
+            ((0,), (0, 1), r"need boxes \[K, 5\], classes \[K\]")]:  # used to be cut short
+        with pytest.raises(ValueError, match=said):
+            m.loss(out, b, torch.tensor(classes), torch.tensor(image))
+
+
 def test_detector_errors_and_masks():
     m = SphericalDetector(**SMALL)
     n = len(grids.icosahedral(3).pos)

@@ -46,6 +46,9 @@ def test_loss_ignores_and_weights():
                           nll[keep].mean())
     with pytest.raises(ValueError, match="NaN"):
         segmentation_loss(torch.full((1, 2, 3), float("nan")), torch.zeros(1, 2, dtype=torch.long))
+    for bad in (3, -1, 254):  # 13 Stanford classes into a 3-class model, say
+        with pytest.raises(ValueError, match=rf"class indices in \[0, 3\) or 255 .*found \[{bad}\]"):
+            segmentation_loss(logits, torch.where(target == 1, bad, target))
 
 
 def test_protocol_runs_and_scores_every_test(tmp_path, capsys):

@@ -66,6 +66,16 @@ def heatmap_targets(points: torch.Tensor, boxes: torch.Tensor, classes: torch.Te
     weight [R]))``: the heatmaps, each box's centre point, and the regression samples
     (point index, index of its box, weight).
     """
+    K = len(boxes)
+    if boxes.shape != (K, 5) or classes.shape != (K,) or image.shape != (K,):
+        raise ValueError(f"need boxes [K, 5], classes [K] and image [K], got {tuple(boxes.shape)}, "
+                         f"{tuple(classes.shape)} and {tuple(image.shape)}")
+    if K and not (0 <= int(classes.min()) and int(classes.max()) < num_classes):
+        raise ValueError(f"box classes must be in [0, {num_classes}), got {int(classes.min())} to "
+                         f"{int(classes.max())}: is the dataset's label space the model's?")
+    if K and not (0 <= int(image.min()) and int(image.max()) < num_images):
+        raise ValueError(f"box image indices must be in [0, {num_images}) (the batch), got "
+                         f"{int(image.min())} to {int(image.max())}")
     M = len(points)
     target = points.new_zeros(num_images * num_classes, M)
     if len(boxes) == 0:

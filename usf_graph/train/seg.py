@@ -92,6 +92,12 @@ def segmentation_loss(logits: torch.Tensor, target: torch.Tensor, ignore_index: 
     if not torch.isfinite(logits).all():
         raise ValueError("the model produced NaN or inf logits; lower the learning rate or "
                          "check the inputs")
+    C = logits.shape[1]
+    bad = (target != ignore_index) & ((target < 0) | (target >= C))
+    if bool(bad.any()):  # cross_entropy's own error is an IndexError, a device assert on a GPU
+        raise ValueError(f"labels must be class indices in [0, {C}) or {ignore_index} (ignored); "
+                         f"found {sorted(set(target[bad].unique().tolist()))[:10]}: is the "
+                         "dataset's label space the model's?")
     cw = None if class_weight is None else class_weight.to(logits.device, logits.dtype)
     loss = nn.functional.cross_entropy(logits, target, ignore_index=ignore_index, reduction="none")
     keep = (target != ignore_index).to(logits.dtype)
