@@ -20,6 +20,7 @@ __all__ = [
     "chord_to_geodesic",
     "geodesic_to_chord",
     "random_rotation",
+    "as_rotation_matrix",
     "rotation_from_axis_angle",
     "rotation_from_quaternion",
     "rotation_angle",
@@ -133,6 +134,24 @@ def rotation_from_axis_angle(axis, angle):
         half = np.asarray(angle, np.float64) / 2
         q = np.concatenate([np.cos(half)[..., None], np.sin(half)[..., None] * axis], -1)
     return rotation_from_quaternion(q)
+
+
+def as_rotation_matrix(R, name: str = "R") -> np.ndarray:
+    """``R`` (numpy or a tensor) as a float64 ``[3, 3]`` array, refused unless it is a
+    proper rotation: finite, orthonormal (``np.allclose(R R^T, I, atol=1e-6)``) and of
+    determinant +1. A scaling or a reflection would otherwise move things without a word."""
+    R = np.asarray(R.detach().cpu() if torch.is_tensor(R) else R, np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"{name} must be a 3x3 rotation matrix, got shape {R.shape}")
+    if not np.isfinite(R).all():
+        raise ValueError(f"{name} contains NaN or infinite values")
+    det = float(np.linalg.det(R))
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or det < 0:
+        raise ValueError(f"{name} is not a rotation matrix (max |R R^T - I| = "
+                         f"{float(np.abs(R @ R.T - np.eye(3)).max()):.2g}, det = {det:.3g}): "
+                         "give a proper rotation matrix (orthonormal, det = +1), e.g. from "
+                         "usf_graph.geometry.random_rotation or scipy's Rotation.as_matrix()")
+    return R
 
 
 def random_rotation(num: int | None = None, seed: int | None = None,

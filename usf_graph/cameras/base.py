@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import as_rotation_matrix
+
 FORMAT_TAG = "usf_graph_camera"  # marks usf-graph's own calibration YAML
 
 # Optical axis -> +x, image right -> -y, image down -> -z (columns are the camera axes).
@@ -42,11 +44,8 @@ def check_finite(name: str, values) -> np.ndarray:
 
 
 def check_rotation(R) -> np.ndarray:
-    R = check_finite("rotation", R if R is not None else DEFAULT_ROTATION)
-    if R.shape != (3, 3):
-        raise ValueError(f"rotation must be a 3x3 matrix, got shape {R.shape}")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise ValueError("rotation must be a proper rotation matrix (orthonormal, det = +1)")
+    R = as_rotation_matrix(check_finite("rotation", R if R is not None else DEFAULT_ROTATION),
+                           "rotation")
     # Re-orthonormalize so tiny file round-off does not accumulate.
     u, _, vt = np.linalg.svd(R)
     return u @ vt

@@ -20,7 +20,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..geometry import from_latlon, normalize, rotation_from_axis_angle, to_latlon
+from ..geometry import (
+    as_rotation_matrix,
+    from_latlon,
+    normalize,
+    rotation_from_axis_angle,
+    to_latlon,
+)
 
 __all__ = ["box_axes", "box_planes", "boxes_from_axes", "canonical_boxes", "from_pandora", "to_pandora",
            "points_in_boxes", "share_in_view", "rotate_boxes", "fit_box", "box_corners", "box_edges"]
@@ -161,25 +167,9 @@ def rotate_boxes(boxes, R):
     exact, since a rotation maps great circles to great circles. Boxes and ``R`` as numpy
     or CPU tensors; returns float64 numpy."""
     b = np.asarray(_as_boxes(boxes), np.float64)
-    R = _rotation_matrix(R)
+    R = as_rotation_matrix(R)
     c, e, _ = box_axes(b)
     return boxes_from_axes(c @ R.T, e @ R.T, b[..., 2], b[..., 3])
-
-
-def _rotation_matrix(R) -> np.ndarray:
-    """``R`` as float64 numpy, refused unless it is a 3x3 rotation (orthonormal to 1e-5,
-    determinant +1): a reflection or a scaling would move boxes without a word."""
-    R = np.asarray(R.detach().cpu() if torch.is_tensor(R) else R, np.float64)
-    if R.shape != (3, 3):
-        raise ValueError(f"R must be a 3x3 rotation matrix, got shape {R.shape}")
-    if not np.isfinite(R).all():
-        raise ValueError("R contains NaN or infinite values")
-    err, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
-    if err > 1e-5 or det < 0:
-        raise ValueError(f"R is not a rotation (max |R R^T - I| = {err:.2g}, det = {det:.3g}); "
-                         "give an orthonormal matrix with determinant +1, e.g. from "
-                         "usf_graph.geometry.random_rotation or scipy's Rotation.as_matrix()")
-    return R
 
 
 def box_corners(boxes):
