@@ -34,16 +34,28 @@ def _tensor(boxes, dtype=None) -> torch.Tensor:
 def box_area(boxes):
     """Solid angle (sr) of boxes ``[..., 5]``: :math:`4 \\arcsin(\\sin(f_x/2)\\sin(f_y/2))`
     (equal to PANDORA's inverse-cosine form, written without it; see the tests)."""
-    b = _as_boxes(boxes)
+    # the formula is symmetric about 180 degrees: a wider box would get a narrower one's area
+    return _area(_fields_of_view(_as_boxes(boxes), "area", closed=True))
+
+
+def _area(b):
+    """:func:`box_area` of boxes whose fields of view are already checked."""
     xp = torch if torch.is_tensor(b) else np
-    fov = b[..., 2:4]
-    if bool((fov < 0).any()) or bool((fov > math.pi).any()):
-        # the formula is symmetric about 180 degrees: a wider box would get a narrower one's area
-        raise ValueError("box area needs fields of view in [0, 180] degrees (a box's edges are "
-                         f"great circles, so it spans at most a hemisphere), got fields of view "
-                         f"from {float(fov.min()):.4g} to {float(fov.max()):.4g} rad")
     s = xp.sin(b[..., 2] / 2) * xp.sin(b[..., 3] / 2)
     return 4 * (xp.asin(s) if xp is torch else np.arcsin(s))
+
+
+def _fields_of_view(b, what: str, closed: bool):
+    """``b`` as it is, refused unless its fields of view are in [0, 180] degrees
+    (``closed``) or [0, 180): a box's edges are great circles, so it spans at most a
+    hemisphere, and the IoU's clipping needs less."""
+    fov = b[..., 2:4]
+    if bool((fov < 0).any()) or bool((fov > math.pi if closed else fov >= math.pi).any()):
+        raise ValueError(f"box {what} needs fields of view in [0, 180{']' if closed else ')'} "
+                         "degrees (a box's edges are great circles, so it spans at most a "
+                         f"hemisphere), got fields of view from {float(fov.min()):.4g} to "
+                         f"{float(fov.max()):.4g} rad")
+    return b
 
 
 def _safe_unit(v: torch.Tensor) -> torch.Tensor:
@@ -82,18 +94,13 @@ def _polygon_area(poly: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
     return torch.where(use, tri, torch.zeros_like(tri)).sum(1).abs()
 
 
-def _fov_ok(b: torch.Tensor) -> torch.Tensor:
-    if bool((b[..., 2:4] >= math.pi).any()) or bool((b[..., 2:4] < 0).any()):
-        raise ValueError("box IoU needs fields of view in [0, 180) degrees")
-    return b
-
-
 def box_iou(a, b, dtype=None) -> torch.Tensor:
     """IoU of boxes ``a [..., 5]`` and ``b [..., 5]`` pair by pair (broadcast), as a tensor.
 
     ``dtype=torch.float64`` gives the exact reference; float32 the fast path.
     """
-    a, b = _fov_ok(_tensor(a, dtype)), _fov_ok(_tensor(b, dtype))
+    a = _fields_of_view(_tensor(a, dtype), "IoU", closed=False)
+    b = _fields_of_view(_tensor(b, dtype), "IoU", closed=False)
     a, b = torch.broadcast_tensors(a, b)
     shape = a.shape[:-1]
     a, b = a.reshape(-1, 5), b.reshape(-1, 5)
@@ -106,7 +113,7 @@ def box_iou(a, b, dtype=None) -> torch.Tensor:
     for k in range(4):
         poly, count = _clip(poly, count, planes[:, k], eps)
     inter = _polygon_area(poly, count)
-    union = box_area(a) + box_area(b) - inter
+    union = _area(a) + _area(b) - inter
     iou = inter / union.clamp_min(torch.finfo(a.dtype).tiny)
     return iou.clamp(0, 1).reshape(shape)
 
