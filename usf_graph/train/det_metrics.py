@@ -83,14 +83,12 @@ def coco_ap(truth, detections, num_classes: int, ignore=None) -> dict:
     Returns ``{"AP": ..., "AP50": ..., "AP75": ..., "AR50": ...}`` in [0, 1] (-1 where no
     class has a ground-truth box, as pycocotools reports it).
     """
-    if len(truth) != len(detections):
-        raise ValueError(f"{len(truth)} images of ground truth but {len(detections)} of detections")
+    _per_image(truth, detections, "detections")
     images = [{"id": i + 1} for i in range(len(truth))]
     cats = [{"id": k + 1, "name": str(k)} for k in range(num_classes)]
     if ignore is None:
         ignore = [np.zeros(len(np.asarray(gc).reshape(-1)), bool) for _, gc in truth]
-    if len(ignore) != len(truth):
-        raise ValueError(f"{len(truth)} images of ground truth but {len(ignore)} of ignore flags")
+    _per_image(truth, ignore, "ignore flags")
     gts, dts = [], []
     for i, ((gb, gc), (db, dc, ds), ig) in enumerate(zip(truth, detections, ignore)):
         (gb, gc, _), ig = _image(i, gb, gc, num_classes, "true"), np.asarray(ig, bool)
@@ -111,6 +109,13 @@ def coco_ap(truth, detections, num_classes: int, ignore=None) -> dict:
     ar50 = float(rec[rec > -1].mean()) if (rec > -1).any() else -1.0
     return {"AP": float(ev.stats[0]), "AP50": float(ev.stats[1]), "AP75": float(ev.stats[2]),
             "AR50": ar50}
+
+
+def _per_image(truth, other, what: str) -> None:
+    """Refuses ``other`` unless it has one entry per image of ``truth`` (``zip`` would cut
+    the longer short)."""
+    if len(truth) != len(other):
+        raise ValueError(f"{len(truth)} images of ground truth but {len(other)} of {what}")
 
 
 def _image(i: int, boxes, classes, num_classes: int, what: str, scores=None):
@@ -148,8 +153,7 @@ def usf_map(truth, detections, num_classes: int, iou_threshold: float = 0.10) ->
     and reads higher; it is here to compare with USF's published numbers, so, as USF's,
     it counts every true box (no ``ignore``). Arguments as :func:`coco_ap`."""
     aps = []
-    if len(truth) != len(detections):
-        raise ValueError(f"{len(truth)} images of ground truth but {len(detections)} of detections")
+    _per_image(truth, detections, "detections")
     for i, ((gb, gc), (db, dc, ds)) in enumerate(zip(truth, detections)):
         gb, gc, _ = _image(i, gb, gc, num_classes, "true")
         db, dc, ds = _image(i, db, dc, num_classes, "detected", ds)
