@@ -28,6 +28,10 @@ def at_least(lo: float, kind=int, above: bool = False, most: float | None = None
 positive_int = at_least(1)
 #: counts that may be 0 (extra views, second-phase epochs, grid levels, pair layers)
 count = at_least(0)
+#: weights and strengths that may be 0 (a loss term's weight, a prior's strength)
+nonnegative = at_least(0.0, float)
+#: shares and probabilities, in [0, 1]
+share = at_least(0.0, float, most=1.0)
 
 
 def add_train_options(t) -> None:
@@ -59,10 +63,10 @@ def add_train_options(t) -> None:
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=count, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")
-    u.add_argument("--up-caps", type=at_least(0.0, float, most=1.0), default=None,
+    u.add_argument("--up-caps", type=share, default=None,
                    help="share of its batches seen through random 40-100 degree caps (0.5)")
     u.add_argument("--up-epochs", type=positive_int, default=None, help="its epochs (det 12, seg 8)")
-    u.add_argument("--up-sign", type=at_least(0.0, float), default=None,
+    u.add_argument("--up-sign", type=nonnegative, default=None,
                    help="weight of a loss term against scoring down above up (0; 1 was a "
                         "lead in session 26, docs/seg_det_log.md)")
 
@@ -93,7 +97,7 @@ def add_eval_options(e) -> None:
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
                    "view's true gravity, as from an IMU, not their estimate")
-    e.add_argument("--level-prior", type=at_least(0.0, float), default=0.0, metavar="BETA",
+    e.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
                    help="det, seg: the up estimate assumes level cameras (optical axis "
                         "horizontal) with this strength; 10 in the README, 0 (default) off")
     add_device_option(e)

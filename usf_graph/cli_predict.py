@@ -12,7 +12,7 @@ from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_imag
 
 def add_predict_parser(sub, fmt) -> None:
     """The ``predict`` subcommand and its options."""
-    from .cli_det import add_device_option, at_least
+    from .cli_det import add_device_option, nonnegative, share
     from .frontend.interpolation import METHODS
 
     p = sub.add_parser("predict", help="run a trained seg or det model on your own image",
@@ -35,7 +35,7 @@ def add_predict_parser(sub, fmt) -> None:
                    help="gravity's up in the camera's sphere frame (x forward, y left, z up; "
                         "with --rig the rig's, cam0's), e.g. from an IMU; default: the model's "
                         "own estimate")
-    p.add_argument("--level-prior", type=at_least(0.0, float), default=0.0, metavar="BETA",
+    p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
                    help="the up estimate assumes a level camera with this strength (10 in the "
                         "README; 0 off)")
     p.add_argument("--sign-check", default=None, metavar="PATH",
@@ -44,7 +44,7 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted; auto: area where the image is over twice as "
                         "fine as the grid (no aliasing), else bilinear as in training")
-    p.add_argument("--min-score", type=at_least(0.0, float, most=1.0), default=0.3,
+    p.add_argument("--min-score", type=share, default=0.3,
                    help="det: boxes drawn and listed from this score (the JSON keeps every box "
                         "from 0.05)")
     p.add_argument("--out", default="predictions", metavar="DIR",
