@@ -3,6 +3,7 @@ the pinhole and Mei models."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -48,8 +49,15 @@ def distortion_radius_limit(d: np.ndarray, upper: float = 50.0) -> float:
     2x2 Jacobian's determinant first reaches 0 (:func:`fold_radius`).
 
     Past it the distortion folds back, so pixels there have two preimages: the model's
-    honest domain ends there.
+    honest domain ends there. Remembered per coefficients: every copy of a camera
+    (``with_rotation``, e.g. a random field of view per batch) would scan again.
     """
+    return _radius_limit(tuple(float(v) for v in np.ravel(d)), float(upper))
+
+
+@functools.lru_cache(maxsize=256)
+def _radius_limit(coefficients: tuple, upper: float) -> float:
+    d = np.array(coefficients)
     if not np.any(d):
         return math.inf
     radial = d.copy()
