@@ -2,13 +2,17 @@
 # The GPU checks of one short lease, in one script (benchmarks/README.md, "On a GPU"):
 #   1. the GPU-only tests and the layers' tests (test_engine, test_wide, test_conv),
 #   2. one layer in every form (benchmarks/conv.py) and the U-Net's training step,
-#   3. the 15-minute segmentation recipe (make demo-seg) trained and scored on CUDA, timed.
+#   3. a 15-minute recipe (RECIPE=seg: make demo-seg, the default; RECIPE=det: make demo-det)
+#      trained and scored on CUDA, timed.
 # Run from the repository root with python3 holding a CUDA PyTorch:
 #   WHEELS=dir  wheels installed first into /tmp/site (what the machine lacks:
 #               torch-scatter, torch-cluster, trimesh, embreex, pycocotools)
 #   OUT=dir     the log and the recipe's results.json (default runs/gpu_check)
+#   TESTS=-k..  pytest's selection within the three files (default: all of them)
+#   BENCH=0     skip step 2
 set -u
 OUT=${OUT:-runs/gpu_check}
+RECIPE=${RECIPE:-seg}
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/gpu.log") 2>&1
 export PYTHONUNBUFFERED=1
@@ -26,12 +30,19 @@ print('torch', torch.__version__, 'pyg', torch_geometric.__version__, 'cuda', to
   || exit 1
 lap "set up"
 timeout 150 python3 -m pytest -q -p no:cacheprovider -rs tests/train/test_engine.py tests/nn/test_wide.py \
-  tests/nn/test_conv.py
+  tests/nn/test_conv.py ${TESTS:-}
 lap "tests"
-timeout 90 python3 benchmarks/conv.py --device cuda --level 6 --reps 10 --skip-slow
-timeout 45 python3 benchmarks/seg_step.py --device cuda --batch 32 --reps 5
-lap "layer and step"
-timeout 290 python3 -m usf_graph.cli train seg --device cuda --channel-scale 0.5 --epochs 6 \
-  --fov-epochs 2 --up-epochs 4 --up-extra 400 --root /tmp/rooms --out /tmp/seg_gpu
-cp /tmp/seg_gpu/results.json "$OUT/seg_results.json" 2>/dev/null
-lap "segmentation recipe"
+if [ "${BENCH:-1}" != 0 ]; then
+  timeout 90 python3 benchmarks/conv.py --device cuda --level 6 --reps 10 --skip-slow
+  timeout 45 python3 benchmarks/seg_step.py --device cuda --batch 32 --reps 5
+  lap "layer and step"
+fi
+case $RECIPE in
+  seg) timeout 290 python3 -m usf_graph.cli train seg --device cuda --channel-scale 0.5 --epochs 6 \
+         --fov-epochs 2 --up-epochs 4 --up-extra 400 --root /tmp/rooms --out /tmp/gpu_recipe ;;
+  det) timeout 300 python3 -m usf_graph.cli train det --device cuda --channel-scale 0.5 --epochs 16 \
+         --fov-epochs 3 --up-epochs 4 --up-extra 400 --root /tmp/rooms --out /tmp/gpu_recipe ;;
+  *) echo "RECIPE must be seg or det, got $RECIPE"; exit 2 ;;
+esac
+cp /tmp/gpu_recipe/results.json "$OUT/${RECIPE}_results.json" 2>/dev/null
+lap "$RECIPE recipe"
