@@ -92,11 +92,11 @@ def main(argv=None) -> dict:
     if ckpt.task == "seg":
         sets = seg.protocol_sets(args.root, size, ckpt.config.get("level", 5), num_train=0,
                                  num_test=args.num_test, seed=seed, tests=("a", args.test),
-                                 progress=False)
+                                 progress=False, materials=ckpt.materials)
         score, unit = _segmenter_score, "mIoU (area-weighted)"
     else:
         sets = det.protocol_sets(args.root, size, num_train=0, num_test=args.num_test,
-                                 seed=seed, progress=False)
+                                 seed=seed, progress=False, materials=ckpt.materials)
         score, unit = _detector_score, "AP50"
     net.eval()
     up = views_up(sets["a"]) if args.known_up else None

@@ -39,7 +39,8 @@ from usf_graph.train.gravity import views_up
 
 def _seg(net, args, size, level):
     sets = seg.protocol_sets(args.root, size, level, args.num_train, args.num_test, args.seed,
-                             tests=("a", args.test), progress=args.progress)
+                             tests=("a", args.test), progress=args.progress,
+                             materials=args.materials)
     train = sets["train"]
     cut = seg.ThroughRandomFields(train.grid.pos, 1.0, args.seed, camera=sets[args.test].camera,
                                   turn=args.turn)
@@ -57,7 +58,7 @@ def _seg(net, args, size, level):
 
 def _det(net, args, size, _level):
     sets = det.protocol_sets(args.root, size, num_train=args.rendered, num_test=args.num_test,
-                             seed=args.seed, progress=args.progress)
+                             seed=args.seed, progress=args.progress, materials=args.materials)
     data = {k: det.DetectionSet.spherical(sets[k]) for k in ("train", "a", args.test)}
     train = data["train"].first(args.num_train)
     cut = det.ThroughRandomFields(train, sets["train"].grid.pos, 1.0, args.seed,
@@ -106,7 +107,7 @@ def main(argv=None) -> dict:
                          "`usf-graph train seg` or `train det` first")
     saved = load_protocol_model(ckpt, weights=False).require(spherical=True)
     net, size = saved.model, args.size or saved.size
-    args.seed = saved.rooms_seed(args.seed)
+    args.seed, args.materials = saved.rooms_seed(args.seed), saved.materials
     run = _seg if saved.task == "seg" else _det
     args.num_train = args.num_train or defaults(seg.run if run is _seg else det.run)["num_train"]
     args.rendered = max(args.rendered, args.num_train)

@@ -92,11 +92,11 @@ def main(argv=None) -> dict:
     seed = ckpt.rooms_seed(args.seed)
     if ckpt.task == "det":
         ds = det.protocol_sets(args.root, ckpt.size, num_train=0, num_test=args.num_test,
-                               seed=seed, progress=False)[args.test]
+                               seed=seed, progress=False, materials=ckpt.materials)[args.test]
     else:
         ds = seg.protocol_sets(args.root, ckpt.size, ckpt.config.get("level", 5), num_train=0,
                                num_test=args.num_test, seed=seed, tests=(args.test,),
-                               progress=False)[args.test]
+                               progress=False, materials=ckpt.materials)[args.test]
     share = floor_and_ceiling(ds)
     err = up_errors(model.gravity, ds.x, ds.mask[0], views_up(ds))[0].numpy()
     res = {"bins": []}

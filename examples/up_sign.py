@@ -72,7 +72,8 @@ def main(argv=None) -> dict:
     model.eval()
     set_level_prior(model, a.level_prior)
     sets = seg.protocol_sets(a.root, size, cfg["level"], a.num_train, a.num_test, a.seed,
-                             tests=("a", "c", "d"), progress=not a.no_progress)
+                             tests=("a", "c", "d"), progress=not a.no_progress,
+                             materials=ckpt.materials)
     seed_everything(a.seed)
     sign = pretrain_sign(SignCheck(cfg["level"]), sets["train"], a.epochs, a.cut_epochs, a.share,
                          a.seed, progress=not a.no_progress)

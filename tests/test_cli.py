@@ -217,6 +217,33 @@ def test_train_passes_the_protocol_options_or_their_defaults(task, monkeypatch):
     assert calls[0]["channel_scale"] == defaults["channel_scale"].default == 1.0
     assert main(["train", task, "--channel-scale", "0.5"]) == 0
     assert calls[2]["channel_scale"] == 0.5
+    assert calls[0]["materials"] == defaults["materials"].default == "random"
+    assert main(["train", task, "--materials", "by_kind"]) == 0
+    assert calls[3]["materials"] == "by_kind"
+
+
+@pytest.mark.parametrize("task", ["det", "seg"])
+def test_eval_scores_a_checkpoint_on_rooms_of_its_own_materials(task, tmp_path, monkeypatch, capsys):
+    from usf_graph.models import SphericalDetector, SphericalUNet
+    from usf_graph.train import save_checkpoint
+
+    module = importlib.import_module(f"usf_graph.train.{task}")
+    seen = []
+
+    def stop(*a, **kw):
+        seen.append(kw["materials"])
+        raise ValueError("stopped before rendering")
+
+    monkeypatch.setattr(module, "protocol_sets", stop)
+    net = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(4, 4, 4)) \
+        if task == "det" else SphericalUNet(13, level=3, channels=(4, 4, 4, 4))
+    cfg = net.config if task == "det" else {"model": "spherical_unet", **net.config}
+    for materials in ("by_kind", "random", None):
+        data = {"dataset": "rooms", "seed": 0} | ({"materials": materials} if materials else {})
+        save_checkpoint(tmp_path / "m.pt", net, cfg, {}, extra={"data": data})
+        assert main(["eval", task, str(tmp_path / "m.pt")]) == 2
+        assert "stopped before rendering" in capsys.readouterr().err
+    assert seen == ["by_kind", "random", "random"]  # not recorded: saved before materials existed
 
 
 @pytest.mark.parametrize("argv", [["train", "det", "--dataset", "pandora", "--channel-scale", "0.5"],
@@ -225,6 +252,14 @@ def test_train_passes_the_protocol_options_or_their_defaults(task, monkeypatch):
 def test_channel_scale_is_refused_where_it_would_be_ignored(argv, capsys):
     assert main(argv) == 2
     assert f"--channel-scale is an option of the rooms protocols; on {argv[3]}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["train", "det", "--dataset", "pandora", "--materials", "by_kind"],
+                                  ["train", "seg", "--dataset", "stanford2d3ds",
+                                   "--materials", "random"]])
+def test_materials_are_refused_on_photographs(argv, capsys):
+    assert main(argv) == 2
+    assert f"--materials is an option of the procedural rooms; {argv[3]}'s" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("option", ["--num-train", "--num-test", "--size"])

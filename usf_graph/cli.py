@@ -140,7 +140,7 @@ def cmd_scenes(args) -> int:
         return _export_layout(args, out, cams["equirectangular"])
     rows, panoramas = [], []
     for i in range(args.num):
-        scene = scenes.make_room(args.seed, i)
+        scene = scenes.make_room(args.seed, i, materials=args.materials)
         row = []
         for name, cam in cams.items():
             view = scenes.render(scene, cam)
@@ -166,7 +166,7 @@ def _export_layout(args, out: Path, camera) -> int:
     from . import scenes
     from .scenes.export import export_pandora, export_stanford
 
-    views = [scenes.render(scenes.make_room(args.seed, i), camera)
+    views = [scenes.render(scenes.make_room(args.seed, i, materials=args.materials), camera)
              for i in tqdm(range(args.num), desc="rendering rooms", leave=False)]
     if args.layout == "stanford2d3ds":
         export_stanford(views, camera, out)
@@ -352,6 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--out", required=True, metavar="DIR", help="output folder")
     sc.add_argument("--num", type=positive_int, default=3, help="number of rooms")
     sc.add_argument("--seed", type=int, default=0, help="rooms are scene 0..num-1 of this seed")
+    sc.add_argument("--materials", default="random", choices=["random", "by_kind"],
+                    help="every object's look at random (the protocols' rooms) or a material "
+                         "per kind of object, as in real rooms (the same layouts)")
     sc.add_argument("--size", type=positive_int, default=512,
                     help="image height in pixels (the panorama is twice as wide)")
     sc.add_argument("--layout", default="views", choices=["views", "stanford2d3ds", "pandora"],

@@ -60,6 +60,10 @@ def add_train_options(t) -> None:
     g.add_argument("--channel-scale", type=float, default=None, metavar="S",
                    help="rooms: every model's channel counts times S (1; 0.5 in the README's "
                         "15-minute recipes, 'make demo-seg' and 'make demo-det')")
+    g.add_argument("--materials", default=None, choices=["random", "by_kind"],
+                   help="rooms: every object's look drawn at random (the protocols' rooms, the "
+                        "default) or a material per kind of object, as in real rooms (the same "
+                        "layouts); 'eval' reads it from the checkpoint")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=count, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")
@@ -133,6 +137,14 @@ def rooms_only_options(args) -> None:
     if args.dataset != "rooms" and args.channel_scale is not None:
         raise ValueError(f"--channel-scale is an option of the rooms protocols; on "
                          f"{args.dataset} the models train at their own channels")
+    if args.dataset != "rooms" and args.materials is not None:
+        raise ValueError(f"--materials is an option of the procedural rooms; {args.dataset}'s "
+                         f"images are photographs")
+
+
+def rooms_kind(results: dict) -> str:
+    """How a protocol's printed table names its rooms."""
+    return "rooms with materials by kind" if results.get("materials") == "by_kind" else "rooms"
 
 
 def run_kwargs(args, run) -> dict:
@@ -160,14 +172,14 @@ def cmd_train_det(args) -> int:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/det",
                   planar=not args.no_planar, **up_kwargs(args, run), **kw,
                   **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs",
-                                                    "channel_scale")))
+                                                    "channel_scale", "materials")))
     teardown_distributed()
     if not res:
         return 0
     if args.dataset == "pandora":
         print(json.dumps(res["spherical"], indent=1))
         return 0
-    print(f"\nDetection on procedural rooms, trained on upright panoramas ({res['samples']['train']} "
+    print(f"\nDetection on procedural {rooms_kind(res)}, trained on upright panoramas ({res['samples']['train']} "
           f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
     for metric in ("AP50", "AP50_every_box", "AP", "usf_mAP@10"):
         print(f"{metric}:\n{format_table(res, metric)}\n")
@@ -252,7 +264,8 @@ def cmd_eval_det(args) -> int:
         if wrong := [k for k in names if k not in PROTOCOL]:  # before any rendering
             raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {wrong[0]!r}")
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, num_train=0,
-                             num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed))
+                             num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed),
+                             materials=ckpt.materials)
         tests = {f"({k})": sets[k] for k in names}
     for k, ds in tests.items():
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)

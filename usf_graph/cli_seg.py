@@ -8,6 +8,7 @@ from .cli_det import (
     eval_data,
     given_or_default,
     ready_model,
+    rooms_kind,
     rooms_only_options,
     run_kwargs,
     up_kwargs,
@@ -32,7 +33,7 @@ def cmd_train_seg(args) -> int:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/seg",
                   models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw,
                   **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs",
-                                                    "channel_scale")))
+                                                    "channel_scale", "materials")))
     teardown_distributed()
     if not res:
         return 0
@@ -40,7 +41,7 @@ def cmd_train_seg(args) -> int:
         print(json.dumps({m: res[m]["mean"] for m in res if isinstance(res[m], dict) and "mean" in res[m]},
                          indent=1))
         return 0
-    print(f"\nSegmentation on procedural rooms, trained on upright panoramas ({res['samples']['train']} "
+    print(f"\nSegmentation on procedural {rooms_kind(res)}, trained on upright panoramas ({res['samples']['train']} "
           f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
     for metric in ("mIoU", "mAcc"):
         print(f"{metric} (camera pixels):\n{format_table(res, metric)}\n")
@@ -68,7 +69,8 @@ def cmd_eval_seg(args) -> int:
     else:
         tests = args.test or list(PROTOCOL)
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, level, num_train=0,
-                             num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed), tests=tests)
+                             num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed), tests=tests,
+                             materials=ckpt.materials)
         res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
         res = {f"({k})": r for k, r in res.items()}
     for k, r in res.items():

@@ -182,3 +182,25 @@ def test_render_workers_reads_its_variable_and_names_a_bad_value(monkeypatch):
         monkeypatch.setenv(WORKERS_ENV, bad)
         with pytest.raises(ValueError, match=f"{WORKERS_ENV} must be a whole number"):
             render_workers(100)
+
+
+def test_rooms_by_kind_are_stored_apart_and_the_protocols_files_keep_their_names(tmp_path):
+    from usf_graph.datasets.rooms import _cache_stem
+
+    assert _cache_stem("p", n=3) == _cache_stem("p", materials="random", n=3)
+    assert _cache_stem("p", materials="by_kind", n=3) != _cache_stem("p", n=3)
+    kw = dict(num_scenes=2, grid="icosahedral:2", progress=False,
+              camera=cameras.Equirectangular(32, 16))
+    rand = RoomsSegmentation(tmp_path, "test", **kw)
+    kind = RoomsSegmentation(tmp_path, "test", materials="by_kind", **kw)
+    assert rand.processed_paths != kind.processed_paths
+    assert torch.equal(rand.y, kind.y) and not torch.equal(rand.x, kind.x)  # same rooms, new looks
+    direct = scenes.render(scenes.make_room(kind.scene_seed, 1, materials="by_kind"), kw["camera"],
+                           *view_pose(scenes.make_room(kind.scene_seed, 1), "none", 1, kind.scene_seed))
+    assert np.array_equal(kind.image[1].numpy(), direct.rgb)
+    up = RoomsGravity(tmp_path, 2, camera=kw["camera"], grid="icosahedral:2", progress=False,
+                      materials="by_kind")
+    assert not torch.equal(up.x, RoomsGravity(tmp_path, 2, camera=kw["camera"], grid="icosahedral:2",
+                                              progress=False).x)
+    with pytest.raises(ValueError, match="materials must be one of"):
+        RoomsDetection(tmp_path, "test", materials="paint", **kw)

@@ -25,6 +25,7 @@ from ..frontend.image import SphericalImage
 from ..geometry import random_rotation
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, make_room, render
+from ..scenes.materials import check_materials
 from .stacked import add_boxes, load_or_rebuild, pack_boxes, pre_transform_stacked
 
 ROTATIONS = ("none", "so3")
@@ -99,12 +100,13 @@ class _ViewJob:
     the room, the image, and the exact labels of the grid points when ``pos`` is given."""
 
     def __init__(self, seed: int, rotate: str, camera: Camera, boxes: bool,
-                 pos: np.ndarray | None = None, mask: np.ndarray | None = None):
+                 pos: np.ndarray | None = None, mask: np.ndarray | None = None,
+                 materials: str = "random"):
         self.seed, self.rotate, self.camera, self.boxes = seed, rotate, camera, boxes
-        self.pos, self.mask = pos, mask
+        self.pos, self.mask, self.materials = pos, mask, materials
 
     def __call__(self, i: int):
-        scene = make_room(self.seed, i)
+        scene = make_room(self.seed, i, materials=self.materials)
         p, R = view_pose(scene, self.rotate, i, self.seed)
         view = render(scene, self.camera, position=p, rotation=R, boxes=self.boxes)
         y = None if self.pos is None else grid_labels(scene, p, R, self.pos, self.mask)
@@ -135,12 +137,15 @@ def render_views(job: _ViewJob, n: int, desc: str, progress: bool):
     yield from tqdm(map(job, range(n)), total=n, desc=desc, disable=not progress, leave=False)
 
 
-def _cache_stem(prefix: str, **key) -> str:
+def _cache_stem(prefix: str, materials: str = "random", **key) -> str:
     """A processed file's name, less its extension, that changes with everything the
-    rendering depends on."""
+    rendering depends on (the rooms' ``materials`` only where they are not the default, so
+    the files stored before they existed keep their names)."""
     import hashlib
     import json
 
+    if check_materials(materials) != "random":
+        key["materials"] = materials
     return f"{prefix}_{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]}"
 
 
@@ -163,11 +168,12 @@ class _Rooms(_Rendered):
     def __init__(self, root, split: str = "train", camera: Camera | None = None,
                  grid="icosahedral:5", num_scenes: int | None = None, rotate: str = "none",
                  seed: int = 0, interpolation: str = "bilinear", transform=None,
-                 pre_transform=None, progress: bool = True):
+                 pre_transform=None, progress: bool = True, materials: str = "random"):
         if split not in ("train", "test"):
             raise ValueError(f"split must be 'train' or 'test', got {split!r}")
         _check_rotate(rotate)
         self.split, self.rotate, self.seed = split, rotate, int(seed)
+        self.materials = check_materials(materials)
         self.camera = Equirectangular(256, 128) if camera is None else camera
         self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
         self.num_scenes = int(num_scenes if num_scenes is not None else (200 if split == "train" else 50))
@@ -184,7 +190,7 @@ class _Rooms(_Rendered):
         no_boxes = {} if self.renders_boxes else {"boxes": False}  # a split with boxes keeps its name
         return [_cache_stem(f"rooms_{self.split}_{self.rotate}_s{self.seed}", camera=self.camera.key(),
                             grid=self.grid.spec, interp=self.interpolation, n=self.num_scenes,
-                            **no_boxes) + ".pt"]
+                            materials=self.materials, **no_boxes) + ".pt"]
 
     def _load(self):
         blob = load_or_rebuild(self.processed_paths[0], self.process,
@@ -210,7 +216,8 @@ class _Rooms(_Rendered):
         scene_seed = self.scene_seed
         pos, mask = self.grid.pos.numpy(), self.frontend.mask.numpy()
         xs, ys, masks, imgs, labs, boxes, classes = [], [], [], [], [], [], []
-        job = _ViewJob(scene_seed, self.rotate, self.camera, self.renders_boxes, pos, mask)
+        job = _ViewJob(scene_seed, self.rotate, self.camera, self.renders_boxes, pos, mask,
+                       self.materials)
         for view, y in render_views(job, self.num_scenes, f"rendering {self.split} rooms",
                                     self.progress):
             xs.append(self.frontend.lift(view.rgb.astype(np.float32) / 255))
@@ -263,6 +270,10 @@ class RoomsSegmentation(_Rooms):
         num_scenes: number of rooms, one view each (200 for train, 50 for test by default).
         rotate: ``none`` (gravity-aligned, random yaw) or ``so3`` (Haar, seeded per view).
         seed: seed of the rooms and rotations.
+        interpolation, transform, pre_transform, progress: the lift's interpolation, PyG's
+            transforms, a progress bar while rendering.
+        materials: ``"random"`` (the protocols' rooms) or ``"by_kind"`` (a material per kind
+            of object; :mod:`usf_graph.scenes.materials`).
 
     A sample has ``x [N, 3]`` (RGB in [0, 1], 0 outside the field of view), ``y [N]``
     (class index, 255 = ignore outside the field of view), ``mask [N]``, ``pos``, ``area``,
@@ -301,13 +312,16 @@ class RoomsGravity(_Rendered):
     those of ``seed`` (by default 1000, shared with no protocol split). A sample has ``x [N,
     3]``, ``pos``, ``area``, ``mask [N]`` and ``up [1, 3]`` (+z: the views are
     gravity-aligned with random yaw); ``dataset.x [S, N, 3]`` (float16) holds the split.
+    ``materials`` as in :class:`RoomsSegmentation`.
     """
 
     def __init__(self, root, num_scenes: int, camera: Camera | None = None,
-                 grid="icosahedral:5", seed: int = GRAVITY_SEED, progress: bool = True):
+                 grid="icosahedral:5", seed: int = GRAVITY_SEED, progress: bool = True,
+                 materials: str = "random"):
         if num_scenes < 1:
             raise ValueError(f"num_scenes must be at least 1, got {num_scenes}")
         self.num_scenes, self.seed, self.progress = int(num_scenes), int(seed), progress
+        self.materials = check_materials(materials)
         self.camera = Equirectangular(192, 96) if camera is None else camera
         self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
         self.frontend = SphericalFrontend(self.camera, self.grid)
@@ -317,7 +331,8 @@ class RoomsGravity(_Rendered):
 
     @property
     def _stem(self) -> str:
-        return _cache_stem(f"rooms_gravity_s{self.seed}", camera=self.camera.key(), grid=self.grid.spec)
+        return _cache_stem(f"rooms_gravity_s{self.seed}", camera=self.camera.key(), grid=self.grid.spec,
+                           materials=self.materials)
 
     @property
     def processed_file_names(self):
@@ -329,7 +344,7 @@ class RoomsGravity(_Rendered):
 
     def _render(self) -> torch.Tensor:
         """Every view rendered and lifted, ``[num_scenes, N, 3]`` float16."""
-        job = _ViewJob(self.seed, "none", self.camera, boxes=False)
+        job = _ViewJob(self.seed, "none", self.camera, boxes=False, materials=self.materials)
         views = render_views(job, self.num_scenes, "rendering rooms for the up estimate",
                              self.progress)
         return torch.stack([self.frontend.lift(view.rgb.astype(np.float32) / 255)

@@ -18,8 +18,8 @@ import trimesh
 
 from ..geometry import rotation_from_axis_angle
 from .classes import DETECTION_CLASSES, semantic_index
+from .materials import appearance, check_materials
 from .objects import AGAINST_WALL, FLOOR, ON_TABLE, ON_WALL, box, cylinder
-from .textures import num_textures
 
 WALL_RANGE, HEIGHT_RANGE = (3.0, 9.0), (2.5, 3.5)
 CAMERA_HEIGHT = (1.2, 1.7)
@@ -264,7 +264,8 @@ def _furniture(lay, L, W, n):
                     break
 
 
-def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None = None) -> Scene:
+def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None = None,
+              materials: str = "random") -> Scene:
     """Build room ``index`` of ``seed``.
 
     Args:
@@ -272,7 +273,11 @@ def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None 
         size: ``(length, width, height)`` in metres; random (walls 3-9 m, height 2.5-3.5 m)
             when None.
         num_objects: how many pieces of furniture to try to place (random 4-12 when None).
+        materials: ``"random"`` (every object's look drawn at random: the protocols' rooms)
+            or ``"by_kind"`` (a material per kind of object, as in real rooms; the same
+            layout and light), :mod:`usf_graph.scenes.materials`.
     """
+    check_materials(materials)
     rng = np.random.default_rng([int(seed), int(index)])
     if size is None:
         size = (*rng.uniform(*WALL_RANGE, 2), rng.uniform(*HEIGHT_RANGE))
@@ -294,14 +299,7 @@ def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None 
         xy = rng.uniform(-1, 1, 2) * (np.array([L, W]) / 2 - 0.5)
         lay.add("ceiling_light", "clutter", "light", [cylinder(r, 0.06, (*xy, H - 0.03), 24)])
     mesh = trimesh.util.concatenate(lay.meshes)
-    n = len(lay.instances)
-    appearance = {
-        "texture": rng.integers(0, num_textures(), n),
-        "tint": rng.uniform(0.25, 1.0, (n, 3)),
-        "mix": rng.uniform(0.3, 1.0, n),
-        "tile": rng.uniform(0.4, 2.5, n),  # metres per texture repeat
-        "offset": rng.uniform(0, 1, (n, 2)),
-    }
+    ap = appearance(lay.instances, rng, materials, (seed, index))
     light = np.array([*rng.uniform(-0.3, 0.3, 2) * [L, W], H - 0.25])
     return Scene(size, lay.instances, mesh, np.concatenate(lay.owner), light,
-                 float(rng.uniform(0.3, 0.45)), appearance, int(seed), int(index))
+                 float(rng.uniform(0.3, 0.45)), ap, int(seed), int(index))

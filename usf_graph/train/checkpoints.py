@@ -25,7 +25,8 @@ class ProtocolCheckpoint:
     kind); ``size``: the panorama height it was trained at (the saved one, else the
     task's protocol default); ``metrics``: the metrics saved with it; ``dataset``: what it
     was trained on, ``rooms``, ``stanford2d3ds`` (with its ``fold``) or ``pandora``; ``seed``:
-    a rooms run's seed (None where the checkpoint predates recording it)."""
+    a rooms run's seed (None where the checkpoint predates recording it); ``materials``: its
+    rooms' (:mod:`usf_graph.scenes.materials`; ``"random"`` where not recorded)."""
 
     path: str
     task: str
@@ -37,6 +38,7 @@ class ProtocolCheckpoint:
     dataset: str = "rooms"
     fold: int | None = None
     seed: int | None = None
+    materials: str = "random"
 
     @property
     def planar(self) -> bool:
@@ -101,4 +103,4 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
         dataset = "pandora" if task == "det" and model.num_classes == len(PANDORA_CLASSES) else "rooms"
     return ProtocolCheckpoint(str(path), task, name, model, blob["config"],
                               size or _default_size(task), blob.get("metrics", {}), dataset, fold,
-                              seed)
+                              seed, data.get("materials", "random"))

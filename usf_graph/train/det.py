@@ -28,6 +28,7 @@ from ..models import PlanarDetector, SphericalDetector
 from ..models.centernet import box_centres, fields_on_cpu, nearest_points
 from ..ops import box_iou, share_in_view
 from ..scenes import DETECTION_CLASSES
+from ..scenes.materials import check_materials
 from .det_metrics import FULLY_SEEN, coco_ap, usf_map
 from .engine import (
     check_channel_scale,
@@ -274,14 +275,16 @@ def score(dets: list[dict], data: DetectionSet, num_classes: int) -> dict:
 
 
 def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train: int = 200,
-                  num_test: int = 50, seed: int = 0, progress: bool = True) -> dict:
+                  num_test: int = 50, seed: int = 0, progress: bool = True,
+                  materials: str = "random") -> dict:
     """The rooms splits of the protocol: ``{"train": ..., "a": ..., "b": ..., "c": ..., "d": ...}``
-    (no ``train`` when ``num_train`` is 0)."""
+    (no ``train`` when ``num_train`` is 0), of rooms with ``materials``
+    (:mod:`usf_graph.scenes.materials`)."""
     from ..datasets import RoomsDetection
     from ..scenes.lenses import protocol_cameras
 
     cams = protocol_cameras(size)
-    kw = dict(grid=grid, seed=seed, progress=progress)
+    kw = dict(grid=grid, seed=seed, progress=progress, materials=materials)
     sets = {} if not num_train else {"train": RoomsDetection(
         root, "train", camera=cams["equirectangular"], num_scenes=num_train, **kw)}
     for k, (cam, rot) in PROTOCOL.items():
@@ -296,7 +299,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
         upright_convs: int | None = UPRIGHT_CONVS, fov_epochs: int = FOV_EPOCHS,
         fov_share: float = FOV_SHARE, up_sign: float = 0.0, channel_scale: float = 1.0,
-        resume: bool = False, device: str | None = None) -> dict:
+        resume: bool = False, device: str | None = None, materials: str = "random") -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
     ``channel_scale``: both detectors' channel counts times this
@@ -327,21 +330,23 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     ``resume``: continue an interrupted run under ``out``, every stage from its ``last.pt``
     (:func:`~usf_graph.train.engine.fit`; finished ones just load). ``device``: where the
     detectors train and predict (:func:`~usf_graph.train.engine.resolve_device`; default
-    the CPU)."""
+    the CPU). ``materials``: the rooms' (:mod:`usf_graph.scenes.materials`; ``"random"``,
+    the protocol's)."""
     check_channel_scale(channel_scale)  # these before any rendering
+    check_materials(materials)
     check_extra_rooms(seed, up_extra if upright else 0)
     dev = resolve_device(device)
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
     sets = protocol_sets(root, size, num_train=max(num_train, up_train if upright else 0),
-                         num_test=num_test, seed=seed, progress=progress)
+                         num_test=num_test, seed=seed, progress=progress, materials=materials)
     C = len(DETECTION_CLASSES)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size,
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
                "ignored_boxes": {},  # per test: cut by the camera's border (DetectionSet.ignored)
                "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
-               "up_sign": up_sign, "channel_scale": channel_scale}
+               "up_sign": up_sign, "channel_scale": channel_scale, "materials": materials}
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
                                   upright_convs=upright_convs if upright else None,
                                   **scaled_channels(SphericalDetector, channel_scale)).to(dev)
@@ -350,7 +355,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         results["samples"]["up_extra"] = up_extra
         pretrain_up(spherical, sets["train"][:up_train], up_epochs, batch_size, seed=seed,
                     progress=progress, log_dir=out / "up_estimate", caps=up_caps,
-                    sign_weight=up_sign, extra=up_views(root, up_extra, progress=progress),
+                    sign_weight=up_sign, extra=up_views(root, up_extra, progress=progress, materials=materials),
                     resume=resume)
     models = {"spherical": (spherical, DetectionSet.spherical, epochs)}
     if planar:
@@ -386,7 +391,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
                 results[name][k]["up"] = up_report(net.gravity, data[k].x, data[k].mask,
                                                    views_up(sets[k]))
         save_checkpoint(out / f"{name}.pt", net, net.config, results[name],
-                        extra={"data": {"dataset": "rooms", "seed": seed}})
+                        extra={"data": {"dataset": "rooms", "seed": seed, "materials": materials}})
     if rank != 0:
         return {}
     from ..viz import plot_detections

@@ -172,14 +172,15 @@ def check_extra_rooms(seed: int, up_extra: int) -> None:
                          f"(the rooms of seed {GRAVITY_SEED}); pick another seed")
 
 
-def up_views(root, num: int, grid="icosahedral:5", progress: bool = True):
+def up_views(root, num: int, grid="icosahedral:5", progress: bool = True,
+             materials: str = "random"):
     """``num`` cheap upright panoramas on ``grid`` (:class:`~usf_graph.datasets.RoomsGravity`,
     rendered once under ``root``) for the protocols' up estimate, or ``None`` for 0."""
     if not num:
         return None
     from ..datasets import RoomsGravity
 
-    return RoomsGravity(root, num, grid=grid, progress=progress)
+    return RoomsGravity(root, num, grid=grid, progress=progress, materials=materials)
 
 
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,

@@ -37,6 +37,7 @@ from ..frontend import render
 from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
+from ..scenes.materials import check_materials
 from .engine import (
     check_channel_scale,
     fit,
@@ -235,14 +236,15 @@ def score(pixels: np.ndarray, ds, points: np.ndarray | None = None) -> dict:
 
 def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
                   num_test: int = 50, seed: int = 0, tests=tuple(PROTOCOL),
-                  progress: bool = True) -> dict:
+                  progress: bool = True, materials: str = "random") -> dict:
     """The rooms splits of the protocol, ``{"train": ..., "a": ..., ..., "e": ...}``
     (no ``train`` when ``num_train`` is 0): panoramas ``2 size x size`` on
-    ``icosahedral:level`` (twice the size and one level finer for (e))."""
+    ``icosahedral:level`` (twice the size and one level finer for (e)), of rooms with
+    ``materials`` (:mod:`usf_graph.scenes.materials`)."""
     from ..datasets import RoomsSegmentation
     from ..scenes.lenses import protocol_cameras
 
-    kw = dict(seed=seed, progress=progress)
+    kw = dict(seed=seed, progress=progress, materials=materials)
     sets = {} if not num_train else {"train": RoomsSegmentation(
         root, "train", camera=protocol_cameras(size)["equirectangular"],
         grid=f"icosahedral:{level}", num_scenes=num_train, **kw)}
@@ -363,7 +365,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         balance: float = 0.5, up_epochs: int = 8, upright: bool = True, up_extra: int = 800,
         up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE,
         up_sign: float = 0.0, channel_scale: float = 1.0, resume: bool = False,
-        device: str | None = None) -> dict:
+        device: str | None = None, materials: str = "random") -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
     ``upright``, ``channel_scale``: as :func:`make_model`'s, for every model (0.5, with
@@ -383,8 +385,10 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     0 skips it). ``resume``: continue an interrupted run under ``out``, every stage from
     its ``last.pt`` (:func:`~usf_graph.train.engine.fit`; finished ones just load).
     ``device``: where the models train and predict
-    (:func:`~usf_graph.train.engine.resolve_device`; default the CPU)."""
+    (:func:`~usf_graph.train.engine.resolve_device`; default the CPU). ``materials``: the
+    rooms' (:mod:`usf_graph.scenes.materials`; ``"random"``, the protocol's)."""
     check_channel_scale(channel_scale)  # these before any rendering
+    check_materials(materials)
     check_extra_rooms(seed, up_extra)
     dev = resolve_device(device)
     if unknown := sorted(set(models) - set(MODELS)):
@@ -392,14 +396,17 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
-    sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress)
+    sets = protocol_sets(root, size, level, num_train, num_test, seed, progress=progress,
+                         materials=materials)
     results = {"samples": {"train": num_train, "test": num_test}, "size": size, "level": level,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
                "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign,
-               "fov_epochs": fov_epochs, "fov_share": fov_share, "channel_scale": channel_scale}
+               "fov_epochs": fov_epochs, "fov_share": fov_share, "channel_scale": channel_scale,
+               "materials": materials}
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
-    extra = up_views(root, up_extra, f"icosahedral:{level}", progress) if trains_estimate else None
+    extra = up_views(root, up_extra, f"icosahedral:{level}", progress, materials) \
+        if trains_estimate else None
     up_kw = dict(caps=up_caps, extra=extra, sign_weight=up_sign)
     for name in models:
         seed_everything(seed)
@@ -413,7 +420,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
         results[name], preds[name] = evaluate_protocol(net, sets, progress=progress, name=name)
         save_checkpoint(out / f"{name}.pt", net, {"model": name, "size": size, **net.config},
-                        results[name], extra={"data": {"dataset": "rooms", "seed": seed}})
+                        results[name],
+                        extra={"data": {"dataset": "rooms", "seed": seed, "materials": materials}})
     if rank != 0:
         return {}
     from ..viz import plot_segmentation
