@@ -246,20 +246,13 @@ def test_eval_scores_a_checkpoint_on_rooms_of_its_own_materials(task, tmp_path, 
     assert seen == ["by_kind", "random", "random"]  # not recorded: saved before materials existed
 
 
-@pytest.mark.parametrize("argv", [["train", "det", "--dataset", "pandora", "--channel-scale", "0.5"],
-                                  ["train", "seg", "--dataset", "stanford2d3ds",
-                                   "--channel-scale", "0.5"]])
-def test_channel_scale_is_refused_where_it_would_be_ignored(argv, capsys):
-    assert main(argv) == 2
-    assert f"--channel-scale is an option of the rooms protocols; on {argv[3]}" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("argv", [["train", "det", "--dataset", "pandora", "--materials", "by_kind"],
-                                  ["train", "seg", "--dataset", "stanford2d3ds",
-                                   "--materials", "random"]])
-def test_materials_are_refused_on_photographs(argv, capsys):
-    assert main(argv) == 2
-    assert f"--materials is an option of the procedural rooms; {argv[3]}'s" in capsys.readouterr().err
+@pytest.mark.parametrize("task, dataset", [("det", "pandora"), ("seg", "stanford2d3ds")])
+@pytest.mark.parametrize("option, value, said", [
+    ("--channel-scale", "0.5", "--channel-scale is an option of the rooms protocols; on {}"),
+    ("--materials", "random", "--materials is an option of the procedural rooms; {}'s")])
+def test_rooms_options_are_refused_on_real_data(task, dataset, option, value, said, capsys):
+    assert main(["train", task, "--dataset", dataset, option, value]) == 2
+    assert said.format(dataset) in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("option", ["--num-train", "--num-test", "--size"])
@@ -505,6 +498,14 @@ def test_train_resume_reaches_the_run(monkeypatch, tmp_path, task, module):
     for flag in ([], ["--resume"]):
         assert main(["train", task, "--out", str(tmp_path), *data.get(module, []), *flag]) == 0
         assert seen.pop("resume") is bool(flag)
+
+
+def test_train_mnist_refuses_the_options_of_train_det_and_seg(capsys):
+    for argv, named in ((["--channel-scale", "0.5"], "--channel-scale"),
+                        (["--materials", "by_kind", "--up-sign", "0"], "--materials, --up-sign"),
+                        (["--dataset", "pandora", "--fold", "2"], "--dataset, --fold")):
+        assert main(["train", "mnist", *argv]) == 2
+        assert f"{named}: options of 'train det|seg', not of 'train mnist'" in capsys.readouterr().err
 
 
 def test_eval_mnist_refuses_the_options_of_eval_det_and_seg(tmp_path, capsys):

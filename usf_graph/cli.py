@@ -217,6 +217,13 @@ def cmd_train(args) -> int:
 
     if args.task != "mnist":
         return _task_command(args.task, "train")(args)
+    other = [f"--{n.replace('_', '-')}" for n in ("size", "num_train", "num_test", "lr", "models",
+                                                   "fov_epochs", "channel_scale", "materials",
+                                                   "up_extra", "up_caps", "up_epochs", "up_sign")
+             if getattr(args, n) is not None]
+    other += ["--dataset"] * (args.dataset != "rooms") + ["--fold"] * (args.fold != "1")
+    if other:  # rather than ignore them
+        raise ValueError(f"{', '.join(other)}: options of 'train det|seg', not of 'train mnist'")
     res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", level=args.level,
               epochs=args.epochs or 12, batch_size=args.batch_size or 32, seed=args.seed, source=args.source,
               planar=not args.no_planar, input_level=args.input_level,
