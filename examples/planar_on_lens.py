@@ -43,15 +43,20 @@ def main(argv=None) -> dict:
                    help="the class weights' power")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--root", default="data/rooms")
+    p.add_argument("--materials", default="random", choices=["random", "by_kind"],
+                   help="the rooms' looks (usf_graph.scenes.materials)")
     p.add_argument("--num-test", type=int, default=protocol["num_test"])
     p.add_argument("--out", default=None, help="default: runs/planar_on_<test>_s<seed>")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     a = p.parse_args(argv)
     test = seg.protocol_sets(a.root, a.size, a.level, num_train=0, num_test=a.num_test,
-                             seed=a.seed, tests=(a.test,), progress=a.progress)[a.test]
+                             seed=a.seed, tests=(a.test,), progress=a.progress,
+                             materials=a.materials)[a.test]
     train = RoomsSegmentation(a.root, "train", camera=test.camera, grid=test.grid,
-                              num_scenes=a.num_train, seed=a.seed, progress=a.progress)
-    out = Path(a.out or f"runs/planar_on_{a.test}_s{a.seed}")
+                              num_scenes=a.num_train, seed=a.seed, progress=a.progress,
+                              materials=a.materials)
+    kind = "_by_kind" if a.materials == "by_kind" else ""
+    out = Path(a.out or f"runs/planar_on_{a.test}_s{a.seed}{kind}")
     seed_everything(a.seed)
     net = PlanarUNet(len(seg.SEMANTIC_CLASSES))
     step = partial(seg.segmentation_step, class_weight=seg.balanced_weights(train, a.balance))
@@ -60,6 +65,7 @@ def main(argv=None) -> dict:
         name=f"planar on ({a.test})", step=step)
     pixels, _ = seg.predict(net, test, progress=a.progress, pano=test.camera)  # its own image
     res = {"test": a.test, "num_train": a.num_train, "epochs": a.epochs, "seed": a.seed,
+           "materials": a.materials,
            **{k: v for k, v in seg.score(pixels, test).items() if k in ("mIoU", "mAcc")}}
     print(f"planar U-Net trained on ({a.test})'s own images of {a.num_train} rooms x {a.epochs} "
           f"epochs: mIoU {100 * res['mIoU']:.2f}, mAcc {100 * res['mAcc']:.2f} on its pixels")

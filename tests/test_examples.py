@@ -206,7 +206,7 @@ def test_through_lens_example_trains_the_first_phase_through_the_lens(tmp_path, 
 def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_path):
     """The planar U-Net trains on the pinhole's own images and is scored on them, not on
     panoramas re-imaged: its saved weights, run by hand on the test's images, give the
-    printed score."""
+    printed score. On rooms with materials by kind, which it renders and scores on."""
     from usf_graph.datasets import RoomsSegmentation
     from usf_graph.train import seg
     from usf_graph.train.checkpoints import load_protocol_model
@@ -215,12 +215,14 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
     res = load("planar_on_lens").main(["--test", "d", "--num-train", "3", "--epochs", "1",
                                        "--size", "16", "--level", "3", "--num-test", "2",
                                        "--root", str(tmp_path / "rooms"), "--out", str(out),
-                                       "--no-progress"])
+                                       "--no-progress", "--materials", "by_kind"])
     ckpt = load_protocol_model(out / "model.pt")
-    assert (ckpt.name, ckpt.size) == ("planar_unet", 16) and ckpt.metrics == res
+    assert (ckpt.name, ckpt.size, res["materials"]) == ("planar_unet", 16, "by_kind")
+    assert ckpt.metrics == res
     assert json.loads((out / "results.json").read_text()) == res
     assert len((out / "metrics.csv").read_text().splitlines()) == 2  # one epoch logged
-    test = seg.protocol_sets(tmp_path / "rooms", 16, 3, 0, 2, tests=("d",), progress=False)["d"]
+    test = seg.protocol_sets(tmp_path / "rooms", 16, 3, 0, 2, tests=("d",), progress=False,
+                             materials="by_kind")["d"]
     assert test.image.shape[1:3] == (16, 16)
     with torch.no_grad():
         logits = ckpt.model.eval()(test.image.permute(0, 3, 1, 2).float() / 255)
@@ -229,7 +231,8 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
     # the one training split it rendered is the pinhole's
     rendered = sorted((tmp_path / "rooms" / "processed").glob("rooms_train_*"))
     train = RoomsSegmentation(tmp_path / "rooms", "train", camera=test.camera,
-                              grid="icosahedral:3", num_scenes=3, progress=False)
+                              grid="icosahedral:3", num_scenes=3, progress=False,
+                              materials="by_kind")
     assert [str(f) for f in rendered] == train.processed_paths
 
 
