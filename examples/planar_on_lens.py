@@ -26,6 +26,7 @@ from pathlib import Path
 from usf_graph.datasets import RoomsSegmentation
 from usf_graph.models import PlanarUNet
 from usf_graph.train import defaults, fit, save_checkpoint, seed_everything, seg
+from usf_graph.train.engine import scaled_channels
 
 
 def main(argv=None) -> dict:
@@ -42,6 +43,8 @@ def main(argv=None) -> dict:
     p.add_argument("--balance", type=float, default=protocol["balance"],
                    help="the class weights' power")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--channel-scale", type=float, default=1.0,
+                   help="the U-Net's channel counts times this (0.5: the 15-minute recipe's)")
     p.add_argument("--root", default="data/rooms")
     p.add_argument("--materials", default="random", choices=["random", "by_kind"],
                    help="the rooms' looks (usf_graph.scenes.materials)")
@@ -58,14 +61,14 @@ def main(argv=None) -> dict:
     kind = "_by_kind" if a.materials == "by_kind" else ""
     out = Path(a.out or f"runs/planar_on_{a.test}_s{a.seed}{kind}")
     seed_everything(a.seed)
-    net = PlanarUNet(len(seg.SEMANTIC_CLASSES))
+    net = PlanarUNet(len(seg.SEMANTIC_CLASSES), **scaled_channels(PlanarUNet, a.channel_scale))
     step = partial(seg.segmentation_step, class_weight=seg.balanced_weights(train, a.balance))
     fit(net, train, None, epochs=a.epochs, batch_size=protocol["batch_size"], lr=protocol["lr"],
         seed=a.seed, log_dir=out, config=net.config, progress=a.progress,
         name=f"planar on ({a.test})", step=step)
     pixels, _ = seg.predict(net, test, progress=a.progress, pano=test.camera)  # its own image
     res = {"test": a.test, "num_train": a.num_train, "epochs": a.epochs, "seed": a.seed,
-           "materials": a.materials,
+           "materials": a.materials, "channel_scale": a.channel_scale,
            **{k: v for k, v in seg.score(pixels, test).items() if k in ("mIoU", "mAcc")}}
     print(f"planar U-Net trained on ({a.test})'s own images of {a.num_train} rooms x {a.epochs} "
           f"epochs: mIoU {100 * res['mIoU']:.2f}, mAcc {100 * res['mAcc']:.2f} on its pixels")
