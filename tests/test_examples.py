@@ -74,18 +74,25 @@ def test_up_estimate_example_small_run(tmp_path):
     assert err.shape == (3,) and abs(err - 90).max() < 1e-4
 
 
-def test_field_of_view_example_feeds_the_four_inputs():
-    """Input 4 is the lens's image inside its field of view and the panorama outside; the
-    masks are none, the lens's, the lens's, none."""
+def test_field_of_view_example_feeds_its_inputs():
+    """Input 4 is the lens's image inside its field of view and the panorama outside; 5 the
+    lens's image with every hidden point the colour of the nearest seen one; the masks are
+    none, the lens's, the lens's, none, none; 6 reads the up estimated from the lens."""
     ex = load("field_of_view")
     pano, lens = torch.rand(2, 6, 3), torch.rand(2, 6, 3)
     seen = torch.tensor([True, False, True, True, False, False])
+    pos = torch.tensor([[1.0, 0, 0], [0.9, 0.1, 0], [0, 1, 0], [0, 0, 1], [0, 0.2, 0.9], [0, 0.9, 0.1]])
+    nearest = ex.nearest_seen(pos, seen)
+    assert nearest.tolist() == [0, 0, 2, 3, 3, 2]
     calls = []
-    res = ex._four(pano, lens, seen, lambda x, m: calls.append((x, m)) or len(calls))
-    assert list(res.values()) == [1, 2, 3, 4]
-    (x1, m1), (x2, m2), (x3, m3), (x4, m4) = calls
+    res = ex._inputs(pano, lens, seen, lambda x, m, up=None: calls.append((x, m, up)) or len(calls),
+                     nearest, lens_up="u")
+    assert list(res.values()) == [1, 2, 3, 4, 5, 6]
+    (x1, m1, _), (x2, m2, _), (x3, m3, _), (x4, m4, _), (x5, m5, u5), (x6, m6, u6) = calls
     assert x1 is pano and m1 is None and x2 is pano and m2 is seen and x3 is lens and m3 is seen
     assert m4 is None and torch.equal(x4[:, seen], lens[:, seen]) and torch.equal(x4[:, ~seen], pano[:, ~seen])
+    assert m5 is None and u5 is None and torch.equal(x5, lens[:, [0, 0, 2, 3, 3, 2]])
+    assert torch.equal(x6, x5) and m6 is None and u6 == "u"
 
 
 @pytest.mark.parametrize("kind", ["seg", "det"])
@@ -103,9 +110,10 @@ def test_field_of_view_example_small_run(tmp_path, kind):
         cfg = net.config
     save_checkpoint(tmp_path / "net.pt", net, cfg, {})
     res = load("field_of_view").main([str(tmp_path / "net.pt"), "--root", str(tmp_path / "rooms"),
-                                      "--num-test", "2", "--known-up"]
-                                     + (["--size", "32"] if kind == "det" else []))
-    assert len(res) == 4 and all(0 <= v <= 1 for v in res.values())
+                                      "--num-test", "2"]
+                                     + (["--size", "32"] if kind == "det" else ["--known-up"]))
+    # the detector reads its estimate: then a sixth input, up from the lens's image
+    assert len(res) == (6 if kind == "det" else 5) and all(0 <= v <= 1 for v in res.values())
 
 
 def test_up_sign_example_small_run(tmp_path, capsys):

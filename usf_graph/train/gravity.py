@@ -63,12 +63,11 @@ def given_up(up: torch.Tensor | None, x: torch.Tensor, start: int = 0) -> dict:
 
 
 @torch.no_grad()
-def up_errors(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
-              batch_size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per view, the error in degrees of an up estimate (an :class:`~usf_graph.models.UpNet`,
-    e.g. ``model.gravity``, run polished as at test time, on its own device) on views ``x [S,
-    N, C]`` (``mask [N]`` or ``None``) of known gravity ``g [S, 3]``, and its ``margin`` ->
-    ``(error [S], margin [S])`` on the CPU."""
+def estimate_up(gravity, x: torch.Tensor, mask: torch.Tensor | None,
+                batch_size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """An up estimate (an :class:`~usf_graph.models.UpNet`, e.g. ``model.gravity``, run
+    polished as at test time, on its own device) on views ``x [S, N, C]`` (``mask [N]`` or
+    ``None``) -> ``(up [S, 3], margin [S])`` on the CPU."""
     if mask is not None and mask.all():
         mask = None  # every point seen: the estimate runs unmasked, as the models run it
     dev = model_device(gravity)
@@ -83,7 +82,15 @@ def up_errors(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tens
             margins.append(out["margin"].cpu())
     finally:
         gravity.train(was_training)
-    return torch.rad2deg(geodesic_distance(torch.cat(ups).double(), g.double())), torch.cat(margins)
+    return torch.cat(ups), torch.cat(margins)
+
+
+def up_errors(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
+              batch_size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per view, the error in degrees of :func:`estimate_up` on views of known gravity ``g
+    [S, 3]``, and its ``margin`` -> ``(error [S], margin [S])``."""
+    up, margin = estimate_up(gravity, x, mask, batch_size)
+    return torch.rad2deg(geodesic_distance(up.double(), g.double())), margin
 
 
 def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
@@ -273,6 +280,6 @@ def load_sign_check(path):
     return check.eval()
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES", "jittered", "pretrain_sign",
            "load_sign_check"]
