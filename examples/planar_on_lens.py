@@ -25,6 +25,7 @@ from pathlib import Path
 
 from usf_graph.datasets import RoomsSegmentation
 from usf_graph.models import PlanarUNet
+from usf_graph.scenes.materials import MATERIALS
 from usf_graph.train import defaults, fit, save_checkpoint, seed_everything, seg
 from usf_graph.train.engine import scaled_channels
 
@@ -46,7 +47,7 @@ def main(argv=None) -> dict:
     p.add_argument("--channel-scale", type=float, default=1.0,
                    help="the U-Net's channel counts times this (0.5: the 15-minute recipe's)")
     p.add_argument("--root", default="data/rooms")
-    p.add_argument("--materials", default="random", choices=["random", "by_kind"],
+    p.add_argument("--materials", default="random", choices=MATERIALS,
                    help="the rooms' looks (usf_graph.scenes.materials)")
     p.add_argument("--num-test", type=int, default=protocol["num_test"])
     p.add_argument("--out", default=None, help="default: runs/planar_on_<test>_s<seed>")

@@ -139,12 +139,12 @@ def render_views(job: _ViewJob, n: int, desc: str, progress: bool):
 
 def _cache_stem(prefix: str, materials: str = "random", **key) -> str:
     """A processed file's name, less its extension, that changes with everything the
-    rendering depends on (the rooms' ``materials`` only where they are not the default, so
-    the files stored before they existed keep their names)."""
+    rendering depends on (the rooms' ``materials``, checked by the datasets, only where they
+    are not the default, so the files stored before they existed keep their names)."""
     import hashlib
     import json
 
-    if check_materials(materials) != "random":
+    if materials != "random":
         key["materials"] = materials
     return f"{prefix}_{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]}"
 
