@@ -152,24 +152,27 @@ def test_offset_potential_gives_the_log_map():
     assert len(near) >= 4 and err.max() < 0.02 * h
 
 
+def _planar_perfect_fields(m, boxes, classes):
+    """The planar detector's fields that decode to ``boxes`` (as a perfect one's)."""
+    heat_t, near, _ = heatmap_targets(m.points, boxes, classes, torch.zeros(len(boxes), dtype=torch.long),
+                                      1, m.num_classes, m.spacing)
+    W = m.out_camera.width
+    uv = m._pixels(box_centres(boxes))
+    off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
+    off[:, 0] = torch.remainder(off[:, 0] + W / 2, W) - W / 2
+    heat = torch.full((1, len(m.points), m.num_classes), -20.0, dtype=torch.float64)
+    heat[0, near, classes] = 20.0
+    box = torch.zeros(1, len(m.points), 5, dtype=torch.float64)
+    box[0, near] = torch.cat([off, boxes[:, 2:4].log(), boxes[:, 4:]], -1)
+    return {"heat": heat, "box": box, "mask": None}
+
+
 def test_planar_targets_decode_back_to_their_boxes():
     m = PlanarDetector(num_classes=3, height=64, width=128, channels=(4, 8)).double()
     classes = torch.tensor([0, 1, 2, 0, 1, 2])
     boxes = BOXES.clone()
     boxes[:, 4] = torch.tensor([0.0, 0.0, 0.3, -0.4, 0.5, 0.0])  # rolls within [-pi/2, pi/2)
-    heat_t, near, _ = heatmap_targets(m.points, boxes, classes, torch.zeros(6, dtype=torch.long),
-                                      1, 3, m.spacing)
-    W = m.out_camera.width
-    uv = m._pixels(boxes[:, :2].new_tensor(
-        np.stack([np.cos(boxes[:, 1]) * np.cos(boxes[:, 0]), np.cos(boxes[:, 1]) * np.sin(boxes[:, 0]),
-                  np.sin(boxes[:, 1])], -1)))
-    off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
-    off[:, 0] = torch.remainder(off[:, 0] + W / 2, W) - W / 2
-    heat = torch.full((1, len(m.points), 3), -20.0, dtype=torch.float64)
-    heat[0, near, classes] = 20.0
-    box = torch.zeros(1, len(m.points), 5, dtype=torch.float64)
-    box[0, near] = torch.cat([off, boxes[:, 2:4].log(), boxes[:, 4:]], -1)
-    det = m.decode({"heat": heat, "box": box, "mask": None}, threshold=0.5)[0]
+    det = m.decode(_planar_perfect_fields(m, boxes, classes), threshold=0.5)[0]
     order, ref = np.argsort(det["boxes"][:, 0]), np.argsort(boxes[:, 0].numpy())
     np.testing.assert_allclose(det["boxes"][order], boxes[ref].numpy(), atol=1e-9)
 
@@ -234,3 +237,42 @@ def test_detector_errors_and_masks():
     centres = m.head_pos[[int(np.argmax(m.head_pos.numpy() @ np.array(
         [np.cos(b[1]) * np.cos(b[0]), np.cos(b[1]) * np.sin(b[0]), np.sin(b[1])]))) for b in det["boxes"]]]
     assert len(det["boxes"]) and (centres[:, 0] > -0.5).all()  # peaks only where the camera sees
+
+
+@pytest.mark.parametrize("kind", ["spherical", "planar"])
+def test_decode_drops_boxes_centred_where_the_camera_does_not_see(kind):
+    """A camera that sees the half x > 0: the boxes centred in the other half go, the
+    rest stay; ``drop_hidden=False`` keeps all. The centres are 4.6 degrees or more from
+    the border, over the input's spacing."""
+    classes = torch.tensor([0, 1, 2, 0, 1, 2])
+    boxes = BOXES.clone()
+    boxes[:, 4] = torch.tensor([0.0, 0.0, 0.3, -0.4, 0.5, 0.0])  # the planar one's rolls
+    if kind == "spherical":
+        m = SphericalDetector(**SMALL).double()
+        out, pos = _perfect_fields(m, boxes, classes), grids.icosahedral(3).pos
+    else:
+        m = PlanarDetector(num_classes=3, height=64, width=128, channels=(4, 8)).double()
+        out, pos = _planar_perfect_fields(m, boxes, classes), m.input_pos
+    out["seen"] = pos[:, 0] > 0
+    want = np.sort(boxes[box_centres(boxes)[:, 0] > 0, 0].numpy())
+    assert len(want) == 3
+    kept = m.decode(out, threshold=0.5)[0]["boxes"]
+    np.testing.assert_allclose(np.sort(kept[:, 0]), want, atol=1e-9)
+    assert len(m.decode(out, threshold=0.5, drop_hidden=False)[0]["boxes"]) == 6
+
+
+def test_hidden_boxes_are_dropped_before_nms():
+    """Two overlapping boxes of a class, the better one centred where the camera does not
+    see: the other one is kept, not suppressed by it."""
+    m = SphericalDetector(num_classes=3, input_level=3, head_level=3, min_level=1, channels=(4, 6, 8),
+                          pairs=2, gradient_fields=2).double()
+    boxes = torch.tensor(np.radians([[84.0, 0, 40, 40, 0], [96, 0, 40, 40, 0]]))
+    assert box_iou(boxes[:1], boxes[1:], dtype=torch.float64).item() > 0.5
+    out = _perfect_fields(m, boxes, torch.tensor([0, 0]))
+    hidden = nearest_points(boxes[1:], m.head_pos)
+    out["heat"][0, hidden, 0] = 30.0  # the hidden box scores higher
+    out["seen"] = grids.icosahedral(3).pos[:, 0] > 0
+    kept = m.decode(out, threshold=0.5)[0]["boxes"]
+    assert len(kept) == 1 and np.degrees(kept[0, 0]) < 90
+    every = m.decode(out, threshold=0.5, drop_hidden=False)[0]["boxes"]
+    assert len(every) == 1 and np.degrees(every[0, 0]) > 90  # NMS keeps the better one

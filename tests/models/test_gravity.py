@@ -9,7 +9,7 @@ import torch
 
 from usf_graph import grids
 from usf_graph.models import GravityHead
-from usf_graph.models.gravity import heights
+from usf_graph.models.gravity import heights, rank2_gap
 
 
 def _set_cosine_detector(head: GravityHead, gain: float):
@@ -238,6 +238,24 @@ def _tilt(a: torch.Tensor, deg: float, gen) -> torch.Tensor:
 
 def _deg(u: torch.Tensor, v: torch.Tensor) -> float:
     return math.degrees(math.acos(min(1.0, float(u @ v))))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_rank2_gap_is_the_squared_gap_of_the_two_nonzero_eigenvalues(seed):
+    """Against LAPACK's eigenvalues, on sums of outer products of tangent vectors (the
+    structure tensors' kind), near-isotropic ones and single edges included."""
+    g = torch.Generator().manual_seed(seed)
+    p = torch.nn.functional.normalize(torch.randn(200, 3, generator=g, dtype=torch.float64), dim=-1)
+    v = torch.randn(200, 5, 3, generator=g, dtype=torch.float64)
+    v = v - (v * p[:, None]).sum(-1, keepdim=True) * p[:, None]  # tangent at p
+    v[:50, 1:] = 0  # one edge: the gap is the whole trace
+    T = torch.einsum("bki,bkj->bij", v, v)
+    ev = torch.linalg.eigvalsh(T)
+    assert ev[:, 0].abs().max() < 1e-12 * ev[:, 2].max()
+    np.testing.assert_allclose(rank2_gap(T), (ev[:, 2] - ev[:, 1]) ** 2, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(rank2_gap(T[:50]), ev[:50, 2] ** 2, rtol=1e-9)
+    assert (rank2_gap(torch.eye(3, dtype=torch.float64).expand(4, 3, 3).clone() -
+                      torch.diag(torch.tensor([0.0, 0, 1], dtype=torch.float64))) == 0).all()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -34,6 +34,16 @@ def nearest_points(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return (box_centres(boxes.double()).to(points.dtype) @ points.T).argmax(1)
 
 
+def centres_seen(boxes: np.ndarray, points: torch.Tensor, seen: torch.Tensor | None):
+    """Bool ``[D]``: whether the camera sees the input point (of ``points [N, 3]``, unit)
+    nearest the centre of each box (``boxes [D, 5]``); ``seen [N]`` is its field of view
+    (``None``: everything, and ``None`` is returned)."""
+    if seen is None:
+        return None
+    pts = points.detach().cpu()
+    return seen.cpu()[nearest_points(torch.as_tensor(boxes).reshape(-1, 5), pts)]
+
+
 def logmap(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     """Tangent vectors at unit ``p`` pointing to ``q`` with length their geodesic distance."""
     return tangent_towards(p, q) * geodesic_distance(p, q)[..., None]
@@ -135,9 +145,14 @@ def fields_on_cpu(out: dict) -> dict:
 
 
 def detections(boxes: np.ndarray, cls: torch.Tensor, score: torch.Tensor,
-               nms: float | None) -> dict:
+               nms: float | None, seen: torch.Tensor | None = None) -> dict:
     """One image's decoded peaks as ``{"boxes", "classes", "scores"}`` (numpy), after
-    class-wise spherical NMS at IoU ``nms`` (``None``: none), best first."""
+    class-wise spherical NMS at IoU ``nms`` (``None``: none), best first. ``seen [D]``
+    (bool): the peaks kept before NMS (``None``: all), so that a dropped one suppresses
+    nothing."""
+    if seen is not None:
+        seen = seen.cpu()
+        boxes, cls, score = boxes[seen.numpy()], cls[seen], score[seen]
     keep = torch.arange(len(boxes))
     if nms is not None and len(boxes):
         kept = [torch.nonzero(cls == k).flatten() for k in cls.unique().tolist()]

@@ -39,6 +39,7 @@ from ..nn import SurfaceJet, up_frame
 from ..ops import box_axes, boxes_from_axes
 from .centernet import (
     Detector,
+    centres_seen,
     detections,
     expmap,
     fields_on_cpu,
@@ -98,9 +99,10 @@ class SphericalDetector(Detector, WithUp):
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(input_level)`` ->
     ``{"heat": [B, M, num_classes], "s": [B, M], "offset": [B, M, 3], "dev": [B, M, 2],
-    "quad": [B, M, 2], "mask": [M] or None}`` on ``icosahedral(head_level)`` (``offset``
-    in 3D; ``dev``, the traceless shape, and ``quad``, the spin-4 axis field, in the
-    head's :func:`~usf_graph.nn.tangent_frame`).
+    "quad": [B, M, 2], "mask": [M] or None, "seen": [N] or None}`` on
+    ``icosahedral(head_level)`` (``mask``: the points the camera sees in part; ``seen``: the
+    input's mask; ``offset`` in 3D; ``dev``, the traceless shape, and ``quad``, the spin-4
+    axis field, in the head's :func:`~usf_graph.nn.tangent_frame`).
     """
 
     def __init__(self, num_classes: int = 12, in_channels: int = 3, input_level: int = 5,
@@ -138,6 +140,7 @@ class SphericalDetector(Detector, WithUp):
         self.surface = SurfaceJet(h.pos, e3, w3, h.spacing)
         self.fill = FillHidden(h.pos)
         self.register_buffer("head_pos", h.pos.double(), persistent=False)
+        self.register_buffer("input_pos", self.backbone.grids[input_level].pos, persistent=False)
         self.head_spacing = float(h.spacing)
         n1, _ = grid_graph(h, 1.5 * h.spacing)
         self.register_buffer("ring", n1, persistent=False)
@@ -161,6 +164,7 @@ class SphericalDetector(Detector, WithUp):
         x, m = self.backbone(x, mask, up)
         f = self.head(self.head_stage(x, m, up))
         out = self._fields(f, m, up)  # up: None unless upright
+        out["seen"] = mask
         if grav is not None:
             out["gravity"] = grav
         return out
@@ -242,11 +246,15 @@ class SphericalDetector(Detector, WithUp):
 
     # -- inference ----------------------------------------------------------------------
     def decode(self, out: dict, k: int = 100, threshold: float = 0.05,
-               nms: float | None = 0.5) -> list[dict]:
+               nms: float | None = 0.5, drop_hidden: bool = True) -> list[dict]:
         """Boxes from the fields of :meth:`forward`, per image: ``{"boxes": [D, 5]
         (float64 numpy, radians), "classes": [D], "scores": [D]}``, best first. Peaks are
         local maxima of a class's heatmap over the one-ring of the head grid, inside the
-        mask; ``nms`` (an IoU, per class) drops overlapping peaks."""
+        mask; ``nms`` (an IoU, per class) drops overlapping peaks. ``drop_hidden``: drop,
+        before NMS, the boxes whose centre falls on an input point the camera does not see
+        (``out["seen"]``, the input's mask): a head point the camera sees in part can put a
+        box's centre outside the view, where it can only be a guess. ``False`` keeps them
+        (boxes of objects the view cuts)."""
         out = fields_on_cpu(out)
         prob = torch.sigmoid(out["heat"].double())
         if out["mask"] is not None:
@@ -268,7 +276,8 @@ class SphericalDetector(Detector, WithUp):
             e = torch.cos(phi)[:, None] * frame[pt, 0] + torch.sin(phi)[:, None] * frame[pt, 1]
             fx, fy = (s + r).exp().clamp(max=MAX_FOV), (s - r).exp().clamp(max=MAX_FOV)
             boxes = boxes_from_axes(c.numpy(), e.numpy(), fx.numpy(), fy.numpy()).reshape(-1, 5)
-            res.append(detections(boxes, cls, score, nms))
+            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None)
+            res.append(detections(boxes, cls, score, nms, seen))
         return res
 
 

@@ -13,6 +13,7 @@ from ..geometry import to_latlon
 from .centernet import (
     Detector,
     box_centres,
+    centres_seen,
     detections,
     fields_on_cpu,
     focal_loss,
@@ -50,7 +51,8 @@ class PlanarDetector(Detector):
     is built to win under rotation.
 
     Shapes: ``x [B, C, H, W]`` -> ``{"heat": [B, M, num_classes], "box": [B, M, 5],
-    "mask": [M] or None}`` with M = (H/2)(W/2) output pixels in raster order.
+    "mask": [M] or None, "seen": [H W] or None}`` with M = (H/2)(W/2) output pixels in
+    raster order (``mask``: those the camera sees in part; ``seen``: the input's mask).
     """
 
     def __init__(self, num_classes: int = 12, in_channels: int = 3, height: int = 128,
@@ -68,6 +70,8 @@ class PlanarDetector(Detector):
         self.out_camera = Equirectangular(width // 2, height // 2)
         rays, _ = self.out_camera.lens_normal_map()
         self.register_buffer("points", torch.as_tensor(rays.reshape(-1, 3)), persistent=False)
+        rays, _ = Equirectangular(width, height).lens_normal_map()
+        self.register_buffer("input_pos", torch.as_tensor(rays.reshape(-1, 3)), persistent=False)
         self.spacing = math.pi / (height // 2)
         self.register_buffer("ring", _ring(height // 2, width // 2), persistent=False)
         self.reset_parameters()
@@ -87,9 +91,11 @@ class PlanarDetector(Detector):
             raise ValueError(f"expected x [B, {self.config['in_channels']}, {H}, {W}], got "
                              f"{tuple(x.shape)}")
         f = self.body(x).flatten(2).transpose(1, 2)  # [B, M, C + 5]
+        seen = None if mask is None else mask.reshape(-1).bool()
         if mask is not None:
             mask = nn.functional.max_pool2d(mask.view(1, 1, H, W).float(), 2).flatten().bool()
-        return {"heat": f[..., : self.num_classes], "box": f[..., self.num_classes:], "mask": mask}
+        return {"heat": f[..., : self.num_classes], "box": f[..., self.num_classes:], "mask": mask,
+                "seen": seen}
 
     def _pixels(self, points: torch.Tensor) -> torch.Tensor:
         uv, _ = self.out_camera.project(points.detach().double().cpu().numpy())
@@ -115,9 +121,10 @@ class PlanarDetector(Detector):
         return heat + reg, {"heat": heat.item(), "box": reg.item()}
 
     def decode(self, out: dict, k: int = 100, threshold: float = 0.05,
-               nms: float | None = 0.5) -> list[dict]:
-        """Boxes per image, as :meth:`SphericalDetector.decode`: peaks over each pixel's
-        8 neighbours (wrapping around the seam), centres from pixel coordinates."""
+               nms: float | None = 0.5, drop_hidden: bool = True) -> list[dict]:
+        """Boxes per image, as :meth:`SphericalDetector.decode` (``drop_hidden`` too, on
+        the input's pixels): peaks over each pixel's 8 neighbours (wrapping around the
+        seam), centres from pixel coordinates."""
         out = fields_on_cpu(out)
         prob = torch.sigmoid(out["heat"].double())
         if out["mask"] is not None:
@@ -133,5 +140,6 @@ class PlanarDetector(Detector):
             fov = bx[:, 2:4].exp().clamp(max=MAX_FOV).numpy()
             roll = np.mod(bx[:, 4].numpy() + np.pi / 2, np.pi) - np.pi / 2
             boxes = np.stack([lon, lat, fov[:, 0], fov[:, 1], roll], -1).reshape(-1, 5)
-            res.append(detections(boxes, cls, score, nms))
+            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None)
+            res.append(detections(boxes, cls, score, nms, seen))
         return res

@@ -246,7 +246,8 @@ def box_quality(model, data: DetectionSet, batch_size: int = 16, progress: bool 
         one = {k: v[image] if torch.is_tensor(v) and v.dim() > 1 else v for k, v in out.items()}
         heat = torch.full_like(one["heat"], -30.0)
         heat[torch.arange(len(boxes)), near, classes] = 30.0
-        dec = model.decode({**one, "heat": heat, "mask": None}, k=1, threshold=0.5, nms=None)
+        dec = model.decode({**one, "heat": heat, "mask": None}, k=1, threshold=0.5, nms=None,
+                           drop_hidden=False)
         pred = torch.as_tensor(np.stack([d["boxes"][0] for d in dec]))
         moved = torch.cat([boxes[:, :2], pred[:, 2:]], 1)
         res["iou"].append(box_iou(pred, boxes))
