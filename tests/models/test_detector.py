@@ -259,6 +259,13 @@ def test_decode_drops_boxes_centred_where_the_camera_does_not_see(kind):
     kept = m.decode(out, threshold=0.5)[0]["boxes"]
     np.testing.assert_allclose(np.sort(kept[:, 0]), want, atol=1e-9)
     assert len(m.decode(out, threshold=0.5, drop_hidden=False)[0]["boxes"]) == 6
+    # a field of view per image: the second sees the other half
+    two = {k: torch.cat([v, v]) if torch.is_tensor(v) and v.dim() > 1 else v for k, v in out.items()}
+    two["seen"] = torch.stack([out["seen"], ~out["seen"]])
+    first, second = m.decode(two, threshold=0.5)
+    np.testing.assert_allclose(np.sort(first["boxes"][:, 0]), want, atol=1e-9)
+    other = np.sort(boxes[box_centres(boxes)[:, 0] < 0, 0].numpy())
+    np.testing.assert_allclose(np.sort(second["boxes"][:, 0]), other, atol=1e-9)
 
 
 def test_hidden_boxes_are_dropped_before_nms():

@@ -34,14 +34,15 @@ def nearest_points(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return (box_centres(boxes.double()).to(points.dtype) @ points.T).argmax(1)
 
 
-def centres_seen(boxes: np.ndarray, points: torch.Tensor, seen: torch.Tensor | None):
+def centres_seen(boxes: np.ndarray, points: torch.Tensor, seen: torch.Tensor | None, b: int = 0):
     """Bool ``[D]``: whether the camera sees the input point (of ``points [N, 3]``, unit)
-    nearest the centre of each box (``boxes [D, 5]``); ``seen [N]`` is its field of view
-    (``None``: everything, and ``None`` is returned)."""
+    nearest the centre of each box (``boxes [D, 5]``) of image ``b``; ``seen [N]`` (or
+    ``[B, N]``, per image) is its field of view (``None``: everything, and ``None`` is
+    returned)."""
     if seen is None:
         return None
-    pts = points.detach().cpu()
-    return seen.cpu()[nearest_points(torch.as_tensor(boxes).reshape(-1, 5), pts)]
+    seen = seen.cpu() if seen.dim() == 1 else seen[b].cpu()
+    return seen[nearest_points(torch.as_tensor(boxes).reshape(-1, 5), points.detach().cpu())]
 
 
 def logmap(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:

@@ -276,7 +276,7 @@ class SphericalDetector(Detector, WithUp):
             e = torch.cos(phi)[:, None] * frame[pt, 0] + torch.sin(phi)[:, None] * frame[pt, 1]
             fx, fy = (s + r).exp().clamp(max=MAX_FOV), (s - r).exp().clamp(max=MAX_FOV)
             boxes = boxes_from_axes(c.numpy(), e.numpy(), fx.numpy(), fy.numpy()).reshape(-1, 5)
-            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None)
+            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None, b)
             res.append(detections(boxes, cls, score, nms, seen))
         return res
 

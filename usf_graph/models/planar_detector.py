@@ -140,6 +140,6 @@ class PlanarDetector(Detector):
             fov = bx[:, 2:4].exp().clamp(max=MAX_FOV).numpy()
             roll = np.mod(bx[:, 4].numpy() + np.pi / 2, np.pi) - np.pi / 2
             boxes = np.stack([lon, lat, fov[:, 0], fov[:, 1], roll], -1).reshape(-1, 5)
-            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None)
+            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None, b)
             res.append(detections(boxes, cls, score, nms, seen))
         return res
