@@ -132,7 +132,7 @@ def test_every_command_and_option_has_help(capsys):
     parser = build_parser()
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     assert set(subs.choices) == {"info", "camera", "lift", "render", "scenes", "cache", "train", "eval",
-                                 "predict"}
+                                 "predict", "targets"}
     for name, sub in subs.choices.items():
         assert sub.description, name
         for a in sub._actions:

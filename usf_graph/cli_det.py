@@ -147,6 +147,19 @@ def rooms_kind(results: dict) -> str:
     return "rooms with materials by kind" if results.get("materials") == "by_kind" else "rooms"
 
 
+def print_targets(results: dict, out: str | None) -> None:
+    """The issue's targets of a finished rooms protocol (``usf-graph targets`` reads them
+    again from the run's folder)."""
+    from .train.targets import format_targets, targets
+
+    try:
+        rows = targets(results)
+    except ValueError as e:  # e.g. only the planar baseline trained: the run itself is fine
+        print(f"No targets: {e}\n")
+        return
+    print(f"The issue's targets (bold: misses):\n{format_targets({out or 'this run': rows})}\n")
+
+
 def run_kwargs(args, run) -> dict:
     """The common options of ``train det|seg``, with ``run``'s defaults where not given."""
     from .train import defaults
@@ -183,6 +196,7 @@ def cmd_train_det(args) -> int:
           f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
     for metric in ("AP50", "AP50_every_box", "AP", "usf_mAP@10"):
         print(f"{metric}:\n{format_table(res, metric)}\n")
+    print_targets(res, args.out)
     if "figure" in res:
         print(f"figure: {res['figure']}")
     return 0

@@ -7,6 +7,7 @@ import json
 from .cli_det import (
     eval_data,
     given_or_default,
+    print_targets,
     ready_model,
     rooms_kind,
     rooms_only_options,
@@ -45,6 +46,7 @@ def cmd_train_seg(args) -> int:
           f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
     for metric in ("mIoU", "mAcc"):
         print(f"{metric} (camera pixels):\n{format_table(res, metric)}\n")
+    print_targets(res, args.out)
     if "figure" in res:
         print(f"figure: {res['figure']}")
     return 0

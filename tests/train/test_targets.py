@@ -1,0 +1,110 @@
+"""The protocols' targets read from results: the gaps and verdicts on hand-made results, the
+table, and `usf-graph targets` on run folders."""
+
+import json
+
+import pytest
+
+from usf_graph.cli import main
+from usf_graph.train.targets import det_targets, format_targets, load_results, seg_targets, targets
+
+
+def _seg(unet, deeplab, planar):
+    """Results as `train seg` writes them, from mIoU in points per test (a)-(e)."""
+    res = {"samples": {"train": 4, "test": 2}}
+    for name, row in (("spherical_unet", unet), ("spherical_deeplab", deeplab), ("planar_unet", planar)):
+        if row is not None:
+            res[name] = {t: {"mIoU": v / 100} for t, v in zip("abcde", row)}
+    return res
+
+
+def _det(spherical, planar):
+    res = {"spherical": {t: {"AP50": v / 100} for t, v in zip("abcd", spherical)}}
+    if planar is not None:
+        res["planar"] = {t: {"AP50": v / 100} for t, v in zip("abcd", planar)}
+    return res
+
+
+def _by_name(rows):
+    return {r["target"]: r for r in rows}
+
+
+def test_segmentation_targets_judge_the_best_spherical_model():
+    rows = _by_name(seg_targets(_seg([20, 20, 20, 20, 20], [30, 31.5, 26.9, 27.0, 30], [31.5, 10, 25, 20, 20])))
+    assert rows["spherical model judged (the best in distribution)"]["text"] == "spherical_deeplab"
+    cases = {"in distribution within 2 of the planar U-Net, or ahead": (-1.5, True, "-1.50"),
+             "rotated within 1.0 of (a)": (1.5, True, "+1.50"),
+             "fisheye within 3 of (a)": (-3.1, False, "-3.10"),
+             "pinhole within 3 of (a)": (-3.0, True, "-3.00"),
+             "the planar U-Net loses at least 20 under rotation": (21.5, True, "21.50")}
+    for target, (value, holds, text) in cases.items():
+        r = rows[target]
+        assert r["value"] == pytest.approx(value) and r["holds"] is holds and r["text"] == text
+    # 1.5 above (a) holds, but not with "within" read both ways
+    assert rows["rotated within 1.0 of (a)"]["both_ways"] is False
+    assert rows["pinhole within 3 of (a)"]["both_ways"] is True
+
+
+def test_detection_targets_ratio_and_relative_loss():
+    rows = _by_name(det_targets(_det([9.0, 7.9, 6.0, 5.9], [10.0, 5.0, 9, 9])))
+    assert rows["spherical AP50 in distribution at least 0.9x the planar one"]["text"] == "0.90x"
+    assert rows["spherical AP50 in distribution at least 0.9x the planar one"]["holds"]
+    assert not rows["spherical rotated within 1 of (a)"]["holds"]
+    assert rows["spherical rotated within 1 of (a)"]["value"] == pytest.approx(-1.1)
+    assert rows["spherical rotated within 1 of (a)"]["text"] == "-1.10"
+    assert rows["spherical fisheye within 3 of (a)"]["holds"] is True  # -3.00 exactly
+    assert rows["spherical pinhole within 3 of (a)"]["holds"] is False
+    assert rows["planar AP50 loses at least half under rotation"]["text"] == "50%"
+    assert rows["planar AP50 loses at least half under rotation"]["holds"]
+    # without the planar baseline (--no-planar) only the spherical targets are asked
+    assert [r["target"] for r in det_targets(_det([9.0, 8.2, 6.0, 5.9], None))] == [
+        "spherical rotated within 1 of (a)", "spherical fisheye within 3 of (a)",
+        "spherical pinhole within 3 of (a)"]
+
+
+def test_targets_refuse_results_that_are_not_a_rooms_protocols():
+    with pytest.raises(ValueError, match="no spherical segmentation model"):
+        targets({"planar_unet": {"a": {"mIoU": 0.2}}})
+    with pytest.raises(ValueError, match="no test"):
+        targets({"spherical_unet": {"mean": {"mIoU": 0.2}}})  # Stanford 2D-3D-S's form
+
+
+def test_format_targets_marks_misses_and_one_way_holds():
+    table = format_targets({"one": seg_targets(_seg(None, [30, 31.5, 26, 27.0, 30], [31.5, 10, 25, 20, 20])),
+                            "two": seg_targets(_seg(None, [30, 30, 30, 30, 30], [29, 5, 25, 20, 20]))})
+    lines = table.splitlines()
+    assert lines[0] == "| target | one | two |"
+    assert "| rotated within 1.0 of (a) | +1.50* | +0.00 |" in lines
+    assert "| fisheye within 3 of (a) | **-4.00** | +0.00 |" in lines
+    assert lines[-1] == "| targets held | 4 of 5 | 5 of 5 |"
+
+
+def test_targets_command_reads_run_folders(tmp_path, capsys):
+    for name, res in (("s0", _det([9.0, 9.2, 8.0, 5.0], [2.0, 0.2, 3, 4])),
+                      ("s1", _det([10.0, 9.5, 9.0, 9.0], [2.5, 0.5, 3, 4]))):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "results.json").write_text(json.dumps(res))
+    assert main(["targets", str(tmp_path / "s0"), str(tmp_path / "s1" / "results.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| spherical pinhole within 3 of (a) | **-4.00** | -1.00 |" in out
+    assert "| targets held | 4 of 5 | 5 of 5 |" in out
+    (tmp_path / "seg").mkdir()
+    (tmp_path / "seg" / "results.json").write_text(json.dumps(_seg(None, [30] * 5, [29] * 5)))
+    assert main(["targets", str(tmp_path / "s0"), str(tmp_path / "seg")]) == 2
+    assert "mix segmentation and detection" in capsys.readouterr().err
+    (tmp_path / "cut").mkdir()
+    (tmp_path / "cut" / "results.json").write_text('{"spherical": ')
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_results(tmp_path / "cut")
+    assert main(["targets", str(tmp_path / "none")]) == 2
+    assert "no such results file" in capsys.readouterr().err
+
+
+def test_a_finished_protocol_prints_its_targets_and_a_planar_only_run_none(capsys):
+    from usf_graph.cli_det import print_targets
+
+    print_targets(_det([9.0, 9.2, 8.0, 5.0], [2.0, 0.2, 3, 4]), "runs/det")
+    out = capsys.readouterr().out
+    assert "| target | runs/det |" in out and "| targets held | 4 of 5 |" in out
+    print_targets({"planar_unet": {"a": {"mIoU": 0.2}}}, None)  # seg --models planar_unet
+    assert capsys.readouterr().out.startswith("No targets: these results hold no spherical")
