@@ -282,14 +282,58 @@ def test_numbers_out_of_range_stop_at_the_command_line(argv, said, capsys):
     assert said in capsys.readouterr().err
 
 
+def _make_n(*targets, **variables) -> str:
+    """What ``make`` would run for ``targets`` (``make -n``: printed, not run), variables
+    expanded, the set-up step left out."""
+    import subprocess
+    from pathlib import Path
+
+    out = subprocess.run(["make", "-n", "-s", *targets, *(f"{k}={v}" for k, v in variables.items())],
+                         cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True,
+                         check=True).stdout
+    return "\n".join(ln for ln in out.splitlines() if "bootstrap.sh" not in ln)
+
+
+def test_make_protocols_runs_every_table_run_once_then_the_targets(tmp_path):
+    """``make protocols``' recipe with a stand-in ``usf-graph`` that logs its arguments: each
+    run of the README's tables with the recipes of the demos, the materials and device
+    asked for; a run with results.json is not run again."""
+    import subprocess
+
+    (tmp_path / "v" / "bin").mkdir(parents=True)
+    fake = tmp_path / "v" / "bin" / "usf-graph"
+    fake.write_text(f'#!/bin/sh\necho "$@" >> {tmp_path}/log\n')
+    fake.chmod(0o755)
+    (tmp_path / "r" / "det15_seed2").mkdir(parents=True)
+    (tmp_path / "r" / "det15_seed2" / "results.json").write_text("{}")
+    recipe = _make_n("protocols", VENV=tmp_path / "v", MATERIALS="by_kind", DEVICE="cuda", RUNS=tmp_path / "r")
+    subprocess.run(["bash", "-c", recipe], check=True)
+    calls = (tmp_path / "log").read_text().splitlines()
+    train = [c for c in calls if c.startswith("train")]
+    outs = [c.split("--out ")[1] for c in train]
+    assert outs == [f"{tmp_path}/r/{n}" for n in ("det15_seed0", "det15_seed1", "det15_seed3", "det15_seed4",
+                                                   "det_full", "seg15_seed0", "seg15_seed1", "seg15_seed2",
+                                                   "seg_full")]
+    det15 = "--channel-scale 0.5 --epochs 16 --fov-epochs 3 --up-epochs 4 --up-extra 400"
+    seg15 = "--channel-scale 0.5 --epochs 6 --fov-epochs 2 --up-epochs 4 --up-extra 400"
+    tail = "--materials by_kind --device cuda --resume --out"
+    assert train[0] == f"train det {det15} --seed 0 {tail} {outs[0]}"
+    assert train[4] == f"train det {tail} {outs[4]}"
+    assert train[6] == f"train seg {seg15} --seed 1 {tail} {outs[6]}"
+    assert train[8] == f"train seg {tail} {outs[8]}"
+    assert calls[-2].split() == ["targets"] + [f"{tmp_path}/r/det15_seed{s}" for s in range(5)] + \
+        [f"{tmp_path}/r/det_full"]
+    assert calls[-1].split() == ["targets"] + [f"{tmp_path}/r/seg15_seed{s}" for s in range(3)] + \
+        [f"{tmp_path}/r/seg_full"]
+
+
 def test_the_makefile_demos_of_the_protocols_parse(monkeypatch):
     """Each ``make demo-*`` line of the rooms protocols reaches ``run`` with its options."""
     import shlex
-    from pathlib import Path
 
-    lines = [ln.split("usf-graph ", 1)[1] for ln in
-             (Path(__file__).resolve().parents[1] / "Makefile").read_text().splitlines()
-             if "usf-graph train det" in ln or "usf-graph train seg" in ln]
+    lines = [ln.split("usf-graph ", 1)[1] for ln in _make_n("demo-det", "demo-det-full", "demo-seg",
+                                                          "demo-seg-full").splitlines()
+             if "usf-graph train" in ln]
     assert len(lines) == 4, lines  # each protocol's 15-minute recipe and its full one
     calls = []
     for task in ("det", "seg"):
