@@ -19,14 +19,12 @@ import json
 from pathlib import Path
 
 SPHERICAL_SEG = ("spherical_unet", "spherical_deeplab")
+EPS = 1e-9  # points: a gap of exactly the tolerance holds, whatever the rounding of 100 * x
 
 
 def _row(target: str, value: float, holds: bool, text: str, both_ways: bool | None = None) -> dict:
     return {"target": target, "value": value, "holds": bool(holds), "text": text,
             "both_ways": holds if both_ways is None else bool(both_ways and holds)}
-
-
-EPS = 1e-9  # points: a gap of exactly the tolerance holds, whatever the rounding of 100 * x
 
 
 def _within(target: str, gap: float, tol: float) -> dict:
@@ -47,9 +45,9 @@ def seg_targets(res: dict) -> list[dict]:
     a = pts(best, "a")
     rows = [{"target": "spherical model judged (the best in distribution)", "text": best, "info": True}]
     if "planar_unet" in res:
-        rows.append(_row("in distribution within 2 of the planar U-Net, or ahead",
-                         a - pts("planar_unet", "a"), a - pts("planar_unet", "a") >= -2 - EPS,
-                         f"{a - pts('planar_unet', 'a'):+.2f}"))
+        lead = a - pts("planar_unet", "a")
+        rows.append(_row("in distribution within 2 of the planar U-Net, or ahead", lead,
+                         lead >= -2 - EPS, f"{lead:+.2f}"))
     tests = res[best]
     for t, name, tol in (("b", "rotated within 1.0 of (a)", 1.0), ("c", "fisheye within 3 of (a)", 3.0),
                          ("d", "pinhole within 3 of (a)", 3.0)):
