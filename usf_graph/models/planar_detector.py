@@ -13,7 +13,6 @@ from ..geometry import to_latlon
 from .centernet import (
     Detector,
     box_centres,
-    centres_seen,
     detections,
     fields_on_cpu,
     focal_loss,
@@ -91,8 +90,9 @@ class PlanarDetector(Detector):
             raise ValueError(f"expected x [B, {self.config['in_channels']}, {H}, {W}], got "
                              f"{tuple(x.shape)}")
         f = self.body(x).flatten(2).transpose(1, 2)  # [B, M, C + 5]
-        seen = None if mask is None else mask.reshape(-1).bool()
+        seen = None
         if mask is not None:
+            seen = mask.reshape(-1).bool()
             mask = nn.functional.max_pool2d(mask.view(1, 1, H, W).float(), 2).flatten().bool()
         return {"heat": f[..., : self.num_classes], "box": f[..., self.num_classes:], "mask": mask,
                 "seen": seen}
@@ -140,6 +140,5 @@ class PlanarDetector(Detector):
             fov = bx[:, 2:4].exp().clamp(max=MAX_FOV).numpy()
             roll = np.mod(bx[:, 4].numpy() + np.pi / 2, np.pi) - np.pi / 2
             boxes = np.stack([lon, lat, fov[:, 0], fov[:, 1], roll], -1).reshape(-1, 5)
-            seen = centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None, b)
-            res.append(detections(boxes, cls, score, nms, seen))
+            res.append(detections(boxes, cls, score, nms, self._centres_seen(out, boxes, b, drop_hidden)))
         return res

@@ -87,12 +87,21 @@ def det_targets(res: dict) -> list[dict]:
     return rows
 
 
+LEGEND = "bold: misses; *: holds only with 'within' read as 'no more than that below'"
+
+
+def task_of(res: dict) -> str:
+    """``"det"`` or ``"seg"``: the task of a run's results, told by its models' names."""
+    return "det" if "spherical" in res else "seg"
+
+
 def targets(res: dict) -> list[dict]:
     """The targets of a rooms run's results, its task told by its models: a list of
     ``{"target", "value", "holds", "text", "both_ways"}`` (segmentation's first row names
     the model judged, ``{"target", "text", "info": True}``)."""
-    task = det_targets if "spherical" in res else seg_targets
-    models = ["spherical"] if "spherical" in res else [m for m in SPHERICAL_SEG if m in res]
+    det = task_of(res) == "det"
+    task = det_targets if det else seg_targets
+    models = ["spherical"] if det else [m for m in SPHERICAL_SEG if m in res]
     if any(not isinstance(res[m], dict) or "a" not in res[m] for m in models):
         raise ValueError("these results have no test (a): the targets are the rooms protocols' "
                          "(a run of 'usf-graph train seg|det' on rooms), not real data's")
@@ -135,4 +144,4 @@ def format_targets(runs: dict[str, list[dict]]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["seg_targets", "det_targets", "targets", "load_results", "format_targets"]
+__all__ = ["LEGEND", "seg_targets", "det_targets", "task_of", "targets", "load_results", "format_targets"]
