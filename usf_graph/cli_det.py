@@ -161,13 +161,15 @@ def print_targets(results: dict, out: str | None) -> None:
 
 
 def cmd_targets(args) -> int:
-    from .train.targets import LEGEND, format_targets, load_results, targets, task_of
+    from .train.targets import LEGEND, UNRECORDED, format_targets, load_results, targets, task_of
 
     results = {str(r): load_results(r) for r in args.runs}
     if len({task_of(res) for res in results.values()}) > 1:
         raise ValueError("these runs mix segmentation and detection: give one task's runs")
     print(format_targets({r: targets(res) for r, res in results.items()}))
     print(f"\n{LEGEND}")
+    if any(task_of(res) == "det" and "drop_hidden" not in res for res in results.values()):
+        print(UNRECORDED)
     return 0
 
 

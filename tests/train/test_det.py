@@ -45,6 +45,7 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     assert len((tmp_path / "out" / "spherical" / "metrics.csv").read_text().splitlines()) == 2
     # then each detector's second phase, the spherical one's through random fields of view
     assert saved["fov_epochs"] == 1 and saved["fov_share"] == 0.5
+    assert saved["drop_hidden"] is True  # the decoding rule, which `usf-graph targets` shows
     for name in ("spherical", "planar"):
         assert len((tmp_path / "out" / name / "second_phase" / "metrics.csv").read_text()
                    .splitlines()) == 2

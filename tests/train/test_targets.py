@@ -58,8 +58,19 @@ def test_detection_targets_ratio_and_relative_loss():
     assert rows["planar AP50 loses at least half under rotation"]["holds"]
     # without the planar baseline (--no-planar) only the spherical targets are asked
     assert [r["target"] for r in det_targets(_det([9.0, 8.2, 6.0, 5.9], None))] == [
-        "spherical rotated within 1 of (a)", "spherical fisheye within 3 of (a)",
+        "detections centred out of view", "spherical rotated within 1 of (a)", "spherical fisheye within 3 of (a)",
         "spherical pinhole within 3 of (a)"]
+
+
+def test_detection_targets_say_how_hidden_centres_were_scored():
+    """Runs before the detectors dropped detections centred out of view do not record the
+    rule; their table says so and how to score (c) and (d) again, and counts no target."""
+    old, new = _det([9.0, 9.2, 8.0, 5.0], [2.0, 0.2, 3, 4]), {"drop_hidden": True}
+    new.update(old)
+    row = _by_name(det_targets(old))["detections centred out of view"]
+    assert row["info"] and row["text"] == "not recorded"
+    assert _by_name(det_targets(new))["detections centred out of view"]["text"] == "dropped"
+    assert format_targets({"old": det_targets(old)}).splitlines()[-1] == "| targets held | 4 of 5 |"
 
 
 def test_targets_refuse_results_that_are_not_a_rooms_protocols():
@@ -88,6 +99,13 @@ def test_targets_command_reads_run_folders(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| spherical pinhole within 3 of (a) | **-4.00** | -1.00 |" in out
     assert "| targets held | 4 of 5 | 5 of 5 |" in out
+    assert "| detections centred out of view | not recorded | not recorded |" in out
+    assert "score them again with 'usf-graph eval det RUN/spherical.pt --test c d'" in out
+    (tmp_path / "new").mkdir()
+    (tmp_path / "new" / "results.json").write_text(json.dumps({"drop_hidden": True, **_det([9.0] * 4, None)}))
+    assert main(["targets", str(tmp_path / "new")]) == 0
+    out = capsys.readouterr().out
+    assert "| detections centred out of view | dropped |" in out and "score them again" not in out
     (tmp_path / "seg").mkdir()
     (tmp_path / "seg" / "results.json").write_text(json.dumps(_seg(None, [30] * 5, [29] * 5)))
     assert main(["targets", str(tmp_path / "s0"), str(tmp_path / "seg")]) == 2

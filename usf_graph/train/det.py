@@ -347,7 +347,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
                "boxes": {k: int(len(d.boxes)) for k, d in sets.items() if k != "train"},
                "ignored_boxes": {},  # per test: cut by the camera's border (DetectionSet.ignored)
                "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
-               "up_sign": up_sign, "channel_scale": channel_scale, "materials": materials}
+               "up_sign": up_sign, "channel_scale": channel_scale, "materials": materials,
+               "drop_hidden": True}  # the decoding rule (c) and (d) were scored with
     spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
                                   upright_convs=upright_convs if upright else None,
                                   **scaled_channels(SphericalDetector, channel_scale)).to(dev)
