@@ -101,6 +101,9 @@ def add_eval_options(e) -> None:
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
                    "view's true gravity, as from an IMU, not their estimate")
+    e.add_argument("--up-lines", action="store_true", help="det, seg on rooms: through the pinhole "
+                   "(d), the up estimate picks among the Manhattan axes of each image's straight "
+                   "lines (docs/up_estimate.md); other cameras keep the estimate")
     e.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
                    help="det, seg: the up estimate assumes level cameras (optical axis "
                         "horizontal) with this strength; 10 in the README, 0 (default) off")
@@ -285,7 +288,7 @@ def up_options(model, args) -> None:
 def cmd_eval_det(args) -> int:
     from .train.checkpoints import load_protocol_model
     from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
-    from .train.gravity import format_up_report, up_report, views_up
+    from .train.gravity import format_up_report, split_up, up_report, views_up
 
     ckpt = load_protocol_model(args.checkpoint).require("det")
     model, cfg, planar = ready_model(ckpt, args), ckpt.config, ckpt.planar
@@ -306,13 +309,13 @@ def cmd_eval_det(args) -> int:
         tests = {f"({k})": sets[k] for k in names}
     for k, ds in tests.items():
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
-        up = views_up(ds) if args.known_up and not planar else None
+        up, axes = split_up(model, ds, args.known_up, args.up_lines)
         r = score(predict(model, data, up=up), data, model.num_classes)
         print(f"{k} {data.describe_ignored()}")
         print(f"{k} " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
         if getattr(model, "gravity", None) is not None:
             print(f"{k} " + format_up_report(up_report(model.gravity, data.x, data.mask,
-                                                       views_up(ds))))
+                                                       views_up(ds), axes=axes)))
         if args.boxes:
             q = box_quality(model, data)
             print(f"{k} each true box decoded at its centre point: IoU median "

@@ -35,6 +35,9 @@ def add_predict_parser(sub, fmt) -> None:
                    help="gravity's up in the camera's sphere frame (x forward, y left, z up; "
                         "with --rig the rig's, cam0's), e.g. from an IMU; default: the model's "
                         "own estimate")
+    p.add_argument("--up-lines", action="store_true",
+                   help="a pinhole's image: the up estimate picks among the Manhattan axes of "
+                        "its straight lines (docs/up_estimate.md); not with --up or --rig")
     p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
                    help="the up estimate assumes a level camera with this strength (10 in the "
                         "README; 0 off)")
@@ -60,7 +63,18 @@ def _report_up(info: dict) -> str:
     if info["source"] == "given":
         return f"up: ({u}), given"
     flag = " UNSURE: give --up from an IMU if you have one" if info["unsure"] else ""
-    return f"up: ({u}), estimated, margin {info['margin']:.2f}{flag}"
+    how = ("picked by the estimate among the image's straight-line axes" if info["source"] == "lines"
+           else "estimated")
+    note = f" ({info['lines']})" if "lines" in info else ""
+    return f"up: ({u}), {how}, margin {info['margin']:.2f}{note}{flag}"
+
+
+def _up_arg(args):
+    """``--up`` or ``--up-lines`` as :func:`~usf_graph.train.apply.segment_image`'s ``up``."""
+    if args.up_lines and (args.up is not None or args.rig):
+        raise ValueError("--up-lines reads one pinhole's straight lines: not with --up (a known "
+                         "up needs no estimate) or --rig")
+    return "lines" if args.up_lines else args.up
 
 
 def cmd_predict(args) -> int:
@@ -75,6 +89,7 @@ def cmd_predict(args) -> int:
                          "each other in --out; predict them in separate runs")
     if args.rig and args.key is not None:
         raise ValueError("--key picks one camera; --rig lifts every camera of the camchain")
+    _up_arg(args)  # its errors before anything loads
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
     model = ready_model(ckpt, args)  # loaded once for every image
     names = class_names(args.task, model.config["num_classes"])
@@ -125,7 +140,7 @@ def _predict_seg(model, paths, names, out: Path, args) -> None:
     from .train.apply import UNSEEN, segment_image
 
     images, cam = _images_and_camera(paths, args)
-    r = segment_image(model, images if args.rig else images[0], cam, up=args.up,
+    r = segment_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
                       interpolation=args.interpolation)
     print(_report_up(r))
     for path, image, lab in zip(paths, images, r["labels"] if args.rig else [r["labels"]]):
@@ -148,7 +163,7 @@ def _predict_det(model, paths, names, out: Path, args) -> None:
     from .viz import draw_boxes
 
     images, cam = _images_and_camera(paths, args)
-    r = detect_image(model, images if args.rig else images[0], cam, up=args.up,
+    r = detect_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
                      interpolation=args.interpolation)
     print(_report_up(r))
     stem = Path(paths[0]).stem
@@ -195,7 +210,7 @@ def _write_boxes(r: dict, names, path: Path, images, camera) -> None:
            "frame": "the camera's (or rig's) sphere frame (x forward, y left, z up); bbox as PANDORA "
                     "stores it: [lon, lat, fov_x, fov_y, gamma] in degrees, lon growing to the "
                     "right, gamma counter-clockwise as displayed",
-           "up": {k: v for k, v in r.items() if k in ("up", "source", "margin", "unsure")},
+           "up": {k: v for k, v in r.items() if k in ("up", "source", "margin", "unsure", "lines")},
            "interpolation": r["interpolation"],
            "detections": [{"category": names[c], "category_index": int(c), "score": float(s),
                            "bbox": [float(v) for v in b]}

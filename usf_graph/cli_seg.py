@@ -67,13 +67,15 @@ def cmd_eval_seg(args) -> int:
         size = args.size or (ckpt.size if ckpt.dataset == "stanford2d3ds" else 256)
         test = Stanford2D3DS(args.root or "data/stanford2d3ds", fold, "test",
                              grid=f"icosahedral:{level}", size=size)
-        res = {f"fold {fold} test": evaluate_set(model, test, f"{name} fold {fold}", args.known_up)[0]}
+        res = {f"fold {fold} test": evaluate_set(model, test, f"{name} fold {fold}", args.known_up,
+                                                 up_lines=args.up_lines)[0]}
     else:
         tests = args.test or list(PROTOCOL)
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, level, num_train=0,
                              num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed), tests=tests,
                              materials=ckpt.materials)
-        res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up)
+        res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up,
+                                   up_lines=args.up_lines)
         res = {f"({k})": r for k, r in res.items()}
     for k, r in res.items():
         print(f"{k} " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in

@@ -47,6 +47,21 @@ def level_scores(candidates: torch.Tensor, pos: torch.Tensor, area: torch.Tensor
     return -strength * (candidates @ m) ** 2 / m.norm().clamp_min(1e-12)
 
 
+def pick_axis(logits: torch.Tensor, candidates: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+    """A :class:`GravityHead`'s choice of up among given directions: of each view's
+    ``axes [B, 3, 3]`` (rows, each up to sign; e.g. the Manhattan axes of the image's
+    straight lines, :func:`usf_graph.frontend.lines.manhattan_axes`), the signed one whose
+    nearest candidate (``candidates [Nc, 3]``) the head scores highest (``logits [B, Nc]``)
+    -> ``[B, 3]``. The head tells which of a room's vanishing directions is up; the lines
+    place it to a degree or two, where the head's candidates are 8 degrees apart."""
+    if axes.dim() != 3 or axes.shape[1:] != (3, 3) or len(axes) != len(logits):
+        raise ValueError(f"axes must be [B, 3, 3] for {len(logits)} views, got {tuple(axes.shape)}")
+    signed = torch.cat([axes, -axes], 1).to(candidates.dtype)  # [B, 6, 3]
+    near = (signed @ candidates.T).argmax(-1)  # [B, 6]
+    best = logits.gather(1, near).argmax(-1)
+    return signed[torch.arange(len(signed), device=signed.device), best]
+
+
 class GravityHead(nn.Module):
     r"""Estimates the up direction of a spherical image, SO(3)-equivariantly.
 
@@ -323,5 +338,5 @@ def strongest_edges(jet: SurfaceJet, x: torch.Tensor, mask: torch.Tensor | None,
             vis.gather(1, idx))
 
 
-__all__ = ["UNSURE_MARGIN", "GravityHead", "EdgeVotes", "UpPolish", "heights", "rank2_gap",
+__all__ = ["UNSURE_MARGIN", "GravityHead", "EdgeVotes", "UpPolish", "heights", "pick_axis", "rank2_gap",
            "structure_tensors", "strongest_edges"]

@@ -176,17 +176,50 @@ def _up(up, x: torch.Tensor) -> torch.Tensor | None:
     return (u / u.norm()).to(x.device, x.dtype)[None]
 
 
-def _up_info(given, grav) -> dict:
-    """The up the model read: given, or estimated with its margin (None without one)."""
+def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | None, dict]:
+    """``up="lines"``: the model's up estimate picks among the Manhattan axes of the
+    image's straight lines (:func:`~usf_graph.train.gravity.estimate_up` with ``axes``) ->
+    ``([1, 3] or None, its info)``; ``None`` (the estimate as it is) when the image has too
+    few lines. The camera must be one pinhole, whose image keeps lines straight."""
+    from ..frontend.lines import line_normals, manhattan_axes
+    from ..models.gravity import UNSURE_MARGIN
+    from .gravity import estimate_up
+
+    if not isinstance(fe, SphericalFrontend):
+        raise ValueError("up='lines' reads the straight lines of one pinhole's image, not a rig's")
+    if getattr(model, "gravity", None) is None:
+        raise ValueError("up='lines' is picked by the model's up estimate; this model has none")
+    axes = manhattan_axes(*line_normals(rgb01(image), fe.camera))
+    if axes is None:
+        return None, {"lines": "too few straight lines: the estimate"}
+    up, margin = estimate_up(model.gravity, x, mask, axes=torch.as_tensor(axes)[None])
+    m = float(margin[0])
+    return up.to(x.device, x.dtype), {"source": "lines", "margin": m, "unsure": m < UNSURE_MARGIN}
+
+
+def _read_up(model, up, image, fe, x, mask) -> tuple[torch.Tensor | None, dict]:
+    """The up handed to the model (``[1, 3]`` or ``None``: its own estimate) and how it was
+    found, from :func:`segment_image`'s ``up``."""
+    if isinstance(up, str):
+        if up != "lines":
+            raise ValueError(f"up must be 3 numbers, None (the model's estimate) or 'lines', got {up!r}")
+        return _lines_up(model, image, fe, x, mask)
+    given = _up(up, x)
+    return given, {} if given is None else {"source": "given"}
+
+
+def _up_info(given, grav, how: dict | None = None) -> dict:
+    """The up the model read: given (``how``: by whom), or estimated with its margin (None
+    without one)."""
     if given is not None:
-        return {"up": given[0].tolist(), "source": "given"}
+        return {"up": given[0].tolist(), "source": "given", **(how or {})}
     if grav is None:
         return {"up": None, "source": "none"}
     from ..models.gravity import UNSURE_MARGIN
 
     margin = float(grav["margin"][0]) if "margin" in grav else None
     return {"up": grav["up"][0].tolist(), "source": "estimated", "margin": margin,
-            "unsure": margin is not None and margin < UNSURE_MARGIN}
+            "unsure": margin is not None and margin < UNSURE_MARGIN, **(how or {})}
 
 
 @torch.no_grad()
@@ -194,15 +227,17 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
                   image_mask=None) -> dict:
     """A trained spherical segmenter on one image of ``camera``.
 
-    ``up``: gravity's up in the camera's sphere frame (an IMU), else the model's estimate.
-    A rig (:func:`lift_for`) is segmented as one sphere. Returns ``{"labels": [H, W]
+    ``up``: gravity's up in the camera's sphere frame (an IMU), else the model's estimate;
+    ``"lines"``: through a pinhole, the estimate's pick among the Manhattan axes of the
+    image's straight lines (:mod:`usf_graph.frontend.lines`; the estimate where it has too
+    few). A rig (:func:`lift_for`) is segmented as one sphere. Returns ``{"labels": [H, W]
     uint8 in the camera's pixels (:data:`UNSEEN` where it has no ray or the mask ignores
     it; for a rig a list, one per camera), "points": [N] uint8 per grid point (UNSEEN
     outside the field of view), "probs": [N, C] float32, "up": ..., "interpolation":
     ...}``."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
-    given = _up(up, x)
     with _evaluating(model):
+        given, how = _read_up(model, up, image, fe, x, mask)
         if given is None:
             logits, grav = model(x, mask, return_gravity=True)
         else:
@@ -217,7 +252,7 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     points[~fe.mask] = UNSEEN
     return {"labels": labels if is_rig(camera) else labels[0], "points": points.numpy(),
             "probs": probs.float().numpy(), "interpolation": _frontends(fe)[0].interpolation,
-            **_up_info(given, grav)}
+            **_up_info(given, grav, how)}
 
 
 @torch.no_grad()
@@ -230,12 +265,12 @@ def detect_image(model, image, camera, up=None, interpolation: str = "auto", ima
     :func:`segment_image`'s; ``threshold``, ``k``, ``nms`` as
     :meth:`~usf_graph.models.SphericalDetector.decode`'s."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
-    given = _up(up, x)
     with _evaluating(model):
+        given, how = _read_up(model, up, image, fe, x, mask)
         out = model(x, mask) if given is None else model(x, mask, up=given)
     found = model.decode(out, k=k, threshold=threshold, nms=nms)[0]
     return {**found, "interpolation": _frontends(fe)[0].interpolation,
-            **_up_info(given, out.get("gravity"))}
+            **_up_info(given, out.get("gravity"), how)}
 
 
 def _seen_pixels(fe: SphericalFrontend) -> np.ndarray:

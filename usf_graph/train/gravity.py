@@ -14,7 +14,7 @@ from torch_geometric.data import Data, Dataset
 from tqdm.auto import tqdm
 
 from ..geometry import geodesic_distance
-from ..models.gravity import UNSURE_MARGIN
+from ..models.gravity import UNSURE_MARGIN, pick_axis
 from ..nn.batching import to_static
 from .engine import fit, model_device
 from .fov import RandomFields, random_cap
@@ -64,12 +64,16 @@ def given_up(up: torch.Tensor | None, x: torch.Tensor, start: int = 0) -> dict:
 
 @torch.no_grad()
 def estimate_up(gravity, x: torch.Tensor, mask: torch.Tensor | None,
-                batch_size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+                batch_size: int = 16, axes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """An up estimate (an :class:`~usf_graph.models.UpNet`, e.g. ``model.gravity``, run
     polished as at test time, on its own device) on views ``x [S, N, C]`` (``mask [N]`` or
-    ``None``) -> ``(up [S, 3], margin [S])`` on the CPU."""
+    ``None``) -> ``(up [S, 3], margin [S])`` on the CPU. ``axes [S, 3, 3]`` (NaN for a
+    view without; :func:`lines_axes`): each view's up is instead the head's pick among
+    them (:func:`~usf_graph.models.gravity.pick_axis`)."""
     if mask is not None and mask.all():
         mask = None  # every point seen: the estimate runs unmasked, as the models run it
+    if axes is not None and axes.shape != (len(x), 3, 3):
+        raise ValueError(f"axes must be [{len(x)}, 3, 3], one set per view, got {tuple(axes.shape)}")
     dev = model_device(gravity)
     mask = None if mask is None else mask.to(dev)
     was_training = gravity.training
@@ -78,39 +82,98 @@ def estimate_up(gravity, x: torch.Tensor, mask: torch.Tensor | None,
     try:
         for s in range(0, len(x), batch_size):
             out = gravity(x[s:s + batch_size].to(dev).float(), mask)
-            ups.append(out["up"].cpu())
+            up = out["up"]
+            if axes is not None:
+                a = axes[s:s + batch_size].to(dev, up.dtype)
+                has = torch.isfinite(a).all(-1).all(-1)
+                pick = pick_axis(out["logits"], gravity.head.candidates.to(up.dtype), a.nan_to_num())
+                up = torch.where(has[:, None], pick, up)
+            ups.append(up.cpu())
             margins.append(out["margin"].cpu())
     finally:
         gravity.train(was_training)
     return torch.cat(ups), torch.cat(margins)
 
 
+def lines_axes(ds) -> torch.Tensor:
+    """The Manhattan axes of the straight lines of each image of a split (``ds.image [S, H,
+    W, C]`` taken by ``ds.camera``, a pinhole; :func:`~usf_graph.frontend.lines.image_axes`)
+    -> ``[S, 3, 3]``, NaN for an image with too few lines."""
+    from ..frontend.lines import image_axes
+
+    axes = image_axes(ds.image.numpy(), ds.camera)
+    nan = torch.full((3, 3), float("nan"), dtype=torch.float64)
+    return torch.stack([nan if a is None else torch.as_tensor(a) for a in axes]) if axes else \
+        torch.zeros(0, 3, 3, dtype=torch.float64)
+
+
+def lines_up(gravity, ds) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Through a pinhole, the up estimate ``gravity`` picking among the straight-line axes
+    of each image of the split ``ds`` (:func:`estimate_up` with :func:`lines_axes`) ->
+    ``(up [S, 3], axes [S, 3, 3])``; ``None`` when ``ds.camera`` is no pinhole, whose
+    images bend straight lines."""
+    from ..cameras import Pinhole
+
+    if not isinstance(getattr(ds, "camera", None), Pinhole):
+        return None
+    mask = getattr(ds, "mask", None)
+    mask = mask[0] if mask is not None and mask.dim() == 2 else mask
+    axes = lines_axes(ds)
+    return estimate_up(gravity, ds.x, mask, axes=axes)[0], axes
+
+
+def split_up(model, ds, known_up: bool = False, up_lines: bool = False):
+    """The up a model reads on a test split ``ds`` and the line axes it picked among ->
+    ``(up [S, 3] or None, axes [S, 3, 3] or None)``: the views' gravity with ``known_up``
+    (:func:`views_up`), the estimate's pick among the straight-line axes with ``up_lines``
+    where the camera is a pinhole (:func:`lines_up`), else ``(None, None)``: the model's
+    own estimate. A planar model reads no up."""
+    if known_up and up_lines:
+        raise ValueError("a known up (--known-up) and the straight lines' pick (--up-lines) "
+                         "exclude each other: give one")
+    if getattr(getattr(model, "module", model), "input_dims", 3) == 4:
+        return None, None
+    if known_up:
+        return views_up(ds), None
+    if up_lines:
+        if getattr(model, "gravity", None) is None:
+            raise ValueError("the straight lines' up is picked by the model's up estimate; this "
+                             "model has none (gravity=False)")
+        return lines_up(model.gravity, ds) or (None, None)
+    return None, None
+
+
 def up_errors(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
-              batch_size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per view, the error in degrees of :func:`estimate_up` on views of known gravity ``g
-    [S, 3]``, and its ``margin`` -> ``(error [S], margin [S])``."""
-    up, margin = estimate_up(gravity, x, mask, batch_size)
+              batch_size: int = 16, axes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per view, the error in degrees of :func:`estimate_up` (with ``axes``: its pick among
+    them) on views of known gravity ``g [S, 3]``, and its ``margin`` -> ``(error [S],
+    margin [S])``."""
+    up, margin = estimate_up(gravity, x, mask, batch_size, axes)
     return torch.rad2deg(geodesic_distance(up.double(), g.double())), margin
 
 
 def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
-              batch_size: int = 16) -> dict:
+              batch_size: int = 16, axes: torch.Tensor | None = None) -> dict:
     """How an up estimate fared on views of known gravity (:func:`up_errors`'s arguments):
     the median error in degrees, the number of ``gross`` errors (over
     :data:`GROSS_DEGREES`), of views it is ``unsure`` of (``margin`` below
     :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
-    err, margin = up_errors(gravity, x, mask, g, batch_size)
+    err, margin = up_errors(gravity, x, mask, g, batch_size, axes)
     gross, unsure = err > GROSS_DEGREES, margin < UNSURE_MARGIN
-    return {"views": len(err), "median_err_deg": round(float(err.quantile(0.5)), 2),
-            "gross": int(gross.sum()), "unsure": int(unsure.sum()),
-            "gross_unsure": int((gross & unsure).sum())}
+    r = {"views": len(err), "median_err_deg": round(float(err.quantile(0.5)), 2),
+         "gross": int(gross.sum()), "unsure": int(unsure.sum()),
+         "gross_unsure": int((gross & unsure).sum())}
+    if axes is not None:  # the views whose up was picked among their straight lines' axes
+        r["lines"] = int(torch.isfinite(axes).all(-1).all(-1).sum())
+    return r
 
 
 def format_up_report(r: dict) -> str:
     """One line of :func:`up_report`'s numbers."""
+    lines = f"; picked among straight-line axes on {r['lines']} views" if "lines" in r else ""
     return (f"up estimate: median error {r['median_err_deg']:.1f} deg, {r['gross']} of {r['views']} "
             f"views over {GROSS_DEGREES:.0f} deg ({r['gross_unsure']} of them flagged unsure); "
-            f"{r['unsure']} flagged unsure in all")
+            f"{r['unsure']} flagged unsure in all{lines}")
 
 
 def up_loss(head, grav: dict, g: torch.Tensor, stats: dict, sign_weight: float = 0.0) -> torch.Tensor:
@@ -280,6 +343,6 @@ def load_sign_check(path):
     return check.eval()
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "split_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES", "jittered", "pretrain_sign",
            "load_sign_check"]

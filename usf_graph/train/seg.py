@@ -55,6 +55,7 @@ from .gravity import (
     given_up,
     known_up,
     pretrain_up,
+    split_up,
     trains_up,
     up_loss,
     up_report,
@@ -281,31 +282,33 @@ def make_model(name: str, level: int = 5, upright: bool = True,
 
 
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
-                      name: str = "model", known_up: bool = False) -> tuple[dict, dict]:
+                      name: str = "model", known_up: bool = False,
+                      up_lines: bool = False) -> tuple[dict, dict]:
     """Scores and pixel predictions of one trained model on the protocol's test sets;
-    ``known_up``: a spherical model reads the views' true gravity (:func:`views_up`). A
-    model with an up estimate also gets its :func:`~usf_graph.train.gravity.up_report` per
-    test (``"up"``)."""
+    ``known_up``, ``up_lines``: as :func:`evaluate_set`'s. A model with an up estimate also
+    gets its :func:`~usf_graph.train.gravity.up_report` per test (``"up"``)."""
     res, preds = {}, {}
     for k in tests:
         model = net
         if not is_planar(net) and PROTOCOL[k][2]:
             model = net.refined(PROTOCOL[k][2])
-        res[k], preds[k] = evaluate_set(model, sets[k], f"{name} ({k})", known_up, progress)
+        res[k], preds[k] = evaluate_set(model, sets[k], f"{name} ({k})", known_up, progress, up_lines)
     return res, preds
 
 
 def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
-                 progress: bool = True) -> tuple[dict, np.ndarray]:
+                 progress: bool = True, up_lines: bool = False) -> tuple[dict, np.ndarray]:
     """:func:`score` and the pixel predictions of a trained model on one test set (a rooms
     test or :class:`~usf_graph.datasets.Stanford2D3DS`); ``known_up``: a spherical model
-    reads the views' gravity (:func:`views_up`). A model with an up estimate also gets its
-    :func:`~usf_graph.train.gravity.up_report` (``"up"``)."""
-    up = views_up(ds) if known_up and not is_planar(model) else None
+    reads the views' gravity (:func:`views_up`); ``up_lines``: through a pinhole, its up
+    estimate picks among the straight-line axes of each image
+    (:func:`~usf_graph.train.gravity.lines_up`; other cameras keep the estimate). A model
+    with an up estimate also gets its :func:`~usf_graph.train.gravity.up_report` (``"up"``)."""
+    up, axes = split_up(model, ds, known_up, up_lines)
     pix, pts = predict(model, ds, progress=progress, desc=desc, up=up)
     r = score(pix, ds, pts)
     if getattr(model, "gravity", None) is not None:
-        r["up"] = up_report(model.gravity, ds.x, ds.mask[0], views_up(ds))
+        r["up"] = up_report(model.gravity, ds.x, ds.mask[0], views_up(ds), axes=axes)
     return r, pix
 
 

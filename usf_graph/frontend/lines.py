@@ -1,0 +1,146 @@
+"""Straight lines of a perspective image as great circles on the sphere, and the three
+orthogonal directions they meet at (a room's Manhattan axes): a geometric cue to up that
+holds through a narrow camera, where a learned estimate sees little of the room.
+
+A straight 3D line images to a straight segment through a pinhole without distortion;
+its two ends' rays span a plane through the centre, whose normal ``n`` is orthogonal to
+the line's direction. Parallel lines share a direction ``v`` (their vanishing direction)
+with ``n . v = 0`` for each. OpenCV's line segment detector finds the segments; the axes
+are the directions that the most line length points at. Everything is in the camera's
+sphere frame (``camera.rotation`` applied), so the axes turn with the camera.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from ..cameras import Camera, Pinhole
+from .frontend import render
+
+#: Lines closer than this (degrees) to a direction's great circle point at it.
+LINE_TOLERANCE = 1.5
+#: Fewer lines than this give no axes: a few segments fit any frame.
+MIN_LINES = 8
+#: The longest lines whose pairs are tried as the first axis (every pair: deterministic).
+MAX_LINES = 200
+
+
+def _undistorted(camera: Camera):
+    """``camera`` as a pinhole without distortion (the same intrinsics, size and mounting),
+    or ``None`` when it is no pinhole."""
+    if not isinstance(camera, Pinhole):
+        return None
+    p = camera.params()
+    return Pinhole(p["fx"], p["fy"], p["cx"], p["cy"], p["width"], p["height"],
+                   rotation=camera.rotation)
+
+
+def _gray(image) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim == 3:
+        a = a[..., :3].mean(-1) if a.shape[-1] >= 3 else a[..., 0]
+    if a.ndim != 2:
+        raise ValueError(f"image must be [H, W] or [H, W, C], got shape {np.asarray(image).shape}")
+    if not np.isfinite(a).all():
+        raise ValueError("the image has NaN or inf pixels; fill or mask them before finding lines")
+    if not np.issubdtype(np.asarray(image).dtype, np.integer):
+        a = a * 255.0  # float images are in [0, 1], as the rest of the library reads them
+    return np.clip(np.round(a), 0, 255).astype(np.uint8)
+
+
+def line_normals(image, camera: Camera, upsample: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The straight segments of ``image`` (``[H, W]`` or ``[H, W, C]``; integers in [0,
+    255] or floats in [0, 1]) taken by ``camera``, a :class:`~usf_graph.cameras.Pinhole`
+    (with distortion, the image is first re-imaged through the same pinhole without it).
+
+    Returns ``normals [L, 3]``: unit normals, in the sphere frame, of the great circles
+    through the segments, and ``weights [L]``: the segments' angular lengths (radians).
+    Segments that touch pixels the camera does not see are left out, so the border of its
+    image mask is no line. ``upsample``: the image is enlarged this many times first, so
+    that short segments are found (OpenCV's LSD, default parameters)."""
+    ideal = _undistorted(camera)
+    if ideal is None:
+        raise ValueError(f"straight lines need a perspective camera (a Pinhole); "
+                         f"{type(camera).__name__} bends them. Give the model's own up estimate "
+                         "or a known up instead")
+    h, w = camera.height, camera.width
+    if np.asarray(image).shape[:2] != (h, w):
+        raise ValueError(f"the image is {np.asarray(image).shape[:2]} (H, W), the camera's "
+                         f"{(h, w)}: give the image the camera was calibrated for")
+    gray = _gray(image)
+    seen = camera.lens_normal_map()[1]
+    if camera.params().get("dist"):
+        seen = render(seen.astype(np.float32), camera, ideal) > 0.5
+        gray = render(gray, camera, ideal)
+    if not seen.any():
+        raise ValueError("the camera sees none of its pixels (an empty image mask?)")
+    # a segment may not come within 2 pixels of a pixel the camera does not see
+    inner = cv2.erode(np.pad(seen, 1).astype(np.uint8), np.ones((5, 5), np.uint8))[1:-1, 1:-1] > 0
+    up = max(int(upsample), 1)
+    found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD).detect(
+        cv2.resize(gray, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR))[0]
+    if found is None:
+        return np.zeros((0, 3)), np.zeros(0)
+    seg = found.reshape(-1, 4).astype(np.float64) / up - (up - 1) / (2 * up)  # back to pixels
+    ends = [seg[:, :2], seg[:, 2:], (seg[:, :2] + seg[:, 2:]) / 2]
+    keep = np.ones(len(seg), bool)
+    for p in ends:
+        i = np.clip(np.round(p[:, 1]).astype(int), 0, h - 1)
+        j = np.clip(np.round(p[:, 0]).astype(int), 0, w - 1)
+        keep &= inner[i, j]
+    a, va = ideal.unproject(seg[keep, :2])
+    b, vb = ideal.unproject(seg[keep, 2:])
+    ok = va & vb
+    R = ideal.rotation
+    n = np.cross(a[ok] @ R.T, b[ok] @ R.T)
+    length = np.linalg.norm(n, axis=1)
+    long = length > 1e-9
+    return n[long] / length[long, None], np.arcsin(np.clip(length[long], 0, 1))
+
+
+def _support(v: np.ndarray, normals: np.ndarray, weights: np.ndarray, tol: float) -> np.ndarray:
+    """The line length pointing at each direction of ``v [K, 3]``."""
+    return ((np.abs(v @ normals.T) < math.sin(math.radians(tol))) * weights).sum(-1)
+
+
+def manhattan_axes(normals: np.ndarray, weights: np.ndarray, tolerance: float = LINE_TOLERANCE,
+                   min_lines: int = MIN_LINES, max_lines: int = MAX_LINES) -> np.ndarray | None:
+    """Three orthogonal unit directions ``[3, 3]`` (rows) at which the most line length
+    points, from :func:`line_normals`' output, or ``None`` with fewer than ``min_lines``
+    lines. The first is the best of the intersections of every pair of the ``max_lines``
+    longest lines; the second the best on the great circle orthogonal to it (half-degree
+    steps); the third completes them. A line points at a direction within ``tolerance``
+    degrees of its great circle. Deterministic; each axis is defined up to sign."""
+    normals, weights = np.asarray(normals, np.float64), np.asarray(weights, np.float64)
+    if normals.ndim != 2 or normals.shape[1:] != (3,) or weights.shape != normals.shape[:1]:
+        raise ValueError(f"normals must be [L, 3] and weights [L], got {normals.shape} and "
+                         f"{weights.shape}")
+    if len(normals) < max(min_lines, 2):
+        return None
+    top = normals[np.argsort(-weights, kind="stable")[:max_lines]]
+    i, j = np.triu_indices(len(top), 1)
+    c = np.cross(top[i], top[j])
+    norm = np.linalg.norm(c, axis=1)
+    c = c[norm > 1e-6] / norm[norm > 1e-6, None]
+    if not len(c):
+        return None
+    v1 = c[_support(c, normals, weights, tolerance).argmax()]
+    e1 = np.cross(v1, np.eye(3)[np.abs(v1).argmin()])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(v1, e1)
+    t = np.radians(np.arange(0.0, 180.0, 0.5))
+    circle = np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2
+    v2 = circle[_support(circle, normals, weights, tolerance).argmax()]
+    return np.stack([v1, v2, np.cross(v1, v2)])
+
+
+def image_axes(images, camera: Camera, **kw) -> list[np.ndarray | None]:
+    """:func:`manhattan_axes` of each image of ``images`` (``[S, H, W(, C)]``) taken by
+    ``camera``; ``kw`` go to :func:`manhattan_axes`."""
+    return [manhattan_axes(*line_normals(im, camera), **kw) for im in images]
+
+
+__all__ = ["LINE_TOLERANCE", "MIN_LINES", "MAX_LINES", "line_normals", "manhattan_axes", "image_axes"]
