@@ -581,3 +581,44 @@ def test_eval_refuses_a_device_the_machine_lacks(tmp_path, capsys, monkeypatch):
                  "--root", str(tmp_path / "data")]) == 2
     assert "sees no CUDA GPU" in capsys.readouterr().err
     assert not (tmp_path / "data").exists()
+
+
+def test_predict_up_lines_reads_a_pinholes_straight_lines(tmp_path, capsys):
+    """``--up-lines``: the up estimate picks among the Manhattan axes of the image's lines;
+    the up printed and written is that axis. Refused with --up or a fisheye; a featureless
+    image falls back to the estimate and says so."""
+    import json
+
+    from usf_graph.cameras import Fisheye, Pinhole
+    from usf_graph.frontend.lines import line_normals, manhattan_axes
+    from usf_graph.models import SphericalDetector
+    from usf_graph.scenes import make_room, render
+    from usf_graph.train import save_checkpoint
+    from usf_graph.train.apply import detect_image
+
+    cam = Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
+    scene = make_room(seed=3, index=3, materials="by_kind")
+    rgb = render(scene, cam, *scene.viewpoint(0), boxes=False).rgb
+    cv2.imwrite(str(tmp_path / "view.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    cam.save(tmp_path / "pinhole.yaml")
+    torch.manual_seed(0)
+    det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8), gravity=True)
+    save_checkpoint(tmp_path / "det.pt", det, det.config, {})
+    common = [str(tmp_path / "det.pt"), str(tmp_path / "view.png"), "--out", str(tmp_path / "out")]
+    assert main(["predict", "det", *common, "--camera", str(tmp_path / "pinhole.yaml"), "--up-lines"]) == 0
+    assert "picked by the estimate among the image's straight-line axes" in capsys.readouterr().out
+    up = np.array(json.loads((tmp_path / "out" / "view_boxes.json").read_text())["up"]["up"])
+    axes = manhattan_axes(*line_normals(rgb, cam))
+    assert np.isclose(np.abs(axes @ up).max(), 1.0, atol=1e-6)  # one of the axes, either sign
+    assert np.allclose(detect_image(det.eval(), rgb, cam, up="lines")["up"], up, atol=1e-6)
+    flat = np.full_like(rgb, 128)
+    r = detect_image(det, flat, cam, up="lines")
+    assert r["source"] == "estimated" and r["lines"].startswith("too few straight lines")
+    assert main(["predict", "det", *common, "--camera", str(tmp_path / "pinhole.yaml"), "--up-lines",
+                 "--up", "0", "0", "1"]) == 2
+    assert "not with --up" in capsys.readouterr().err
+    Fisheye(40.0, 63.5, 63.5, 128, 128).save(tmp_path / "fish.yaml")
+    assert main(["predict", "det", *common, "--camera", str(tmp_path / "fish.yaml"), "--up-lines"]) == 2
+    assert "perspective camera" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="or 'lines'"):
+        detect_image(det, rgb, cam, up="level")

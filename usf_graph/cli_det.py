@@ -272,12 +272,17 @@ def ready_model(ckpt, args):
 def up_options(model, args) -> None:
     """``eval --level-prior`` and ``--sign-check``: set on ``model``'s up estimate
     (:func:`~usf_graph.models.set_level_prior`, :func:`~usf_graph.models.set_sign_check`);
-    an error if there is none to set them on."""
+    an error if there is none to set them on, or for ``--up-lines`` without one or with
+    ``--known-up``."""
     from .models import set_level_prior, set_sign_check
     from .train import model_device
     from .train.gravity import load_sign_check
 
     needs = "{} needs a spherical model with an up estimate (gravity=True); this checkpoint has none"
+    if getattr(args, "known_up", False) and getattr(args, "up_lines", False):
+        raise ValueError("--known-up and --up-lines exclude each other: give one")
+    if getattr(args, "up_lines", False) and getattr(model, "gravity", None) is None:
+        raise ValueError(needs.format("--up-lines"))
     if args.level_prior and not set_level_prior(model, args.level_prior):
         raise ValueError(needs.format("--level-prior"))
     if args.sign_check and not set_sign_check(

@@ -480,3 +480,19 @@ def test_set_level_prior_reaches_every_up_estimate_and_checks_its_value():
     seg = SphericalUNet(num_classes=3, level=3, channels=(4, 4), gravity=True)
     assert set_level_prior(seg, 2.5) == 1 and seg.gravity.level_prior == 2.5
     assert seg.refined(1).gravity.level_prior == 2.5  # the finer grid's copy keeps it
+
+
+def test_pick_axis_takes_the_signed_axis_the_head_scores_highest():
+    from usf_graph.geometry import random_rotation
+    from usf_graph.models.gravity import pick_axis
+
+    cand = grids.icosahedral(3).pos.double()
+    axes = torch.stack([random_rotation(generator=torch.Generator().manual_seed(s)).double().T
+                        for s in (1, 2)])  # rows: each view's frame
+    want = torch.stack([-axes[0, 1], axes[1, 2]])
+    logits = 10 * want @ cand.T  # highest at the candidates nearest the wanted directions
+    up = pick_axis(logits, cand, axes)
+    # the axis itself, not the candidate near it: the lines place up, the head picks
+    assert torch.equal(up, want)
+    with pytest.raises(ValueError, match=r"axes must be \[B, 3, 3\]"):
+        pick_axis(logits, cand, axes[:1])

@@ -24,6 +24,7 @@ from usf_graph.train.det import (
 )
 from usf_graph.train.det_metrics import FULLY_SEEN
 from usf_graph.train.fov import camera_field
+from usf_graph.train.gravity import lines_up
 
 
 def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
@@ -107,6 +108,25 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     assert len(got) == 2 and all(len(g["boxes"]) == 5 for g in got)
     for g, w in zip(got, want):
         np.testing.assert_array_equal(g["boxes"], w["boxes"])
+    # --up-lines: through the pinhole the estimate picks among each image's line axes; the
+    # fisheye keeps its estimate
+    capsys.readouterr()
+    assert main(["eval", "det", str(tmp_path / "out" / "spherical.pt"), "--root", str(tmp_path / "rooms"),
+                 "--size", "32", "--num-test", "2", "--test", "c", "d", "--up-lines"]) == 0
+    out = capsys.readouterr().out
+    sets = protocol_sets(tmp_path / "rooms", size=32, num_train=0, num_test=2, progress=False)
+    up, axes = lines_up(net.gravity, sets["d"])
+    data_d = DetectionSet.spherical(sets["d"])
+    r = score(predict(net, data_d, up=up), data_d, net.num_classes)
+    assert f"(d) AP {100 * r['AP']:.2f}, AP50 {100 * r['AP50']:.2f}" in out
+    n = int(torch.isfinite(axes).all(-1).all(-1).sum())
+    assert f"picked among straight-line axes on {n} views" in out
+    assert "(c) up estimate" in out and out.count("picked among") == 1
+    for name, flags, why in (("spherical", ["--known-up"], "exclude each other"),
+                             ("planar", [], "--up-lines needs a spherical model")):
+        assert main(["eval", "det", str(tmp_path / "out" / f"{name}.pt"), "--test", "d",
+                     "--up-lines", *flags]) == 2
+        assert why in capsys.readouterr().err
 
 
 def test_detection_sets_batch_boxes_and_fields_of_view(tmp_path):

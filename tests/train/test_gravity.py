@@ -176,3 +176,82 @@ def test_a_saved_sign_check_loads_with_its_weights(tmp_path):
     save_checkpoint(tmp_path / "other.pt", check, {"model": "spherical_unet"}, {})
     with pytest.raises(ValueError, match="is not a sign check"):
         load_sign_check(tmp_path / "other.pt")
+
+
+class _Head:
+    candidates = icosahedral(3).pos.double()
+
+
+class _LinesEstimate(nn.Module):
+    """An up estimate whose answer is ``up`` and whose head scores directions by their
+    cosine with ``favour`` (one per view)."""
+
+    def __init__(self, up, favour):
+        super().__init__()
+        self.up, self.favour, self.seen, self.head = up, favour, 0, _Head()
+
+    def forward(self, x, mask=None):
+        s, self.seen = self.seen, self.seen + len(x)
+        f = self.favour[s:self.seen]
+        return {"up": self.up[s:self.seen], "margin": torch.ones(len(x)),
+                "logits": 10 * f @ self.head.candidates.T}
+
+
+def test_estimate_up_picks_among_line_axes_where_a_view_has_them():
+    from usf_graph.train.gravity import estimate_up, up_report
+
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    tilted = torch.nn.functional.normalize(torch.tensor([0.3, 0.0, 1.0], dtype=torch.float64), dim=0)
+    frame = torch.stack([torch.tensor([0.0, 1.0, 0.0]), torch.tensor([1.0, 0.0, 0.0]), z]).double()
+    axes = torch.stack([frame, torch.full((3, 3), float("nan"), dtype=torch.float64), frame])
+    favour = torch.stack([-z, z, z])  # view 0's head prefers down, a sign the lines cannot give
+    est = _LinesEstimate(tilted.expand(3, 3), favour)
+    up, _ = estimate_up(est, torch.zeros(3, 5, 3), None, batch_size=2, axes=axes)
+    # views 0 and 2 take the axis their head favours; view 1 has no axes and keeps its estimate
+    assert torch.equal(up, torch.stack([-z, tilted, z]))
+    r = up_report(_LinesEstimate(tilted.expand(3, 3), favour), torch.zeros(3, 5, 3), None,
+                  z.expand(3, 3), axes=axes)
+    assert r["lines"] == 2 and r["gross"] == 1 and r["median_err_deg"] == pytest.approx(
+        np.degrees(np.arctan(0.3)), abs=0.01)
+    with pytest.raises(ValueError, match=r"axes must be \[3, 3, 3\]"):
+        estimate_up(est, torch.zeros(3, 5, 3), None, axes=axes[:2])
+
+
+def test_lines_up_reads_a_pinholes_rendered_rooms_and_split_up_says_what_it_reads():
+    """End to end: a room through a level and a tilted pinhole, each image's line axes, and
+    a head that favours the true up picks an axis within 2.5 degrees of it."""
+    from types import SimpleNamespace
+
+    from usf_graph.cameras import Equirectangular, Pinhole
+    from usf_graph.geometry import rotation_from_axis_angle
+    from usf_graph.scenes import make_room, render
+    from usf_graph.train.gravity import lines_up, split_up
+
+    cam = Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
+    images, ups = [], []
+    scene = make_room(seed=3, index=3, materials="by_kind")
+    for pitch, roll in ((0.0, 0.0), (25.0, 10.0)):
+        pos, R = scene.viewpoint(0)
+        R = R @ rotation_from_axis_angle(np.array([0.0, 1.0, 0.0]), np.radians(pitch)) \
+            @ rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), np.radians(roll))
+        images.append(render(scene, cam, pos, R, boxes=False).rgb)
+        ups.append(R.T @ np.array([0.0, 0.0, 1.0]))
+    g = torch.as_tensor(np.stack(ups))
+    ds = SimpleNamespace(camera=cam, image=torch.as_tensor(np.stack(images)), x=torch.zeros(2, 5, 3),
+                         mask=torch.ones(2, 5, dtype=torch.bool), gravity=g.float())
+    est = _LinesEstimate(torch.zeros(2, 3, dtype=torch.float64), g)
+    up, axes = lines_up(est, ds)
+    err = np.degrees(np.arccos(np.clip((up * g).sum(-1).numpy(), -1, 1)))
+    assert axes.shape == (2, 3, 3) and (err < 2.5).all()
+    model = SimpleNamespace(gravity=_LinesEstimate(torch.zeros(2, 3, dtype=torch.float64), g))
+    u2, a2 = split_up(model, ds, up_lines=True)
+    assert torch.equal(u2, up) and torch.equal(a2, axes)
+    assert split_up(model, ds, known_up=True)[0] is ds.gravity and split_up(model, ds) == (None, None)
+    # other cameras bend lines: the estimate as it is; a planar model reads no up
+    assert split_up(model, SimpleNamespace(**{**vars(ds), "camera": Equirectangular(8, 4)}),
+                    up_lines=True) == (None, None)
+    assert split_up(SimpleNamespace(input_dims=4), ds, up_lines=True) == (None, None)
+    with pytest.raises(ValueError, match="exclude each other"):
+        split_up(model, ds, known_up=True, up_lines=True)
+    with pytest.raises(ValueError, match="has none"):
+        split_up(SimpleNamespace(gravity=None), ds, up_lines=True)

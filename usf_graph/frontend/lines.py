@@ -75,8 +75,6 @@ def line_normals(image, camera: Camera, upsample: int = 2) -> tuple[np.ndarray, 
     if camera.params().get("dist"):
         seen = render(seen.astype(np.float32), camera, ideal) > 0.5
         gray = render(gray, camera, ideal)
-    if not seen.any():
-        raise ValueError("the camera sees none of its pixels (an empty image mask?)")
     # a segment may not come within 2 pixels of a pixel the camera does not see
     inner = cv2.erode(np.pad(seen, 1).astype(np.uint8), np.ones((5, 5), np.uint8))[1:-1, 1:-1] > 0
     up = max(int(upsample), 1)
@@ -106,14 +104,32 @@ def _support(v: np.ndarray, normals: np.ndarray, weights: np.ndarray, tol: float
     return ((np.abs(v @ normals.T) < math.sin(math.radians(tol))) * weights).sum(-1)
 
 
+def _second_axis(v1: np.ndarray, normals: np.ndarray, weights: np.ndarray, tolerance: float):
+    """The direction orthogonal to ``v1`` (half-degree steps) at which the most line length
+    points, and that length."""
+    e1 = np.cross(v1, np.eye(3)[np.abs(v1).argmin()])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(v1, e1)
+    t = np.radians(np.arange(0.0, 180.0, 0.5))
+    circle = np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2
+    s = _support(circle, normals, weights, tolerance)
+    return circle[s.argmax()], s.max()
+
+
 def manhattan_axes(normals: np.ndarray, weights: np.ndarray, tolerance: float = LINE_TOLERANCE,
-                   min_lines: int = MIN_LINES, max_lines: int = MAX_LINES) -> np.ndarray | None:
+                   min_lines: int = MIN_LINES, max_lines: int = MAX_LINES,
+                   tries: int = 20) -> np.ndarray | None:
     """Three orthogonal unit directions ``[3, 3]`` (rows) at which the most line length
     points, from :func:`line_normals`' output, or ``None`` with fewer than ``min_lines``
-    lines. The first is the best of the intersections of every pair of the ``max_lines``
-    longest lines; the second the best on the great circle orthogonal to it (half-degree
-    steps); the third completes them. A line points at a direction within ``tolerance``
-    degrees of its great circle. Deterministic; each axis is defined up to sign."""
+    lines. A line points at a direction within ``tolerance`` degrees of its great circle.
+
+    The intersections of every pair of the ``max_lines`` longest lines are the candidates
+    for a first axis; each of the ``tries`` best (at least 5 degrees apart) gets the best
+    second axis on the great circle orthogonal to it (half-degree steps) and the third
+    that completes them, and the frame at which the most line length points in all wins.
+    Not the best single direction alone: lines of a texture can meet anywhere. Each axis is
+    then fitted to its lines (:func:`_refined`). Deterministic; each axis is defined up to
+    sign."""
     normals, weights = np.asarray(normals, np.float64), np.asarray(weights, np.float64)
     if normals.ndim != 2 or normals.shape[1:] != (3,) or weights.shape != normals.shape[:1]:
         raise ValueError(f"normals must be [L, 3] and weights [L], got {normals.shape} and "
@@ -127,14 +143,38 @@ def manhattan_axes(normals: np.ndarray, weights: np.ndarray, tolerance: float = 
     c = c[norm > 1e-6] / norm[norm > 1e-6, None]
     if not len(c):
         return None
-    v1 = c[_support(c, normals, weights, tolerance).argmax()]
-    e1 = np.cross(v1, np.eye(3)[np.abs(v1).argmin()])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(v1, e1)
-    t = np.radians(np.arange(0.0, 180.0, 0.5))
-    circle = np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2
-    v2 = circle[_support(circle, normals, weights, tolerance).argmax()]
-    return np.stack([v1, v2, np.cross(v1, v2)])
+    order = np.argsort(-_support(c, normals, weights, tolerance), kind="stable")
+    firsts: list[np.ndarray] = []
+    for k in order:  # the best candidates, 5 degrees apart (either sign)
+        if all(abs(c[k] @ f) < math.cos(math.radians(5)) for f in firsts):
+            firsts.append(c[k])
+            if len(firsts) == tries:
+                break
+    best, frame = -1.0, None
+    for v1 in firsts:
+        v2, _ = _second_axis(v1, normals, weights, tolerance)
+        axes = np.stack([v1, v2, np.cross(v1, v2)])
+        total = float(_support(axes, normals, weights, tolerance).sum())
+        if total > best:
+            best, frame = total, axes
+    return _refined(frame, normals, weights, tolerance)
+
+
+def _refined(axes: np.ndarray, normals: np.ndarray, weights: np.ndarray, tolerance: float) -> np.ndarray:
+    """Each axis fitted to the lines pointing at it (least squares: the direction most
+    orthogonal to their normals, weighted), then the nearest orthogonal frame: the search
+    places an axis only to within ``tolerance``, the lines do better."""
+    fitted = []
+    for u in axes:
+        for tol in (tolerance, tolerance / 2):  # the second pass drops lines the first pulled by
+            near = np.abs(normals @ u) < math.sin(math.radians(tol))
+            if near.sum() >= 2:
+                n = normals[near]
+                v = np.linalg.eigh((weights[near, None] * n).T @ n)[1][:, 0]
+                u = v if v @ u >= 0 else -v
+        fitted.append(u)
+    U, _, Vt = np.linalg.svd(np.stack(fitted))
+    return U @ Vt
 
 
 def image_axes(images, camera: Camera, **kw) -> list[np.ndarray | None]:
