@@ -75,8 +75,9 @@ def line_normals(image, camera: Camera, upsample: int = 2) -> tuple[np.ndarray, 
     if camera.params().get("dist"):
         seen = render(seen.astype(np.float32), camera, ideal) > 0.5
         gray = render(gray, camera, ideal)
-    # a segment may not come within 2 pixels of a pixel the camera does not see
-    inner = cv2.erode(np.pad(seen, 1).astype(np.uint8), np.ones((5, 5), np.uint8))[1:-1, 1:-1] > 0
+    # a segment may not come within 2 pixels of a pixel the camera does not see (the
+    # image's own border is no such pixel)
+    inner = cv2.erode(np.pad(seen, 1, mode="edge").astype(np.uint8), np.ones((5, 5), np.uint8))[1:-1, 1:-1] > 0
     up = max(int(upsample), 1)
     found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD).detect(
         cv2.resize(gray, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR))[0]
