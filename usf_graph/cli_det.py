@@ -83,6 +83,10 @@ def add_device_option(p, what: str = "the model runs") -> None:
                         "under torchrun, cuda is each process's own GPU")
 
 
+#: What ``eval --up-lines`` says of a test whose camera is no pinhole.
+NO_LINES = "--up-lines: this camera bends straight lines (no pinhole); the estimate as it is"
+
+
 def add_eval_options(e) -> None:
     """Options of ``eval det`` and ``eval seg``: which tests, which views, which up."""
     e.add_argument("--dataset", default=None, choices=["rooms", "stanford2d3ds", "pandora"],
@@ -321,6 +325,8 @@ def cmd_eval_det(args) -> int:
         if getattr(model, "gravity", None) is not None:
             print(f"{k} " + format_up_report(up_report(model.gravity, data.x, data.mask,
                                                        views_up(ds), axes=axes)))
+        if args.up_lines and axes is None:
+            print(f"{k} {NO_LINES}")
         if args.boxes:
             q = box_quality(model, data)
             print(f"{k} each true box decoded at its centre point: IoU median "

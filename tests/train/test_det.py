@@ -122,6 +122,7 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     n = int(torch.isfinite(axes).all(-1).all(-1).sum())
     assert f"picked among straight-line axes on {n} views" in out
     assert "(c) up estimate" in out and out.count("picked among") == 1
+    assert "(c) --up-lines: this camera bends straight lines" in out and "(d) --up-lines" not in out
     for name, flags, why in (("spherical", ["--known-up"], "exclude each other"),
                              ("planar", [], "--up-lines needs a spherical model")):
         assert main(["eval", "det", str(tmp_path / "out" / f"{name}.pt"), "--test", "d",
