@@ -4,6 +4,7 @@ frame turning with the camera."""
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -111,3 +112,16 @@ def test_line_normals_refuse_what_they_cannot_read():
     bad[3, 4, 1] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         line_normals(bad, cam)
+
+
+def test_only_small_images_are_enlarged_before_the_search():
+    rng = np.random.default_rng(0)
+    for size, times in ((128, 2), (600, 1)):
+        img = np.zeros((size, size), np.uint8)
+        for _ in range(12):
+            a, b = rng.integers(0, size, (2, 2))
+            cv2.line(img, tuple(int(v) for v in a), tuple(int(v) for v in b), 255, 2)
+        cam = Pinhole(size / 2, size / 2, (size - 1) / 2, (size - 1) / 2, size, size)
+        n, w = line_normals(img, cam)
+        n2, w2 = line_normals(img, cam, upsample=times)
+        assert len(n) > 5 and np.array_equal(n, n2) and np.array_equal(w, w2)
