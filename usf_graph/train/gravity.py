@@ -122,15 +122,20 @@ def lines_up(gravity, ds) -> tuple[torch.Tensor, torch.Tensor] | None:
     return estimate_up(gravity, ds.x, mask, axes=axes)[0], axes
 
 
+def check_up_choice(known_up: bool, up_lines: bool) -> None:
+    """Refuses a known up together with the straight lines' pick: each replaces the estimate."""
+    if known_up and up_lines:
+        raise ValueError("a known up (--known-up) and the straight lines' pick (--up-lines) "
+                         "exclude each other: give one")
+
+
 def split_up(model, ds, known_up: bool = False, up_lines: bool = False):
     """The up a model reads on a test split ``ds`` and the line axes it picked among ->
     ``(up [S, 3] or None, axes [S, 3, 3] or None)``: the views' gravity with ``known_up``
     (:func:`views_up`), the estimate's pick among the straight-line axes with ``up_lines``
     where the camera is a pinhole (:func:`lines_up`), else ``(None, None)``: the model's
     own estimate. A planar model reads no up."""
-    if known_up and up_lines:
-        raise ValueError("a known up (--known-up) and the straight lines' pick (--up-lines) "
-                         "exclude each other: give one")
+    check_up_choice(known_up, up_lines)
     if getattr(getattr(model, "module", model), "input_dims", 3) == 4:
         return None, None
     if known_up:
@@ -343,6 +348,6 @@ def load_sign_check(path):
     return check.eval()
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "split_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "check_up_choice", "split_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES", "jittered", "pretrain_sign",
            "load_sign_check"]
