@@ -48,3 +48,10 @@ def test_seg_step_benchmark_runs():
     out = run("benchmarks/seg_step.py", "--batch", "1", "--level", "3", "--reps", "1",
               "--channel-scale", "0.5")  # both at half the channels: the planar U-Net's 257,357
     assert "channels [16, 32, 64, 64]" in out and "| PlanarUNet (32x16) | 512 | 257357 |" in out
+
+
+def test_profile_step_benchmark_runs():
+    out = run("benchmarks/profile_step.py", "--batch", "1", "--level", "3", "--steps", "1",
+              "--rows", "5")
+    assert "Self CPU time total" in out and "aten::" in out
+    assert out.count("\n") < 40  # --rows bounds the table
