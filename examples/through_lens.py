@@ -47,7 +47,7 @@ def _seg(net, args, size, level):
     step = partial(seg.segmentation_step, class_weight=seg.balanced_weights(train, args.balance))
     second_phase(net, train, args.epochs, args.out, "through the lens", cut=cut,
                  batch_size=defaults(seg.run)["batch_size"], seed=args.seed,
-                 progress=args.progress, step=step)
+                 progress=args.progress, step=step, device=args.device)
 
     def metric(known):
         res, _ = seg.evaluate_protocol(net, sets, ("a", args.test), args.progress, known_up=known)
@@ -65,7 +65,7 @@ def _det(net, args, size, _level):
                                   camera=sets[args.test].camera, turn=args.turn)
     second_phase(net, train, args.epochs, args.out, "through the lens", cut=cut,
                  batch_size=defaults(det.run)["batch_size"], seed=args.seed,
-                 progress=args.progress, step=det.detection_step)
+                 progress=args.progress, step=det.detection_step, device=args.device)
 
     def metric(known):
         found = {k: det.predict(net, data[k], progress=False, up=views_up(sets[k]) if known else None)
@@ -98,6 +98,8 @@ def main(argv=None) -> dict:
     p.add_argument("--level-prior", type=float, default=10.0,
                    help="also score the estimate with this level-camera prior (0: skip)")
     p.add_argument("--balance", type=float, default=0.5, help="seg: the class weights' power")
+    p.add_argument("--device", default=None,
+                   help="train and score on this device (cpu, cuda, auto; default cpu)")
     p.add_argument("--no-progress", dest="progress", action="store_false")
     args = p.parse_args(argv)
     ckpt = Path(args.checkpoint)
@@ -128,7 +130,7 @@ def main(argv=None) -> dict:
             print(f"  {k:22s} " + "  ".join(f"({t}) {100 * v:6.2f}" for t, v in res[k].items()))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(res, indent=1))
-    save_checkpoint(args.out / "model.pt", net, saved.config, res)
+    save_checkpoint(args.out / "model.pt", net.cpu(), saved.config, res)
     return res
 
 
