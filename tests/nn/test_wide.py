@@ -81,6 +81,28 @@ def test_structures_are_cached_per_batch_size_and_bounded():
     assert 0 < len(plan.wide_cache) <= 16
 
 
+@pytest.mark.parametrize("c_in, c_out", [(5, 3), (2, 9)])
+def test_int64_indices_give_what_int32_ones_do(monkeypatch, c_in, c_out):
+    """Past 2**31 entries the structures switch to int64 indices; a graph that large does
+    not fit a test, so the switch is lowered to 0 here and the product and its gradients
+    are checked against the per-edge sum as above."""
+    from usf_graph.nn import wide
+
+    x, w, coef, ei = case(11, 80, 3, c_in, c_out, 3, True, True)
+    ref = per_edge(x, w, coef, ei)
+    g = torch.randn(ref.shape, dtype=ref.dtype)
+    want = torch.autograd.grad(ref, (x, w, coef), g)
+    monkeypatch.setattr(wide, "INT32_LIMIT", 0)
+    plan = EdgePlan(ei, 80)
+    y = wide_aggregate(x, w, coef, plan)
+    assert (y - ref).abs().max() < 1e-12
+    for a, b in zip(torch.autograd.grad(y, (x, w, coef), g), want):
+        assert (a - b).abs().max() < 1e-11 * (1 + b.abs().max())
+    kinds = {key[0] for key in plan.wide_cache}  # forward's and backward's structures
+    assert len(kinds) >= 2 and all(s[0].dtype == s[1].dtype == torch.long
+                                   for s in plan.wide_cache.values())
+
+
 def test_bad_coefficient_shapes_name_the_problem():
     x, w, coef, ei = case(4, 50, 2, 3, 4, 2, False, False)
     plan = EdgePlan(ei, 50)

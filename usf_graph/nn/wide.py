@@ -26,6 +26,9 @@ from torch.autograd.function import once_differentiable
 
 from ..sparse import quiet_sparse
 
+#: Index counts below this take int32 indices (half the memory); larger ones int64.
+INT32_LIMIT = 2 ** 31
+
 
 def _local(kind: str, row, col, n: int, K: int):
     """One sample's entries ``(r, c)`` of matrix ``kind`` for entries ``m = e K + k``,
@@ -54,7 +57,7 @@ def structure(plan, kind: str, batch: int, K: int, per_sample: bool, device) -> 
     nnz = len(perm)
     b = torch.arange(batch, device=device)[:, None]
     crow = torch.cat([(crow0[:-1][None] + b * nnz).reshape(-1), crow0.new_full((1,), batch * nnz)])
-    small = max(batch * rows, batch * cols, batch * nnz) < 2 ** 31  # int32 halves the memory
+    small = max(batch * rows, batch * cols, batch * nnz) < INT32_LIMIT
     idx = torch.int32 if small else torch.long
     out = (crow.to(idx), (c[perm][None] + b * cols).reshape(-1).to(idx),
            (m[perm][None] + b * nnz * per_sample).reshape(-1),
