@@ -2,9 +2,8 @@
 # The GPU checks of one short lease, in one script (benchmarks/README.md, "On a GPU"):
 #   1. the GPU-only tests and the layers' tests (test_engine, test_wide, test_conv),
 #   2. one layer in every form (benchmarks/conv.py) and the U-Net's training step,
-#   3. a 15-minute recipe (RECIPE=seg: make demo-seg, the default; RECIPE=det: make demo-det;
-#      RECIPE=none: no recipe)
-#      trained and scored on CUDA, timed.
+#   3. a 15-minute recipe trained and scored on CUDA, timed (RECIPE=seg: make demo-seg, the
+#      default; RECIPE=det: make demo-det; RECIPE=none: no recipe).
 # Run from the repository root with python3 holding a CUDA PyTorch:
 #   WHEELS=dir  wheels installed first into /tmp/site (what the machine lacks:
 #               torch-scatter, torch-cluster, trimesh, embreex, pycocotools)

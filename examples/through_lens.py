@@ -20,7 +20,8 @@ you know without rendering new data.
     .venv/bin/python examples/through_lens.py runs/det/spherical.pt --test d --epochs 12
 
 About 13 minutes (seg, 8 epochs; det, 12 epochs) on 2 cores once the protocol's rooms
-are rendered (``data/rooms``).
+are rendered (``data/rooms``). ``--device cuda`` trains and scores on a GPU (the detector's 12
+epochs with the rooms rendered there: about 2 minutes on an H100).
 """
 
 from __future__ import annotations
