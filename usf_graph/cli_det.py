@@ -280,12 +280,12 @@ def up_options(model, args) -> None:
     ``--known-up``."""
     from .models import set_level_prior, set_sign_check
     from .train import model_device
-    from .train.gravity import check_up_choice, load_sign_check
+    from .train.gravity import check_up_choice, load_sign_check, require_up_estimate
 
     needs = "{} needs a spherical model with an up estimate (gravity=True); this checkpoint has none"
     check_up_choice(getattr(args, "known_up", False), getattr(args, "up_lines", False))
-    if getattr(args, "up_lines", False) and getattr(model, "gravity", None) is None:
-        raise ValueError(needs.format("--up-lines"))
+    if getattr(args, "up_lines", False):
+        require_up_estimate(model, "--up-lines")
     if args.level_prior and not set_level_prior(model, args.level_prior):
         raise ValueError(needs.format("--level-prior"))
     if args.sign_check and not set_sign_check(

@@ -183,12 +183,11 @@ def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | N
     few lines. The camera must be one pinhole, whose image keeps lines straight."""
     from ..frontend.lines import line_normals, manhattan_axes
     from ..models.gravity import UNSURE_MARGIN
-    from .gravity import estimate_up
+    from .gravity import estimate_up, require_up_estimate
 
     if not isinstance(fe, SphericalFrontend):
         raise ValueError("up='lines' reads the straight lines of one pinhole's image, not a rig's")
-    if getattr(model, "gravity", None) is None:
-        raise ValueError("up='lines' is picked by the model's up estimate; this model has none")
+    require_up_estimate(model, "up='lines'")
     axes = manhattan_axes(*line_normals(rgb01(image), fe.camera))
     if axes is None:
         return None, {"lines": "too few straight lines: the estimate"}

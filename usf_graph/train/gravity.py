@@ -129,6 +129,14 @@ def check_up_choice(known_up: bool, up_lines: bool) -> None:
                          "exclude each other: give one")
 
 
+def require_up_estimate(model, what: str) -> None:
+    """Refuses ``what`` (an option that reads the model's up estimate, e.g. the straight
+    lines' pick) for a model without one."""
+    if getattr(model, "gravity", None) is None:
+        raise ValueError(f"{what} needs a spherical model with an up estimate (gravity=True); "
+                         "this model has none")
+
+
 def split_up(model, ds, known_up: bool = False, up_lines: bool = False):
     """The up a model reads on a test split ``ds`` and the line axes it picked among ->
     ``(up [S, 3] or None, axes [S, 3, 3] or None)``: the views' gravity with ``known_up``
@@ -141,9 +149,7 @@ def split_up(model, ds, known_up: bool = False, up_lines: bool = False):
     if known_up:
         return views_up(ds), None
     if up_lines:
-        if getattr(model, "gravity", None) is None:
-            raise ValueError("the straight lines' up is picked by the model's up estimate; this "
-                             "model has none (gravity=False)")
+        require_up_estimate(model, "the straight lines' pick (up_lines)")
         return lines_up(model.gravity, ds) or (None, None)
     return None, None
 
@@ -348,6 +354,6 @@ def load_sign_check(path):
     return check.eval()
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "check_up_choice", "split_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "check_up_choice", "require_up_estimate", "split_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES", "jittered", "pretrain_sign",
            "load_sign_check"]
