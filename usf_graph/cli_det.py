@@ -295,8 +295,16 @@ def up_options(model, args) -> None:
 
 def cmd_eval_det(args) -> int:
     from .train.checkpoints import load_protocol_model
-    from .train.det import PROTOCOL, DetectionSet, box_quality, predict, protocol_sets, score
-    from .train.gravity import format_up_report, split_up, up_report, views_up
+    from .train.det import (
+        PREDICT_BATCH,
+        PROTOCOL,
+        DetectionSet,
+        box_quality,
+        predict,
+        protocol_sets,
+        score,
+    )
+    from .train.gravity import format_up_report, split_up, views_up
 
     ckpt = load_protocol_model(args.checkpoint).require("det")
     model, cfg, planar = ready_model(ckpt, args), ckpt.config, ckpt.planar
@@ -317,14 +325,13 @@ def cmd_eval_det(args) -> int:
         tests = {f"({k})": sets[k] for k in names}
     for k, ds in tests.items():
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
-        up, axes = split_up(model, ds, args.known_up, args.up_lines)
-        r = score(predict(model, data, up=up), data, model.num_classes)
+        u = split_up(model, ds, args.known_up, args.up_lines, batch_size=PREDICT_BATCH)
+        r = score(predict(model, data, PREDICT_BATCH, up=u.up), data, model.num_classes)
         print(f"{k} {data.describe_ignored()}")
         print(f"{k} " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
-        if getattr(model, "gravity", None) is not None:
-            print(f"{k} " + format_up_report(up_report(model.gravity, data.x, data.mask,
-                                                       views_up(ds), axes=axes)))
-        if args.up_lines and axes is None:
+        if u.estimate is not None:
+            print(f"{k} " + format_up_report(u.report(views_up(ds))))
+        if args.up_lines and u.axes is None:
             print(f"{k} {NO_LINES}")
         if args.boxes:
             q = box_quality(model, data)

@@ -243,15 +243,24 @@ def test_lines_up_reads_a_pinholes_rendered_rooms_and_split_up_says_what_it_read
     up, axes = lines_up(est, ds)
     err = np.degrees(np.arccos(np.clip((up * g).sum(-1).numpy(), -1, 1)))
     assert axes.shape == (2, 3, 3) and (err < 2.5).all()
-    model = SimpleNamespace(gravity=_LinesEstimate(torch.zeros(2, 3, dtype=torch.float64), g))
-    u2, a2 = split_up(model, ds, up_lines=True)
-    assert torch.equal(u2, up) and torch.equal(a2, axes)
-    assert split_up(model, ds, known_up=True)[0] is ds.gravity and split_up(model, ds) == (None, None)
+    def model():
+        return SimpleNamespace(gravity=_LinesEstimate(torch.nn.functional.normalize(g + 0.2, dim=-1), g))
+
+    u = split_up(model(), ds, up_lines=True)
+    assert torch.equal(u.up, up) and torch.equal(u.estimate, up) and torch.equal(u.axes, axes)
+    assert u.report(g)["lines"] == 2 and u.report(g)["median_err_deg"] < 2.5
+    # the true up is read, and the report is still the estimate's (the plain one here)
+    known, own = split_up(model(), ds, known_up=True), split_up(model(), ds)
+    assert known.up is ds.gravity and known.axes is None and torch.equal(known.estimate, own.up)
+    assert torch.equal(own.up, own.estimate) and own.axes is None and known.report(g) == own.report(g)
+    assert own.report(g)["median_err_deg"] > 5 and "lines" not in own.report(g)
     # other cameras bend lines: the estimate as it is; a planar model reads no up
-    assert split_up(model, SimpleNamespace(**{**vars(ds), "camera": Equirectangular(8, 4)}),
-                    up_lines=True) == (None, None)
-    assert split_up(SimpleNamespace(input_dims=4), ds, up_lines=True) == (None, None)
+    bent = split_up(model(), SimpleNamespace(**{**vars(ds), "camera": Equirectangular(8, 4)}),
+                    up_lines=True)
+    assert torch.equal(bent.up, own.up) and bent.axes is None
+    assert split_up(SimpleNamespace(input_dims=4), ds, up_lines=True) == (None,) * 4
+    assert split_up(SimpleNamespace(gravity=None), ds).report(g) is None
     with pytest.raises(ValueError, match="exclude each other"):
-        split_up(model, ds, known_up=True, up_lines=True)
+        split_up(model(), ds, known_up=True, up_lines=True)
     with pytest.raises(ValueError, match="has none"):
         split_up(SimpleNamespace(gravity=None), ds, up_lines=True)

@@ -136,9 +136,20 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     with torch.no_grad():
         want = net(rot.x.float(), None, up=rot.gravity.float()).argmax(-1)
     assert np.array_equal(points, want.numpy()) and not (rot.gravity[:, 2] > 0.999).all()
+    # scoring runs the estimate once, for the prediction and the report: its pixels are the
+    # model's own (the estimate run inside its forward), its report a separate run's
+    from usf_graph.train.gravity import up_report, views_up
+    from usf_graph.train.seg import evaluate_set
+
+    calls = []
+    hook = net.gravity.register_forward_hook(lambda *_: calls.append(1))
+    r, pix = evaluate_set(net, ds, progress=False)
+    hook.remove()
+    assert len(calls) == 1 and np.array_equal(pix, predict(net, ds, progress=False)[0])
+    assert r["up"] == up_report(net.gravity, ds.x, ds.mask[0], views_up(ds))
+    assert evaluate_set(net, ds, progress=False, known_up=True)[0]["up"] == r["up"]
     # --level-prior: the fisheye's up estimate assumes a level camera; the report follows it
     from usf_graph.models import set_level_prior
-    from usf_graph.train.gravity import up_report, views_up
 
     capsys.readouterr()
     assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",

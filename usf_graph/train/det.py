@@ -48,9 +48,9 @@ from .gravity import (
     given_up,
     known_up,
     pretrain_up,
+    split_up,
     trains_up,
     up_loss,
-    up_report,
     up_views,
     views_up,
 )
@@ -61,6 +61,8 @@ PROTOCOL = {"a": ("equirectangular", "none"), "b": ("equirectangular", "so3"),
 UPRIGHT_CONVS = 4
 # every detector's second phase, the spherical one's through random fields of view (README)
 FOV_EPOCHS = 6
+#: Views per batch when a trained detector predicts a test split.
+PREDICT_BATCH = 16
 PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
                   "d": "pinhole 90 (zero-shot)"}
 
@@ -204,7 +206,7 @@ def detection_step(model, batch):
 
 
 @torch.no_grad()
-def predict(model, data: DetectionSet, batch_size: int = 16, progress: bool = True,
+def predict(model, data: DetectionSet, batch_size: int = PREDICT_BATCH, progress: bool = True,
             desc: str = "detect", up: torch.Tensor | None = None, **decode) -> list[dict]:
     """Detections for every sample of ``data`` (see ``SphericalDetector.decode``); ``up
     [3]`` or ``[S, 3]``: the views' known gravity, read instead of the estimate
@@ -385,13 +387,13 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
         results[name], preds[name] = {}, {}
         for k in PROTOCOL:
-            preds[name][k] = predict(net, data[k], progress=progress, desc=f"{name} ({k})")
+            u = split_up(net, sets[k])  # the estimate once, for the boxes and the report
+            preds[name][k] = predict(net, data[k], progress=progress, desc=f"{name} ({k})", up=u.up)
             results[name][k] = score(preds[name][k], data[k], C)
             ignored[k] = data[k].ignored()
             results["ignored_boxes"][k] = int(ignored[k].sum())
-            if getattr(net, "gravity", None) is not None:
-                results[name][k]["up"] = up_report(net.gravity, data[k].x, data[k].mask,
-                                                   views_up(sets[k]))
+            if u.estimate is not None:
+                results[name][k]["up"] = u.report(views_up(sets[k]))
         save_checkpoint(out / f"{name}.pt", net, net.config, results[name],
                         extra={"data": {"dataset": "rooms", "seed": seed, "materials": materials}})
     if rank != 0:

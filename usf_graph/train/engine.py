@@ -104,6 +104,11 @@ def model_device(model: nn.Module) -> torch.device:
     return torch.device("cpu") if t is None else t.device
 
 
+def is_planar(model: nn.Module) -> bool:
+    """Whether a model (or its DDP wrapper) takes images ``[B, C, H, W]``."""
+    return getattr(getattr(model, "module", model), "input_dims", 3) == 4
+
+
 def to_device(batch, device: torch.device):
     """``batch`` with every tensor on ``device``: a tensor, a PyG ``Data`` or ``Batch`` (moved
     in place, as its ``to`` does), or tuples, lists and dicts of them (nested); anything

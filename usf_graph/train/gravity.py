@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -16,7 +17,7 @@ from tqdm.auto import tqdm
 from ..geometry import geodesic_distance
 from ..models.gravity import UNSURE_MARGIN, pick_axis
 from ..nn.batching import to_static
-from .engine import fit, model_device
+from .engine import fit, is_planar, model_device
 from .fov import RandomFields, random_cap
 
 #: Weight of the up estimate's loss (:meth:`GravityHead.loss`) in a training step.
@@ -107,19 +108,27 @@ def lines_axes(ds) -> torch.Tensor:
         torch.zeros(0, 3, 3, dtype=torch.float64)
 
 
+def _split_mask(ds) -> torch.Tensor | None:
+    """The field of view a split's views share, ``[N]`` or ``None``."""
+    mask = getattr(ds, "mask", None)
+    return mask[0] if mask is not None and mask.dim() == 2 else mask
+
+
+def _has_lines(ds) -> bool:
+    from ..cameras import Pinhole
+
+    return isinstance(getattr(ds, "camera", None), Pinhole)
+
+
 def lines_up(gravity, ds) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Through a pinhole, the up estimate ``gravity`` picking among the straight-line axes
     of each image of the split ``ds`` (:func:`estimate_up` with :func:`lines_axes`) ->
     ``(up [S, 3], axes [S, 3, 3])``; ``None`` when ``ds.camera`` is no pinhole, whose
     images bend straight lines."""
-    from ..cameras import Pinhole
-
-    if not isinstance(getattr(ds, "camera", None), Pinhole):
+    if not _has_lines(ds):
         return None
-    mask = getattr(ds, "mask", None)
-    mask = mask[0] if mask is not None and mask.dim() == 2 else mask
     axes = lines_axes(ds)
-    return estimate_up(gravity, ds.x, mask, axes=axes)[0], axes
+    return estimate_up(gravity, ds.x, _split_mask(ds), axes=axes)[0], axes
 
 
 def check_up_choice(known_up: bool, up_lines: bool) -> None:
@@ -137,21 +146,64 @@ def require_up_estimate(model, what: str) -> None:
                          "this model has none")
 
 
-def split_up(model, ds, known_up: bool = False, up_lines: bool = False):
-    """The up a model reads on a test split ``ds`` and the line axes it picked among ->
-    ``(up [S, 3] or None, axes [S, 3, 3] or None)``: the views' gravity with ``known_up``
-    (:func:`views_up`), the estimate's pick among the straight-line axes with ``up_lines``
-    where the camera is a pinhole (:func:`lines_up`), else ``(None, None)``: the model's
-    own estimate. A planar model reads no up."""
+def _degrees_off(up: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    return torch.rad2deg(geodesic_distance(up.double(), g.double()))
+
+
+def up_summary(up: torch.Tensor, margin: torch.Tensor, g: torch.Tensor,
+               axes: torch.Tensor | None = None) -> dict:
+    """How estimates ``up [S, 3]`` with their ``margin [S]`` fared against known gravity
+    ``g [S, 3]``: the median error in degrees, the number of ``gross`` errors (over
+    :data:`GROSS_DEGREES`), of views it is ``unsure`` of (``margin`` below
+    :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those;
+    with ``axes`` (:func:`lines_axes`), the number of views that had ``lines``."""
+    err = _degrees_off(up, g)
+    gross, unsure = err > GROSS_DEGREES, margin < UNSURE_MARGIN
+    r = {"views": len(err), "median_err_deg": round(float(err.quantile(0.5)), 2),
+         "gross": int(gross.sum()), "unsure": int(unsure.sum()),
+         "gross_unsure": int((gross & unsure).sum())}
+    if axes is not None:  # the views whose up was picked among their straight lines' axes
+        r["lines"] = int(torch.isfinite(axes).all(-1).all(-1).sum())
+    return r
+
+
+class SplitUp(NamedTuple):
+    """What a model reads on a test split (:func:`split_up`): ``up [S, 3]`` to hand to
+    ``predict`` (``None``: a model without an up estimate, or a planar one), the straight
+    lines' ``axes [S, 3, 3]`` it picked among (or ``None``), and the model's own
+    ``estimate [S, 3]`` with its ``margin [S]`` (``None`` without an estimate), computed
+    once for both the prediction and :meth:`report`."""
+
+    up: torch.Tensor | None
+    axes: torch.Tensor | None
+    estimate: torch.Tensor | None
+    margin: torch.Tensor | None
+
+    def report(self, g: torch.Tensor) -> dict | None:
+        """:func:`up_summary` of the estimate against known gravity ``g [S, 3]``;
+        ``None`` without an estimate."""
+        return None if self.estimate is None else up_summary(self.estimate, self.margin, g, self.axes)
+
+
+def split_up(model, ds, known_up: bool = False, up_lines: bool = False,
+             batch_size: int = 16) -> SplitUp:
+    """The up a model reads on a test split ``ds`` (``ds.x [S, N, C]``, ``ds.mask``),
+    with its estimate run once (:func:`estimate_up`, ``batch_size`` views at a time, as the
+    model's prediction batches them so the numbers are the model's own): the views'
+    gravity with ``known_up`` (:func:`views_up`), else the estimate, which with
+    ``up_lines`` picks among each image's straight-line axes where the camera is a pinhole
+    (:func:`lines_axes`; other cameras keep the plain estimate, and ``axes`` is ``None``).
+    A planar model reads no up."""
     check_up_choice(known_up, up_lines)
-    if getattr(getattr(model, "module", model), "input_dims", 3) == 4:
-        return None, None
-    if known_up:
-        return views_up(ds), None
+    if is_planar(model):
+        return SplitUp(None, None, None, None)
     if up_lines:
         require_up_estimate(model, "the straight lines' pick (up_lines)")
-        return lines_up(model.gravity, ds) or (None, None)
-    return None, None
+    gravity, est, margin, axes = getattr(model, "gravity", None), None, None, None
+    if gravity is not None:
+        axes = lines_axes(ds) if up_lines and _has_lines(ds) else None
+        est, margin = estimate_up(gravity, ds.x, _split_mask(ds), batch_size, axes)
+    return SplitUp(views_up(ds) if known_up else est, axes, est, margin)
 
 
 def up_errors(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
@@ -160,23 +212,14 @@ def up_errors(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tens
     them) on views of known gravity ``g [S, 3]``, and its ``margin`` -> ``(error [S],
     margin [S])``."""
     up, margin = estimate_up(gravity, x, mask, batch_size, axes)
-    return torch.rad2deg(geodesic_distance(up.double(), g.double())), margin
+    return _degrees_off(up, g), margin
 
 
 def up_report(gravity, x: torch.Tensor, mask: torch.Tensor | None, g: torch.Tensor,
               batch_size: int = 16, axes: torch.Tensor | None = None) -> dict:
-    """How an up estimate fared on views of known gravity (:func:`up_errors`'s arguments):
-    the median error in degrees, the number of ``gross`` errors (over
-    :data:`GROSS_DEGREES`), of views it is ``unsure`` of (``margin`` below
-    :data:`~usf_graph.models.gravity.UNSURE_MARGIN`) and of gross errors among those."""
-    err, margin = up_errors(gravity, x, mask, g, batch_size, axes)
-    gross, unsure = err > GROSS_DEGREES, margin < UNSURE_MARGIN
-    r = {"views": len(err), "median_err_deg": round(float(err.quantile(0.5)), 2),
-         "gross": int(gross.sum()), "unsure": int(unsure.sum()),
-         "gross_unsure": int((gross & unsure).sum())}
-    if axes is not None:  # the views whose up was picked among their straight lines' axes
-        r["lines"] = int(torch.isfinite(axes).all(-1).all(-1).sum())
-    return r
+    """:func:`up_summary` of an up estimate run on views of known gravity (:func:`up_errors`'s
+    arguments)."""
+    return up_summary(*estimate_up(gravity, x, mask, batch_size, axes), g, axes)
 
 
 def format_up_report(r: dict) -> str:
@@ -354,6 +397,6 @@ def load_sign_check(path):
     return check.eval()
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "check_up_choice", "require_up_estimate", "split_up", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "check_up_choice", "require_up_estimate", "split_up", "SplitUp", "up_summary", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES", "jittered", "pretrain_sign",
            "load_sign_check"]

@@ -41,6 +41,7 @@ from ..scenes.materials import check_materials
 from .engine import (
     check_channel_scale,
     fit,
+    is_planar,
     model_device,
     resolve_device,
     save_checkpoint,
@@ -58,7 +59,6 @@ from .gravity import (
     split_up,
     trains_up,
     up_loss,
-    up_report,
     up_views,
     views_up,
 )
@@ -71,13 +71,10 @@ PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 19
                   "d": "pinhole 90 (zero-shot)", "e": "finer grid (zero-shot)"}
 # every model's second phase, the spherical ones' through random fields of view (README)
 FOV_EPOCHS = 6
+#: Views per batch when a trained model predicts a test split.
+PREDICT_BATCH = 8
 MODELS = {"spherical_unet": SphericalUNet, "spherical_deeplab": SphericalDeepLabV3,
           "planar_unet": PlanarUNet}
-
-
-def is_planar(model: nn.Module) -> bool:
-    """Whether a model (or its DDP wrapper) takes images ``[B, C, H, W]``."""
-    return getattr(getattr(model, "module", model), "input_dims", 3) == 4
 
 
 def segmentation_loss(logits: torch.Tensor, target: torch.Tensor, ignore_index: int = IGNORE,
@@ -184,14 +181,16 @@ def segmentation_step(model, batch, class_weight: torch.Tensor | None = None):
 
 
 @torch.no_grad()
-def predict(model, ds, batch_size: int = 8, progress: bool = True, desc: str = "segment",
+def predict(model, ds, batch_size: int = PREDICT_BATCH, progress: bool = True, desc: str = "segment",
             pano: Equirectangular | None = None, up: torch.Tensor | None = None):
     """Per-pixel class predictions ``[S, H, W]`` (uint8) in ``ds.camera``'s pixels, and for
     spherical models the per-point ones ``[S, N]`` (else ``None``). A planar model sees
     other lenses re-imaged as ``pano`` (default: ``2 H x H`` for the camera's height H,
-    the protocol's training size). ``up [3]`` or ``[S, 3]``: the views' known gravity
-    (:func:`~usf_graph.train.gravity.views_up`), read by a spherical model with
-    ``gravity=True`` instead of its estimate (an IMU). Runs on the device the model is on."""
+    the protocol's training size). ``up [3]`` or ``[S, 3]``: the up each view is read
+    with by a spherical model with ``gravity=True``, instead of running its estimate: the
+    views' known gravity (an IMU; :func:`~usf_graph.train.gravity.views_up`) or an estimate
+    already made (:func:`~usf_graph.train.gravity.split_up`). Runs on the device the model
+    is on."""
     model.eval()
     cam, S, dev = ds.camera, len(ds), model_device(model)
     pixels, points = [], []
@@ -286,7 +285,7 @@ def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = T
                       up_lines: bool = False) -> tuple[dict, dict]:
     """Scores and pixel predictions of one trained model on the protocol's test sets;
     ``known_up``, ``up_lines``: as :func:`evaluate_set`'s. A model with an up estimate also
-    gets its :func:`~usf_graph.train.gravity.up_report` per test (``"up"``)."""
+    gets its :func:`~usf_graph.train.gravity.up_summary` per test (``"up"``)."""
     res, preds = {}, {}
     for k in tests:
         model = net
@@ -303,12 +302,13 @@ def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
     reads the views' gravity (:func:`views_up`); ``up_lines``: through a pinhole, its up
     estimate picks among the straight-line axes of each image
     (:func:`~usf_graph.train.gravity.lines_up`; other cameras keep the estimate). A model
-    with an up estimate also gets its :func:`~usf_graph.train.gravity.up_report` (``"up"``)."""
-    up, axes = split_up(model, ds, known_up, up_lines)
-    pix, pts = predict(model, ds, progress=progress, desc=desc, up=up)
+    with an up estimate also gets its :func:`~usf_graph.train.gravity.up_summary` (``"up"``;
+    the estimate runs once, for the prediction and the report)."""
+    u = split_up(model, ds, known_up, up_lines, batch_size=PREDICT_BATCH)
+    pix, pts = predict(model, ds, PREDICT_BATCH, progress=progress, desc=desc, up=u.up)
     r = score(pix, ds, pts)
-    if getattr(model, "gravity", None) is not None:
-        r["up"] = up_report(model.gravity, ds.x, ds.mask[0], views_up(ds), axes=axes)
+    if u.estimate is not None:
+        r["up"] = u.report(views_up(ds))
     return r, pix
 
 
