@@ -282,15 +282,15 @@ def up_options(model, args) -> None:
     from .train import model_device
     from .train.gravity import check_up_choice, load_sign_check, require_up_estimate
 
-    needs = "{} needs a spherical model with an up estimate (gravity=True); this checkpoint has none"
     check_up_choice(getattr(args, "known_up", False), getattr(args, "up_lines", False))
-    if getattr(args, "up_lines", False):
-        require_up_estimate(model, "--up-lines")
-    if args.level_prior and not set_level_prior(model, args.level_prior):
-        raise ValueError(needs.format("--level-prior"))
-    if args.sign_check and not set_sign_check(
-            model, load_sign_check(args.sign_check).to(model_device(model))):
-        raise ValueError(needs.format("--sign-check"))
+    for option, given in (("--up-lines", getattr(args, "up_lines", False)),
+                          ("--level-prior", args.level_prior), ("--sign-check", args.sign_check)):
+        if given:
+            require_up_estimate(model, option)
+    if args.level_prior:
+        set_level_prior(model, args.level_prior)
+    if args.sign_check:
+        set_sign_check(model, load_sign_check(args.sign_check).to(model_device(model)))
 
 
 def cmd_eval_det(args) -> int:

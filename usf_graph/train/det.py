@@ -387,8 +387,9 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         results.setdefault("train_seconds", {})[name] = round(time.time() - t, 1)
         results[name], preds[name] = {}, {}
         for k in PROTOCOL:
-            u = split_up(net, sets[k])  # the estimate once, for the boxes and the report
-            preds[name][k] = predict(net, data[k], progress=progress, desc=f"{name} ({k})", up=u.up)
+            u = split_up(net, sets[k], batch_size=PREDICT_BATCH)  # once, for the boxes and the report
+            preds[name][k] = predict(net, data[k], PREDICT_BATCH, progress=progress,
+                                     desc=f"{name} ({k})", up=u.up)
             results[name][k] = score(preds[name][k], data[k], C)
             ignored[k] = data[k].ignored()
             results["ignored_boxes"][k] = int(ignored[k].sum())

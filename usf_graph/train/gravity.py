@@ -127,8 +127,16 @@ def lines_up(gravity, ds) -> tuple[torch.Tensor, torch.Tensor] | None:
     images bend straight lines."""
     if not _has_lines(ds):
         return None
-    axes = lines_axes(ds)
-    return estimate_up(gravity, ds.x, _split_mask(ds), axes=axes)[0], axes
+    up, _, axes = _split_estimate(gravity, ds, up_lines=True)
+    return up, axes
+
+
+def _split_estimate(gravity, ds, up_lines: bool = False, batch_size: int = 16):
+    """The estimate ``gravity`` on every view of the split ``ds`` -> ``(up [S, 3], margin
+    [S], axes [S, 3, 3] or None)``; with ``up_lines`` and a pinhole, its pick among each
+    image's straight-line axes (:func:`lines_axes`)."""
+    axes = lines_axes(ds) if up_lines and _has_lines(ds) else None
+    return (*estimate_up(gravity, ds.x, _split_mask(ds), batch_size, axes), axes)
 
 
 def check_up_choice(known_up: bool, up_lines: bool) -> None:
@@ -201,8 +209,7 @@ def split_up(model, ds, known_up: bool = False, up_lines: bool = False,
         require_up_estimate(model, "the straight lines' pick (up_lines)")
     gravity, est, margin, axes = getattr(model, "gravity", None), None, None, None
     if gravity is not None:
-        axes = lines_axes(ds) if up_lines and _has_lines(ds) else None
-        est, margin = estimate_up(gravity, ds.x, _split_mask(ds), batch_size, axes)
+        est, margin, axes = _split_estimate(gravity, ds, up_lines, batch_size)
     return SplitUp(views_up(ds) if known_up else est, axes, est, margin)
 
 
