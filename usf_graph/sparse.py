@@ -49,3 +49,19 @@ def transpose_csr(A: torch.Tensor) -> torch.Tensor:
     """The transpose of a sparse CSR matrix, as CSR."""
     with quiet_sparse():
         return A.t().to_sparse_coo().coalesce().to_sparse_csr()
+
+
+def buffer_as(module: torch.nn.Module, name: str, dtype: torch.dtype) -> torch.Tensor:
+    """Buffer ``name`` of ``module`` in ``dtype``, converted once: geometry kept in float64
+    would otherwise be copied to a float32 call's dtype on every call. The copy is kept
+    while the buffer is the same tensor (``.to()`` replaces it) at the same version."""
+    t = getattr(module, name)
+    if t.dtype == dtype:
+        return t
+    cache = module.__dict__.setdefault("_buffers_as", {})
+    hit = cache.get((name, dtype))
+    if hit is not None and hit[0] is t and hit[1] == t._version:
+        return hit[2]
+    out = t.to(dtype)
+    cache[(name, dtype)] = (t, t._version, out)
+    return out

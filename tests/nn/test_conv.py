@@ -241,6 +241,36 @@ def test_bound_geometry_follows_to_reset_and_in_place_edits():
     assert "bound_edge_index" not in conv.state_dict()  # non-persistent: checkpoints stay small
 
 
+def test_a_per_call_mask_is_cached_by_value_beside_the_bound_one_with_gradients():
+    """A camera's field of view passed on every call (``predict``'s frames) is computed
+    once; an equal mask in a new tensor hits the cache, an edited one does not, the bound
+    mask keeps its own coefficients, and gradients through the cached ones are right."""
+    gen = torch.Generator().manual_seed(3)
+    pos = random_sphere(180, 8)
+    ei, ew, area = graph(pos, 0.5)
+    conv = SphericalConv(3, 4, 0.5, num_basis=3, basis="gaussian").bind(ei, ew, node_weight=area)
+    x = torch.randn(2, 180, 3, generator=gen, requires_grad=True)
+    fov = torch.rand(180, generator=gen) > 0.4
+    whole = conv(x)
+    bound = conv._coef
+    for m in (fov, fov.clone(), fov.clone()):  # the same field of view, frame after frame
+        y = conv(x, mask=m)
+        ref = dense_reference(x, pos, conv, area, m)
+        assert (y - ref).abs().max() < 1e-12
+        g, gr = (torch.autograd.grad(t.square().sum(), x)[0] for t in (y, ref))
+        assert (g - gr).abs().max() < 1e-12
+    cached = conv._call_coef
+    assert conv(x, mask=fov.clone()) is not None and conv._call_coef is cached
+    assert conv._coef is bound and (conv(x) - whole).abs().max() == 0  # the bound one kept
+    fov[:60] = ~fov[:60]  # the caller edits its mask in place: recomputed
+    assert (conv(x, mask=fov) - dense_reference(x, pos, conv, area, fov)).abs().max() < 1e-12
+    assert conv._call_coef is not cached
+    y32 = conv.float()(x.detach().float(), mask=fov)  # another dtype: its own coefficients
+    assert conv._call_coef.dtype == torch.float32
+    torch.testing.assert_close(y32, dense_reference(x.detach(), pos, conv.double(), area, fov).float(),
+                               rtol=1e-5, atol=1e-5)
+
+
 def test_documented_call_and_the_initialization_claim():
     pos = random_sphere(300, 7)
     ei, ew, area = graph(pos, 0.35)
@@ -463,13 +493,20 @@ def test_upright_conv_follows_in_place_edits_of_its_bound_mask_and_weights():
     learn = UprightConv(2, 3, 0.5, num_basis=3, basis="mlp").double()
     learn.bind(ei, ew, node_weight=area, mask=mask, pos=pos)
     learn(x, up).sum().backward()
-    assert learn._oriented is None and learn.kernel.mlp[0].weight.grad.abs().sum() > 0
+    assert learn._oriented == {} and learn.kernel.mlp[0].weight.grad.abs().sum() > 0
     other = torch.rand(200, generator=gen) > 0.4
-    with torch.no_grad():  # a per-call mask neither uses nor drops the kept basis
-        kept = conv._oriented
+    with torch.no_grad():  # a per-call mask keeps its own basis beside the bound mask's
+        kept = conv._oriented["bound"]
         cut = conv(x, up, mask=other)
-        assert conv._oriented is kept and (conv(x, up) - after).abs().max() == 0
+        assert conv._oriented["bound"] is kept and (conv(x, up) - after).abs().max() == 0
         assert (cut - upright_reference(x, up, pos, conv, area, other)).abs().max() < 1e-12
+        call = conv._oriented["call"]
+        assert (conv(x, up, mask=other.clone()) - cut).abs().max() == 0  # equal by value: kept
+        assert conv._oriented["call"] is call
+        other[:50] = ~other[:50]  # the caller's mask edited in place: noticed
+        edited = conv(x, up, mask=other)
+    assert conv._oriented["call"] is not call
+    assert (edited - upright_reference(x, up, pos, conv, area, other)).abs().max() < 1e-12
 
 
 def test_upright_conv_is_exactly_equivariant_when_up_turns_with_the_input():

@@ -8,6 +8,8 @@ and any coefficients that need gradients.
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
@@ -53,6 +55,7 @@ class EdgePlan(nn.Module):
         self.tile_rows = tile_rows
         self.wide_cache: dict = {}  # the one-product form's structures (nn.wide.structure)
         self._bounds: list | None = None  # the tiling: built by the first blockwise call
+        self._memo: dict = {}  # the last coefficients' tiles, without and with transposes
 
     @property
     def bounds(self) -> list:
@@ -116,7 +119,17 @@ class EdgePlan(nn.Module):
     def tiles(self, coef: torch.Tensor, transpose: bool = False) -> list:
         """The tiles ``(s, e, cols, row, col, A, At)`` with ``A`` (and, with ``transpose``,
         ``At``; else None) tuples of K sparse CSR matrices holding ``coef [E, K]`` (edges
-        in ``edge_index`` order)."""
+        in ``edge_index`` order). The last coefficients' tiles are kept while they are the
+        same tensor at the same version: a layer's cached coefficients (one graph and
+        mask, call after call) are sorted into tiles once."""
+        memo = self._memo.get(transpose)
+        if memo is not None and memo[0]() is coef and memo[1] == coef._version:
+            return memo[2]
+        out = self._tiles(coef, transpose)
+        self._memo[transpose] = (weakref.ref(coef), coef._version, out)
+        return out
+
+    def _tiles(self, coef: torch.Tensor, transpose: bool) -> list:
         c = coef if self.order is None else coef[self.order]
         cT = c.t().contiguous()  # [K, E]: each basis's values contiguous
         out = []

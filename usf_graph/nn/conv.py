@@ -102,9 +102,9 @@ class DistanceConv(MessagePassing):
         self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
         self.plan: EdgePlan | None = None
         for name in ("bound_edge_index", "bound_edge_weight", "bound_node_weight",
-                     "bound_mask", "_coef"):
+                     "bound_mask", "_coef", "_call_coef", "_call_mask"):
             self.register_buffer(name, None, persistent=False)
-        self._coef_key = None
+        self._coef_keys: dict = {}  # per cached slot: the versions it was computed from
         self._plans: dict = {}  # PyG form: the last graph's plan (a dict: not a submodule)
         self.reset_parameters()
 
@@ -115,7 +115,7 @@ class DistanceConv(MessagePassing):
         nn.init.uniform_(self.weight, -bound, bound)
         if self.bias is not None:
             nn.init.zeros_(self.bias)
-        self._coef, self._coef_key = None, None
+        self._forget()
 
     # -- geometry --------------------------------------------------------------------
     def bind(self, edge_index: torch.Tensor, edge_weight: torch.Tensor,
@@ -136,7 +136,7 @@ class DistanceConv(MessagePassing):
         if plan is not None and not plan.matches(edge_index, int(num_nodes)):
             raise ValueError("plan was built for another graph than edge_index")
         self.plan = plan if plan is not None else EdgePlan(edge_index, int(num_nodes))
-        self._coef, self._coef_key = None, None
+        self._forget()
         return self
 
     @staticmethod
@@ -181,25 +181,33 @@ class DistanceConv(MessagePassing):
             coef = coef / den.clamp_min(1e-12)[i, None]
         return coef
 
-    def _bound_coefficients(self, mask):
-        """The bound graph's coefficients: cached while nothing needs their gradient and
-        the bound tensors are unchanged; recomputed for a per-call ``mask``."""
+    def _bound_coefficients(self, mask, dtype):
+        """The bound graph's coefficients in ``dtype``: cached while nothing needs their
+        gradient and the bound tensors are unchanged. A per-call ``mask`` replaces the
+        bound one; the last one's coefficients are cached too, beside the bound mask's,
+        matched by value (a camera's field of view, frame after frame, is geometry)."""
         ei, ew, nw = self.bound_edge_index, self.bound_edge_weight, self.bound_node_weight
-        n = self.plan.num_nodes
-        if mask is not None:
-            return self._edge_coefficients(ei, ew, n, nw, mask)
-        m = self.bound_mask
+        n, m = self.plan.num_nodes, self.bound_mask if mask is None else mask
         grad = torch.is_grad_enabled() and (
             self.kernel.learnable or ew.requires_grad or (nw is not None and nw.requires_grad))
         if grad:
-            return self._edge_coefficients(ei, ew, n, nw, m)
+            return self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
         key = tuple(None if t is None else (t._version, t.dtype, t.device)
-                    for t in (ei, ew, nw, m))
-        if self._coef is None or self._coef_key != key:
+                    for t in (ei, ew, nw, self.bound_mask)) + (dtype,)
+        slot = "_coef" if mask is None else "_call_coef"
+        if getattr(self, slot) is None or self._coef_keys.get(slot) != key or \
+                (mask is not None and not _same(self._call_mask, mask)):
             with torch.no_grad():
-                self._coef = self._edge_coefficients(ei, ew, n, nw, m)
-            self._coef_key = key
-        return self._coef
+                setattr(self, slot, self._edge_coefficients(ei, ew, n, nw, m).to(dtype))
+            if mask is not None:
+                self._call_mask = mask.detach().clone()
+            self._coef_keys[slot] = key
+        return getattr(self, slot)
+
+    def _forget(self) -> None:
+        """Drops the cached coefficients (new parameters or a new graph)."""
+        self._coef = self._call_coef = self._call_mask = None
+        self._coef_keys = {}
 
     # -- forward --------------------------------------------------------------------
     def forward(self, x: torch.Tensor, edge_index: torch.Tensor | None = None,
@@ -221,13 +229,12 @@ class DistanceConv(MessagePassing):
             if mask is not None and mask.shape != (N,):
                 raise ValueError(f"mask must have shape [{N}], got {tuple(mask.shape)}")
             edge_index, plan = self.bound_edge_index, self.plan
-            coef = self._bound_coefficients(mask)
+            coef = self._bound_coefficients(mask, x.dtype)
         else:
             edge_weight = _distances(edge_weight)
             self._check_graph(edge_index, edge_weight, N, node_weight, mask)
             plan = None
-            coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask)
-        coef = coef.to(x.dtype)
+            coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask).to(x.dtype)
         if self.kernel_type == "mlp" or not fast:
             out = self._propagate(x, edge_index, coef, N)
         else:
@@ -301,3 +308,11 @@ def _distances(edge_weight):
     if edge_weight is not None and edge_weight.dim() == 2 and edge_weight.shape[1] == 1:
         return edge_weight[:, 0]
     return edge_weight
+
+
+def _same(cached: torch.Tensor | None, mask: torch.Tensor | None) -> bool:
+    """Whether a per-call mask equals the cached one by value (both None: no mask)."""
+    if cached is None or mask is None:
+        return cached is None and mask is None
+    return cached.shape == mask.shape and cached.dtype == mask.dtype and \
+        cached.device == mask.device and bool(torch.equal(cached, mask))

@@ -11,7 +11,7 @@ from torch import nn
 
 from ..frontend.cache import GeometryCache
 from ..geometry import tangent_towards
-from ..sparse import csr, quiet_sparse, sparse_apply, transpose_csr
+from ..sparse import buffer_as, csr, quiet_sparse, sparse_apply, transpose_csr
 from .batching import from_static, to_static
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
@@ -112,7 +112,7 @@ class _Derivatives(nn.Module):
         with quiet_sparse():
             return torch.sparse_csr_tensor(getattr(self, f"{name}_crow"),
                                            getattr(self, f"{name}_col"),
-                                           getattr(self, f"{name}_val").to(dtype), shape)
+                                           buffer_as(self, f"{name}_val", dtype), shape)
 
     def _derivatives(self, x: torch.Tensor, batch=None) -> tuple[torch.Tensor, torch.Tensor, str]:
         """``x`` -> (``[N, rows, B*C]`` derivatives, ``x`` as ``[B, N, C]``, its form)."""

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from ..graph import euclidean_radius, geodesic_radius
-from ..sparse import csr, quiet_sparse
+from ..sparse import buffer_as, csr, quiet_sparse
 from .batching import check_per_point, from_static, mask_static, pooled_batch, to_static
 
 
@@ -125,7 +125,7 @@ class GaussianPool(nn.Module):
         m = torch.ones(N, B, dtype=xs.dtype, device=xs.device) if ms is None \
             else ms.t().to(xs.dtype)
         with quiet_sparse():
-            P = torch.sparse_csr_tensor(self.crow, self.col, self.val.to(xs.dtype),
+            P = torch.sparse_csr_tensor(self.crow, self.col, buffer_as(self, "val", xs.dtype),
                                         (self.num_coarse, self.num_fine))
             den = P @ m  # [M, B]
             num = (P @ (xf * m[..., None]).reshape(N, B * C)).view(-1, B, C)

@@ -55,7 +55,7 @@ class UprightConv(SphericalConv):
                          bias)
         self.weight = nn.Parameter(torch.empty(3 * num_basis * in_channels, out_channels))
         self.register_buffer("directions", None, persistent=False)
-        self._oriented = None  # (the coefficients it was made from, their oriented basis)
+        self._oriented: dict = {}  # per coefficient slot: (the coefficients, their oriented basis)
         self.reset_parameters()
 
     def bind(self, edge_index: torch.Tensor, edge_weight: torch.Tensor,
@@ -93,9 +93,8 @@ class UprightConv(SphericalConv):
                              f"{None if up is None else tuple(up.shape)}")
         if mask is not None and mask.shape != (x.shape[1],):
             raise ValueError(f"mask must have shape [{x.shape[1]}], got {tuple(mask.shape)}")
-        coef = self._bound_coefficients(mask)
+        coef = self._bound_coefficients(mask, x.dtype)
         basis = self._bound_basis(coef, x.dtype)
-        coef = coef.to(x.dtype)
         ang = (basis.reshape(-1, 3) @ up.to(x.dtype).t()).view(len(coef), -1, len(x))  # [E, 2K, B]
         w = self.weight.view(3 * self.num_basis, self.in_channels, self.out_channels).to(x.dtype)
         full = torch.cat([coef.expand(len(x), -1, -1), ang.permute(2, 0, 1)], 2)  # [B, E, 3K]
@@ -104,15 +103,17 @@ class UprightConv(SphericalConv):
 
     def _bound_basis(self, coef: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """:func:`oriented_basis` of the bound graph for its coefficients ``coef``. Kept
-        while they are the cached ones (one ``[E, 2K, 3]`` per graph and mask instead of
-        ``[B, E, 2K]`` centred products per call); never with an autograd graph."""
-        cached = self._oriented
+        while they are cached ones (one ``[E, 2K, 3]`` per graph and mask instead of
+        ``[B, E, 2K]`` centred products per call): the bound mask's and the last per-call
+        mask's, as the coefficients are; never with an autograd graph."""
+        slot = "bound" if coef is self._coef else "call" if coef is self._call_coef else None
+        cached = self._oriented.get(slot)
         if cached is not None and cached[0] is coef and cached[1].dtype == dtype:
             return cached[1]
         basis = oriented_basis(coef.to(dtype), self.directions.to(dtype),
                                self.bound_edge_index[1], self.plan.num_nodes)
-        if coef is self._coef:  # a per-call mask's or a learnable kernel's: not kept
-            self._oriented = (coef, basis)
+        if slot is not None:  # coefficients that need a gradient are not cached ones
+            self._oriented[slot] = (coef, basis)
         return basis
 
     def _general(self, x, up, edge_index, edge_weight, node_weight, mask, pos, batch):
