@@ -55,3 +55,11 @@ def test_profile_step_benchmark_runs():
               "--rows", "5")
     assert "Self CPU time total" in out and "aten::" in out
     assert out.count("\n") < 40  # --rows bounds the table
+
+
+def test_predict_frame_benchmark_runs():
+    out = run("benchmarks/predict_frame.py", "--size", "64", "--reps", "1", "--channel-scale",
+              "0.25", "--lens", "pinhole")
+    assert "seg: SphericalDeepLabV3 on icosahedral:5 (10242 points) / PlanarDeepLab on 96x96" in out
+    assert "det: SphericalDetector on icosahedral:5" in out and out.count("| frame, up given (IMU) |") == 2
+    assert "| spherical U-Net network, up given |" in out and out.count("planar forward:") == 2
