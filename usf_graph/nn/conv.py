@@ -42,7 +42,9 @@ class DistanceConv(MessagePassing):
       once (one camera and grid), then ``conv(x)`` with ``x [B, N, C]``. The structure
       and, while nothing needs their gradient, the coefficients live in non-persistent
       buffers that follow ``.to()``; a ``mask=`` passed to the call replaces the bound one
-      for that call. Bind again to change the graph; in-place edits of the bound tensors
+      for that call, and its coefficients are kept too, beside the bound mask's, for the
+      next call whose mask is equal by value (a camera's field of view, frame after
+      frame). Bind again to change the graph; in-place edits of the bound tensors
       are noticed through their version counters. ``reset_parameters`` clears the cached
       coefficients. Geometry is never matched to inputs by memory address.
 
