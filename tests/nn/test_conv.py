@@ -271,6 +271,30 @@ def test_a_per_call_mask_is_cached_by_value_beside_the_bound_one_with_gradients(
                                rtol=1e-5, atol=1e-5)
 
 
+def test_layers_with_kept_geometry_copy_and_pickle():
+    """After calls that fill every cache (per-call mask, tiles, oriented basis), a layer
+    still deep-copies and pickles (sparse tensors and weak references are not kept in
+    the copy) and the copy gives the same answer."""
+    import copy
+    import pickle
+
+    pos = random_sphere(180, 8)
+    ei, ew, area = graph(pos, 0.5)
+    gen = torch.Generator().manual_seed(7)
+    x = torch.randn(2, 180, 3, generator=gen, dtype=pos.dtype)
+    up = _unit(torch.randn(2, 3, generator=gen, dtype=pos.dtype))
+    m = torch.rand(180, generator=gen) > 0.3
+    for conv, args in ((SphericalConv(3, 4, 0.5, num_basis=3).bind(ei, ew, node_weight=area), (x,)),
+                       (UprightConv(3, 4, 0.5, num_basis=3).double()
+                        .bind(ei, ew, node_weight=area, pos=pos), (x, up))):
+        conv = conv.double()
+        with torch.no_grad():
+            y = conv(*args, mask=m)
+            for clone in (copy.deepcopy(conv), pickle.loads(pickle.dumps(conv))):
+                assert (clone(*args, mask=m) - y).abs().max() == 0
+                assert (clone(*args, mask=~m) - conv(*args, mask=~m)).abs().max() == 0
+
+
 def test_documented_call_and_the_initialization_claim():
     pos = random_sphere(300, 7)
     ei, ew, area = graph(pos, 0.35)

@@ -129,6 +129,11 @@ class EdgePlan(nn.Module):
         self._memo[transpose] = (weakref.ref(coef), coef._version, out)
         return out
 
+    def __getstate__(self) -> dict:
+        # the kept tiles are sparse tensors (no storage to copy) behind weak references
+        # (not picklable): a copy or a pickle starts without them
+        return {**super().__getstate__(), "_memo": {}}
+
     def _tiles(self, coef: torch.Tensor, transpose: bool) -> list:
         c = coef if self.order is None else coef[self.order]
         cT = c.t().contiguous()  # [K, E]: each basis's values contiguous
