@@ -271,6 +271,40 @@ def test_a_per_call_mask_is_cached_by_value_beside_the_bound_one_with_gradients(
                                rtol=1e-5, atol=1e-5)
 
 
+def test_a_call_interrupted_by_another_cameras_call_keeps_its_own_field_of_view(monkeypatch):
+    """One model serving two cameras from two threads: another thread's call with another
+    field of view can run between this call's cache check and its return. Replayed here
+    in one thread, at that exact point (inside the mask comparison): the interrupted call
+    still answers with its own mask's coefficients."""
+    from usf_graph.nn import conv as conv_module
+
+    pos = random_sphere(160, 9)
+    ei, ew, area = graph(pos, 0.5)
+    gen = torch.Generator().manual_seed(8)
+    x = torch.randn(1, 160, 3, generator=gen, dtype=pos.dtype)
+    up = _unit(torch.randn(1, 3, generator=gen, dtype=pos.dtype))
+    mine, other = (torch.rand(160, generator=gen) > 0.5 for _ in range(2))
+    same = conv_module._same
+    plain = SphericalConv(3, 4, 0.5, num_basis=3).double().bind(ei, ew, node_weight=area)
+    oriented = UprightConv(3, 4, 0.5, num_basis=3).double().bind(ei, ew, node_weight=area, pos=pos)
+    for layer, args in ((plain, (x,)), (oriented, (x, up))):
+        with torch.no_grad():
+            want = layer(*args, mask=mine)  # cached now: the next call with it is a hit
+            interrupted = []
+
+            def other_thread_runs_here(cached, mask, layer=layer, args=args, interrupted=interrupted):
+                result = same(cached, mask)
+                if not interrupted:
+                    interrupted.append(True)
+                    layer(*args, mask=other)  # the other camera's whole call
+                return result
+
+            monkeypatch.setattr(conv_module, "_same", other_thread_runs_here)
+            got = layer(*args, mask=mine.clone())
+            monkeypatch.setattr(conv_module, "_same", same)
+        assert interrupted and (got - want).abs().max() == 0
+
+
 def test_layers_with_kept_geometry_copy_and_pickle():
     """After calls that fill every cache (per-call mask, tiles, oriented basis), a layer
     still deep-copies and pickles (sparse tensors and weak references are not kept in

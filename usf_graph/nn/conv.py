@@ -104,9 +104,10 @@ class DistanceConv(MessagePassing):
         self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
         self.plan: EdgePlan | None = None
         for name in ("bound_edge_index", "bound_edge_weight", "bound_node_weight",
-                     "bound_mask", "_coef", "_call_coef", "_call_mask"):
+                     "bound_mask", "_coef"):
             self.register_buffer(name, None, persistent=False)
-        self._coef_keys: dict = {}  # per cached slot: the versions it was computed from
+        self._coef_key = None  # the versions the bound mask's coefficients were computed from
+        self._call = None  # the last per-call mask: (a copy of it, its key, its coefficients)
         self._plans: dict = {}  # PyG form: the last graph's plan (a dict: not a submodule)
         self.reset_parameters()
 
@@ -187,7 +188,9 @@ class DistanceConv(MessagePassing):
         """The bound graph's coefficients in ``dtype``: cached while nothing needs their
         gradient and the bound tensors are unchanged. A per-call ``mask`` replaces the
         bound one; the last one's coefficients are cached too, beside the bound mask's,
-        matched by value (a camera's field of view, frame after frame, is geometry)."""
+        matched by value (a camera's field of view, frame after frame, is geometry). Not
+        a buffer: ``.to()`` changes the key (the bound tensors' dtype and device), so the
+        entry is then recomputed."""
         ei, ew, nw = self.bound_edge_index, self.bound_edge_weight, self.bound_node_weight
         n, m = self.plan.num_nodes, self.bound_mask if mask is None else mask
         grad = torch.is_grad_enabled() and (
@@ -196,20 +199,32 @@ class DistanceConv(MessagePassing):
             return self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
         key = tuple(None if t is None else (t._version, t.dtype, t.device)
                     for t in (ei, ew, nw, self.bound_mask)) + (dtype,)
-        slot = "_coef" if mask is None else "_call_coef"
-        if getattr(self, slot) is None or self._coef_keys.get(slot) != key or \
-                (mask is not None and not _same(self._call_mask, mask)):
-            with torch.no_grad():
-                setattr(self, slot, self._edge_coefficients(ei, ew, n, nw, m).to(dtype))
-            if mask is not None:
-                self._call_mask = mask.detach().clone()
-            self._coef_keys[slot] = key
-        return getattr(self, slot)
+        # each entry is read once and the local value returned: a thread calling with
+        # another mask or dtype between the check and the return cannot hand this call
+        # its coefficients
+        if mask is None:
+            coef = self._coef
+            if coef is None or self._coef_key != key:
+                with torch.no_grad():
+                    coef = self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
+                self._coef, self._coef_key = coef, key
+            return coef
+        call = self._call
+        if call is not None and call[1] == key and _same(call[0], mask):
+            return call[2]
+        with torch.no_grad():
+            coef = self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
+        self._call = (mask.detach().clone(), key, coef)
+        return coef
+
+    @property
+    def _call_coef(self) -> torch.Tensor | None:
+        """The last per-call mask's cached coefficients (None: none yet)."""
+        return None if self._call is None else self._call[2]
 
     def _forget(self) -> None:
         """Drops the cached coefficients (new parameters or a new graph)."""
-        self._coef = self._call_coef = self._call_mask = None
-        self._coef_keys = {}
+        self._coef, self._coef_key, self._call = None, None, None
 
     # -- forward --------------------------------------------------------------------
     def forward(self, x: torch.Tensor, edge_index: torch.Tensor | None = None,
