@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU checks of one short lease, in one script (benchmarks/README.md, "On a GPU"):
 #   1. the GPU-only tests and the layers' tests (test_engine, test_wide, test_conv),
-#   2. one layer in every form (benchmarks/conv.py) and the U-Net's training step,
+#   2. one layer in every form (benchmarks/conv.py), the U-Net's training step and one frame of
+#      predict (benchmarks/predict_frame.py),
 #   3. a 15-minute recipe trained and scored on CUDA, timed (RECIPE=seg: make demo-seg, the
 #      default; RECIPE=det: make demo-det; RECIPE=none: no recipe).
 # Run from the repository root with python3 holding a CUDA PyTorch:
@@ -35,6 +36,7 @@ lap "tests"
 if [ "${BENCH:-1}" != 0 ]; then
   timeout 90 python3 benchmarks/conv.py --device cuda --level 6 --reps 10 --skip-slow
   timeout 45 python3 benchmarks/seg_step.py --device cuda --batch 32 --reps 5
+  timeout 60 python3 benchmarks/predict_frame.py --device cuda --reps 5
   lap "layer and step"
 fi
 case $RECIPE in

@@ -3,7 +3,7 @@ to a planar network's forward pass on the same image at the same number of pixel
 
     python benchmarks/predict_frame.py [--lens fisheye|pinhole|panorama] [--size 512]
                                        [--task seg det] [--threads 2] [--reps 5]
-                                       [--channel-scale 1.0] [--device cpu]
+                                       [--channel-scale 1.0] [--device cpu|cuda]
 
 What a robot pays per frame. Spherical: the protocols' DeepLab (seg) and detector (det),
 untrained (the cost does not depend on the weights), through
@@ -72,49 +72,51 @@ def planar_shape(points: int, aspect: int) -> tuple[int, int]:
 
 
 @torch.no_grad()
-def stages(task: str, net, image: np.ndarray, cam, reps: int) -> dict:
-    """Seconds per frame, whole and by stage, for the spherical model."""
+def stages(task: str, net, image: np.ndarray, cam, reps: int, dev: torch.device) -> dict:
+    """Seconds per frame, whole and by stage, for the spherical model (on ``dev``)."""
     up = np.array([0.0, 0.0, 1.0])
     run = apply.segment_image if task == "seg" else apply.detect_image
     run(net, image, cam)  # builds the camera's tables, as a first frame does
     fe, x, mask = apply.lift_for(net, image, cam)
-    u = torch.as_tensor(up, dtype=x.dtype)[None]
+    u = torch.as_tensor(up, dtype=x.dtype, device=x.device)[None]
     out = net(x, mask, up=u)
-    finish = (lambda: fe.to_image(out[0].argmax(-1).to(torch.uint8), mode="nearest")) \
+    finish = (lambda: fe.to_image(out[0].argmax(-1).to(torch.uint8).cpu(), mode="nearest")) \
         if task == "seg" else (lambda: net.decode(out, k=100, threshold=0.05, nms=0.5))
-    return {"frame, its up estimate": best_time(lambda: run(net, image, cam), reps),
-            "frame, up given (IMU)": best_time(lambda: run(net, image, cam, up=up), reps),
-            "lift": best_time(lambda: apply.lift_for(net, image, cam), reps),
-            "up estimate": best_time(lambda: net.gravity(x, mask), reps),
-            "network, up given": best_time(lambda: net(x, mask, up=u), reps),
-            "answer in the camera's terms": best_time(finish, reps)}
+    return {"frame, its up estimate": best_time(lambda: run(net, image, cam), reps, dev),
+            "frame, up given (IMU)": best_time(lambda: run(net, image, cam, up=up), reps, dev),
+            "lift": best_time(lambda: apply.lift_for(net, image, cam), reps, dev),
+            "up estimate": best_time(lambda: net.gravity(x, mask), reps, dev),
+            "network, up given": best_time(lambda: net(x, mask, up=u), reps, dev),
+            "answer in the camera's terms": best_time(finish, reps, dev)}
 
 
 @torch.no_grad()
 def planar_forward(net, image: np.ndarray, h: int, w: int):
-    """A planar network on ``image`` resized to ``h x w``."""
+    """A planar network on ``image`` resized to ``h x w`` (on the network's device)."""
     small = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
-    return net(torch.from_numpy(small).permute(2, 0, 1)[None].float() / 255)
+    dev = next(net.parameters()).device
+    return net(torch.from_numpy(small).to(dev).permute(2, 0, 1)[None].float() / 255)
 
 
-def time_task(task: str, image: np.ndarray, cam, reps: int, scale: float) -> dict:
+def time_task(task: str, image: np.ndarray, cam, reps: int, scale: float,
+              dev: torch.device) -> dict:
     """Seconds per frame of ``task``'s spherical model by stage, and of its planar competitors."""
     net, planar_cls, kw = models(task, scale)
-    net.eval()
+    net.to(dev).eval()
     h, w = planar_shape(net.num_points, 2 if cam.width == 2 * cam.height else 1)
-    planar = planar_cls(**kw, **({"height": h, "width": w} if task == "det" else {})).eval()
+    planar = planar_cls(**kw, **({"height": h, "width": w} if task == "det" else {})).to(dev).eval()
     print(f"\n{task}: {type(net).__name__} on icosahedral:5 ({net.num_points} points) / "
           f"{planar_cls.__name__} on {w}x{h} ({w * h} pixels)")
-    t = stages(task, net, image, cam, reps)
-    t["planar forward"] = best_time(lambda: planar_forward(planar, image, h, w), reps)
+    t = stages(task, net, image, cam, reps, dev)
+    t["planar forward"] = best_time(lambda: planar_forward(planar, image, h, w), reps, dev)
     if task == "seg":
-        unet = make_model("spherical_unet", channel_scale=scale).eval()
+        unet = make_model("spherical_unet", channel_scale=scale).to(dev).eval()
         _, x, mask = apply.lift_for(unet, image, cam)
-        up = torch.tensor([[0.0, 0.0, 1.0]])
+        up = torch.tensor([[0.0, 0.0, 1.0]], device=dev)
         t["spherical U-Net network, up given"] = best_time(
-            torch.no_grad(lambda: unet(x, mask, up=up)), reps)
-        punet = PlanarUNet(**channels(SphericalUNet, scale)).eval()
-        t["planar U-Net forward"] = best_time(lambda: planar_forward(punet, image, h, w), reps)
+            torch.no_grad(lambda: unet(x, mask, up=up)), reps, dev)
+        punet = PlanarUNet(**channels(SphericalUNet, scale)).to(dev).eval()
+        t["planar U-Net forward"] = best_time(lambda: planar_forward(punet, image, h, w), reps, dev)
     return t
 
 
@@ -127,16 +129,19 @@ def main(argv=None) -> dict:
     p.add_argument("--reps", type=int, default=5)
     p.add_argument("--channel-scale", type=float, default=1.0,
                    help="the models' channels times this (the 15-minute recipes: 0.5)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     a = p.parse_args(argv)
+    dev = torch.device(a.device)
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     cam = protocol_cameras(a.size)[LENSES[a.lens]]
     image = (np.random.default_rng(0).random((cam.height, cam.width, 3)) * 255).astype(np.uint8)
-    print(f"{a.lens} {cam.width}x{cam.height}, CPU, {a.threads} threads, best of {a.reps} frames, "
+    where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {a.threads} threads"
+    print(f"{a.lens} {cam.width}x{cam.height}, {where}, best of {a.reps} frames, "
           f"channel scale {a.channel_scale}")
     res = {}
     for task in a.task:
-        res[task] = t = time_task(task, image, cam, a.reps, a.channel_scale)
+        res[task] = t = time_task(task, image, cam, a.reps, a.channel_scale, dev)
         print("| stage | ms | frames/s |\n|---|---|---|")
         for k, v in t.items():
             print(f"| {k} | {1e3 * v:.1f} | {1 / v:.1f} |")
