@@ -33,3 +33,8 @@ def test_tiles_are_kept_for_the_same_coefficients_and_rebuilt_when_they_change(m
         else:
             coef = coef.clone()  # equal values in a new tensor: new tiles, same answer
         assert plan.tiles(coef) is not kept
+    scratch = torch.randn(ei.shape[1], 3, generator=gen, dtype=torch.float64)
+    plan.tiles(scratch)
+    assert plan._memo[False][0]() is scratch
+    del scratch  # coefficients that can never come back: their tiles are freed with them
+    assert False not in plan._memo

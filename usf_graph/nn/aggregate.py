@@ -126,7 +126,7 @@ class EdgePlan(nn.Module):
         if memo is not None and memo[0]() is coef and memo[1] == coef._version:
             return memo[2]
         out = self._tiles(coef, transpose)
-        self._memo[transpose] = (weakref.ref(coef), coef._version, out)
+        self._memo[transpose] = (weakref.ref(coef, _dropper(self._memo, transpose)), coef._version, out)
         return out
 
     def __getstate__(self) -> dict:
@@ -156,6 +156,17 @@ class EdgePlan(nn.Module):
     def extra_repr(self) -> str:
         tiles = "not built yet" if self._bounds is None else len(self._bounds)
         return f"num_nodes={self.num_nodes}, num_edges={self.num_edges}, tiles={tiles}"
+
+
+def _dropper(memo: dict, key):
+    """A weak reference's callback that frees ``memo[key]`` when its coefficients die (a
+    sample's slice, a call's coefficients that need gradients: they never come back), unless
+    a newer entry has taken the key."""
+    def drop(ref):
+        entry = memo.get(key)
+        if entry is not None and entry[0] is ref:
+            memo.pop(key, None)
+    return drop
 
 
 def _crow(rows: torch.Tensor, n: int) -> torch.Tensor:
