@@ -38,10 +38,9 @@ from usf_graph.models import (
     SphericalDetector,
     SphericalUNet,
 )
-from usf_graph.scenes import DETECTION_CLASSES
 from usf_graph.scenes.lenses import protocol_cameras
 from usf_graph.train import apply, defaults, scaled_channels
-from usf_graph.train.det import UPRIGHT_CONVS
+from usf_graph.train.det import make_detector
 from usf_graph.train.seg import make_model
 
 LENSES = {"fisheye": "fisheye190", "pinhole": "pinhole90", "panorama": "equirectangular"}
@@ -59,10 +58,8 @@ def models(task: str, scale: float):
     if task == "seg":
         return make_model("spherical_deeplab", channel_scale=scale), PlanarDeepLab, \
             channels(SphericalDeepLabV3, scale)
-    C = len(DETECTION_CLASSES)
-    sph = SphericalDetector(num_classes=C, gravity=True, upright=True, upright_convs=UPRIGHT_CONVS,
-                            **scaled_channels(SphericalDetector, scale))
-    return sph, PlanarDetector, {"num_classes": C, **channels(SphericalDetector, scale)}
+    sph = make_detector(channel_scale=scale)
+    return sph, PlanarDetector, {"num_classes": sph.num_classes, **channels(SphericalDetector, scale)}
 
 
 def planar_shape(points: int, aspect: int) -> tuple[int, int]:

@@ -295,6 +295,18 @@ def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train:
     return sets
 
 
+
+def make_detector(num_classes: int = len(DETECTION_CLASSES), upright: bool = True,
+                  upright_convs: int | None = UPRIGHT_CONVS,
+                  channel_scale: float = 1.0) -> SphericalDetector:
+    """The protocols' spherical detector: with ``upright`` it reads an up estimate
+    (``gravity=True``) and directions in its frame, with
+    :class:`~usf_graph.nn.UprightConv` on the levels up to ``upright_convs``; every channel
+    count times ``channel_scale`` (:func:`~usf_graph.train.engine.scaled_channels`)."""
+    return SphericalDetector(num_classes=num_classes, gravity=upright, upright=upright,
+                             upright_convs=upright_convs if upright else None,
+                             **scaled_channels(SphericalDetector, channel_scale))
+
 def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200,
         num_test: int = 50, epochs: int = 24, planar_epochs: int | None = None,
         batch_size: int = 8, lr: float = 2e-3, seed: int = 0, planar: bool = True,
@@ -351,9 +363,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
                "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
                "up_sign": up_sign, "channel_scale": channel_scale, "materials": materials,
                "drop_hidden": True}  # the decoding rule (c) and (d) were scored with
-    spherical = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
-                                  upright_convs=upright_convs if upright else None,
-                                  **scaled_channels(SphericalDetector, channel_scale)).to(dev)
+    spherical = make_detector(C, upright, upright_convs, channel_scale).to(dev)
     if upright:
         results["samples"]["up_train"] = up_train
         results["samples"]["up_extra"] = up_extra

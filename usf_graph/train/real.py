@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..models import SphericalDetector
 from ..scenes import PANDORA_CLASSES
 from . import det, seg
 from .engine import (
@@ -92,8 +91,7 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
     train = det.DetectionSet.spherical(train_set)
     test = det.DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
     C = len(PANDORA_CLASSES)
-    net = SphericalDetector(num_classes=C, gravity=upright, upright=upright,
-                            upright_convs=det.UPRIGHT_CONVS if upright else None).to(dev)
+    net = det.make_detector(C, upright).to(dev)
     if upright:
         pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
                     log_dir=out / "up_estimate", resume=resume)
