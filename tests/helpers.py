@@ -26,7 +26,8 @@ def write_idx(path, arr, gz=False):
     if arr.ndim == 3:
         head += arr.shape[1].to_bytes(4, "big") + arr.shape[2].to_bytes(4, "big")
     data = head + arr.tobytes()
-    (gzip.open if gz else open)(path, "wb").write(data)
+    with (gzip.open if gz else open)(path, "wb") as f:
+        f.write(data)
 
 
 def random_sphere(n, seed, dtype=None):

@@ -45,6 +45,13 @@ def csr(row: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch
             .to_sparse_csr()
 
 
+def csr_parts(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(crow, col, val)`` of a sparse CSR matrix, each with storage of its own: kept as
+    dense buffers, members that alias the sparse tensor would stop ``torch.compile``
+    (Dynamo cannot take a view whose base is sparse as a graph input)."""
+    return A.crow_indices().clone(), A.col_indices().clone(), A.values().clone()
+
+
 def transpose_csr(A: torch.Tensor) -> torch.Tensor:
     """The transpose of a sparse CSR matrix, as CSR."""
     with quiet_sparse():

@@ -11,7 +11,7 @@ from torch import nn
 
 from ..frontend.cache import GeometryCache
 from ..geometry import tangent_towards
-from ..sparse import buffer_as, csr, quiet_sparse, sparse_apply, transpose_csr
+from ..sparse import buffer_as, csr, csr_parts, quiet_sparse, sparse_apply, transpose_csr
 from .batching import from_static, to_static
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
@@ -84,8 +84,7 @@ def _operator_buffers(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: 
     def fit() -> dict:
         op = jet_operator(pos, edge_index, edge_weight, sigma, rows)
         return {f"{name}_{part}": t for name, m in (("op", op), ("op_t", transpose_csr(op)))
-                for part, t in (("crow", m.crow_indices()), ("col", m.col_indices()),
-                                ("val", m.values()))}
+                for part, t in zip(("crow", "col", "val"), csr_parts(m))}
 
     if pos.requires_grad or edge_weight.requires_grad:
         return fit()

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from ..graph import euclidean_radius, geodesic_radius
-from ..sparse import buffer_as, csr, quiet_sparse
+from ..sparse import buffer_as, csr, csr_parts, quiet_sparse
 from .batching import check_per_point, from_static, mask_static, pooled_batch, to_static
 
 
@@ -112,9 +112,8 @@ class GaussianPool(nn.Module):
         self.sigma, self.num_coarse, self.num_fine = float(sigma), len(coarse), len(fine)
         P = csr(c, j, w, (len(coarse), len(fine)))
         # dense buffers (not a sparse one) so .to(), DDP and state handling stay plain
-        self.register_buffer("crow", P.crow_indices(), persistent=False)
-        self.register_buffer("col", P.col_indices(), persistent=False)
-        self.register_buffer("val", P.values(), persistent=False)
+        for part, t in zip(("crow", "col", "val"), csr_parts(P)):
+            self.register_buffer(part, t, persistent=False)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 batch: torch.Tensor | None = None):
