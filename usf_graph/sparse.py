@@ -1,4 +1,5 @@
-"""Quiet use of torch's sparse CSR tensors."""
+"""Quiet use of torch's sparse CSR tensors, and the rules for what a layer keeps from call
+to call."""
 
 from __future__ import annotations
 
@@ -15,6 +16,22 @@ def quiet_sparse():
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse", category=UserWarning)
         yield
+
+
+@contextlib.contextmanager
+def kept():
+    """For values a layer keeps from call to call (coefficients, tiles, converted
+    buffers): made without autograd history and never as inference tensors, even inside
+    ``torch.inference_mode()``. An inference tensor has no version counter to check a
+    cache against, and a later training call could not save it for backward."""
+    with torch.inference_mode(False), torch.no_grad():
+        yield
+
+
+def version(t: torch.Tensor) -> int | None:
+    """``t``'s version counter (in-place edits bump it); None for an inference tensor,
+    which has none, so nothing may be kept on its account."""
+    return None if t.is_inference() else t._version
 
 
 class _Apply(torch.autograd.Function):
@@ -63,12 +80,14 @@ def buffer_as(module: torch.nn.Module, name: str, dtype: torch.dtype) -> torch.T
     would otherwise be copied to a float32 call's dtype on every call. The copy is kept
     while the buffer is the same tensor (``.to()`` replaces it) at the same version."""
     t = getattr(module, name)
-    if t.dtype == dtype:
-        return t
+    v = version(t)
+    if t.dtype == dtype or v is None:
+        return t.to(dtype)
     cache = module.__dict__.setdefault("_buffers_as", {})
     hit = cache.get((name, dtype))
-    if hit is not None and hit[0] is t and hit[1] == t._version:
+    if hit is not None and hit[0] is t and hit[1] == v:
         return hit[2]
-    out = t.to(dtype)
-    cache[(name, dtype)] = (t, t._version, out)
+    with kept():
+        out = t.to(dtype)
+    cache[(name, dtype)] = (t, v, out)
     return out

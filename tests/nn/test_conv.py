@@ -19,6 +19,7 @@ from usf_graph.nn import (
     PointConv,
     SphericalConv,
     UprightConv,
+    aggregate,
     geodesic_radius_graph,
     knn_graph,
 )
@@ -272,6 +273,40 @@ def test_a_per_call_mask_is_cached_by_value_beside_the_bound_one_with_gradients(
     assert conv._call_coef.dtype == torch.float32
     torch.testing.assert_close(y32, dense_reference(x.detach(), pos, conv.double(), area, fov).float(),
                                rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("wide", [False, True], ids=["blockwise", "wide"])
+def test_inference_mode_calls_and_graphs_bound_in_it(monkeypatch, wide):
+    """What a call under ``torch.inference_mode()`` keeps serves later training calls
+    (values and gradients against the dense reference); a graph bound inside inference
+    mode has no version counters, so its in-place edits are followed by recomputing."""
+    monkeypatch.setattr(aggregate, "WIDE", wide)
+    gen = torch.Generator().manual_seed(4)
+    pos = random_sphere(160, 5)
+    ei, ew, area = graph(pos, 0.5)
+    conv = SphericalConv(3, 4, 0.5, num_basis=3, basis="gaussian").double()
+    conv.bind(ei, ew, node_weight=area)
+    x = torch.randn(2, 160, 3, generator=gen, dtype=torch.float64)
+    fov = torch.rand(160, generator=gen) > 0.4
+    with torch.inference_mode():
+        for m in (fov, None):
+            assert (conv(x, mask=m) - dense_reference(x, pos, conv, area, m)).abs().max() < 1e-12
+    xg = x.clone().requires_grad_()
+    for m in (fov, None):
+        y, ref = conv(xg, mask=m), dense_reference(xg, pos, conv, area, m)
+        assert (y - ref).abs().max() < 1e-12
+        (g, gw), (gr, gwr) = (torch.autograd.grad(t.square().sum(), (xg, conv.weight))
+                              for t in (y, ref))
+        assert (g - gr).abs().max() < 1e-10 and (gw - gwr).abs().max() < 1e-10
+    with torch.inference_mode():
+        inner = SphericalConv(3, 4, 0.5, num_basis=3, basis="gaussian").double()
+        inner.bind(ei.clone(), ew.clone(), node_weight=area.clone())
+        m = fov.clone()
+        for _ in range(2):
+            ref = dense_reference(x, pos, inner, inner.bound_node_weight, m)
+            assert (inner(x, mask=m) - ref).abs().max() < 1e-12
+            inner.bound_node_weight.mul_(torch.linspace(0.5, 2, 160, dtype=torch.float64))
+            m[:50] = ~m[:50]
 
 
 @functools.cache

@@ -19,6 +19,7 @@ import torch
 
 from .._version import __version__
 from ..fileio import atomic_write
+from ..sparse import kept
 
 # Part of every key: bump it whenever cached geometry changes meaning, so tables written by
 # an older convention are never read again (2: panoramas no longer mirrored; 3: pixels
@@ -64,14 +65,15 @@ class GeometryCache:
             self.hits += 1
             return self._mem[h]
         path = self.path(kind, key)
-        value = self._load(path, h) if path is not None and path.exists() else None
-        if value is None:
-            value = {k: torch.as_tensor(np.asarray(v)) for k, v in build().items()}
-            self.builds += 1
-            if path is not None:
-                self._save(path, h, value)
-        else:
-            self.hits += 1
+        with kept():  # shared by every later call, in any mode
+            value = self._load(path, h) if path is not None and path.exists() else None
+            if value is None:
+                value = {k: torch.as_tensor(np.asarray(v)) for k, v in build().items()}
+                self.builds += 1
+                if path is not None:
+                    self._save(path, h, value)
+            else:
+                self.hits += 1
         self._mem[h] = value
         while len(self._mem) > self.max_items:
             self._mem.popitem(last=False)

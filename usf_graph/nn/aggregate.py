@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
 
-from ..sparse import quiet_sparse
+from ..sparse import kept, quiet_sparse, version
 from .wide import wide_aggregate
 
 TILE_ROWS = 16384  # rows per tile; 1k-16k measured, 16k fastest (benchmarks/README.md)
@@ -63,7 +63,8 @@ class EdgePlan(nn.Module):
         Built on first use: the one-product form (:mod:`usf_graph.nn.wide`) never tiles,
         so a plan built per call on a GPU skips the tiling's per-tile syncs."""
         if self._bounds is None:
-            self._tile()
+            with kept():
+                self._tile()
         return self._bounds
 
     def _tile(self) -> None:
@@ -111,10 +112,11 @@ class EdgePlan(nn.Module):
             return
         s, e, _, _, width = self.bounds[t]
         r, c = getattr(self, f"row{t}"), getattr(self, f"col{t}")
-        perm_t = torch.argsort(c * (e - s) + r)  # row-major in the transpose
-        setattr(self, f"perm_t{t}", perm_t)
-        setattr(self, f"crow_t{t}", _crow(c, width))
-        setattr(self, f"col_t{t}", r[perm_t])
+        with kept():
+            perm_t = torch.argsort(c * (e - s) + r)  # row-major in the transpose
+            setattr(self, f"perm_t{t}", perm_t)
+            setattr(self, f"crow_t{t}", _crow(c, width))
+            setattr(self, f"col_t{t}", r[perm_t])
 
     def tiles(self, coef: torch.Tensor, transpose: bool = False) -> list:
         """The tiles ``(s, e, cols, row, col, A, At)`` with ``A`` (and, with ``transpose``,
@@ -122,11 +124,15 @@ class EdgePlan(nn.Module):
         in ``edge_index`` order). The last coefficients' tiles are kept while they are the
         same tensor at the same version: a layer's cached coefficients (one graph and
         mask, call after call) are sorted into tiles once."""
+        v = version(coef)
+        if v is None:  # an inference tensor: nothing to check a kept entry against
+            return self._tiles(coef, transpose)
         memo = self._memo.get(transpose)
-        if memo is not None and memo[0]() is coef and memo[1] == coef._version:
+        if memo is not None and memo[0]() is coef and memo[1] == v:
             return memo[2]
-        out = self._tiles(coef, transpose)
-        self._memo[transpose] = (weakref.ref(coef, _dropper(self._memo, transpose)), coef._version, out)
+        with kept():
+            out = self._tiles(coef, transpose)
+        self._memo[transpose] = (weakref.ref(coef, _dropper(self._memo, transpose)), v, out)
         return out
 
     def __getstate__(self) -> dict:

@@ -6,6 +6,7 @@ import torch
 from torch import nn
 from torch_geometric.nn import MessagePassing
 
+from ..sparse import kept, version
 from .aggregate import EdgePlan, basis_aggregate
 from .kernel import DistanceKernel, envelope
 
@@ -195,26 +196,29 @@ class DistanceConv(MessagePassing):
         n, m = self.plan.num_nodes, self.bound_mask if mask is None else mask
         grad = torch.is_grad_enabled() and (
             self.kernel.learnable or ew.requires_grad or (nw is not None and nw.requires_grad))
-        if grad:
+        bound = (ei, ew, nw, self.bound_mask)
+        versions = [None if t is None else version(t) for t in bound]
+        if grad or any(t is not None and v is None for t, v in zip(bound, versions)):
+            # a graph built in inference mode has no versions to check a kept entry against
             return self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
-        key = tuple(None if t is None else (t._version, t.dtype, t.device)
-                    for t in (ei, ew, nw, self.bound_mask)) + (dtype,)
+        key = tuple(None if t is None else (v, t.dtype, t.device)
+                    for t, v in zip(bound, versions)) + (dtype,)
         # each entry is read once and the local value returned: a thread calling with
         # another mask or dtype between the check and the return cannot hand this call
         # its coefficients
         if mask is None:
             coef = self._coef
             if coef is None or self._coef_key != key:
-                with torch.no_grad():
+                with kept():
                     coef = self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
                 self._coef, self._coef_key = coef, key
             return coef
         call = self._call
         if call is not None and call[1] == key and _same(call[0], mask):
             return call[2]
-        with torch.no_grad():
+        with kept():
             coef = self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
-        self._call = (mask.detach().clone(), key, coef)
+            self._call = (mask.detach().clone(), key, coef)
         return coef
 
     @property

@@ -11,7 +11,7 @@ from torch import nn
 
 from ..frontend.cache import GeometryCache
 from ..geometry import tangent_towards
-from ..sparse import buffer_as, csr, csr_parts, quiet_sparse, sparse_apply, transpose_csr
+from ..sparse import buffer_as, csr, csr_parts, kept, quiet_sparse, sparse_apply, transpose_csr
 from .batching import from_static, to_static
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
@@ -332,7 +332,8 @@ class FillHidden(nn.Module):
         if key not in self._index:
             if len(self._index) > 16:
                 self._index.clear()
-            self._index[key] = self._build(m)
+            with kept():  # served to later calls in any mode
+                self._index[key] = self._build(m)
         hid, src, w = (t.to(x.device) for t in self._index[key])
         out = x.clone()
         out[:, hid] = (x[:, src] * w.to(x.dtype)[..., None]).sum(-2)

@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from ..geometry import tangent_towards
+from ..sparse import kept
 from .aggregate import EdgePlan, basis_aggregate
 from .conv import SphericalConv, _distances
 
@@ -110,10 +111,13 @@ class UprightConv(SphericalConv):
         cached = self._oriented.get(slot)
         if cached is not None and cached[0] is coef and cached[1].dtype == dtype:
             return cached[1]
-        basis = oriented_basis(coef.to(dtype), self.directions.to(dtype),
-                               self.bound_edge_index[1], self.plan.num_nodes)
-        if slot is not None:  # coefficients that need a gradient are not cached ones
-            self._oriented[slot] = (coef, basis)
+        if slot is None:  # coefficients that need a gradient are not cached ones
+            return oriented_basis(coef.to(dtype), self.directions.to(dtype),
+                                  self.bound_edge_index[1], self.plan.num_nodes)
+        with kept():
+            basis = oriented_basis(coef.to(dtype), self.directions.to(dtype),
+                                   self.bound_edge_index[1], self.plan.num_nodes)
+        self._oriented[slot] = (coef, basis)
         return basis
 
     def _general(self, x, up, edge_index, edge_weight, node_weight, mask, pos, batch):

@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from ..sparse import quiet_sparse
+from ..sparse import kept, quiet_sparse
 
 #: Index counts below this take int32 indices (half the memory); larger ones int64.
 INT32_LIMIT = 2 ** 31
@@ -49,6 +49,15 @@ def structure(plan, kind: str, batch: int, K: int, per_sample: bool, device) -> 
     hit = plan.wide_cache.get(key)
     if hit is not None:
         return hit
+    with kept():
+        out = _structure(plan, kind, batch, K, per_sample, device)
+    if len(plan.wide_cache) >= 16:  # e.g. many batch sizes: drop the oldest
+        plan.wide_cache.pop(next(iter(plan.wide_cache)))
+    plan.wide_cache[key] = out
+    return out
+
+
+def _structure(plan, kind: str, batch: int, K: int, per_sample: bool, device) -> tuple:
     row, col = (t.to(device) for t in plan.sorted_edges())
     (r, c, rows, cols), m = _local(kind, row, col, plan.num_nodes, K)
     perm = torch.argsort(r * cols + c)
@@ -59,13 +68,9 @@ def structure(plan, kind: str, batch: int, K: int, per_sample: bool, device) -> 
     crow = torch.cat([(crow0[:-1][None] + b * nnz).reshape(-1), crow0.new_full((1,), batch * nnz)])
     small = max(batch * rows, batch * cols, batch * nnz) < INT32_LIMIT
     idx = torch.int32 if small else torch.long
-    out = (crow.to(idx), (c[perm][None] + b * cols).reshape(-1).to(idx),
-           (m[perm][None] + b * nnz * per_sample).reshape(-1),
-           (batch * rows, batch * cols))
-    if len(plan.wide_cache) >= 16:  # e.g. many batch sizes: drop the oldest
-        plan.wide_cache.pop(next(iter(plan.wide_cache)))
-    plan.wide_cache[key] = out
-    return out
+    return (crow.to(idx), (c[perm][None] + b * cols).reshape(-1).to(idx),
+            (m[perm][None] + b * nnz * per_sample).reshape(-1),
+            (batch * rows, batch * cols))
 
 
 def _sorted_flat(coef: torch.Tensor, plan) -> torch.Tensor:

@@ -1,0 +1,98 @@
+"""The protocol models under ``torch.compile`` and ``torch.inference_mode``: each gives the
+plain model's outputs and gradients, call after call, as the camera's field of view
+changes. Both modes meet the geometry the layers keep from call to call."""
+
+import copy
+
+import pytest
+import torch
+
+from usf_graph import grids
+from usf_graph.models import SphericalDeepLabV3, SphericalDetector
+
+
+def _flat(out) -> torch.Tensor:
+    parts = out.values() if isinstance(out, dict) else [out]
+    return torch.cat([p.flatten() for p in parts if torch.is_tensor(p) and p.is_floating_point()])
+
+
+def DETECTOR():
+    return SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
+                             gravity=True, upright=True)
+
+
+MODELS = pytest.mark.parametrize("build", [
+    lambda: SphericalDeepLabV3(level=3, channels=(8, 8, 8), aspp_channels=8, low_channels=8,
+                               gravity=True),
+    DETECTOR,
+], ids=["deeplab", "detector"])
+
+
+def test_compiled_model_matches_eager_as_the_field_of_view_changes():
+    # "eager" backend: Dynamo's tracing (where a buffer aliasing a sparse tensor's members
+    # once failed) without Inductor's minute of C++ compilation. The detector has every
+    # kind of layer (pools, jets, the up estimate, UprightConv); its trace takes 10 s.
+    torch.manual_seed(0)
+    model = DETECTOR()
+    ref = copy.deepcopy(model)
+    fast = torch.compile(model, backend="eager")
+    n = len(grids.icosahedral(3))
+    gen = torch.Generator().manual_seed(1)
+    x = torch.rand(2, n, 3, generator=gen)
+    up = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen), dim=-1)
+    seen = torch.rand(n, generator=gen) > 0.3
+    other = torch.rand(n, generator=gen) > 0.5
+    calls = [seen, None, seen.clone(), other, "edit", seen]
+    model.eval(), ref.eval()
+    for mask in calls:
+        if isinstance(mask, str):  # the same tensor, edited in place
+            other[: n // 3] = ~other[: n // 3]
+            mask = other
+        with torch.no_grad():
+            torch.testing.assert_close(_flat(fast(x, mask=mask, up=up)),
+                                       _flat(ref(x, mask=mask, up=up)), rtol=1e-5, atol=1e-6)
+    model.train(), ref.train()
+    for net in (fast, ref):
+        _flat(net(x, mask=seen, up=up)).square().mean().backward()
+    for (name, p), q in zip(model.named_parameters(), ref.parameters()):
+        assert (p.grad is None) == (q.grad is None), name
+        if p.grad is not None:
+            torch.testing.assert_close(p.grad, q.grad, rtol=1e-4, atol=1e-6, msg=name)
+
+
+@MODELS
+def test_inference_mode_leaves_nothing_that_breaks_later_calls(build):
+    """Deployment code runs models under ``torch.inference_mode()``, whose tensors have no
+    version counter and cannot be saved for backward. What the layers keep from such a
+    call (coefficients, tiles, converted buffers) must serve later calls in any mode: the
+    model under test takes every evaluation in inference mode, its twin under no_grad."""
+    torch.manual_seed(0)
+    model = build()
+    twin = copy.deepcopy(model)
+    n = len(grids.icosahedral(3))
+    gen = torch.Generator().manual_seed(2)
+    x = torch.rand(2, n, 3, generator=gen)
+    up = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen), dim=-1)
+    seen = torch.rand(n, generator=gen) > 0.3
+    steps = [("eval", seen), ("eval", seen.clone()), ("eval", None), ("train", seen),
+             ("eval", "edit"), ("train", None), ("eval", seen), ("train", "edit")]
+    for kind, mask in steps:
+        if isinstance(mask, str):  # the same tensor, edited in place
+            seen[: n // 4] = ~seen[: n // 4]
+            mask = seen
+        if kind == "eval":
+            model.eval(), twin.eval()
+            with torch.inference_mode():
+                out = _flat(model(x, mask=mask, up=up))
+            with torch.no_grad():
+                ref = _flat(twin(x, mask=mask, up=up))
+            torch.testing.assert_close(out, ref, rtol=0, atol=0)
+            continue
+        model.train(), twin.train()
+        for net in (model, twin):
+            net.zero_grad()
+            _flat(net(x, mask=mask, up=up)).square().mean().backward()
+        for (name, p), q in zip(model.named_parameters(), twin.parameters()):
+            assert (p.grad is None) == (q.grad is None), name
+            if p.grad is not None:
+                torch.testing.assert_close(p.grad, q.grad, rtol=0, atol=0, msg=name)
