@@ -11,10 +11,16 @@ import torch
 
 @contextlib.contextmanager
 def quiet_sparse():
-    """Silence torch's "Sparse CSR tensor support is in beta" and "Sparse invariant checks"
-    UserWarnings, raised on every construction and use; other warnings still show."""
-    with warnings.catch_warnings():
+    """Around sparse products: silence torch's "Sparse CSR tensor support is in beta" and
+    "Sparse invariant checks" UserWarnings, raised on every construction and use (other
+    warnings still show), and keep autocast out: it would cast the products to half
+    precision, which the CPU's sparse kernels lack; they run in the dtype their caller
+    chose (:func:`usf_graph.nn.precision.accumulate_in`)."""
+    with warnings.catch_warnings(), contextlib.ExitStack() as stack:
         warnings.filterwarnings("ignore", message="Sparse", category=UserWarning)
+        for device in ("cpu", "cuda"):
+            if torch.is_autocast_enabled(device):
+                stack.enter_context(torch.autocast(device, enabled=False))
         yield
 
 

@@ -1,6 +1,7 @@
-"""The protocol models under ``torch.compile`` and ``torch.inference_mode``: each gives the
-plain model's outputs and gradients, call after call, as the camera's field of view
-changes. Both modes meet the geometry the layers keep from call to call."""
+"""The protocol models under ``torch.compile``, ``torch.inference_mode`` and half precision
+(a bfloat16 model, CPU autocast): each gives the plain model's outputs and gradients
+(within half precision's rounding), call after call, as the camera's field of view
+changes. Each meets the geometry the layers keep from call to call."""
 
 import copy
 
@@ -96,3 +97,40 @@ def test_inference_mode_leaves_nothing_that_breaks_later_calls(build):
             assert (p.grad is None) == (q.grad is None), name
             if p.grad is not None:
                 torch.testing.assert_close(p.grad, q.grad, rtol=0, atol=0, msg=name)
+
+
+def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a.float() - b.float()).norm() / b.float().norm())
+
+
+@MODELS
+def test_half_precision_follows_float32(build):
+    """A bfloat16 model and float32 under CPU autocast: torch's CPU sparse products have no
+    half kernels, so the layers sum in float32 and hand back their input's dtype."""
+    torch.manual_seed(0)
+    model = build()
+    n = len(grids.icosahedral(3))
+    gen = torch.Generator().manual_seed(3)
+    x = torch.rand(2, n, 3, generator=gen)
+    up = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen), dim=-1)
+    seen = torch.rand(n, generator=gen) > 0.3
+    grads = []
+    for autocast in (False, True):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+            out = _flat(model(x, mask=seen, up=up))
+        out.float().square().mean().backward()
+        grads.append((out, torch.cat([p.grad.flatten() for p in model.parameters()
+                                      if p.grad is not None])))
+        model.zero_grad()
+    (ref, g32), (low, g16) = grads
+    assert _rel(low, ref) < 0.03 and _rel(g16, g32) < 0.15
+    assert torch.isfinite(g16).all()
+    half = copy.deepcopy(model).bfloat16().eval()
+    model.eval()
+    with torch.no_grad():
+        ref = _flat(model(x, mask=seen, up=up))
+        for mask in (seen, None, seen):  # cached float32 geometry serves each call
+            low = _flat(half(x.bfloat16(), mask=mask, up=up.bfloat16()))
+            assert low.dtype == torch.bfloat16
+            if mask is not None:
+                assert _rel(low, ref) < 0.03

@@ -13,9 +13,9 @@ import math
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import nn
 
 from ..geometry import from_latlon, geodesic_distance, tangent_towards
+from ..nn.precision import GeometryModule
 from ..ops import spherical_nms
 
 # A box's heatmap is a Gaussian of geodesic distance with this share of its size as sigma,
@@ -164,7 +164,7 @@ def detections(boxes: np.ndarray, cls: torch.Tensor, score: torch.Tensor,
     return {"boxes": boxes[keep], "classes": cls[keep].numpy(), "scores": score[keep].numpy()}
 
 
-class Detector(nn.Module):
+class Detector(GeometryModule):
     """What both detectors share: ``detect(x, mask, **decode_kw)`` in evaluation mode."""
 
     input_dims = 3  # x without its batch dimension

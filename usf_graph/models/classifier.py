@@ -9,12 +9,13 @@ from ..frontend import grid_graph
 from ..grids import icosahedral
 from ..nn import GaussianPool, GradientPairs, GridPool, LocalJet, MaskedBatchNorm, SphericalConv
 from ..nn.pool import global_max_pool_masked, global_mean_pool_area
+from ..nn.precision import GeometryModule
 
 READOUTS = ("mean", "meanpow", "meanmax")
 POWER = 4
 
 
-class SphericalClassifier(nn.Module):
+class SphericalClassifier(GeometryModule):
     r"""SphericalConv blocks down the icosahedral levels, then global pooling and an MLP.
 
     The input first passes through a :class:`LocalJet` (``jet_spacings``: its fit radius in

@@ -19,6 +19,7 @@ from ..frontend import grid_graph
 from ..geometry import geodesic_distance
 from ..grids import icosahedral
 from ..nn import FillHidden, SurfaceJet
+from ..nn.precision import GeometryModule
 
 #: Below this :class:`GravityHead` ``margin`` (score units) an up estimate is ambiguous
 #: between vanishing directions; read off the rooms protocols' test views (README).
@@ -62,7 +63,7 @@ def pick_axis(logits: torch.Tensor, candidates: torch.Tensor, axes: torch.Tensor
     return signed[torch.arange(len(signed), device=signed.device), best]
 
 
-class GravityHead(nn.Module):
+class GravityHead(GeometryModule):
     r"""Estimates the up direction of a spherical image, SO(3)-equivariantly.
 
     Every candidate direction :math:`a_n` (the points of ``icosahedral(candidate_level)``)
@@ -182,7 +183,7 @@ class GravityHead(nn.Module):
         return ce + ((out["height"] - h) ** 2 * w).sum(-1).mean() / w.sum()
 
 
-class EdgeVotes(nn.Module):
+class EdgeVotes(GeometryModule):
     r"""Vanishing-direction votes for the up direction from the image's edges.
 
     Vertical lines (room corners, door frames, furniture legs) all lie on great circles
@@ -237,7 +238,7 @@ class EdgeVotes(nn.Module):
         return self.scale * votes / om.sum(-1, keepdim=True).clamp_min(1e-6)
 
 
-class UpPolish(nn.Module):
+class UpPolish(GeometryModule):
     r"""Polishes an up estimate on the image's straight edges (vanishing-point refinement).
 
     :class:`GravityHead` scores up on a coarse grid of candidates from coarse features,

@@ -12,6 +12,7 @@ from torch import nn
 from ..frontend import grid_graph
 from ..grids import icosahedral
 from ..nn import GaussianPool, MaskedBatchNorm, SphericalConv, UprightConv
+from ..nn.precision import GeometryModule
 
 _SPACING: dict[int, float] = {}
 
@@ -23,7 +24,7 @@ def level_spacing(level: int) -> float:
     return _SPACING[level]
 
 
-class ConvStage(nn.Module):
+class ConvStage(GeometryModule):
     """``depth`` times conv -> masked BatchNorm -> ReLU on one grid (area-weighted,
     mask-aware); ``radius`` in radians (at most pi: the whole sphere). ``upright``:
     :class:`~usf_graph.nn.UprightConv` instead of :class:`~usf_graph.nn.SphericalConv`,

@@ -30,11 +30,12 @@ from ..nn import (
     MaskedBatchNorm,
     UpJet,
 )
+from ..nn.precision import GeometryModule
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights, level_scores
 from .stages import ConvStage, _oriented, blur, check_input, level_spacing, refined_copy
 
 
-class SphericalBackbone(nn.Module):
+class SphericalBackbone(GeometryModule):
     r"""Jet features, conv stages down from ``input_level`` to ``min_level`` and back up
     to ``out_level`` with skips.
 
@@ -159,7 +160,7 @@ class SphericalBackbone(nn.Module):
         return self.decode(self.encode(x, mask, up), up)
 
 
-class UpNet(nn.Module):
+class UpNet(GeometryModule):
     r"""The image's up direction, estimated SO(3)-equivariantly at low resolution.
 
     The input is pooled ``coarsen`` levels down (Gaussian, mask-aware), extended past the field of
@@ -273,7 +274,7 @@ def _check_upright(upright: bool, gravity: bool) -> None:
         raise ValueError("upright=True reads the up estimate: it needs gravity=True")
 
 
-class WithUp(nn.Module):
+class WithUp(GeometryModule):
     r"""The optional up estimate of the dense spherical models (``self.gravity``, an
     :class:`UpNet`).
 

@@ -31,6 +31,7 @@ from .pool import (
     global_max_pool_masked,
     global_mean_pool_area,
 )
+from .precision import GeometryModule, accumulate_in
 from .upright import UprightConv
 
 __all__ = ["FillHidden", "LocalJet", "GradientPairs", "SurfaceJet", "UpJet", "jet_operator", "tangent_frame", "up_frame", "DistanceKernel", "DistanceConv",
@@ -38,4 +39,5 @@ __all__ = ["FillHidden", "LocalJet", "GradientPairs", "SurfaceJet", "UpJet", "je
            "GaussianPool", "GridUnpool", "FPSPool", "farthest_point_sampling",
            "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
            "euclidean_radius", "geodesic_radius", "geodesic_radius_graph",
-           "euclidean_radius_graph", "knn_graph", "radius_for_neighbors"]
+           "euclidean_radius_graph", "knn_graph", "radius_for_neighbors", "GeometryModule",
+           "accumulate_in"]

@@ -15,6 +15,7 @@ from torch import nn
 from torch.autograd.function import once_differentiable
 
 from ..sparse import kept, quiet_sparse, version
+from .precision import accumulate_in
 from .wide import wide_aggregate
 
 TILE_ROWS = 16384  # rows per tile; 1k-16k measured, 16k fastest (benchmarks/README.md)
@@ -186,12 +187,16 @@ def basis_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,
     r"""``y_b = sum_k A_bk (x_b W_k)``: ``x [B, N, C_in]``, ``weight [K, C_in, C_out]``,
     ``coef [E, K]`` shared by the batch or ``[B, E, K]`` per sample (``A_bk[i, j]`` of
     edge ``j -> i``) -> ``[B, N, C_out]``. Differentiable in ``x``, ``weight`` and ``coef``.
-    The form follows :data:`WIDE`."""
+    The form follows :data:`WIDE`. Half-precision inputs are summed in float32 and the
+    result returned in their dtype (:func:`~usf_graph.nn.precision.accumulate_in`)."""
     K = weight.shape[0]
     if coef.shape[-2:] != (plan.num_edges, K) or coef.dim() not in (2, 3) or \
             (coef.dim() == 3 and len(coef) != len(x)):
         raise ValueError(f"coef must be [{plan.num_edges}, {K}] or [{len(x)}, {plan.num_edges}, "
                          f"{K}], got {tuple(coef.shape)}")
+    acc = accumulate_in(x.dtype)
+    if acc != x.dtype:
+        return basis_aggregate(x.to(acc), weight.to(acc), coef.to(acc), plan).to(x.dtype)
     if WIDE or (WIDE is None and x.device.type != "cpu"):
         return wide_aggregate(x, weight, coef, plan)
     if coef.dim() == 3:  # one sample at a time: each has its own matrices

@@ -9,11 +9,12 @@ from torch_geometric.nn import MessagePassing
 from ..sparse import kept, version
 from .aggregate import EdgePlan, basis_aggregate
 from .kernel import DistanceKernel, envelope
+from .precision import GeometryModule, accumulate_in
 
 NORMALIZE = ("area", "mean", None)
 
 
-class DistanceConv(MessagePassing):
+class DistanceConv(GeometryModule, MessagePassing):
     r"""Convolution whose kernel depends only on the distance between points.
 
     .. math::
@@ -250,19 +251,20 @@ class DistanceConv(MessagePassing):
             if mask is not None and mask.shape != (N,):
                 raise ValueError(f"mask must have shape [{N}], got {tuple(mask.shape)}")
             edge_index, plan = self.bound_edge_index, self.plan
-            coef = self._bound_coefficients(mask, x.dtype)
+            coef = self._bound_coefficients(mask, accumulate_in(x.dtype))
         else:
             edge_weight = _distances(edge_weight)
             self._check_graph(edge_index, edge_weight, N, node_weight, mask)
             plan = None
-            coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask).to(x.dtype)
+            coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask) \
+                .to(accumulate_in(x.dtype))
         if self.kernel_type == "mlp" or not fast:
-            out = self._propagate(x, edge_index, coef, N)
+            out = self._propagate(x, edge_index, coef.to(x.dtype), N)
         else:
             plan = plan if plan is not None else self._plan_of(edge_index, N)
             w = self.weight.view(self.num_basis, self.in_channels, self.out_channels)
             xb = (x if x.dim() == 3 else x.unsqueeze(0)).contiguous()
-            out = basis_aggregate(xb, w.to(x.dtype), coef, plan)
+            out = basis_aggregate(xb, w.to(coef.dtype), coef, plan)
             out = out if x.dim() == 3 else out[0]
         if self.bias is not None:
             out = out + self.bias

@@ -13,6 +13,7 @@ from ..frontend.cache import GeometryCache
 from ..geometry import tangent_towards
 from ..sparse import buffer_as, csr, csr_parts, kept, quiet_sparse, sparse_apply, transpose_csr
 from .batching import from_static, to_static
+from .precision import GeometryModule, accumulate_in
 
 # (f, g1, g2, h11, h12, h22): f(q) ~ f + g.u + u^T H u / 2 in p's tangent plane
 _TERMS = 6
@@ -95,7 +96,7 @@ def _operator_buffers(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: 
     return _FITS.get("jet", {"graph": h.hexdigest(), "sigma": float(sigma), "rows": rows}, fit)
 
 
-class _Derivatives(nn.Module):
+class _Derivatives(GeometryModule):
     """Holds a :func:`jet_operator` (in buffers) and applies it to signals on its graph:
     ``[N, C]``, ``[B, N, C]`` or a PyG batch ``[B N, C]`` with ``batch``."""
 
@@ -117,10 +118,11 @@ class _Derivatives(nn.Module):
         """``x`` -> (``[N, rows, B*C]`` derivatives, ``x`` as ``[B, N, C]``, its form)."""
         xs, form = to_static(x, self.num_nodes, batch, type(self).__name__)
         n, r = self.num_nodes, self._rows
-        op = self._operator("op", xs.dtype, (r * n, n))
-        op_t = self._operator("op_t", xs.dtype, (n, r * n))
-        flat = xs.permute(1, 0, 2).reshape(n, -1)  # [N, B*C]
-        return sparse_apply(op, op_t, flat).view(n, r, -1), xs, form
+        acc = accumulate_in(xs.dtype)
+        op = self._operator("op", acc, (r * n, n))
+        op_t = self._operator("op_t", acc, (n, r * n))
+        flat = xs.permute(1, 0, 2).reshape(n, -1).to(acc)  # [N, B*C]
+        return sparse_apply(op, op_t, flat).view(n, r, -1).to(xs.dtype), xs, form
 
     def extra_repr(self) -> str:
         return f"num_nodes={self.num_nodes}, spacing={self.spacing:.4g}"

@@ -11,9 +11,10 @@ from torch import nn
 from ..graph import euclidean_radius, geodesic_radius
 from ..sparse import buffer_as, csr, csr_parts, quiet_sparse
 from .batching import check_per_point, from_static, mask_static, pooled_batch, to_static
+from .precision import GeometryModule, accumulate_in
 
 
-class GridPool(nn.Module):
+class GridPool(GeometryModule):
     r"""Pools a fine grid onto its coarsening (``cluster`` from ``grid.coarsen()``).
 
     ``mode="mean"``: :math:`y_c = \sum_{j \in c} a_j m_j x_j / \sum_{j \in c} a_j m_j`
@@ -79,7 +80,7 @@ def _pooled(y, m, form, given):
     return out, mask
 
 
-class GaussianPool(nn.Module):
+class GaussianPool(GeometryModule):
     r"""Anti-aliased pooling of a fine grid onto a coarser point set.
 
     Each coarse point :math:`c` takes the area-weighted Gaussian average of the visible fine
@@ -120,22 +121,22 @@ class GaussianPool(nn.Module):
         xs, form = to_static(x, self.num_fine, batch, type(self).__name__)
         ms = mask_static(mask, xs, form)
         B, N, C = xs.shape
-        xf = xs.transpose(0, 1)  # [N, B, C]
-        m = torch.ones(N, B, dtype=xs.dtype, device=xs.device) if ms is None \
-            else ms.t().to(xs.dtype)
+        acc = accumulate_in(xs.dtype)
+        xf = xs.transpose(0, 1).to(acc)  # [N, B, C]
+        m = torch.ones(N, B, dtype=acc, device=xs.device) if ms is None else ms.t().to(acc)
         with quiet_sparse():
-            P = torch.sparse_csr_tensor(self.crow, self.col, buffer_as(self, "val", xs.dtype),
+            P = torch.sparse_csr_tensor(self.crow, self.col, buffer_as(self, "val", acc),
                                         (self.num_coarse, self.num_fine))
             den = P @ m  # [M, B]
             num = (P @ (xf * m[..., None]).reshape(N, B * C)).view(-1, B, C)
-        y = num / den.clamp_min(1e-30)[..., None]
+        y = (num / den.clamp_min(1e-30)[..., None]).to(xs.dtype)
         return _pooled(y.transpose(0, 1), (den > 0).t(), form, mask)
 
     def extra_repr(self) -> str:
         return f"{self.num_fine} -> {self.num_coarse}, sigma={self.sigma:.4g}"
 
 
-class GridUnpool(nn.Module):
+class GridUnpool(GeometryModule):
     """Coarse -> fine: ``nearest`` copies the point's cluster value; ``linear`` blends the
     three nearest coarse points by inverse squared distance (needs the positions).
 

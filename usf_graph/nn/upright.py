@@ -9,6 +9,7 @@ from ..geometry import tangent_towards
 from ..sparse import kept
 from .aggregate import EdgePlan, basis_aggregate
 from .conv import SphericalConv, _distances
+from .precision import accumulate_in
 
 
 class UprightConv(SphericalConv):
@@ -94,10 +95,11 @@ class UprightConv(SphericalConv):
                              f"{None if up is None else tuple(up.shape)}")
         if mask is not None and mask.shape != (x.shape[1],):
             raise ValueError(f"mask must have shape [{x.shape[1]}], got {tuple(mask.shape)}")
-        coef = self._bound_coefficients(mask, x.dtype)
-        basis = self._bound_basis(coef, x.dtype)
-        ang = (basis.reshape(-1, 3) @ up.to(x.dtype).t()).view(len(coef), -1, len(x))  # [E, 2K, B]
-        w = self.weight.view(3 * self.num_basis, self.in_channels, self.out_channels).to(x.dtype)
+        acc = accumulate_in(x.dtype)
+        coef = self._bound_coefficients(mask, acc)
+        basis = self._bound_basis(coef, acc)
+        ang = (basis.reshape(-1, 3) @ up.to(acc).t()).view(len(coef), -1, len(x))  # [E, 2K, B]
+        w = self.weight.view(3 * self.num_basis, self.in_channels, self.out_channels).to(acc)
         full = torch.cat([coef.expand(len(x), -1, -1), ang.permute(2, 0, 1)], 2)  # [B, E, 3K]
         out = basis_aggregate(x.contiguous(), w, full, self.plan)
         return out if self.bias is None else out + self.bias
@@ -136,12 +138,13 @@ class UprightConv(SphericalConv):
                              f"{None if up is None else tuple(up.shape)}")
         edge_weight = _distances(edge_weight)
         self._check_graph(edge_index, edge_weight, N, node_weight, mask)
-        coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask).to(x.dtype)
+        acc = accumulate_in(x.dtype)
+        coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask).to(acc)
         i = edge_index[1]
-        g = up.to(x.dtype)[0 if batch is None else batch[i]].expand(len(i), 3)
-        side = torch.einsum("emc,ec->em", _edge_directions(edge_index, pos).to(x.dtype), g)
+        g = up.to(acc)[0 if batch is None else batch[i]].expand(len(i), 3)
+        side = torch.einsum("emc,ec->em", _edge_directions(edge_index, pos).to(acc), g)
         full = torch.cat([coef, oriented_basis(coef, side, i, N)], 1)  # [E, 3K]
-        w = self.weight.view(len(full[0]), self.in_channels, self.out_channels).to(x.dtype)
+        w = self.weight.view(len(full[0]), self.in_channels, self.out_channels).to(acc)
         out = basis_aggregate(x[None].contiguous(), w, full, self._plan_of(edge_index, N))[0]
         return out if self.bias is None else out + self.bias
 
