@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The GPU checks of one short lease, in one script (benchmarks/README.md, "On a GPU"):
-#   1. the GPU-only tests and the layers' tests (test_engine, test_wide, test_conv),
+#   1. the GPU-only tests and the layers' tests (test_engine, test_wide, test_conv,
+#      test_torch_modes: autocast, inference mode, compile),
 #   2. one layer in every form (benchmarks/conv.py), the U-Net's training step and one frame of
 #      predict (benchmarks/predict_frame.py),
 #   3. a 15-minute recipe trained and scored on CUDA, timed (RECIPE=seg: make demo-seg, the
@@ -30,8 +31,8 @@ python3 -c "import torch, torch_geometric, torch_scatter, torch_cluster, trimesh
 print('torch', torch.__version__, 'pyg', torch_geometric.__version__, 'cuda', torch.cuda.is_available())" \
   || exit 1
 lap "set up"
-timeout 150 python3 -m pytest -q -p no:cacheprovider -rs tests/train/test_engine.py tests/nn/test_wide.py \
-  tests/nn/test_conv.py ${TESTS:-}
+timeout 210 python3 -m pytest -q -p no:cacheprovider -rs tests/train/test_engine.py tests/nn/test_wide.py \
+  tests/nn/test_conv.py tests/models/test_torch_modes.py ${TESTS:-}
 lap "tests"
 if [ "${BENCH:-1}" != 0 ]; then
   timeout 90 python3 benchmarks/conv.py --device cuda --level 6 --reps 10 --skip-slow

@@ -135,3 +135,27 @@ def test_half_precision_follows_float32(build):
             assert low.dtype == torch.bfloat16
             if mask is not None:
                 assert _rel(low, ref) < 0.03
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU (CI has none)")
+@MODELS
+def test_on_a_gpu_autocast_float16_follows_float32(build):
+    """CUDA autocast in float16 (the usual mixed-precision training) against float32 on the
+    same GPU: outputs and gradients within half precision's rounding."""
+    torch.manual_seed(0)
+    model = build().cuda()
+    n = len(grids.icosahedral(3))
+    gen = torch.Generator().manual_seed(3)
+    x = torch.rand(2, n, 3, generator=gen).cuda()
+    up = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen), dim=-1).cuda()
+    seen = (torch.rand(n, generator=gen) > 0.3).cuda()
+    runs = []
+    for autocast in (False, True):
+        with torch.autocast("cuda", dtype=torch.float16, enabled=autocast):
+            out = _flat(model(x, mask=seen, up=up))
+        out.float().square().mean().backward()
+        runs.append((out, torch.cat([p.grad.flatten() for p in model.parameters()
+                                     if p.grad is not None])))
+        model.zero_grad()
+    (ref, g32), (low, g16) = runs
+    assert _rel(low, ref) < 0.01 and _rel(g16, g32) < 0.05 and torch.isfinite(g16).all()
