@@ -363,7 +363,7 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     from usf_graph.ops import canonical_boxes, to_pandora
     from usf_graph.scenes import DETECTION_CLASSES
     from usf_graph.train import save_checkpoint
-    from usf_graph.train.apply import detect_image, segment_image
+    from usf_graph.train.apply import UNSEEN, detect_image, segment_image
     from usf_graph.train.seg import protocol_sets
 
     ds = protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=1,
@@ -388,6 +388,12 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common,
                  "--up", "0", "0", "2"]) == 0
     assert "up: (+0.000, +0.000, +1.000), given" in capsys.readouterr().out
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common,
+                 "--render", "soft"]) == 0
+    soft = segment_image(seg, rgb, ds.camera, interpolation="bilinear", render="soft")["labels"]
+    got = cv2.imread(str(tmp_path / "out" / "view_labels.png"), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(got, soft) and np.array_equal(soft == UNSEEN, want == UNSEEN)
+    capsys.readouterr()
     # frames: the model loaded once, an output per image; one name twice is refused
     (tmp_path / "frames").mkdir()
     cv2.imwrite(str(tmp_path / "frames" / "next.png"), cv2.cvtColor(rgb[:, ::-1].copy(), cv2.COLOR_RGB2BGR))
@@ -424,6 +430,9 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     assert "not a spherical seg model" in capsys.readouterr().err
     assert main(["predict", "det", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common]) == 2
     assert "not a spherical det model" in capsys.readouterr().err
+    assert main(["predict", "det", str(tmp_path / "det.pt"), str(tmp_path / "view.png"), *common,
+                 "--render", "soft"]) == 2
+    assert "--render is segmentation's" in capsys.readouterr().err
 
 
 def test_predict_reads_an_alpha_channel_as_an_image_mask(tmp_path, capsys):

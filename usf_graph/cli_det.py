@@ -111,6 +111,11 @@ def add_eval_options(e) -> None:
     e.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
                    help="det, seg: the up estimate assumes level cameras (optical axis "
                         "horizontal) with this strength; 10 in the README, 0 (default) off")
+    e.add_argument("--render", default=None, choices=("nearest", "soft"),
+                   help="seg: how the grid's predictions reach the pixels; nearest: the nearest "
+                        "point's label (the protocols'); soft: the argmax of the "
+                        "probabilities blended over the three nearest points, smoother "
+                        "on images finer than the grid (README, Your own images)")
     add_device_option(e)
     e.add_argument("--sign-check", default=None, metavar="PATH",
                    help="det, seg: pass the up estimate through this sign check on wide fields "
@@ -306,6 +311,8 @@ def cmd_eval_det(args) -> int:
     )
     from .train.gravity import format_up_report, split_up, views_up
 
+    if args.render:
+        raise ValueError("--render is segmentation's: a detector's answer is boxes")
     ckpt = load_protocol_model(args.checkpoint).require("det")
     model, cfg, planar = ready_model(ckpt, args), ckpt.config, ckpt.planar
     if eval_data(ckpt, args) == "pandora":

@@ -47,6 +47,11 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted; auto: area where the image is over twice as "
                         "fine as the grid (no aliasing), else bilinear as in training")
+    p.add_argument("--render", default=None, choices=("nearest", "soft"),
+                   help="seg: how the grid's predictions reach the pixels; nearest: the nearest "
+                        "point's label (the default; the protocols'); soft: the argmax of the "
+                        "probabilities blended over the three nearest points, smoother "
+                        "on images finer than the grid (README, Your own images)")
     p.add_argument("--min-score", type=share, default=0.3,
                    help="det: boxes drawn and listed from this score (the JSON keeps every box "
                         "from 0.05)")
@@ -90,6 +95,8 @@ def cmd_predict(args) -> int:
     if args.rig and args.key is not None:
         raise ValueError("--key picks one camera; --rig lifts every camera of the camchain")
     _up_arg(args)  # its errors before anything loads
+    if args.render and args.task != "seg":
+        raise ValueError("--render is segmentation's: a detector's answer is boxes")
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
     model = ready_model(ckpt, args)  # loaded once for every image
     names = class_names(args.task, model.config["num_classes"])
@@ -141,7 +148,7 @@ def _predict_seg(model, paths, names, out: Path, args) -> None:
 
     images, cam = _images_and_camera(paths, args)
     r = segment_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
-                      interpolation=args.interpolation)
+                      interpolation=args.interpolation, render=args.render or "nearest")
     print(_report_up(r))
     for path, image, lab in zip(paths, images, r["labels"] if args.rig else [r["labels"]]):
         stem = Path(path).stem

@@ -60,6 +60,10 @@ def cmd_eval_seg(args) -> int:
 
     ckpt = load_protocol_model(args.checkpoint).require("seg")
     model, name = ready_model(ckpt, args), ckpt.name
+    render = args.render or "nearest"
+    if render != "nearest" and ckpt.planar:
+        raise ValueError("--render soft blends a spherical model's probabilities on its grid; "
+                         "a planar model labels the panorama's pixels itself")
     level = ckpt.config.get("level", 5)
     if eval_data(ckpt, args) == "stanford2d3ds":
         from .datasets import Stanford2D3DS
@@ -69,14 +73,14 @@ def cmd_eval_seg(args) -> int:
         test = Stanford2D3DS(args.root or "data/stanford2d3ds", fold, "test",
                              grid=f"icosahedral:{level}", size=size)
         res = {f"fold {fold} test": evaluate_set(model, test, f"{name} fold {fold}", args.known_up,
-                                                 up_lines=args.up_lines)[0]}
+                                                 up_lines=args.up_lines, render=render)[0]}
     else:
         tests = args.test or list(PROTOCOL)
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, level, num_train=0,
                              num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed), tests=tests,
                              materials=ckpt.materials)
         res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up,
-                                   up_lines=args.up_lines)
+                                   up_lines=args.up_lines, render=render)
         res = {f"({k})": r for k, r in res.items()}
     for k, r in res.items():
         print(f"{k} " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in

@@ -285,3 +285,39 @@ def test_tables_of_an_older_geometry_convention_are_not_read(tmp_path, monkeypat
     c = GeometryCache(tmp_path)  # a newer convention: the old file is another key
     SphericalFrontend(cam, g, cache=c)
     assert c.builds == 1 and len(list(tmp_path.glob("lift-*.npz"))) == 2
+
+
+def test_to_labels_nearest_and_soft_against_their_definitions():
+    """``nearest`` is the label image of the points' argmax; ``soft`` the argmax of the
+    probabilities blended as ``to_image``'s bilinear (computed whole here, in chunks
+    there); on a pinhole much finer than the grid, soft labels follow a boundary between
+    two classes closer than nearest ones."""
+    g = grids.icosahedral(3)
+    fish = SphericalFrontend(cameras.Fisheye(30, 47.5, 47.5, 96, 96, fov_deg=190), g,
+                             cache=GeometryCache(None))
+    gen = torch.Generator().manual_seed(0)
+    probs = torch.rand(len(g), 5, generator=gen, dtype=torch.float64).softmax(-1)
+    probs[~fish.mask] = float("nan")  # hidden points are never read
+    ref = fish.to_image(probs.argmax(-1), mode="nearest")
+    assert torch.equal(fish.to_labels(probs), ref)
+    blended = fish.to_image(torch.nan_to_num(probs), mode="bilinear").argmax(-1)
+    soft = fish.to_labels(probs, "soft", chunk=1000)  # 9216 pixels: a partial last chunk
+    assert soft.shape == (96, 96) and torch.equal(soft, blended)
+    assert (soft != ref).any()  # not the nearest labels under another name
+    for bad, match in ((lambda: fish.to_labels(probs, "bilinear"), "nearest' or 'soft"),
+                       (lambda: fish.to_labels(probs[:-1], "soft"), r"\[642, C\]"),
+                       (lambda: fish.to_labels(torch.full_like(probs, float("nan")), "soft"),
+                        "NaN")):
+        with pytest.raises(ValueError, match=match):
+            bad()
+    # two classes split by a tilted great circle, seen by a pinhole 10x finer than the grid
+    pin = SphericalFrontend(cameras.Pinhole(120, 120, 127.5, 127.5, 256, 256), g,
+                            cache=GeometryCache(None))
+    n = torch.nn.functional.normalize(torch.tensor([0.3, 1.0, 0.4], dtype=torch.float64), dim=0)
+    side = g.pos.double() @ n
+    two = torch.stack([torch.sigmoid(-8 * side), torch.sigmoid(8 * side)], -1)
+    rays, valid = pin.camera.lens_normal_map()
+    truth = torch.as_tensor(rays.reshape(-1, 3) @ n.numpy() > 0).reshape(256, 256).long()
+    wrong = {m: int((pin.to_labels(two, m) != truth)[torch.as_tensor(valid)].sum())
+             for m in ("nearest", "soft")}
+    assert wrong["soft"] < 0.5 * wrong["nearest"], wrong

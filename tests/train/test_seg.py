@@ -94,6 +94,14 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
         assert f"({k}) mIoU {100 * saved['spherical_unet'][k]['mIoU']:.2f}" in out
         up = saved["spherical_unet"][k]["up"]
         assert f"({k}) up estimate: median error {up['median_err_deg']:.1f} deg" in out
+    # --render soft: other pixel labels from the same points (the sphere's score is theirs)
+    assert main(["eval", "seg", str(tmp_path / "out" / "spherical_unet.pt"), "--root",
+                 str(tmp_path / "rooms"), "--num-test", "2", "--test", "b", "--render", "soft"]) == 0
+    assert f"sphere_mIoU {100 * saved['spherical_unet']['b']['sphere_mIoU']:.2f}" in \
+        capsys.readouterr().out
+    assert main(["eval", "seg", str(tmp_path / "out" / "planar_unet.pt"), "--root",
+                 str(tmp_path / "rooms"), "--render", "soft"]) == 2
+    assert "a planar model labels" in capsys.readouterr().err
     # the checkpoint knows its rooms' seed: eval scores the test rooms of that seed, and
     # refuses those of seed - 1, which are the rooms it trained on
     ckpt = str(tmp_path / "out" / "spherical_unet.pt")

@@ -62,16 +62,16 @@ class _Table:
                 self.csr = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(col),
                                                    torch.as_tensor(val), (self.n_rows, n_cols))
 
-    def apply(self, flat: torch.Tensor) -> torch.Tensor:
-        """``flat [..., n_cols, C]`` -> ``[..., n_rows, C]``."""
+    def apply(self, flat: torch.Tensor, rows: slice | None = None) -> torch.Tensor:
+        """``flat [..., n_cols, C]`` -> ``[..., n_rows, C]`` (only ``rows`` of them)."""
         if self.regular:
-            w = self.w.to(flat.dtype)
-            g = flat[..., self.idx, :]  # [..., n_rows, P, C]
-            return (g * w[..., None]).sum(-2)
+            idx, w = (self.idx, self.w) if rows is None else (self.idx[rows], self.w[rows])
+            g = flat[..., idx, :]  # [..., rows, P, C]
+            return (g * w.to(flat.dtype)[..., None]).sum(-2)
         lead, c = flat.shape[:-2], flat.shape[-1]
         x = flat.movedim(-2, 0).reshape(self.n_cols, -1)
         out = (self.csr.to(flat.dtype) @ x).reshape(self.n_rows, *lead, c)
-        return out.movedim(0, -2)
+        return (out if rows is None else out[rows]).movedim(0, -2)
 
 
 def _as_image(image, cam: Camera, batched: bool = False):
@@ -286,18 +286,47 @@ class SphericalFrontend:
             if bad:
                 raise ValueError(f"values have NaN or inf at {bad} grid points the camera sees; "
                                  "they would spread into the image")
+        if not v.is_floating_point():
+            out = self._renderer(mode).apply(v.double()).round().to(v.dtype)
+        else:
+            out = self._renderer(mode).apply(v)
+        out = out.reshape(self.camera.height, self.camera.width, -1)
+        out = out[..., 0] if squeeze else out
+        return out.numpy() if is_np else out
+
+    def to_labels(self, scores: torch.Tensor, mode: str = "nearest",
+                  chunk: int = 1 << 16) -> torch.Tensor:
+        """Per-point class scores ``[N, C]`` (probabilities) -> labels ``[H, W]`` (int64)
+        in the camera's pixels (0 where it has no ray).
+
+        ``nearest``: each pixel takes the label of the nearest visible point (the scores'
+        argmax there). ``soft``: the argmax of the scores blended as :meth:`to_image`'s
+        ``bilinear``, so that on images finer than the grid a boundary runs between the
+        points instead of along their Voronoi cells. Blending probabilities, not labels,
+        is what makes it well defined. Pixels are taken ``chunk`` at a time, so a large
+        image never holds ``[H, W, C]`` scores."""
+        if mode not in ("nearest", "soft"):
+            raise ValueError(f"mode must be 'nearest' or 'soft', got {mode!r}")
+        if scores.dim() != 2 or scores.shape[0] != self.num_points:
+            raise ValueError(f"scores must be [{self.num_points}, C], got {tuple(scores.shape)}")
+        if mode == "nearest":
+            return self.to_image(scores.argmax(-1), mode="nearest")
+        if not bool(torch.isfinite(scores[self.mask.to(scores.device)]).all()):
+            raise ValueError("scores have NaN or inf at grid points the camera sees")
+        table = self._renderer("bilinear")
+        out = torch.empty(table.n_rows, dtype=torch.long)
+        for s in range(0, table.n_rows, chunk):
+            out[s:s + chunk] = table.apply(scores, rows=slice(s, s + chunk)).argmax(-1)
+        return out.reshape(self.camera.height, self.camera.width)
+
+    def _renderer(self, mode: str) -> _Table:
+        """The render table of ``mode``, built once per camera, grid and field of view."""
         if mode not in self._render:
             key = {"camera": self.camera.key(), "grid": self.grid.key(), "mode": mode,
                    "mask": _digest(self.mask.numpy())}
             t = self.cache.get("render", key, lambda: _render_table(self, mode))
             self._render[mode] = _Table(t["crow"], t["col"], t["val"], self.num_points)
-        if not v.is_floating_point():
-            out = self._render[mode].apply(v.double()).round().to(v.dtype)
-        else:
-            out = self._render[mode].apply(v)
-        out = out.reshape(self.camera.height, self.camera.width, -1)
-        out = out[..., 0] if squeeze else out
-        return out.numpy() if is_np else out
+        return self._render[mode]
 
 
 def _render_table(fe: SphericalFrontend, mode: str) -> dict:

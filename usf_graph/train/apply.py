@@ -223,7 +223,7 @@ def _up_info(given, grav, how: dict | None = None) -> dict:
 
 @torch.no_grad()
 def segment_image(model, image, camera, up=None, interpolation: str = "auto",
-                  image_mask=None) -> dict:
+                  image_mask=None, render: str = "nearest") -> dict:
     """A trained spherical segmenter on one image of ``camera``.
 
     ``up``: gravity's up in the camera's sphere frame (an IMU), else the model's estimate;
@@ -233,7 +233,8 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     uint8 in the camera's pixels (:data:`UNSEEN` where it has no ray or the mask ignores
     it; for a rig a list, one per camera), "points": [N] uint8 per grid point (UNSEEN
     outside the field of view), "probs": [N, C] float32, "up": ..., "interpolation":
-    ...}``."""
+    ...}``. ``render``: how the labels reach the pixels
+    (:meth:`~usf_graph.frontend.SphericalFrontend.to_labels`: ``nearest`` or ``soft``)."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
     with _evaluating(model):
         given, how = _read_up(model, up, image, fe, x, mask)
@@ -245,7 +246,7 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     points = probs.argmax(-1).to(torch.uint8)
     labels = []
     for f in _frontends(fe):
-        lab = f.to_image(points, mode="nearest").numpy()
+        lab = f.to_labels(probs, render).to(torch.uint8).numpy()
         lab[~_seen_pixels(f)] = UNSEEN
         labels.append(lab)
     points[~fe.mask] = UNSEEN
