@@ -405,6 +405,28 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     assert not np.array_equal(flipped, want)
     assert main(["predict", "seg", str(tmp_path / "seg.pt"), frames[0], frames[0], *common]) == 2
     assert "several images are named ['view']" in capsys.readouterr().err
+    # a video: every N-th frame, read as OpenCV decodes it, its own outputs
+    h, w = rgb.shape[:2]
+    video = cv2.VideoWriter(str(tmp_path / "drive.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 5, (w, h))
+    for k in range(5):
+        video.write(cv2.cvtColor(np.roll(rgb, 3 * k, axis=1), cv2.COLOR_RGB2BGR))
+    video.release()
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "drive.avi"), *common,
+                 "--every", "2"]) == 0
+    assert capsys.readouterr().out.count("== ") == 3
+    cap = cv2.VideoCapture(str(tmp_path / "drive.avi"))
+    decoded = [cv2.cvtColor(cap.read()[1], cv2.COLOR_BGR2RGB) for _ in range(5)]
+    for k in (0, 2, 4):
+        want_k = segment_image(seg, decoded[k], ds.camera, interpolation="bilinear")["labels"]
+        got_k = cv2.imread(str(tmp_path / "out" / f"drive_{k:06d}_labels.png"), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(got_k, want_k)
+    assert not (tmp_path / "out" / "drive_000001_labels.png").exists()
+    (tmp_path / "broken.mp4").write_bytes(b"not a video")
+    for argv, said in (([str(tmp_path / "broken.mp4")], "cannot read video"),
+                       ([frames[0], "--every", "2"], "--every picks a video's frames"),
+                       ([str(tmp_path / "drive.avi"), "--rig"], "not videos")):
+        assert main(["predict", "seg", str(tmp_path / "seg.pt"), *argv, *common]) == 2
+        assert said in capsys.readouterr().err, said
 
     det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
                             gravity=True)

@@ -9,10 +9,13 @@ import numpy as np
 
 from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_image, rig_from_spec
 
+#: Files ``predict`` reads as videos, frame by frame.
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
+
 
 def add_predict_parser(sub, fmt) -> None:
     """The ``predict`` subcommand and its options."""
-    from .cli_det import add_device_option, nonnegative, share
+    from .cli_det import add_device_option, nonnegative, positive_int, share
     from .frontend.interpolation import METHODS
 
     p = sub.add_parser("predict", help="run a trained seg or det model on your own image",
@@ -24,8 +27,12 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
     p.add_argument("image", nargs="+",
-                   help="RGB image(s) of the one camera (any format OpenCV reads, or .npy); "
-                        "several: frames, the model loaded once (with --rig: one per camera)")
+                   help="RGB image(s) of the one camera (any format OpenCV reads, or .npy), or "
+                        "videos (" + ", ".join(VIDEO_SUFFIXES) + ": each frame an image, "
+                        "<video>_<frame>_* outputs); several: frames, the model loaded once "
+                        "(with --rig: one image per camera)")
+    p.add_argument("--every", type=positive_int, default=1, metavar="N",
+                   help="videos: every N-th frame (1: all)")
     p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
     p.add_argument("--rig", action="store_true",
@@ -94,6 +101,11 @@ def cmd_predict(args) -> int:
                          "each other in --out; predict them in separate runs")
     if args.rig and args.key is not None:
         raise ValueError("--key picks one camera; --rig lifts every camera of the camchain")
+    if args.rig and any(_is_video(p) for p in args.image):
+        raise ValueError("--rig reads one image per camera, not videos; give one frame of each")
+    if args.every != 1 and not any(_is_video(p) for p in args.image):
+        raise ValueError("--every picks a video's frames; no video (" + ", ".join(VIDEO_SUFFIXES)
+                         + ") was given")
     _up_arg(args)  # its errors before anything loads
     if args.render and args.task != "seg":
         raise ValueError("--render is segmentation's: a detector's answer is boxes")
@@ -104,28 +116,64 @@ def cmd_predict(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     run = _predict_seg if args.task == "seg" else _predict_det
     if args.rig:  # one frame of the rig: an image per camera, one sphere
-        run(model, args.image, names, out, args)
+        run(model, [Path(p).stem for p in args.image], args.image,
+            [read_image(p) for p in args.image], names, out, args)
         return 0
-    for path in args.image:
-        if len(args.image) > 1:
-            print(f"== {path}")
-        run(model, [path], names, out, args)
+    several = len(args.image) > 1 or any(_is_video(p) for p in args.image)
+    for stem, source, image in _inputs(args.image, args.every):
+        if several:
+            print(f"== {source}")
+        run(model, [stem], [source], [image], names, out, args)
     return 0
 
 
-def _images_and_camera(paths, args):
-    """The images, and their camera (one image) or rig (one per camera, ``--rig``). An
+def _is_video(path) -> bool:
+    return Path(path).suffix.lower() in VIDEO_SUFFIXES
+
+
+def _inputs(paths, every: int = 1):
+    """``(stem, source, RGB image)`` of every image, and of every ``every``-th frame of
+    every video (stem ``<video>_<frame index>``, source ``<video>#<frame index>``), read
+    one at a time so that a long video never sits in memory."""
+    import cv2
+
+    for path in paths:
+        if not _is_video(path):
+            yield Path(path).stem, str(path), read_image(path)
+            continue
+        cap = cv2.VideoCapture(str(path))
+        if not cap.isOpened():
+            raise ValueError(f"cannot read video {path}: missing, or a codec OpenCV lacks; "
+                             "extract its frames as images instead")
+        i = taken = 0
+        try:
+            while True:
+                ok, bgr = cap.read()
+                if not ok:
+                    break
+                if i % every == 0:
+                    taken += 1
+                    yield f"{Path(path).stem}_{i:06d}", f"{path}#{i}", \
+                        cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                i += 1
+        finally:
+            cap.release()
+        if not taken:
+            raise ValueError(f"video {path} has no frames OpenCV can decode")
+
+
+def _images_and_camera(images, sources, args):
+    """The camera of one image, or the rig of ``--rig``'s images (one per camera). An
     image's alpha channel, where it is not opaque everywhere, masks the camera's pixels
     that it makes fully transparent (they hold no picture)."""
-    images = [read_image(p) for p in paths]
     if not args.rig:
         cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
-        return images, _alpha_masked(cam, images[0], paths[0])
+        return _alpha_masked(cam, images[0], sources[0])
     rig = rig_from_spec(args.camera, args.fov, args.image_mask)
     if len(images) != len(rig):
         raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
                          f"{len(images)} images were given, one per camera in that order")
-    return images, {n: _alpha_masked(c, im, p) for (n, c), im, p in zip(rig.items(), images, paths)}
+    return {n: _alpha_masked(c, im, p) for (n, c), im, p in zip(rig.items(), images, sources)}
 
 
 def _alpha_masked(camera, image, path):
@@ -141,17 +189,16 @@ def _alpha_masked(camera, image, path):
     return camera.with_image_mask(opaque, combine=True)
 
 
-def _predict_seg(model, paths, names, out: Path, args) -> None:
+def _predict_seg(model, stems, sources, images, names, out: Path, args) -> None:
     import cv2
 
     from .train.apply import UNSEEN, segment_image
 
-    images, cam = _images_and_camera(paths, args)
+    cam = _images_and_camera(images, sources, args)
     r = segment_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
                       interpolation=args.interpolation, render=args.render or "nearest")
     print(_report_up(r))
-    for path, image, lab in zip(paths, images, r["labels"] if args.rig else [r["labels"]]):
-        stem = Path(path).stem
+    for stem, image, lab in zip(stems, images, r["labels"] if args.rig else [r["labels"]]):
         seen = lab != UNSEEN
         shares = np.bincount(lab[seen], minlength=len(names)) / max(int(seen.sum()), 1)
         top = np.argsort(-shares)[:5]
@@ -163,18 +210,18 @@ def _predict_seg(model, paths, names, out: Path, args) -> None:
               f"and {out / f'{stem}_seg.png'}")
 
 
-def _predict_det(model, paths, names, out: Path, args) -> None:
+def _predict_det(model, stems, sources, images, names, out: Path, args) -> None:
     import cv2
 
     from .train.apply import detect_image
     from .viz import draw_boxes
 
-    images, cam = _images_and_camera(paths, args)
+    cam = _images_and_camera(images, sources, args)
     r = detect_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
                      interpolation=args.interpolation)
     print(_report_up(r))
-    stem = Path(paths[0]).stem
-    _write_boxes(r, names, out / f"{stem}_boxes.json", paths, args.camera)
+    stem = stems[0]
+    _write_boxes(r, names, out / f"{stem}_boxes.json", sources, args.camera)
     keep = r["scores"] >= args.min_score
     if keep.any():
         print(f"{'class':>14} score  [lon, lat, fov_x, fov_y, gamma] in degrees, as in the JSON")
@@ -182,13 +229,13 @@ def _predict_det(model, paths, names, out: Path, args) -> None:
         print(f"{names[c]:>14} {s:.2f}   [" + ", ".join(f"{v:.1f}" for v in b) + "]")
     print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
     cams = list(cam.values()) if args.rig else [cam]
-    for path, image, c in zip(paths, images, cams):  # each camera draws what it sees
+    for s, image, c in zip(stems, images, cams):  # each camera draws what it sees
         scale = max(1, round(512 / max(c.width, c.height)))  # small images enlarged to about 512
         drawn = draw_boxes(_as_uint8(image), c, r["boxes"][keep],
                            [names[k] for k in r["classes"][keep]], scale=scale)
-        cv2.imwrite(str(out / f"{Path(path).stem}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(out / f"{s}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
     print(f"wrote {out / f'{stem}_boxes.json'} and " +
-          ", ".join(str(out / f"{Path(p).stem}_boxes.png") for p in paths))
+          ", ".join(str(out / f"{s}_boxes.png") for s in stems))
 
 
 def _as_uint8(image: np.ndarray) -> np.ndarray:
