@@ -99,6 +99,29 @@ def test_inference_mode_leaves_nothing_that_breaks_later_calls(build):
                 torch.testing.assert_close(p.grad, q.grad, rtol=0, atol=0, msg=name)
 
 
+def _inputs(seed: int):
+    """``(x [2, N, 3], up [2, 3], seen [N])`` on icosahedral:3, the models' test grid."""
+    n = len(grids.icosahedral(3))
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.rand(2, n, 3, generator=gen)
+    up = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen), dim=-1)
+    return x, up, torch.rand(n, generator=gen) > 0.3
+
+
+def _autocast_pair(model, x, up, seen, dtype):
+    """``[(outputs, gradients)]`` of one training step without and with autocast to
+    ``dtype`` on ``x``'s device."""
+    runs = []
+    for autocast in (False, True):
+        with torch.autocast(x.device.type, dtype=dtype, enabled=autocast):
+            out = _flat(model(x, mask=seen, up=up))
+        out.float().square().mean().backward()
+        runs.append((out, torch.cat([p.grad.flatten() for p in model.parameters()
+                                     if p.grad is not None])))
+        model.zero_grad()
+    return runs
+
+
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
     a, b = a.detach().float(), b.detach().float()
     return float((a - b).norm() / b.norm())
@@ -110,20 +133,8 @@ def test_half_precision_follows_float32(build):
     half kernels, so the layers sum in float32 and hand back their input's dtype."""
     torch.manual_seed(0)
     model = build()
-    n = len(grids.icosahedral(3))
-    gen = torch.Generator().manual_seed(3)
-    x = torch.rand(2, n, 3, generator=gen)
-    up = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen), dim=-1)
-    seen = torch.rand(n, generator=gen) > 0.3
-    grads = []
-    for autocast in (False, True):
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
-            out = _flat(model(x, mask=seen, up=up))
-        out.float().square().mean().backward()
-        grads.append((out, torch.cat([p.grad.flatten() for p in model.parameters()
-                                      if p.grad is not None])))
-        model.zero_grad()
-    (ref, g32), (low, g16) = grads
+    x, up, seen = _inputs(3)
+    (ref, g32), (low, g16) = _autocast_pair(model, x, up, seen, torch.bfloat16)
     assert _rel(low, ref) < 0.03 and _rel(g16, g32) < 0.15
     assert torch.isfinite(g16).all()
     half = copy.deepcopy(model).bfloat16().eval()
@@ -144,18 +155,6 @@ def test_on_a_gpu_autocast_float16_follows_float32(build):
     same GPU: outputs and gradients within half precision's rounding."""
     torch.manual_seed(0)
     model = build().cuda()
-    n = len(grids.icosahedral(3))
-    gen = torch.Generator().manual_seed(3)
-    x = torch.rand(2, n, 3, generator=gen).cuda()
-    up = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen), dim=-1).cuda()
-    seen = (torch.rand(n, generator=gen) > 0.3).cuda()
-    runs = []
-    for autocast in (False, True):
-        with torch.autocast("cuda", dtype=torch.float16, enabled=autocast):
-            out = _flat(model(x, mask=seen, up=up))
-        out.float().square().mean().backward()
-        runs.append((out, torch.cat([p.grad.flatten() for p in model.parameters()
-                                     if p.grad is not None])))
-        model.zero_grad()
-    (ref, g32), (low, g16) = runs
+    x, up, seen = (t.cuda() for t in _inputs(3))
+    (ref, g32), (low, g16) = _autocast_pair(model, x, up, seen, torch.float16)
     assert _rel(low, ref) < 0.01 and _rel(g16, g32) < 0.05 and torch.isfinite(g16).all()
