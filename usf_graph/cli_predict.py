@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -241,7 +242,11 @@ def _predict_det(model, stems, sources, images, names, out: Path, args) -> None:
 def _as_uint8(image: np.ndarray) -> np.ndarray:
     """The RGB of an image that predict accepted, as uint8 for drawing on (uint16 scaled
     down, float in [0, 1] scaled up)."""
-    rgb = np.ascontiguousarray(image[..., :3])
+    from .train.apply import rgb_channels
+
+    with warnings.catch_warnings():  # said once already, when the image was read
+        warnings.simplefilter("ignore")
+        rgb = np.ascontiguousarray(rgb_channels(image))
     if rgb.dtype == np.uint8:
         return rgb
     if rgb.dtype == np.uint16:

@@ -117,7 +117,13 @@ def test_bad_images_cameras_and_models_are_refused(views):
     with pytest.raises(ValueError, match="planar"):
         segment_image(PlanarUNet(13, channels=(4, 4)), img, ds.camera)
     with pytest.raises(ValueError, match=r"RGB images \[H, W, 3\]"):
-        segment_image(net, img[..., 0], ds.camera)
+        segment_image(net, img[..., :2], ds.camera)
+    gray = img.mean(-1).round().astype(np.uint8)  # a mono camera's image: read as R = G = B
+    with pytest.warns(UserWarning, match="grayscale image is read as R = G = B"):
+        mono = segment_image(net, gray, ds.camera)["probs"]
+    assert np.array_equal(mono, segment_image(net, np.dstack([gray] * 3), ds.camera)["probs"])
+    with pytest.warns(UserWarning, match="grayscale"):
+        assert np.array_equal(segment_image(net, gray[..., None], ds.camera)["probs"], mono)
     with pytest.raises(ValueError, match=r"\[0, 1\].*divide by 255"):
         segment_image(net, img.astype(np.float32), ds.camera)
     with pytest.raises(ValueError, match="dtype int64"):

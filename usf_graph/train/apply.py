@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Mapping
 from contextlib import contextmanager
 
@@ -76,14 +77,25 @@ def _auto(camera, grid) -> str:
     return _per_camera("interpolation", camera, lambda: choose_interpolation(camera, grid), grid.spec)
 
 
-def rgb01(image) -> np.ndarray:
-    """An RGB image as float32 in [0, 1], ``[H, W, 3]``: uint8 / 255, uint16 / 65535,
-    float as it is (checked to lie in [0, 1]); a fourth (alpha) channel is dropped."""
+def rgb_channels(image) -> np.ndarray:
+    """``image``'s three colour channels ``[H, W, 3]``, in its dtype: a fourth (alpha)
+    channel is dropped, and a grayscale image (``[H, W]`` or ``[H, W, 1]``: a mono camera's)
+    is read as R = G = B, with a warning, since the models were trained on colour."""
     a = np.asarray(image)
+    if a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1):
+        warnings.warn("a grayscale image is read as R = G = B; the models were trained on "
+                      "colour images (README, Your own images: what that costs)", stacklevel=3)
+        return np.repeat(a.reshape(*a.shape[:2], 1), 3, axis=2)
     if a.ndim != 3 or a.shape[2] not in (3, 4):
-        raise ValueError(f"the models read RGB images [H, W, 3], got shape {a.shape}; convert "
-                         "grayscale or other channel counts to RGB first")
-    a = a[..., :3]
+        raise ValueError(f"the models read RGB images [H, W, 3] (or grayscale [H, W]), got shape "
+                         f"{a.shape}; convert other channel counts to RGB first")
+    return a[..., :3]
+
+
+def rgb01(image) -> np.ndarray:
+    """An RGB image as float32 in [0, 1], ``[H, W, 3]`` (:func:`rgb_channels`): uint8 /
+    255, uint16 / 65535, float as it is (checked to lie in [0, 1])."""
+    a = rgb_channels(image)
     if a.dtype == np.uint8 or a.dtype == np.uint16:
         return a.astype(np.float32) / np.iinfo(a.dtype).max
     if a.dtype.kind != "f":
