@@ -3,7 +3,7 @@ to a planar network's forward pass on the same image at the same number of pixel
 
     python benchmarks/predict_frame.py [--lens fisheye|pinhole|panorama] [--size 512]
                                        [--task seg det] [--threads 2] [--reps 5]
-                                       [--channel-scale 1.0] [--device cpu|cuda]
+                                       [--channel-scale 1.0] [--device cpu|cuda] [--modes]
 
 What a robot pays per frame. Spherical: the protocols' DeepLab (seg) and detector (det),
 untrained (the cost does not depend on the weights), through
@@ -17,7 +17,10 @@ pixels; boxes decoded with NMS). Each stage is also timed alone. Planar: the
 channels, forward only, on the image resized (``cv2.INTER_AREA``, counted) to about as many
 pixels as the grid has points; nothing after the forward pass is counted for it, so the
 ratio favours it. For seg, the spherical and planar U-Nets' forward passes (up given) are
-timed too, the pair whose training step ``seg_step.py`` compares.
+timed too, the pair whose training step ``seg_step.py`` compares. ``--modes`` also times
+the spherical network (up given) under ``torch.inference_mode``, autocast (bfloat16 on the
+CPU, float16 on a GPU) and ``torch.compile`` (its compilation not counted), and for seg the
+soft labels (:meth:`SphericalFrontend.to_labels`), each beside the plain run.
 """
 
 from __future__ import annotations
@@ -69,8 +72,10 @@ def planar_shape(points: int, aspect: int) -> tuple[int, int]:
 
 
 @torch.no_grad()
-def stages(task: str, net, image: np.ndarray, cam, reps: int, dev: torch.device) -> dict:
-    """Seconds per frame, whole and by stage, for the spherical model (on ``dev``)."""
+def stages(task: str, net, image: np.ndarray, cam, reps: int, dev: torch.device,
+           modes: bool = False) -> dict:
+    """Seconds per frame, whole and by stage, for the spherical model (on ``dev``); with
+    ``modes``, its network in PyTorch's other modes too."""
     up = np.array([0.0, 0.0, 1.0])
     run = apply.segment_image if task == "seg" else apply.detect_image
     run(net, image, cam)  # builds the camera's tables, as a first frame does
@@ -79,12 +84,37 @@ def stages(task: str, net, image: np.ndarray, cam, reps: int, dev: torch.device)
     out = net(x, mask, up=u)
     finish = (lambda: fe.to_image(out[0].argmax(-1).to(torch.uint8).cpu(), mode="nearest")) \
         if task == "seg" else (lambda: net.decode(out, k=100, threshold=0.05, nms=0.5))
-    return {"frame, its up estimate": best_time(lambda: run(net, image, cam), reps, dev),
-            "frame, up given (IMU)": best_time(lambda: run(net, image, cam, up=up), reps, dev),
-            "lift": best_time(lambda: apply.lift_for(net, image, cam), reps, dev),
-            "up estimate": best_time(lambda: net.gravity(x, mask), reps, dev),
-            "network, up given": best_time(lambda: net(x, mask, up=u), reps, dev),
-            "answer in the camera's terms": best_time(finish, reps, dev)}
+    t = {"frame, its up estimate": best_time(lambda: run(net, image, cam), reps, dev),
+         "frame, up given (IMU)": best_time(lambda: run(net, image, cam, up=up), reps, dev),
+         "lift": best_time(lambda: apply.lift_for(net, image, cam), reps, dev),
+         "up estimate": best_time(lambda: net.gravity(x, mask), reps, dev),
+         "network, up given": best_time(lambda: net(x, mask, up=u), reps, dev),
+         "answer in the camera's terms": best_time(finish, reps, dev)}
+    if modes:
+        t.update(other_modes(net, x, mask, u, reps, dev))
+        if task == "seg":
+            probs = out[0].softmax(-1).cpu()
+            t["answer, soft labels"] = best_time(lambda: fe.to_labels(probs, "soft"), reps, dev)
+    return t
+
+
+def other_modes(net, x, mask, u, reps: int, dev: torch.device) -> dict:
+    """The network (up given) under inference mode, autocast and ``torch.compile``."""
+    low = torch.bfloat16 if dev.type == "cpu" else torch.float16
+
+    def inference():
+        with torch.inference_mode():
+            return net(x, mask, up=u)
+
+    def autocast():
+        with torch.autocast(dev.type, dtype=low):
+            return net(x, mask, up=u)
+
+    compiled = torch.compile(net)
+    compiled(x, mask, up=u)  # compiles once, as a deployed model would before its frames
+    return {"network, inference_mode": best_time(inference, reps, dev),
+            f"network, autocast {str(low).split('.')[-1]}": best_time(autocast, reps, dev),
+            "network, torch.compile": best_time(lambda: compiled(x, mask, up=u), reps, dev)}
 
 
 @torch.no_grad()
@@ -96,7 +126,7 @@ def planar_forward(net, image: np.ndarray, h: int, w: int):
 
 
 def time_task(task: str, image: np.ndarray, cam, reps: int, scale: float,
-              dev: torch.device) -> dict:
+              dev: torch.device, modes: bool = False) -> dict:
     """Seconds per frame of ``task``'s spherical model by stage, and of its planar competitors."""
     net, planar_cls, kw = models(task, scale)
     net.to(dev).eval()
@@ -104,7 +134,7 @@ def time_task(task: str, image: np.ndarray, cam, reps: int, scale: float,
     planar = planar_cls(**kw, **({"height": h, "width": w} if task == "det" else {})).to(dev).eval()
     print(f"\n{task}: {type(net).__name__} on icosahedral:5 ({net.num_points} points) / "
           f"{planar_cls.__name__} on {w}x{h} ({w * h} pixels)")
-    t = stages(task, net, image, cam, reps, dev)
+    t = stages(task, net, image, cam, reps, dev, modes)
     t["planar forward"] = best_time(lambda: planar_forward(planar, image, h, w), reps, dev)
     if task == "seg":
         unet = make_model("spherical_unet", channel_scale=scale).to(dev).eval()
@@ -127,6 +157,8 @@ def main(argv=None) -> dict:
     p.add_argument("--channel-scale", type=float, default=1.0,
                    help="the models' channels times this (the 15-minute recipes: 0.5)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--modes", action="store_true", help="also inference mode, autocast, "
+                   "torch.compile and soft labels (compiling takes a minute)")
     a = p.parse_args(argv)
     dev = torch.device(a.device)
     torch.set_num_threads(a.threads)
@@ -138,7 +170,7 @@ def main(argv=None) -> dict:
           f"channel scale {a.channel_scale}")
     res = {}
     for task in a.task:
-        res[task] = t = time_task(task, image, cam, a.reps, a.channel_scale, dev)
+        res[task] = t = time_task(task, image, cam, a.reps, a.channel_scale, dev, a.modes)
         print("| stage | ms | frames/s |\n|---|---|---|")
         for k, v in t.items():
             print(f"| {k} | {1e3 * v:.1f} | {1 / v:.1f} |")

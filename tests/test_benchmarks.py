@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -63,3 +65,12 @@ def test_predict_frame_benchmark_runs():
     assert "seg: SphericalDeepLabV3 on icosahedral:5 (10242 points) / PlanarDeepLab on 96x96" in out
     assert "det: SphericalDetector on icosahedral:5" in out and out.count("| frame, up given (IMU) |") == 2
     assert "| spherical U-Net network, up given |" in out and out.count("planar forward:") == 2
+
+
+@pytest.mark.slow
+def test_predict_frame_benchmark_times_the_other_modes():
+    out = run("benchmarks/predict_frame.py", "--size", "64", "--reps", "1", "--channel-scale",
+              "0.25", "--task", "seg", "--modes")
+    for row in ("network, inference_mode", "network, autocast bfloat16", "network, torch.compile",
+                "answer, soft labels"):
+        assert f"| {row} |" in out, row
