@@ -281,15 +281,11 @@ class SphericalFrontend:
         v = v[:, None] if squeeze else v
         if v.shape[0] != self.num_points:
             raise ValueError(f"values have {v.shape[0]} points, the grid has {self.num_points}")
-        if v.is_floating_point():  # hidden points are never read, so they may hold anything
-            bad = int((~torch.isfinite(v[self.mask.to(v.device)])).any(-1).sum())
-            if bad:
-                raise ValueError(f"values have NaN or inf at {bad} grid points the camera sees; "
-                                 "they would spread into the image")
-        if not v.is_floating_point():
-            out = self._renderer(mode).apply(v.double()).round().to(v.dtype)
-        else:
+        if v.is_floating_point():
+            self._check_seen_finite(v, "values")
             out = self._renderer(mode).apply(v)
+        else:
+            out = self._renderer(mode).apply(v.double()).round().to(v.dtype)
         out = out.reshape(self.camera.height, self.camera.width, -1)
         out = out[..., 0] if squeeze else out
         return out.numpy() if is_np else out
@@ -311,13 +307,20 @@ class SphericalFrontend:
             raise ValueError(f"scores must be [{self.num_points}, C], got {tuple(scores.shape)}")
         if mode == "nearest":
             return self.to_image(scores.argmax(-1), mode="nearest")
-        if not bool(torch.isfinite(scores[self.mask.to(scores.device)]).all()):
-            raise ValueError("scores have NaN or inf at grid points the camera sees")
+        self._check_seen_finite(scores, "scores")
         table = self._renderer("bilinear")
         out = torch.empty(table.n_rows, dtype=torch.long)
         for s in range(0, table.n_rows, chunk):
             out[s:s + chunk] = table.apply(scores, rows=slice(s, s + chunk)).argmax(-1)
         return out.reshape(self.camera.height, self.camera.width)
+
+    def _check_seen_finite(self, v: torch.Tensor, what: str) -> None:
+        """Refuse NaN or inf at the points the camera sees (``v [N, C]``); hidden points are
+        never read, so they may hold anything."""
+        bad = int((~torch.isfinite(v[self.mask.to(v.device)])).any(-1).sum())
+        if bad:
+            raise ValueError(f"{what} have NaN or inf at {bad} grid points the camera sees; "
+                             "they would spread into the image")
 
     def _renderer(self, mode: str) -> _Table:
         """The render table of ``mode``, built once per camera, grid and field of view."""

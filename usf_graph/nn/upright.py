@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import nn
 
@@ -113,13 +115,12 @@ class UprightConv(SphericalConv):
         cached = self._oriented.get(slot)
         if cached is not None and cached[0] is coef and cached[1].dtype == dtype:
             return cached[1]
-        if slot is None:  # coefficients that need a gradient are not cached ones
-            return oriented_basis(coef.to(dtype), self.directions.to(dtype),
-                                  self.bound_edge_index[1], self.plan.num_nodes)
-        with kept():
+        # coefficients that need a gradient are not cached ones, nor is their basis
+        with contextlib.nullcontext() if slot is None else kept():
             basis = oriented_basis(coef.to(dtype), self.directions.to(dtype),
                                    self.bound_edge_index[1], self.plan.num_nodes)
-        self._oriented[slot] = (coef, basis)
+        if slot is not None:
+            self._oriented[slot] = (coef, basis)
         return basis
 
     def _general(self, x, up, edge_index, edge_weight, node_weight, mask, pos, batch):
