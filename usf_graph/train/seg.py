@@ -62,7 +62,7 @@ from .gravity import (
     up_views,
     views_up,
 )
-from .seg_metrics import confusion_matrix, median_frequency_weights, per_image_miou, scores
+from .seg_metrics import median_frequency_weights, score
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
             "c": ("fisheye190", "none", 0), "d": ("pinhole90", "none", 0),
@@ -217,24 +217,9 @@ def predict(model, ds, batch_size: int = PREDICT_BATCH, progress: bool = True, d
         x = ds.x[s:s + batch_size].to(dev).float()
         logits = model(x, mask, **given_up(up, x, s)).cpu()
         points.append(logits.argmax(-1).to(torch.uint8))
-        scores = logits.softmax(-1) if render == "soft" else logits  # blend probabilities
-        pixels += [ds.frontend.to_labels(p, render).to(torch.uint8).numpy() for p in scores]
+        probs = logits.softmax(-1) if render == "soft" else logits  # blend probabilities
+        pixels += [ds.frontend.to_labels(p, render).to(torch.uint8).numpy() for p in probs]
     return np.stack(pixels), torch.cat(points).numpy()
-
-
-def score(pixels: np.ndarray, ds, points: np.ndarray | None = None) -> dict:
-    """mIoU/mAcc (confusion over the test set) on the camera's pixels; with ``points``,
-    also the area-weighted one on the grid (``sphere_mIoU``) and USF's per-image mean
-    (``per_image_mIoU``, on pixels)."""
-    C = len(SEMANTIC_CLASSES)
-    truth = ds.label_image.numpy()
-    confs = [confusion_matrix(p, t, C) for p, t in zip(pixels, truth)]
-    res = scores(sum(confs), SEMANTIC_CLASSES)
-    res["per_image_mIoU"] = per_image_miou(confs)
-    if points is not None:
-        sphere = confusion_matrix(points, ds.y.numpy(), C, weight=ds.grid.area.numpy()[None])
-        res["sphere_mIoU"] = scores(sphere)["mIoU"]
-    return res
 
 
 def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,

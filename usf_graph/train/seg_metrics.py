@@ -1,4 +1,5 @@
-r"""Segmentation metrics from a confusion matrix, and the loss's class weights.
+r"""Segmentation metrics from a confusion matrix, a test set's scores, and the loss's
+class weights.
 
 The standard protocol (and ours) accumulates one confusion matrix over the whole test set
 and reads per-class IoU and accuracy from it:
@@ -18,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+
+from ..scenes import SEMANTIC_CLASSES
 
 
 def confusion_matrix(pred, target, num_classes: int, ignore_index: int = 255,
@@ -70,6 +73,21 @@ def per_image_miou(confusions) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def score(pixels: np.ndarray, ds, points: np.ndarray | None = None) -> dict:
+    """mIoU/mAcc (confusion over the test set) on the camera's pixels; with ``points``,
+    also the area-weighted one on the grid (``sphere_mIoU``) and USF's per-image mean
+    (``per_image_mIoU``, on pixels)."""
+    C = len(SEMANTIC_CLASSES)
+    truth = ds.label_image.numpy()
+    confs = [confusion_matrix(p, t, C) for p, t in zip(pixels, truth)]
+    res = scores(sum(confs), SEMANTIC_CLASSES)
+    res["per_image_mIoU"] = per_image_miou(confs)
+    if points is not None:
+        sphere = confusion_matrix(points, ds.y.numpy(), C, weight=ds.grid.area.numpy()[None])
+        res["sphere_mIoU"] = scores(sphere)["mIoU"]
+    return res
+
+
 def median_frequency_weights(counts) -> torch.Tensor:
     """Median frequency balancing (Eigen & Fergus): ``median(f) / f_c`` for class
     frequencies ``f``; classes never seen get weight 0 (they have no loss terms anyway)."""
@@ -81,4 +99,4 @@ def median_frequency_weights(counts) -> torch.Tensor:
     return torch.where(seen, med / f.clamp_min(1e-300), torch.zeros_like(f)).float()
 
 
-__all__ = ["confusion_matrix", "scores", "per_image_miou", "median_frequency_weights"]
+__all__ = ["confusion_matrix", "scores", "score", "per_image_miou", "median_frequency_weights"]
