@@ -117,14 +117,20 @@ def cmd_predict(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     run = _predict_seg if args.task == "seg" else _predict_det
     if args.rig:  # one frame of the rig: an image per camera, one sphere
-        run(model, [Path(p).stem for p in args.image], args.image,
-            [read_image(p) for p in args.image], names, out, args)
+        images = [read_image(p) for p in args.image]
+        run(model, [Path(p).stem for p in args.image], args.image, images,
+            _rig_cameras(images, args.image, args), names, out, args)
         return 0
     several = len(args.image) > 1 or any(_is_video(p) for p in args.image)
+    calibrated = {}  # the calibration file, read once per image size (frames share it)
     for stem, source, image in _inputs(args.image, args.every):
         if several:
             print(f"== {source}")
-        run(model, [stem], [source], [image], names, out, args)
+        if image.shape not in calibrated:
+            calibrated[image.shape] = camera_from_spec(args.camera, args.key, args.fov,
+                                                       args.image_mask, image.shape)
+        cam = _alpha_masked(calibrated[image.shape], image, source)
+        run(model, [stem], [source], [image], cam, names, out, args)
     return 0
 
 
@@ -163,13 +169,9 @@ def _inputs(paths, every: int = 1):
             raise ValueError(f"video {path} has no frames OpenCV can decode")
 
 
-def _images_and_camera(images, sources, args):
-    """The camera of one image, or the rig of ``--rig``'s images (one per camera). An
-    image's alpha channel, where it is not opaque everywhere, masks the camera's pixels
-    that it makes fully transparent (they hold no picture)."""
-    if not args.rig:
-        cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
-        return _alpha_masked(cam, images[0], sources[0])
+def _rig_cameras(images, sources, args):
+    """The rig of ``--rig``'s images (one per camera), each camera masked by its image's
+    alpha channel (:func:`_alpha_masked`)."""
     rig = rig_from_spec(args.camera, args.fov, args.image_mask)
     if len(images) != len(rig):
         raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
@@ -190,12 +192,11 @@ def _alpha_masked(camera, image, path):
     return camera.with_image_mask(opaque, combine=True)
 
 
-def _predict_seg(model, stems, sources, images, names, out: Path, args) -> None:
+def _predict_seg(model, stems, sources, images, cam, names, out: Path, args) -> None:
     import cv2
 
     from .train.apply import UNSEEN, segment_image
 
-    cam = _images_and_camera(images, sources, args)
     r = segment_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
                       interpolation=args.interpolation, render=args.render or "nearest")
     print(_report_up(r))
@@ -211,13 +212,12 @@ def _predict_seg(model, stems, sources, images, names, out: Path, args) -> None:
               f"and {out / f'{stem}_seg.png'}")
 
 
-def _predict_det(model, stems, sources, images, names, out: Path, args) -> None:
+def _predict_det(model, stems, sources, images, cam, names, out: Path, args) -> None:
     import cv2
 
     from .train.apply import detect_image
     from .viz import draw_boxes
 
-    cam = _images_and_camera(images, sources, args)
     r = detect_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
                      interpolation=args.interpolation)
     print(_report_up(r))
