@@ -573,12 +573,17 @@ def test_train_resume_reaches_the_run(monkeypatch, tmp_path, task, module):
     for flag in ([], ["--resume"]):
         assert main(["train", task, "--out", str(tmp_path), *data.get(module, []), *flag]) == 0
         assert seen.pop("resume") is bool(flag)
+    if task != "mnist":  # and --gray, gray=True
+        assert seen.pop("gray") is False
+        assert main(["train", task, "--out", str(tmp_path), *data.get(module, []), "--gray"]) == 0
+        assert seen.pop("gray") is True
 
 
 def test_train_mnist_refuses_the_options_of_train_det_and_seg(capsys):
     for argv, named in ((["--channel-scale", "0.5"], "--channel-scale"),
                         (["--materials", "by_kind", "--up-sign", "0"], "--materials, --up-sign"),
-                        (["--dataset", "pandora", "--fold", "2"], "--dataset, --fold")):
+                        (["--dataset", "pandora", "--fold", "2"], "--dataset, --fold"),
+                        (["--gray"], "--gray")):
         assert main(["train", "mnist", *argv]) == 2
         assert f"{named}: options of 'train det|seg', not of 'train mnist'" in capsys.readouterr().err
 

@@ -222,6 +222,7 @@ def cmd_train(args) -> int:
                                                    "up_extra", "up_caps", "up_epochs", "up_sign")
              if getattr(args, n) is not None]
     other += ["--dataset"] * (args.dataset != "rooms") + ["--fold"] * (args.fold != "1")
+    other += ["--gray"] * args.gray  # MNIST's digits are gray already
     if other:  # rather than ignore them
         raise ValueError(f"{', '.join(other)}: options of 'train det|seg', not of 'train mnist'")
     res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", level=args.level,

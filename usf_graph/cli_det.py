@@ -64,6 +64,10 @@ def add_train_options(t) -> None:
                    help="rooms: every object's look drawn at random (the protocols' rooms, the "
                         "default) or a material per kind of object, as in real rooms (the same "
                         "layouts); 'eval' reads it from the checkpoint")
+    g.add_argument("--gray", action="store_true",
+                   help="train for a mono camera: every model, up estimate included, reads only "
+                        "its images' luma (0.299 R + 0.587 G + 0.114 B), in training and in "
+                        "every test; 'eval' and 'predict' read it from the checkpoint")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=count, default=None,
                    help="cheap extra panoramas of other rooms (det 1600, seg 800)")
@@ -202,7 +206,7 @@ def run_kwargs(args, run) -> dict:
     d = defaults(run)
     return dict(epochs=args.epochs or d["epochs"], batch_size=args.batch_size or d["batch_size"],
                 seed=args.seed, progress=True, lr=args.lr or d["lr"], resume=args.resume,
-                device=args.device)
+                device=args.device, gray=args.gray)
 
 
 def cmd_train_det(args) -> int:

@@ -2,6 +2,9 @@
 runs), checked against a lift written here from the frontend's float64 table, the
 protocols' own datasets and predictions, and with bad inputs."""
 
+import warnings
+
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -124,6 +127,14 @@ def test_bad_images_cameras_and_models_are_refused(views):
     assert np.array_equal(mono, segment_image(net, np.dstack([gray] * 3), ds.camera)["probs"])
     with pytest.warns(UserWarning, match="grayscale"):
         assert np.array_equal(segment_image(net, gray[..., None], ds.camera)["probs"], mono)
+    torch.manual_seed(0)  # a model for mono cameras takes it silently, and colour as its luma
+    mono_net = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True, gray=True).eval()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        segment_image(mono_net, gray, ds.camera)
+    luma = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)  # a mono camera's image of the same room
+    np.testing.assert_allclose(segment_image(mono_net, img, ds.camera)["probs"],
+                               segment_image(mono_net, luma, ds.camera)["probs"], rtol=0, atol=2e-3)
     with pytest.raises(ValueError, match=r"\[0, 1\].*divide by 255"):
         segment_image(net, img.astype(np.float32), ds.camera)
     with pytest.raises(ValueError, match="dtype int64"):

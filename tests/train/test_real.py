@@ -24,9 +24,11 @@ def test_stanford_command_on_fixtures(tmp_path, capsys):
                        ("5b", "g")):
         _write_pano(root, area, stem, W=64, H=32, seed=len(stem) + ord(stem))
     assert main(["train", "seg", "--dataset", "stanford2d3ds", "--root", str(root), "--out",
-                 str(tmp_path / "out"), "--size", "16", "--epochs", "1", "--batch-size", "2"]) == 0
+                 str(tmp_path / "out"), "--size", "16", "--epochs", "1", "--batch-size", "2",
+                 "--gray"]) == 0  # for a mono camera: the checkpoint says so
     res = json.loads((tmp_path / "out" / "results.json").read_text())
     r = res["spherical_unet"]["fold1"]
+    assert res["gray"] is True
     assert set(r) >= {"mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU"}
     assert np.isfinite(r["mIoU"]) and res["spherical_unet"]["mean"]["mIoU"] == r["mIoU"]
     ckpt = str(tmp_path / "out" / "fold1_spherical_unet.pt")
@@ -37,6 +39,7 @@ def test_stanford_command_on_fixtures(tmp_path, capsys):
     assert line.startswith("fold 1 test: ") or line.startswith("fold 1 test ")
     assert f"mIoU {100 * r['mIoU']:.2f}," in line and f"mAcc {100 * r['mAcc']:.2f}" in line
     assert load_protocol_model(ckpt).dataset == "stanford2d3ds" and load_protocol_model(ckpt).fold == 1
+    assert load_protocol_model(ckpt).model.gray and load_protocol_model(ckpt).model.gravity.gray
     assert main(["eval", "seg", ckpt, "--root", str(root), "--known-up"]) == 0  # +z, as released
     assert "fold 1 test up estimate" in capsys.readouterr().out
     for argv, match in ((["--test", "a"], "rooms options"), (["--dataset", "pandora"], "not seg data"),

@@ -55,7 +55,8 @@ class SphericalDeepLabV3(_Segmenter):
                  rates=(2, 4, 6), low_channels: int = 32, num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, gravity: bool = False, refine: int = 0,
-                 upright: bool = False, up_fields: int = 8, upright_convs: int | None = None):
+                 upright: bool = False, up_fields: int = 8, upright_convs: int | None = None,
+                 gray: bool = False):
         super().__init__()
         aspp_level = level - len(channels) + 1 if aspp_level is None else aspp_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
@@ -64,7 +65,8 @@ class SphericalDeepLabV3(_Segmenter):
                            low_channels=low_channels, num_basis=num_basis,
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, refine=refine,
-                           upright=upright, up_fields=up_fields, upright_convs=upright_convs)
+                           upright=upright, up_fields=up_fields, upright_convs=upright_convs,
+                           gray=gray)
         _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, aspp_level,
                                           aspp_level, channels, num_basis, radius_spacings,
@@ -83,7 +85,7 @@ class SphericalDeepLabV3(_Segmenter):
         self.fuse = Pointwise(a * (len(rates) + 2), a)
         self.up = blur(ga, gl, 0.5 * level_spacing(aspp_level))
         self.low = Pointwise(self.backbone.skip_channels[0], low_channels)
-        self._gravity_net(gravity, in_channels, level, refine)
+        self._gravity_net(gravity, in_channels, level, refine, gray)
         self.decoder = ConvStage(gl, a + low_channels, a // 2,
                                  radius_spacings * level_spacing(level), num_basis,
                                  upright=_oriented(level, upright_convs))

@@ -109,7 +109,7 @@ class SphericalDetector(Detector, WithUp):
                  num_basis: int = 3, radius_spacings: float = 3.0, jet_spacings: float = 3.5,
                  pairs: int = 8, pair_stages: int = 2, gradient_fields: int = 4,
                  gravity: bool = False, upright: bool = False, up_fields: int = 8,
-                 upright_convs: int | None = None):
+                 upright_convs: int | None = None, gray: bool = False):
         super().__init__()
         if not min_level <= head_level <= input_level:
             raise ValueError(f"need min_level <= head_level <= input_level, got {min_level}, "
@@ -120,10 +120,10 @@ class SphericalDetector(Detector, WithUp):
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gradient_fields=gradient_fields,
                            gravity=gravity, upright=upright, up_fields=up_fields,
-                           upright_convs=upright_convs)
+                           upright_convs=upright_convs, gray=gray)
         _check_upright(upright, gravity)
         self.num_classes, self.K = num_classes, gradient_fields
-        self._gravity_net(gravity, in_channels, input_level)
+        self._gravity_net(gravity, in_channels, input_level, gray=gray)
         self.backbone = SphericalBackbone(in_channels + int(gravity), input_level, head_level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
                                           pairs, pair_stages, upright=upright, up_fields=up_fields,

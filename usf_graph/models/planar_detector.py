@@ -47,7 +47,8 @@ class PlanarDetector(Detector):
     sub-pixel centre offset ``(du, dv)``, ``log fov_x``, ``log fov_y`` and the roll, all
     read in the image's own terms. Boxes are decoded from pixel coordinates, so they are
     tied to the panorama's latitude/longitude layout: the comparison the spherical head
-    is built to win under rotation.
+    is built to win under rotation. ``gray``: it reads the input's luma only (mono cameras;
+    :func:`~usf_graph.nn.colour.grayscale`).
 
     Shapes: ``x [B, C, H, W]`` -> ``{"heat": [B, M, num_classes], "box": [B, M, 5],
     "mask": [M] or None, "seen": [H W] or None}`` with M = (H/2)(W/2) output pixels in
@@ -55,7 +56,7 @@ class PlanarDetector(Detector):
     """
 
     def __init__(self, num_classes: int = 12, in_channels: int = 3, height: int = 128,
-                 width: int = 256, channels=(16, 32, 64, 128)):
+                 width: int = 256, channels=(16, 32, 64, 128), gray: bool = False):
         super().__init__()
         self.input_dims = 4
         depth = len(channels)
@@ -63,9 +64,9 @@ class PlanarDetector(Detector):
             raise ValueError(f"height and width must be divisible by {2 ** (depth - 1)}, got "
                              f"{height}x{width}")
         self.config = dict(num_classes=num_classes, in_channels=in_channels, height=height,
-                           width=width, channels=list(channels))
-        self.num_classes = num_classes
-        self.body = PlanarUNet(num_classes + 5, in_channels, channels, out_stride=2)
+                           width=width, channels=list(channels), gray=gray)
+        self.num_classes, self.gray = num_classes, bool(gray)
+        self.body = PlanarUNet(num_classes + 5, in_channels, channels, out_stride=2, gray=gray)
         self.out_camera = Equirectangular(width // 2, height // 2)
         rays, _ = self.out_camera.lens_normal_map()
         self.register_buffer("points", torch.as_tensor(rays.reshape(-1, 3)), persistent=False)

@@ -7,6 +7,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from ..nn.colour import check_gray, grayscale
+
 
 def conv_block(c_in: int, c_out: int, dilation: int = 1) -> nn.Sequential:
     """3x3 conv (no bias) -> BatchNorm -> ReLU."""
@@ -32,10 +34,12 @@ def _encode(down: nn.ModuleList, x: torch.Tensor) -> list:
     return feats
 
 
-def _check_image(x: torch.Tensor, c: int, multiple: int) -> None:
+def _checked_image(x: torch.Tensor, c: int, multiple: int, gray: bool) -> torch.Tensor:
+    """``x``, checked, as the network reads it (its luma with ``gray``)."""
     if x.dim() != 4 or x.shape[1] != c or x.shape[2] % multiple or x.shape[3] % multiple:
         raise ValueError(f"expected x [B, {c}, H, W] with H and W divisible by {multiple}, got "
                          f"{tuple(x.shape)}")
+    return grayscale(x, 1) if gray else x
 
 
 class PlanarUNet(nn.Module):
@@ -43,22 +47,25 @@ class PlanarUNet(nn.Module):
     with skip connections up to ``1 / out_stride`` of the input, then a conv block and a
     1x1 conv to ``num_classes`` outputs per pixel.
 
-    Fully convolutional: any ``H, W`` divisible by ``2 ** (len(channels) - 1)``.
+    Fully convolutional: any ``H, W`` divisible by ``2 ** (len(channels) - 1)``. ``gray``:
+    it reads the input's luma only (:func:`~usf_graph.nn.colour.grayscale`; for mono
+    cameras).
 
     Shapes: ``x [B, in_channels, H, W]`` -> ``[B, num_classes, H / out_stride,
     W / out_stride]``.
     """
 
     def __init__(self, num_classes: int = 13, in_channels: int = 3, channels=(32, 64, 128, 128),
-                 out_stride: int = 1):
+                 out_stride: int = 1, gray: bool = False):
         super().__init__()
         k = {1: 0, 2: 1, 4: 2}.get(out_stride)
         if k is None or k >= len(channels):
             raise ValueError(f"out_stride must be 1, 2 or 4 (and coarser than the deepest level), "
                              f"got {out_stride}")
         self.config = dict(num_classes=num_classes, in_channels=in_channels,
-                           channels=list(channels), out_stride=out_stride)
+                           channels=list(channels), out_stride=out_stride, gray=gray)
         self.input_dims, self.in_channels = 4, in_channels
+        self.gray = check_gray(gray, in_channels)
         self.multiple = 2 ** (len(channels) - 1)
         self.down, c_in = _encoder(in_channels, channels), channels[-1]
         self.up = nn.ModuleList()
@@ -77,8 +84,7 @@ class PlanarUNet(nn.Module):
                 m.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        _check_image(x, self.in_channels, self.multiple)
-        skips = _encode(self.down, x)
+        skips = _encode(self.down, _checked_image(x, self.in_channels, self.multiple, self.gray))
         x = skips.pop()
         for block in self.up:
             skip = skips.pop()
@@ -109,16 +115,19 @@ class PlanarDeepLab(nn.Module):
     r"""DeepLab v3 on the equirectangular image: a conv backbone down to stride
     ``2 ** (len(channels) - 1)``, ASPP (``rates``, image pooling), then the v3+ decoder
     (upsample, concatenate the stride-1 features, one conv block) and a 1x1 conv.
+    ``gray``: as :class:`PlanarUNet`'s.
 
     Shapes: ``x [B, in_channels, H, W]`` -> ``[B, num_classes, H, W]``.
     """
 
     def __init__(self, num_classes: int = 13, in_channels: int = 3, channels=(32, 64, 128, 128),
-                 aspp_channels: int = 128, rates=(2, 4, 6)):
+                 aspp_channels: int = 128, rates=(2, 4, 6), gray: bool = False):
         super().__init__()
         self.config = dict(num_classes=num_classes, in_channels=in_channels,
-                           channels=list(channels), aspp_channels=aspp_channels, rates=list(rates))
+                           channels=list(channels), aspp_channels=aspp_channels, rates=list(rates),
+                           gray=gray)
         self.input_dims, self.in_channels = 4, in_channels
+        self.gray = check_gray(gray, in_channels)
         self.multiple = 2 ** (len(channels) - 1)
         self.down, c_in = _encoder(in_channels, channels), channels[-1]
         self.aspp = _ASPP(c_in, aspp_channels, rates)
@@ -131,8 +140,7 @@ class PlanarDeepLab(nn.Module):
         return cls(**config)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        _check_image(x, self.in_channels, self.multiple)
-        feats = _encode(self.down, x)
+        feats = _encode(self.down, _checked_image(x, self.in_channels, self.multiple, self.gray))
         low, x = feats[0], feats[-1]
         x = F.interpolate(self.aspp(x), size=low.shape[-2:], mode="bilinear", align_corners=False)
         return self.head(self.decoder(torch.cat([x, low], 1)))

@@ -30,6 +30,7 @@ from ..nn import (
     MaskedBatchNorm,
     UpJet,
 )
+from ..nn.colour import check_gray, grayscale
 from ..nn.precision import GeometryModule
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights, level_scores
 from .stages import ConvStage, _oriented, blur, check_input, level_spacing, refined_copy
@@ -183,14 +184,18 @@ class UpNet(GeometryModule):
     rotates with the camera, so the estimate stays equivariant; but the prior is wrong for a
     tilted narrow camera (one looking at the floor): leave it 0 there.
 
+    ``gray``: it reads only the input's luma (:func:`~usf_graph.nn.colour.grayscale`).
+
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, ``mask [N]`` or
     ``None`` -> :class:`GravityHead`'s output ``{"up": [B, 3], "logits": [B, Nc], ...}``.
     """
 
     def __init__(self, in_channels: int, level: int, channels=(32, 64, 128), num_basis: int = 3,
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, refine: int = 0,
-                 coarsen: int = 1, edge_votes: bool = True, polish: bool = True):
+                 coarsen: int = 1, edge_votes: bool = True, polish: bool = True,
+                 gray: bool = False):
         super().__init__()
+        self.gray = check_gray(gray, in_channels)
         levels = list(range(level - coarsen, level - coarsen - len(channels), -1))
         if not channels or coarsen < 0 or levels[-1] < 0:
             raise ValueError(f"UpNet needs coarsen >= 0 and 1 to {level - coarsen + 1} channel "
@@ -218,6 +223,7 @@ class UpNet(GeometryModule):
         self.register_buffer("view_area", grids[level].area.double(), persistent=False)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        x = grayscale(x) if self.gray else x
         m, x_in = mask, x
         if self.pre is not None:
             x, mp = self.pre(x, m)
@@ -283,14 +289,22 @@ class WithUp(GeometryModule):
     from ``up [B, 3]`` when given (a known gravity: an IMU, or the training views' labels),
     else from the :class:`UpNet`'s estimate ``{"up": [B, 3], "logits": [B, Nc]}`` (trained
     by :meth:`GravityHead.loss`). The estimate rotates with the image, so the heights are
-    invariant and the outputs stay equivariant."""
+    invariant and the outputs stay equivariant.
+
+    ``gray`` (a config entry of every model built on it): the model, up estimate
+    included, reads only the luma of its RGB input (:func:`~usf_graph.nn.colour.grayscale`),
+    as a mono camera records it; trained so (``usf-graph train seg|det --gray``), it gives
+    the same outputs for a colour image and for its gray version."""
 
     gravity: UpNet | None
 
-    def _gravity_net(self, gravity: bool, in_channels: int, level: int, refine: int = 0):
+    def _gravity_net(self, gravity: bool, in_channels: int, level: int, refine: int = 0,
+                     gray: bool = False):
         """Builds ``self.gravity`` for inputs ``[B, N, in_channels]`` on
-        ``icosahedral(level + refine)``."""
-        self.gravity = UpNet(in_channels, level, refine=refine) if gravity else None
+        ``icosahedral(level + refine)``; ``gray``: the model reads its input's luma only
+        (:func:`~usf_graph.nn.colour.grayscale`), the up estimate included."""
+        self.gray = check_gray(gray, in_channels)
+        self.gravity = UpNet(in_channels, level, refine=refine, gray=gray) if gravity else None
         self._input = (in_channels, level + refine)
         if gravity:
             pos = icosahedral(level + refine).pos
@@ -313,7 +327,8 @@ class WithUp(GeometryModule):
         unit up for an upright backbone, else None)``.
         The :class:`UpNet` runs when ``up`` is not given, in training while it is trainable
         (its loss needs the estimate) or when ``estimate`` asks for it; else the estimate
-        is ``None``."""
+        is ``None``. A gray model reads ``x``'s luma from here on."""
+        x = grayscale(x) if self.gray else x
         if self.gravity is None:
             if up is not None:
                 raise ValueError("up is only read by models built with gravity=True")
@@ -389,7 +404,7 @@ class SphericalUNet(_Segmenter):
                  radius_spacings: float = 3.0, jet_spacings: float = 3.5, pairs: int = 8,
                  pair_stages: int = 2, gravity: bool = False, depth: int = 1,
                  head_depth: int = 0, refine: int = 0, upright: bool = False, up_fields: int = 8,
-                 upright_convs: int | None = None):
+                 upright_convs: int | None = None, gray: bool = False):
         super().__init__()
         min_level = level - len(channels) + 1 if min_level is None else min_level
         self.config = dict(num_classes=num_classes, in_channels=in_channels, level=level,
@@ -397,14 +412,14 @@ class SphericalUNet(_Segmenter):
                            radius_spacings=radius_spacings, jet_spacings=jet_spacings,
                            pairs=pairs, pair_stages=pair_stages, gravity=gravity, depth=depth,
                            head_depth=head_depth, refine=refine, upright=upright, up_fields=up_fields,
-                           upright_convs=upright_convs)
+                           upright_convs=upright_convs, gray=gray)
         _check_upright(upright, gravity)
         self.backbone = SphericalBackbone(in_channels + int(gravity), level, level, min_level,
                                           channels, num_basis, radius_spacings, jet_spacings,
                                           pairs, pair_stages, refine, depth, upright, up_fields,
                                           upright_convs)
         c = self.backbone.out_channels
-        self._gravity_net(gravity, in_channels, level, refine)
+        self._gravity_net(gravity, in_channels, level, refine, gray)
         self.head_stage = ConvStage(self.backbone.grids[level], c, c,
                                     radius_spacings * level_spacing(level), num_basis,
                                     head_depth, _oriented(level, upright_convs)) if head_depth else None

@@ -77,14 +77,17 @@ def _auto(camera, grid) -> str:
     return _per_camera("interpolation", camera, lambda: choose_interpolation(camera, grid), grid.spec)
 
 
-def rgb_channels(image) -> np.ndarray:
+def rgb_channels(image, colour_model: bool = True) -> np.ndarray:
     """``image``'s three colour channels ``[H, W, 3]``, in its dtype: a fourth (alpha)
     channel is dropped, and a grayscale image (``[H, W]`` or ``[H, W, 1]``: a mono camera's)
-    is read as R = G = B, with a warning, since the models were trained on colour."""
+    is read as R = G = B, with a warning where it goes to a ``colour_model`` (one not
+    trained with ``--gray``)."""
     a = np.asarray(image)
     if a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1):
-        warnings.warn("a grayscale image is read as R = G = B; the models were trained on "
-                      "colour images (README, Your own images: what that costs)", stacklevel=3)
+        if colour_model:
+            warnings.warn("a grayscale image is read as R = G = B by a model trained on colour "
+                          "images, which costs it much (README, Your own images: Mono cameras); "
+                          "train one for mono cameras with --gray", stacklevel=3)
         return np.repeat(a.reshape(*a.shape[:2], 1), 3, axis=2)
     if a.ndim != 3 or a.shape[2] not in (3, 4):
         raise ValueError(f"the models read RGB images [H, W, 3] (or grayscale [H, W]), got shape "
@@ -92,10 +95,10 @@ def rgb_channels(image) -> np.ndarray:
     return a[..., :3]
 
 
-def rgb01(image) -> np.ndarray:
+def rgb01(image, colour_model: bool = True) -> np.ndarray:
     """An RGB image as float32 in [0, 1], ``[H, W, 3]`` (:func:`rgb_channels`): uint8 /
     255, uint16 / 65535, float as it is (checked to lie in [0, 1])."""
-    a = rgb_channels(image)
+    a = rgb_channels(image, colour_model)
     if a.dtype == np.uint8 or a.dtype == np.uint16:
         return a.astype(np.float32) / np.iinfo(a.dtype).max
     if a.dtype.kind != "f":
@@ -122,9 +125,9 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     (a list in that order, or ``{name: image}``), lifted onto one sphere
     (:class:`~usf_graph.frontend.RigFrontend`, the frontend returned); their masks go
     with the cameras (:func:`usf_graph.cameras.with_fov_and_mask`)."""
-    grid = input_grid(model)
+    grid, colour = input_grid(model), not getattr(model, "gray", False)
     if not is_rig(camera):
-        rgb = rgb01(image)  # before any table is built: a wrong image costs nothing
+        rgb = rgb01(image, colour)  # before any table is built: a wrong image costs nothing
         if interpolation == "auto":
             interpolation = _auto(camera, grid)
         if image_mask is not None:
@@ -138,8 +141,8 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     if image_mask is not None:
         raise ValueError("a rig's image masks go with its cameras: cameras.with_fov_and_mask")
     cams = list(camera.values()) if isinstance(camera, Mapping) else list(camera)
-    rgb = {k: rgb01(v) for k, v in image.items()} if isinstance(image, Mapping) else \
-        [rgb01(v) for v in image]
+    rgb = {k: rgb01(v, colour) for k, v in image.items()} if isinstance(image, Mapping) else \
+        [rgb01(v, colour) for v in image]
     if interpolation == "auto":
         picks = {_auto(c, grid) for c in cams}
         interpolation = "area" if "area" in picks else "bilinear"
@@ -200,7 +203,7 @@ def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | N
     if not isinstance(fe, SphericalFrontend):
         raise ValueError("up='lines' reads the straight lines of one pinhole's image, not a rig's")
     require_up_estimate(model, "up='lines'")
-    axes = manhattan_axes(*line_normals(rgb01(image), fe.camera))
+    axes = manhattan_axes(*line_normals(rgb01(image, colour_model=False), fe.camera))  # warned at lift
     if axes is None:
         return None, {"lines": "too few straight lines: the estimate"}
     up, margin = estimate_up(model.gravity, x, mask, axes=torch.as_tensor(axes)[None])

@@ -298,12 +298,13 @@ def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train:
 
 def make_detector(num_classes: int = len(DETECTION_CLASSES), upright: bool = True,
                   upright_convs: int | None = UPRIGHT_CONVS,
-                  channel_scale: float = 1.0) -> SphericalDetector:
+                  channel_scale: float = 1.0, gray: bool = False) -> SphericalDetector:
     """The protocols' spherical detector: with ``upright`` it reads an up estimate
     (``gravity=True``) and directions in its frame, with
     :class:`~usf_graph.nn.UprightConv` on the levels up to ``upright_convs``; every channel
-    count times ``channel_scale`` (:func:`~usf_graph.train.engine.scaled_channels`)."""
-    return SphericalDetector(num_classes=num_classes, gravity=upright, upright=upright,
+    count times ``channel_scale`` (:func:`~usf_graph.train.engine.scaled_channels`);
+    ``gray``: it reads only its input's luma (mono cameras)."""
+    return SphericalDetector(num_classes=num_classes, gravity=upright, upright=upright, gray=gray,
                              upright_convs=upright_convs if upright else None,
                              **scaled_channels(SphericalDetector, channel_scale))
 
@@ -314,7 +315,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
         up_epochs: int = 12, up_extra: int = 1600, up_caps: float = 0.5,
         upright_convs: int | None = UPRIGHT_CONVS, fov_epochs: int = FOV_EPOCHS,
         fov_share: float = FOV_SHARE, up_sign: float = 0.0, channel_scale: float = 1.0,
-        resume: bool = False, device: str | None = None, materials: str = "random") -> dict:
+        resume: bool = False, device: str | None = None, materials: str = "random",
+        gray: bool = False) -> dict:
     """The detection protocol on procedural rooms (module docstring). Writes
     ``results.json``, both checkpoints and ``det_results.png`` under ``out``.
     ``channel_scale``: both detectors' channel counts times this
@@ -346,7 +348,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     (:func:`~usf_graph.train.engine.fit`; finished ones just load). ``device``: where the
     detectors train and predict (:func:`~usf_graph.train.engine.resolve_device`; default
     the CPU). ``materials``: the rooms' (:mod:`usf_graph.scenes.materials`; ``"random"``,
-    the protocol's)."""
+    the protocol's). ``gray``: both detectors read only their views' luma (mono cameras;
+    :func:`make_detector`), in training and in every test."""
     check_channel_scale(channel_scale)  # these before any rendering
     check_materials(materials)
     check_extra_rooms(seed, up_extra if upright else 0)
@@ -362,8 +365,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
                "ignored_boxes": {},  # per test: cut by the camera's border (DetectionSet.ignored)
                "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
                "up_sign": up_sign, "channel_scale": channel_scale, "materials": materials,
-               "drop_hidden": True}  # the decoding rule (c) and (d) were scored with
-    spherical = make_detector(C, upright, upright_convs, channel_scale).to(dev)
+               "drop_hidden": True, "gray": gray}  # the decoding rule (c) and (d) were scored with
+    spherical = make_detector(C, upright, upright_convs, channel_scale, gray).to(dev)
     if upright:
         results["samples"]["up_train"] = up_train
         results["samples"]["up_extra"] = up_extra
@@ -375,7 +378,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     if planar:
         w, h = 2 * size, size
         seed_everything(seed)  # the same initialization whatever the up estimate's training drew
-        models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w,
+        models["planar"] = (PlanarDetector(num_classes=C, height=h, width=w, gray=gray,
                                            **scaled_channels(PlanarDetector, channel_scale)).to(dev),
                             lambda ds: DetectionSet.planar(ds, w, h, progress), planar_epochs or epochs)
     preds, ignored = {}, {}

@@ -28,7 +28,8 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                  models=("spherical_unet",), level: int = 5, size: int = 256, epochs: int = 12,
                  batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                  progress: bool = True, balance: float = 0.5, up_epochs: int = 24,
-                 upright: bool = True, resume: bool = False, device: str | None = None) -> dict:
+                 upright: bool = True, resume: bool = False, device: str | None = None,
+                 gray: bool = False) -> dict:
     """Train on each fold's training areas of Stanford 2D-3D-S (RGB, unrotated as released)
     and score its test areas: mIoU and mAcc from the fold's confusion matrix on the
     ``2 size x size`` panoramas' pixels, the sphere's area-weighted mIoU, and USF's per-image
@@ -36,7 +37,7 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
     ``results.json`` and one checkpoint per fold and model under ``out``. Each model is
     trained as in the rooms protocol (:func:`~usf_graph.train.seg.train_model`: class
     weights, the up estimate first, per fold; ``upright`` as
-    :func:`~usf_graph.train.seg.make_model`'s; ``resume`` and ``device`` as
+    :func:`~usf_graph.train.seg.make_model`'s; ``resume``, ``device`` and ``gray`` as
     :func:`~usf_graph.train.seg.run`'s)."""
     from ..datasets import Stanford2D3DS
 
@@ -46,13 +47,13 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
     out, t0 = Path(out), time.time()
     kw = dict(grid=f"icosahedral:{level}", size=size, progress=progress)
     results = {"folds": list(folds), "level": level, "size": size, "epochs": epochs,
-               "balance": balance, "up_epochs": up_epochs, "upright": upright}
+               "balance": balance, "up_epochs": up_epochs, "upright": upright, "gray": gray}
     for fold in folds:
         train = Stanford2D3DS(root, fold, "train", **kw)
         test = Stanford2D3DS(root, fold, "test", **kw)
         shared = {}
         for name in models:
-            net = seg.make_model(name, level, upright).to(dev)
+            net = seg.make_model(name, level, upright, gray=gray).to(dev)
             seg.train_model(net, train, out / f"fold{fold}", name, epochs, batch_size, lr, seed,
                         progress, balance, up_epochs, shared, label=f"{name} fold {fold}",
                         resume=resume)
@@ -75,12 +76,12 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
 def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
                 batch_size: int = 8, lr: float = 2e-3, seed: int = 0, grid: str = "icosahedral:5",
                 progress: bool = True, upright: bool = True, up_epochs: int = 24,
-                resume: bool = False, device: str | None = None) -> dict:
+                resume: bool = False, device: str | None = None, gray: bool = False) -> dict:
     """Train the spherical detector on PANDORA's train split (unrotated, as released) and
     score its test split: COCO AP/AP50/AP75 with the spherical IoU and USF's mAP@10.
     Writes ``results.json`` and ``spherical.pt`` under ``out``. ``upright``: as in
     :func:`~usf_graph.train.det.run`, the up estimate trained first on the same panoramas;
-    ``resume`` and ``device`` as its."""
+    ``resume``, ``device`` and ``gray`` as its."""
     from ..datasets import Pandora
 
     dev = resolve_device(device)
@@ -91,7 +92,7 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
     train = det.DetectionSet.spherical(train_set)
     test = det.DetectionSet.spherical(Pandora(root, "test", grid=grid, progress=progress))
     C = len(PANDORA_CLASSES)
-    net = det.make_detector(C, upright).to(dev)
+    net = det.make_detector(C, upright, gray=gray).to(dev)
     if upright:
         pretrain_up(net, train_set, up_epochs, batch_size, seed=seed, progress=progress,
                     log_dir=out / "up_estimate", resume=resume)
@@ -100,7 +101,7 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
         step=det.detection_step, collate_fn=train.collate, resume=resume)
     if rank != 0:
         return {}
-    res = {"samples": {"train": len(train), "test": len(test)},
+    res = {"samples": {"train": len(train), "test": len(test)}, "gray": gray,
            "spherical": det.score(det.predict(net, test, progress=progress), test, C)}
     save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"],
                     extra={"data": {"dataset": "pandora"}})

@@ -245,7 +245,7 @@ def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
 
 
 def make_model(name: str, level: int = 5, upright: bool = True,
-               channel_scale: float = 1.0) -> nn.Module:
+               channel_scale: float = 1.0, gray: bool = False) -> nn.Module:
     """A protocol model by name (:data:`MODELS`), spherical ones on ``icosahedral:level``
     with their up estimate (``gravity=True``: trained on the views' known gravity, it
     gives the network each point's height, which a planar network reads from its rows)
@@ -254,18 +254,19 @@ def make_model(name: str, level: int = 5, upright: bool = True,
     coarser than the input's then have oriented kernels as well
     (:class:`~usf_graph.nn.UprightConv`, ``upright_convs=level - 1``). ``channel_scale``:
     every channel count times this (:func:`~usf_graph.train.engine.scaled_channels`; the
-    up estimate keeps its own)."""
+    up estimate keeps its own). ``gray``: the model reads only its input's luma (for mono
+    cameras; :class:`~usf_graph.models.unet.WithUp`)."""
     if name not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
     C = len(SEMANTIC_CLASSES)
     widths = scaled_channels(MODELS[name], channel_scale)
     if name == "planar_unet":
-        return PlanarUNet(C, **widths)
+        return PlanarUNet(C, gray=gray, **widths)
     # upright: oriented fields replace the gradient pairs, for the 2x step budget (README)
     kw = dict(upright=True, pairs=0, up_fields=4, **widths) if upright else widths
     if upright and name == "spherical_deeplab":  # the U-Net's stay distance-only: its step budget
         kw["upright_convs"] = level - 1
-    return MODELS[name](C, level=level, gravity=True, **kw)
+    return MODELS[name](C, level=level, gravity=True, gray=gray, **kw)
 
 
 def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
@@ -360,7 +361,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
         balance: float = 0.5, up_epochs: int = 8, upright: bool = True, up_extra: int = 800,
         up_caps: float = 0.5, fov_epochs: int = FOV_EPOCHS, fov_share: float = FOV_SHARE,
         up_sign: float = 0.0, channel_scale: float = 1.0, resume: bool = False,
-        device: str | None = None, materials: str = "random") -> dict:
+        device: str | None = None, materials: str = "random", gray: bool = False) -> dict:
     """The segmentation protocol on procedural rooms (module docstring). Writes
     ``results.json``, one checkpoint per model and ``seg_results.png`` under ``out``.
     ``upright``, ``channel_scale``: as :func:`make_model`'s, for every model (0.5, with
@@ -381,7 +382,9 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     its ``last.pt`` (:func:`~usf_graph.train.engine.fit`; finished ones just load).
     ``device``: where the models train and predict
     (:func:`~usf_graph.train.engine.resolve_device`; default the CPU). ``materials``: the
-    rooms' (:mod:`usf_graph.scenes.materials`; ``"random"``, the protocol's)."""
+    rooms' (:mod:`usf_graph.scenes.materials`; ``"random"``, the protocol's). ``gray``:
+    every model reads only its views' luma (:func:`make_model`): a mono camera's protocol,
+    its tests gray as well."""
     check_channel_scale(channel_scale)  # these before any rendering
     check_materials(materials)
     check_extra_rooms(seed, up_extra)
@@ -397,7 +400,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
                "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign,
                "fov_epochs": fov_epochs, "fov_share": fov_share, "channel_scale": channel_scale,
-               "materials": materials}
+               "materials": materials, "gray": gray}
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
     extra = up_views(root, up_extra, f"icosahedral:{level}", progress, materials) \
@@ -405,7 +408,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     up_kw = dict(caps=up_caps, extra=extra, sign_weight=up_sign)
     for name in models:
         seed_everything(seed)
-        net = make_model(name, level, upright, channel_scale).to(dev)
+        net = make_model(name, level, upright, channel_scale, gray).to(dev)
         t = time.time()
         train_model(net, sets["train"], out, name, epochs, batch_size, lr, seed, progress,
                     balance, up_epochs, shared, up_kw=up_kw, fov_epochs=fov_epochs,
