@@ -589,7 +589,8 @@ def test_train_mnist_refuses_the_options_of_train_det_and_seg(capsys):
 
 
 def test_eval_mnist_refuses_the_options_of_eval_det_and_seg(tmp_path, capsys):
-    for argv, named in ((["--test", "a"], "--test"), (["--known-up", "--fold", "2"], "--fold, --known-up")):
+    for argv, named in ((["--test", "a"], "--test"), (["--known-up", "--fold", "2"], "--fold, --known-up"),
+                        (["--gray"], "--gray")):
         assert main(["eval", "mnist", str(tmp_path / "m.pt"), *argv]) == 2
         assert f"{named}: options of 'eval det|seg'" in capsys.readouterr().err
 

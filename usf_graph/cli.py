@@ -250,7 +250,7 @@ def cmd_eval(args) -> int:
     from .cli_det import given
 
     other = given(args, "dataset", "fold", "test", "size", "num_test", "boxes", "known_up",
-                  "up_lines", "level_prior", "sign_check", "render")
+                  "up_lines", "level_prior", "sign_check", "render", "gray")
     if other:  # rather than ignore them
         raise ValueError(f"{', '.join(other)}: options of 'eval det|seg', not of 'eval mnist'")
     from .datasets import SphericalMNIST

@@ -120,6 +120,10 @@ def add_eval_options(e) -> None:
                         "point's label (the protocols'); soft: the argmax of the "
                         "probabilities blended over the three nearest points, smoother "
                         "on images finer than the grid (README, Your own images)")
+    e.add_argument("--gray", action="store_true",
+                   help="det, seg: the model reads the test images' luma only, as a mono "
+                        "camera records them (what a colour model loses there; a checkpoint of "
+                        "'train --gray' reads them so anyway)")
     add_device_option(e)
     e.add_argument("--sign-check", default=None, metavar="PATH",
                    help="det, seg: pass the up estimate through this sign check on wide fields "
@@ -159,8 +163,9 @@ def rooms_only_options(args) -> None:
 
 
 def rooms_kind(results: dict) -> str:
-    """How a protocol's printed table names its rooms."""
-    return "rooms with materials by kind" if results.get("materials") == "by_kind" else "rooms"
+    """How a protocol's printed table names its rooms (and that its models saw them in gray)."""
+    rooms = "rooms with materials by kind" if results.get("materials") == "by_kind" else "rooms"
+    return rooms + (", seen in gray (--gray)" if results.get("gray") else "")
 
 
 def print_targets(results: dict, out: str | None) -> None:
@@ -279,6 +284,10 @@ def ready_model(ckpt, args):
 
     model = ckpt.model.to(resolve_device(args.device))
     up_options(model, args)
+    if getattr(args, "gray", False):
+        from .nn.colour import read_gray
+
+        read_gray(model)
     return model
 
 

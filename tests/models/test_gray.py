@@ -102,3 +102,16 @@ def test_gray_needs_rgb_inputs():
     gray, _ = _pair(*SPHERICAL[0])
     with pytest.raises(ValueError, match="3 channels"):
         gray(torch.zeros(1, len(gray.gravity.view_pos), 1, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("cls,kw", [SPHERICAL[1], PLANAR[2]])
+def test_read_gray_makes_a_colour_model_its_gray_twin(cls, kw):
+    from usf_graph.nn.colour import read_gray
+
+    gray, colour = _pair(cls, kw)
+    assert read_gray(colour) >= 2 and not colour.config["gray"]  # the model and what it holds
+    x, mask, _ = _input(cls, kw, 4)
+    with torch.no_grad():
+        for a, b in zip(_flat(colour(x, mask)), _flat(gray(x, mask))):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert read_gray(torch.nn.Linear(3, 3)) == 0

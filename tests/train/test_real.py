@@ -40,6 +40,8 @@ def test_stanford_command_on_fixtures(tmp_path, capsys):
     assert f"mIoU {100 * r['mIoU']:.2f}," in line and f"mAcc {100 * r['mAcc']:.2f}" in line
     assert load_protocol_model(ckpt).dataset == "stanford2d3ds" and load_protocol_model(ckpt).fold == 1
     assert load_protocol_model(ckpt).model.gray and load_protocol_model(ckpt).model.gravity.gray
+    assert main(["eval", "seg", ckpt, "--root", str(root), "--gray"]) == 0  # gray already: the same
+    assert f"mIoU {100 * r['mIoU']:.2f}," in capsys.readouterr().out
     assert main(["eval", "seg", ckpt, "--root", str(root), "--known-up"]) == 0  # +z, as released
     assert "fold 1 test up estimate" in capsys.readouterr().out
     for argv, match in ((["--test", "a"], "rooms options"), (["--dataset", "pandora"], "not seg data"),

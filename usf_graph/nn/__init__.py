@@ -9,6 +9,7 @@ from ..graph import (
     radius_for_neighbors,
 )
 from .aggregate import EdgePlan, basis_aggregate
+from .colour import grayscale
 from .conv import DistanceConv, PointConv, SphericalConv
 from .jet import (
     FillHidden,
@@ -40,4 +41,4 @@ __all__ = ["FillHidden", "LocalJet", "GradientPairs", "SurfaceJet", "UpJet", "je
            "MaskedBatchNorm", "global_mean_pool_area", "global_max_pool_masked",
            "euclidean_radius", "geodesic_radius", "geodesic_radius_graph",
            "euclidean_radius_graph", "knn_graph", "radius_for_neighbors", "GeometryModule",
-           "accumulate_in"]
+           "accumulate_in", "grayscale"]

@@ -33,4 +33,16 @@ def check_gray(gray: bool, in_channels: int) -> bool:
     return bool(gray)
 
 
-__all__ = ["LUMA", "grayscale", "check_gray"]
+def read_gray(model) -> int:
+    """Makes ``model`` read only its inputs' luma from now on, as a model built with
+    ``gray=True`` does: every submodule with a ``gray`` flag (the models, their up
+    estimates) gets it set. For scoring a colour model on a mono camera's images; its
+    config (what a checkpoint saves) does not change. Returns how many it set (0: nothing
+    in ``model`` reads colour that way)."""
+    mods = [m for m in model.modules() if isinstance(getattr(m, "gray", None), bool)]
+    for m in mods:
+        m.gray = True
+    return len(mods)
+
+
+__all__ = ["LUMA", "grayscale", "check_gray", "read_gray"]
