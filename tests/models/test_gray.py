@@ -115,3 +115,9 @@ def test_read_gray_makes_a_colour_model_its_gray_twin(cls, kw):
         for a, b in zip(_flat(colour(x, mask)), _flat(gray(x, mask))):
             torch.testing.assert_close(a, b, rtol=0, atol=0)
     assert read_gray(torch.nn.Linear(3, 3)) == 0
+    if hasattr(colour, "refined"):  # resolution transfer keeps reading gray
+        finer, twin = colour.refined(1), gray.refined(1)
+        assert finer.gray and finer.gravity.gray
+        x = torch.rand(1, len(finer.gravity.view_pos), 3, dtype=torch.float64)
+        with torch.no_grad():
+            torch.testing.assert_close(finer(x), twin(x), rtol=0, atol=0)
