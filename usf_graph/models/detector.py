@@ -90,7 +90,8 @@ class SphericalDetector(Detector, WithUp):
     nadir), added to the jet-based ones: an upright box is then one number. With
     ``upright_convs`` (a level), the stages on that level and coarser, the head's included,
     use :class:`~usf_graph.nn.UprightConv`: oriented kernels in the frame of up (the
-    detection protocol uses 4; README).
+    detection protocol uses 4; README). ``gray``: it reads only its input's luma, for mono
+    cameras (:class:`~usf_graph.models.unet.WithUp`).
 
     ``forward(x, mask)`` returns those fields; :meth:`loss` trains them against boxes and
     :meth:`detect` decodes boxes. ``mask [N]`` (a camera's field of view, one for the

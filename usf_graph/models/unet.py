@@ -392,7 +392,8 @@ class SphericalUNet(_Segmenter):
     ``upright=True`` as well, the backbone also reads the orientation of the input and of
     ``up_fields`` learned fields relative to up (:class:`~usf_graph.nn.UpJet`, see
     :class:`SphericalBackbone`), and ``upright_convs`` (a level) makes the stages on that
-    level and coarser use :class:`~usf_graph.nn.UprightConv`.
+    level and coarser use :class:`~usf_graph.nn.UprightConv`. ``gray``: it reads only its
+    input's luma, for mono cameras (:class:`WithUp`).
 
     Shapes: ``x [B, N, in_channels]`` on ``icosahedral(level + refine)``, optional
     ``mask [N]`` (the camera's field of view) -> logits ``[B, N, num_classes]`` (and the
