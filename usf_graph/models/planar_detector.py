@@ -65,7 +65,7 @@ class PlanarDetector(Detector):
                              f"{height}x{width}")
         self.config = dict(num_classes=num_classes, in_channels=in_channels, height=height,
                            width=width, channels=list(channels), gray=gray)
-        self.num_classes, self.gray = num_classes, bool(gray)
+        self.num_classes = num_classes
         self.body = PlanarUNet(num_classes + 5, in_channels, channels, out_stride=2, gray=gray)
         self.out_camera = Equirectangular(width // 2, height // 2)
         rays, _ = self.out_camera.lens_normal_map()
@@ -75,6 +75,15 @@ class PlanarDetector(Detector):
         self.spacing = math.pi / (height // 2)
         self.register_buffer("ring", _ring(height // 2, width // 2), persistent=False)
         self.reset_parameters()
+
+    @property
+    def gray(self) -> bool:
+        """Whether it reads only its input's luma: its body's setting, not a copy."""
+        return self.body.gray
+
+    @gray.setter
+    def gray(self, value: bool) -> None:
+        self.body.gray = bool(value)
 
     def reset_parameters(self) -> None:
         self.body.reset_parameters()

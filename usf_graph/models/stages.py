@@ -56,14 +56,11 @@ class ConvStage(GeometryModule):
 def refined_copy(module: nn.Module, levels: int) -> nn.Module:
     """``module`` (built from its ``config``, with a ``refine`` entry) rebuilt for inputs
     ``levels`` grid levels finer, with its weights, device, dtype and mode: every radius is
-    in radians, so the same weights apply. Modules' ``gray`` flags go with them."""
+    in radians, so the same weights apply."""
     new = type(module)(**{**module.config, "refine": module.config.get("refine", 0) + levels})
     p = next(module.parameters())
     new = new.to(device=p.device, dtype=p.dtype)
     new.load_state_dict(module.state_dict())
-    for old, m in zip(module.modules(), new.modules()):  # read_gray's flags are not in the config
-        if isinstance(getattr(old, "gray", None), bool):
-            m.gray = old.gray
     return new.train(module.training)
 
 

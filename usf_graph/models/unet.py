@@ -367,6 +367,8 @@ class _Segmenter(WithUp):
         weights: for inputs lifted to ``icosahedral(level + levels)``."""
         net = refined_copy(self, levels)
         for old, new in zip(self.modules(), net.modules()):  # settings outside the state
+            if hasattr(old, "gray"):  # read_gray's flags are not in the config
+                new.gray = old.gray
             if isinstance(old, UpNet):
                 new.level_prior = old.level_prior
                 new.set_sign_check(None if old.sign_check is None else old.sign_check.refined(levels))
