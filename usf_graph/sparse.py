@@ -8,6 +8,8 @@ import warnings
 
 import torch
 
+from .tracing import exporting
+
 
 @contextlib.contextmanager
 def quiet_sparse():
@@ -61,6 +63,39 @@ def sparse_apply(A: torch.Tensor, At: torch.Tensor, x: torch.Tensor) -> torch.Te
     return _Apply.apply(x, A, At)
 
 
+def padded_rows(crow: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The entries of a CSR matrix ``[R, M]`` laid out in rows padded to the longest:
+    ``(col [R, D], slot [R, D])``, ``slot`` the entry's index (``nnz`` for padding, which
+    reads a zero appended to the values, and column 0). Built once, eagerly."""
+    crow, col = crow.long(), col.long()
+    r, nnz = len(crow) - 1, len(col)
+    counts = crow.diff()
+    d = int(counts.max()) if r and nnz else 0
+    row = torch.repeat_interleave(torch.arange(r, device=col.device), counts)
+    pos = torch.arange(nnz, device=col.device) - crow[row]
+    slot = torch.full((r, d), nnz, dtype=torch.long, device=col.device)
+    slot[row, pos] = torch.arange(nnz, device=col.device)
+    cols = torch.zeros((r, d), dtype=torch.long, device=col.device)
+    cols[row, pos] = col
+    return cols, slot
+
+
+def padded_values(val: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
+    """``val [nnz, ...]`` laid out as :func:`padded_rows`' ``slot``: ``[R, D, ...]``, 0 in
+    the padding."""
+    return torch.cat([val, val.new_zeros(1, *val.shape[1:])])[slot]
+
+
+def padded_matmul(cols: torch.Tensor, slot: torch.Tensor, val: torch.Tensor,
+                  x: torch.Tensor) -> torch.Tensor:
+    """``A @ x`` for ``A`` in :func:`padded_rows`' layout (values ``val [nnz]``) and a dense
+    ``x [M, ...]`` -> ``[R, ...]``: one gather and one batched product, without sparse
+    tensors or scatters, so ``torch.export`` and ONNX take it and run it fast."""
+    w = padded_values(val.to(x.dtype), slot)  # [R, D]
+    g = x.index_select(0, cols.view(-1)).view(*cols.shape, -1)  # [R, D, F]
+    return (w[:, None, :] @ g)[:, 0].reshape(len(cols), *x.shape[1:])
+
+
 def csr(row: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch.Tensor:
     """A sparse CSR matrix from COO entries (duplicates summed)."""
     with quiet_sparse():
@@ -81,13 +116,29 @@ def transpose_csr(A: torch.Tensor) -> torch.Tensor:
         return A.t().to_sparse_coo().coalesce().to_sparse_csr()
 
 
+def padded_layout(module: torch.nn.Module, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`padded_rows` of ``module``'s CSR buffers ``{name}_crow``/``{name}_col`` (or
+    ``crow``/``col`` for ``name=""``), built on first use and kept in non-persistent
+    buffers, so that they follow ``.to()`` and an exported graph holds them."""
+    pre = f"{name}_" if name else ""
+    if not hasattr(module, f"{pre}pad_col"):
+        if exporting():
+            raise RuntimeError("plain forms are built by an eager call first: export inside "
+                               "usf_graph.tracing.fixed_fields, after one eager call there")
+        with kept():
+            cols, slot = padded_rows(getattr(module, f"{pre}crow"), getattr(module, f"{pre}col"))
+        module.register_buffer(f"{pre}pad_col", cols, persistent=False)
+        module.register_buffer(f"{pre}pad_slot", slot, persistent=False)
+    return getattr(module, f"{pre}pad_col"), getattr(module, f"{pre}pad_slot")
+
+
 def buffer_as(module: torch.nn.Module, name: str, dtype: torch.dtype) -> torch.Tensor:
     """Buffer ``name`` of ``module`` in ``dtype``, converted once: geometry kept in float64
     would otherwise be copied to a float32 call's dtype on every call. The copy is kept
     while the buffer is the same tensor (``.to()`` replaces it) at the same version."""
     t = getattr(module, name)
     v = version(t)
-    if t.dtype == dtype or v is None:
+    if t.dtype == dtype or v is None or exporting():  # a traced call converts in its graph
         return t.to(dtype)
     cache = module.__dict__.setdefault("_buffers_as", {})
     hit = cache.get((name, dtype))

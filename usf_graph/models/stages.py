@@ -13,6 +13,7 @@ from ..frontend import grid_graph
 from ..grids import icosahedral
 from ..nn import GaussianPool, MaskedBatchNorm, SphericalConv, UprightConv
 from ..nn.precision import GeometryModule
+from ..tracing import check_values, field_of
 
 _SPACING: dict[int, float] = {}
 
@@ -82,12 +83,15 @@ def check_input(x: torch.Tensor, mask, n: int, c: int, level: int):
     if x.dim() != 3 or tuple(x.shape[1:]) != (n, c):
         raise ValueError(f"expected x [B, {n}, {c}] (a signal on icosahedral:{level}), got "
                          f"{tuple(x.shape)}")
-    if not torch.isfinite(x).all():
+    if check_values() and not torch.isfinite(x).all():
         raise ValueError("x has NaN or inf; lift images with SphericalFrontend or clean them")
-    if mask is not None and (mask.shape != (n,) or not mask.any()):
+    if mask is None:
+        return None
+    seen = field_of(mask) if mask.shape == (n,) else None
+    if seen is None or not seen.any():
         raise ValueError(f"mask must be a bool [{n}] with some point visible, got "
                          f"{tuple(mask.shape)}")
-    return None if mask is None or mask.all() else mask.bool()
+    return None if seen.all() else mask.bool()
 
 
 __all__ = ["level_spacing", "ConvStage", "blur", "check_input", "refined_copy"]

@@ -32,6 +32,7 @@ from ..nn import (
 )
 from ..nn.colour import check_gray, grayscale
 from ..nn.precision import GeometryModule
+from ..tracing import check_values
 from .gravity import EdgeVotes, GravityHead, UpPolish, heights, level_scores
 from .stages import ConvStage, _oriented, blur, check_input, level_spacing, refined_copy
 
@@ -334,8 +335,8 @@ class WithUp(GeometryModule):
                 raise ValueError("up is only read by models built with gravity=True")
             return x, None, None
         m = check_input(x, mask, len(self.in_pos), *self._input)
-        if up is not None and (up.shape != (len(x), 3) or not torch.isfinite(up).all()
-                               or not bool((up.norm(dim=-1) > 0).all())):
+        if up is not None and (up.shape != (len(x), 3) or check_values() and (
+                not torch.isfinite(up).all() or not bool((up.norm(dim=-1) > 0).all()))):
             raise ValueError(f"up must be finite, nonzero vectors [B, 3] = {(len(x), 3)} (each "
                              f"view's gravity direction), got shape {tuple(up.shape)}")
         trained = self.training and self.trains_up

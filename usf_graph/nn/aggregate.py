@@ -14,7 +14,8 @@ import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
 
-from ..sparse import kept, quiet_sparse, version
+from ..sparse import kept, padded_rows, padded_values, quiet_sparse, version
+from ..tracing import exporting, plain_forms
 from .precision import accumulate_in
 from .wide import wide_aggregate
 
@@ -105,6 +106,24 @@ class EdgePlan(nn.Module):
         """``(row, col)``: every edge's centre i and neighbour j, sorted row-major."""
         j, i = self.edge_index.to(torch.long)
         return (i, j) if self.order is None else (i[self.order], j[self.order])
+
+    def padded(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(cols [N, D], slot [N, D])``: every centre's neighbours in a row padded to the
+        most (:func:`usf_graph.sparse.padded_rows`), ``slot`` indexing the edges in their
+        given order (``E`` for padding). What the plain form reads; built on first use."""
+        if getattr(self, "pad_col", None) is None:
+            if exporting():
+                raise RuntimeError("plain forms are built by an eager call first: export "
+                                   "inside usf_graph.tracing.fixed_fields, after one eager "
+                                   "call there")
+            with kept():
+                row, col = self.sorted_edges()
+                cols, slot = padded_rows(_crow(row, self.num_nodes), col)
+                if self.order is not None:  # sorted position -> given position
+                    slot = torch.cat([self.order, self.order.new_tensor([self.num_edges])])[slot]
+            self.register_buffer("pad_col", cols, persistent=False)
+            self.register_buffer("pad_slot", slot, persistent=False)
+        return self.pad_col, self.pad_slot
 
     def _transpose(self, t: int) -> None:
         """The transposed structure of tile ``t``, built when a backward pass first needs it
@@ -197,12 +216,31 @@ def basis_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,
     acc = accumulate_in(x.dtype)
     if acc != x.dtype:
         return basis_aggregate(x.to(acc), weight.to(acc), coef.to(acc), plan).to(x.dtype)
+    if plain_forms():
+        return plain_aggregate(x, weight, coef, plan)
     if WIDE or (WIDE is None and x.device.type != "cpu"):
         return wide_aggregate(x, weight, coef, plan)
     if coef.dim() == 3:  # one sample at a time: each has its own matrices
         return torch.cat([_BasisAggregate.apply(x[b:b + 1], weight, coef[b], plan)
                           for b in range(len(x))])
     return _BasisAggregate.apply(x, weight, coef, plan)
+
+
+def plain_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,
+                    plan: EdgePlan) -> torch.Tensor:
+    """:func:`basis_aggregate` in its plain form (:func:`usf_graph.tracing.plain_forms`):
+    each centre's neighbours gathered into a row padded to the most, one batched product
+    with the coefficients, one with the weights. No sparse tensors and fixed shapes, so
+    ``torch.export`` and ONNX take it; differentiable through autograd."""
+    cols, slot = plan.padded()
+    K, c_in, c_out = weight.shape
+    B, N = x.shape[:2]
+    if coef.dim() == 3:
+        return torch.cat([plain_aggregate(x[b:b + 1], weight, coef[b], plan) for b in range(B)])
+    a = padded_values(coef.to(x.dtype), slot).transpose(1, 2)  # [N, K, D]
+    g = x.transpose(0, 1).index_select(0, cols.view(-1)).view(N, cols.shape[1], B * c_in)  # [N, D, B C_in]
+    agg = (a @ g).view(N, K, B, c_in).permute(2, 0, 1, 3)  # [B, N, K, C_in]
+    return agg.reshape(B, N, K * c_in) @ weight.reshape(K * c_in, c_out)
 
 
 class _BasisAggregate(torch.autograd.Function):

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 from torch_geometric.nn import MessagePassing
 
 from ..sparse import kept, version
+from ..tracing import exporting, field_of, note_field
 from .aggregate import EdgePlan, basis_aggregate
 from .kernel import DistanceKernel, envelope
 from .precision import GeometryModule, accumulate_in
@@ -109,7 +111,7 @@ class DistanceConv(GeometryModule, MessagePassing):
                      "bound_mask", "_coef"):
             self.register_buffer(name, None, persistent=False)
         self._coef_key = None  # the versions the bound mask's coefficients were computed from
-        self._call = None  # the last per-call mask: (a copy of it, its key, its coefficients)
+        self._call = None  # the last per-call mask: (a copy of it, its key, its coefficients, its values)
         self._plans: dict = {}  # PyG form: the last graph's plan (a dict: not a submodule)
         self.reset_parameters()
 
@@ -199,6 +201,9 @@ class DistanceConv(GeometryModule, MessagePassing):
             self.kernel.learnable or ew.requires_grad or (nw is not None and nw.requires_grad))
         bound = (ei, ew, nw, self.bound_mask)
         versions = [None if t is None else version(t) for t in bound]
+        note_field(mask)
+        if exporting():
+            return self._traced_coefficients(mask, dtype)
         if grad or any(t is not None and v is None for t, v in zip(bound, versions)):
             # a graph built in inference mode has no versions to check a kept entry against
             return self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
@@ -219,8 +224,21 @@ class DistanceConv(GeometryModule, MessagePassing):
             return call[2]
         with kept():
             coef = self._edge_coefficients(ei, ew, n, nw, m).to(dtype)
-            self._call = (mask.detach().clone(), key, coef)
+            self._call = (mask.detach().clone(), key, coef, mask.detach().cpu().numpy().copy())
         return coef
+
+    def _traced_coefficients(self, mask, dtype) -> torch.Tensor:
+        """While exporting: the coefficients an eager call kept for this field of view
+        (geometry, so the exported graph holds them as constants), else computed in the
+        graph from the traced inputs."""
+        kept_ = self._coef if mask is None else \
+            None if self._call is None or not np.array_equal(self._call[3], field_of(mask)) \
+            else self._call[2]
+        if kept_ is not None and kept_.dtype == dtype:
+            return kept_
+        m = self.bound_mask if mask is None else mask
+        return self._edge_coefficients(self.bound_edge_index, self.bound_edge_weight,
+                                       self.plan.num_nodes, self.bound_node_weight, m).to(dtype)
 
     @property
     def _call_coef(self) -> torch.Tensor | None:

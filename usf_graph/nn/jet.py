@@ -11,7 +11,18 @@ from torch import nn
 
 from ..frontend.cache import GeometryCache
 from ..geometry import tangent_towards
-from ..sparse import buffer_as, csr, csr_parts, kept, quiet_sparse, sparse_apply, transpose_csr
+from ..sparse import (
+    buffer_as,
+    csr,
+    csr_parts,
+    kept,
+    padded_layout,
+    padded_matmul,
+    quiet_sparse,
+    sparse_apply,
+    transpose_csr,
+)
+from ..tracing import field_of, plain_forms
 from .batching import from_static, to_static
 from .precision import GeometryModule, accumulate_in
 
@@ -119,9 +130,12 @@ class _Derivatives(GeometryModule):
         xs, form = to_static(x, self.num_nodes, batch, type(self).__name__)
         n, r = self.num_nodes, self._rows
         acc = accumulate_in(xs.dtype)
+        flat = xs.permute(1, 0, 2).reshape(n, -1).to(acc)  # [N, B*C]
+        if plain_forms():
+            y = padded_matmul(*padded_layout(self, "op"), buffer_as(self, "op_val", acc), flat)
+            return y.view(n, r, -1).to(xs.dtype), xs, form
         op = self._operator("op", acc, (r * n, n))
         op_t = self._operator("op_t", acc, (n, r * n))
-        flat = xs.permute(1, 0, 2).reshape(n, -1).to(acc)  # [N, B*C]
         return sparse_apply(op, op_t, flat).view(n, r, -1).to(xs.dtype), xs, form
 
     def extra_repr(self) -> str:
@@ -329,7 +343,7 @@ class FillHidden(nn.Module):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         if mask is None:
             return x
-        m = mask.cpu().numpy()
+        m = field_of(mask)
         key = np.packbits(m).tobytes()
         if key not in self._index:
             if len(self._index) > 16:

@@ -1,0 +1,96 @@
+"""What layers do differently while ``torch.export`` (and so ``torch.onnx.export``) traces
+them (:mod:`usf_graph.train.export`).
+
+A traced call sees fake tensors: it cannot read values, so it cannot branch on them, check
+them or build geometry from them. So:
+
+* sparse products take their plain forms (:func:`plain`: gathers into rows padded to one
+  length and batched matrix products, :func:`usf_graph.sparse.padded_matmul`), whose
+  index tables an eager call builds first (:func:`fixed_fields` records in that form);
+* checks that read values are skipped (:func:`check_values`);
+* the decisions a layer takes from its field of view (which points to fill, which cached
+  coefficients apply) read the masks that eager call recorded, real arrays: an exported
+  model is bound to one camera's field of view, as its lifting table is.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import torch
+
+_FIELDS: list[dict] = []  # the fields of view, by size, of the recording or export in progress
+_PLAIN = [0]  # depth of plain() contexts
+
+
+def exporting() -> bool:
+    """Whether ``torch.export`` is tracing the call."""
+    return torch.compiler.is_exporting()
+
+
+@contextlib.contextmanager
+def fixed_fields(fields: dict | None = None):
+    """Without ``fields``: record, in the dict yielded, the field of view of every size
+    that eager calls inside read through :func:`field_of` (a model's input mask and those
+    its pooling derives on coarser grids). With ``fields`` (such a record): export inside,
+    :func:`field_of` answering from it. An exported model is bound to one camera's field
+    of view, as its lifting table is; two different masks of one size in one recorded
+    call are refused, since the record could not tell them apart."""
+    record = {} if fields is None else fields
+    _FIELDS.append({"fields": record, "recording": fields is None})
+    try:
+        with plain():
+            yield record
+    finally:
+        _FIELDS.pop()
+
+
+@contextlib.contextmanager
+def plain():
+    """Layers take their plain forms inside (as they do while exporting): the eager
+    reference of an exported model, and what builds the forms' index tables."""
+    _PLAIN[0] += 1
+    try:
+        yield
+    finally:
+        _PLAIN[0] -= 1
+
+
+def plain_forms() -> bool:
+    """Whether layers take their plain forms: while exporting, or inside :func:`plain`."""
+    return _PLAIN[0] > 0 or exporting()
+
+
+def field_of(mask: torch.Tensor) -> np.ndarray:
+    """``mask``'s values as a numpy bool array ``[N]``, for the decisions a layer takes
+    from its field of view: ``mask``'s own, or, while exporting, the recorded field of its
+    size (:func:`fixed_fields`)."""
+    state = _FIELDS[-1] if _FIELDS else None
+    n = int(mask.shape[-1]) if mask.dim() else 0
+    if exporting():
+        if state is None or n not in state["fields"]:
+            raise RuntimeError(f"no recorded field of view of {n} points: a masked model is "
+                               "exported inside tracing.fixed_fields(record), after an eager "
+                               "call recorded its fields (usf_graph.train.export does this)")
+        return state["fields"][n]
+    m = mask.detach().cpu().numpy().astype(bool, copy=False)
+    if state is not None and state["recording"]:
+        seen = state["fields"].setdefault(n, m.copy())
+        if seen.shape != m.shape or not np.array_equal(seen, m):
+            raise ValueError(f"two different fields of view of {n} points in one call: an "
+                             "export cannot be bound to either")
+    return m
+
+
+def note_field(mask: torch.Tensor | None) -> None:
+    """Record ``mask`` while :func:`fixed_fields` records (a layer that reads its field of
+    view through :func:`field_of` only while exporting); otherwise nothing, and no copy."""
+    if mask is not None and _FIELDS and _FIELDS[-1]["recording"] and not exporting():
+        field_of(mask)
+
+
+def check_values() -> bool:
+    """Whether checks that read values (NaN, empty fields of view) can run: not while
+    exporting. An exported model checks its own inputs (:mod:`usf_graph.train.export`)."""
+    return not exporting()
