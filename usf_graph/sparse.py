@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
+import weakref
 
 import torch
 
@@ -63,37 +64,44 @@ def sparse_apply(A: torch.Tensor, At: torch.Tensor, x: torch.Tensor) -> torch.Te
     return _Apply.apply(x, A, At)
 
 
-def padded_rows(crow: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def padded_rows(crow: torch.Tensor, col: torch.Tensor, group: int = 1
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """The entries of a CSR matrix ``[R, M]`` laid out in rows padded to the longest:
-    ``(col [R, D], slot [R, D])``, ``slot`` the entry's index (``nnz`` for padding, which
-    reads a zero appended to the values, and column 0). Built once, eagerly."""
+    ``(col [R/g, D], slot [R/g, g, D])``, int32, ``slot`` the entry's index (``nnz`` for
+    padding, which reads a zero appended to the values; its column is 0). Consecutive
+    blocks of ``group`` rows (g) that hold the same columns in the same order (the
+    derivatives of one point) share one row of columns, so a product gathers once for
+    them; a matrix whose blocks differ is laid out with g = 1. Built once, eagerly."""
     crow, col = crow.long(), col.long()
     r, nnz = len(crow) - 1, len(col)
     counts = crow.diff()
+    if group > 1 and r % group == 0 and nnz:
+        lead = crow[:-1:group]
+        same = bool((counts.view(-1, group) == counts[::group, None]).all())
+        if same:
+            row = torch.repeat_interleave(torch.arange(r, device=col.device), counts)
+            offset = torch.arange(nnz, device=col.device) - crow[row]
+            first = col[lead[row // group] + offset]
+            same = bool((first == col).all())
+        if not same:
+            group = 1
+    else:
+        group = 1
     d = int(counts.max()) if r and nnz else 0
     row = torch.repeat_interleave(torch.arange(r, device=col.device), counts)
     pos = torch.arange(nnz, device=col.device) - crow[row]
-    slot = torch.full((r, d), nnz, dtype=torch.long, device=col.device)
-    slot[row, pos] = torch.arange(nnz, device=col.device)
-    cols = torch.zeros((r, d), dtype=torch.long, device=col.device)
-    cols[row, pos] = col
-    return cols, slot
+    slot = torch.full((r, d), nnz, dtype=torch.int32, device=col.device)
+    slot[row, pos] = torch.arange(nnz, dtype=torch.int32, device=col.device)
+    cols = torch.zeros((r, d), dtype=torch.int32, device=col.device)
+    cols[row, pos] = col.int()
+    return cols[::group].contiguous(), slot.view(r // group, group, d)
 
 
 def padded_values(val: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
-    """``val [nnz, ...]`` laid out as :func:`padded_rows`' ``slot``: ``[R, D, ...]``, 0 in
-    the padding."""
-    return torch.cat([val, val.new_zeros(1, *val.shape[1:])])[slot]
-
-
-def padded_matmul(cols: torch.Tensor, slot: torch.Tensor, val: torch.Tensor,
-                  x: torch.Tensor) -> torch.Tensor:
-    """``A @ x`` for ``A`` in :func:`padded_rows`' layout (values ``val [nnz]``) and a dense
-    ``x [M, ...]`` -> ``[R, ...]``: one gather and one batched product, without sparse
-    tensors or scatters, so ``torch.export`` and ONNX take it and run it fast."""
-    w = padded_values(val.to(x.dtype), slot)  # [R, D]
-    g = x.index_select(0, cols.view(-1)).view(*cols.shape, -1)  # [R, D, F]
-    return (w[:, None, :] @ g)[:, 0].reshape(len(cols), *x.shape[1:])
+    """``val [nnz, ...]`` laid out as :func:`padded_rows`' ``slot``: ``[*slot.shape, ...]``,
+    0 in the padding."""
+    full = torch.cat([val, val.new_zeros(1, *val.shape[1:])])
+    return full.index_select(0, slot.reshape(-1)).view(*slot.shape, *val.shape[1:])
 
 
 def csr(row: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch.Tensor:
@@ -116,20 +124,45 @@ def transpose_csr(A: torch.Tensor) -> torch.Tensor:
         return A.t().to_sparse_coo().coalesce().to_sparse_csr()
 
 
-def padded_layout(module: torch.nn.Module, name: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`padded_rows` of ``module``'s CSR buffers ``{name}_crow``/``{name}_col`` (or
-    ``crow``/``col`` for ``name=""``), built on first use and kept in non-persistent
-    buffers, so that they follow ``.to()`` and an exported graph holds them."""
+_PADDED: dict = {}  # id of a CSR values buffer -> (a weak reference to it, its layout)
+
+
+def padded_operator(module: torch.nn.Module, name: str, dtype: torch.dtype, group: int = 1
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``module``'s CSR matrix (buffers ``{name}_crow``, ``_col``, ``_val``; ``crow``,
+    ``col``, ``val`` for ``name=""``) in :func:`padded_rows`' layout: ``(cols [R/g, D],
+    weights [R/g, g, D] in dtype)``, for :func:`padded_product`. Built on first use
+    in each dtype and kept in non-persistent buffers, so that they follow ``.to()`` and an
+    exported graph holds them as constants; a traced call cannot build them."""
     pre = f"{name}_" if name else ""
-    if not hasattr(module, f"{pre}pad_col"):
+    key = f"{pre}pad_w_{str(dtype).rsplit('.', 1)[-1]}"
+    if not hasattr(module, key):
         if exporting():
             raise RuntimeError("plain forms are built by an eager call first: export inside "
                                "usf_graph.tracing.fixed_fields, after one eager call there")
-        with kept():
-            cols, slot = padded_rows(getattr(module, f"{pre}crow"), getattr(module, f"{pre}col"))
-        module.register_buffer(f"{pre}pad_col", cols, persistent=False)
-        module.register_buffer(f"{pre}pad_slot", slot, persistent=False)
-    return getattr(module, f"{pre}pad_col"), getattr(module, f"{pre}pad_slot")
+        crow, col, val = (getattr(module, f"{pre}{part}") for part in ("crow", "col", "val"))
+        # modules that share one operator (the jets of one graph) share its layout too
+        ref, entry = _PADDED.get(id(val), (None, None))
+        stamp = (version(crow), version(col), version(val), group)
+        if ref is None or ref() is not val or entry[0] != stamp:
+            with kept():
+                entry = (stamp, *padded_rows(crow, col, group), {})
+            if version(val) is not None:
+                k = id(val)
+                _PADDED[k] = (weakref.ref(val, lambda _, k=k: _PADDED.pop(k, None)), entry)
+        if dtype not in entry[3]:
+            with kept():
+                entry[3][dtype] = padded_values(val.to(dtype), entry[2])
+        module.register_buffer(f"{pre}pad_col", entry[1], persistent=False)
+        module.register_buffer(key, entry[3][dtype], persistent=False)
+    return getattr(module, f"{pre}pad_col"), getattr(module, key)
+
+
+def padded_product(cols: torch.Tensor, weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``A @ x`` for ``A`` as :func:`padded_operator` gives it (``weights`` in ``x``'s dtype)
+    and a dense ``x [M, ...]`` -> ``[R, ...]``: one gather and one batched product."""
+    g = x.index_select(0, cols.view(-1)).view(*cols.shape, -1)  # [R/g, D, F]
+    return (weights @ g).reshape(weights.shape[0] * weights.shape[1], *x.shape[1:])
 
 
 def buffer_as(module: torch.nn.Module, name: str, dtype: torch.dtype) -> torch.Tensor:

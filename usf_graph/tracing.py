@@ -5,7 +5,7 @@ A traced call sees fake tensors: it cannot read values, so it cannot branch on t
 them or build geometry from them. So:
 
 * sparse products take their plain forms (:func:`plain`: gathers into rows padded to one
-  length and batched matrix products, :func:`usf_graph.sparse.padded_matmul`), whose
+  length and batched matrix products, :func:`usf_graph.sparse.padded_product`), whose
   index tables an eager call builds first (:func:`fixed_fields` records in that form);
 * checks that read values are skipped (:func:`check_values`);
 * the decisions a layer takes from its field of view (which points to fill, which cached

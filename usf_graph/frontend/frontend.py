@@ -51,6 +51,7 @@ class _Table:
 
     def __init__(self, crow, col, val, n_cols):
         self.n_rows, self.n_cols = len(crow) - 1, n_cols
+        self.parts = tuple(torch.as_tensor(a) for a in (crow, col, val))
         counts = torch.diff(torch.as_tensor(crow))
         self.regular = bool(counts.numel()) and bool((counts == counts[0]).all())
         if self.regular:
@@ -255,6 +256,19 @@ class SphericalFrontend:
         x = self._table.apply(t.reshape(t.shape[0], -1, t.shape[-1]))
         _check_finite(x, self.mask)
         return x
+
+    def lift_table(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The lifting as a CSR matrix ``[N, H W]``, ``(crow, col, val)``: grid point i
+        is the sum over its entries of ``val`` times pixel ``col`` (row-major), 0 outside
+        the field of view. What :meth:`lift` applies (``cv2.remap`` computes the same)."""
+        return self._table.parts
+
+    def render_table(self, mode: str = "nearest") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`to_image`'s ``mode`` as a CSR matrix ``[H W, N]``, ``(crow, col, val)``:
+        pixels without a ray have weight 0."""
+        if mode not in ("bilinear", "nearest"):
+            raise ValueError(f"mode must be 'bilinear' or 'nearest', got {mode!r}")
+        return self._renderer(mode).parts
 
     def __call__(self, image) -> SphericalImage:
         return self.image(self.lift(image))

@@ -119,8 +119,9 @@ class EdgePlan(nn.Module):
             with kept():
                 row, col = self.sorted_edges()
                 cols, slot = padded_rows(_crow(row, self.num_nodes), col)
+                slot = slot[:, 0]
                 if self.order is not None:  # sorted position -> given position
-                    slot = torch.cat([self.order, self.order.new_tensor([self.num_edges])])[slot]
+                    slot = torch.cat([self.order, self.order.new_tensor([self.num_edges])])[slot].int()
             self.register_buffer("pad_col", cols, persistent=False)
             self.register_buffer("pad_slot", slot, persistent=False)
         return self.pad_col, self.pad_slot

@@ -16,8 +16,8 @@ from ..sparse import (
     csr,
     csr_parts,
     kept,
-    padded_layout,
-    padded_matmul,
+    padded_operator,
+    padded_product,
     quiet_sparse,
     sparse_apply,
     transpose_csr,
@@ -132,7 +132,7 @@ class _Derivatives(GeometryModule):
         acc = accumulate_in(xs.dtype)
         flat = xs.permute(1, 0, 2).reshape(n, -1).to(acc)  # [N, B*C]
         if plain_forms():
-            y = padded_matmul(*padded_layout(self, "op"), buffer_as(self, "op_val", acc), flat)
+            y = padded_product(*padded_operator(self, "op", acc, r), flat)
             return y.view(n, r, -1).to(xs.dtype), xs, form
         op = self._operator("op", acc, (r * n, n))
         op_t = self._operator("op_t", acc, (n, r * n))

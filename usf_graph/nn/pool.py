@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from ..graph import euclidean_radius, geodesic_radius
-from ..sparse import buffer_as, csr, csr_parts, padded_layout, padded_matmul, quiet_sparse
+from ..sparse import buffer_as, csr, csr_parts, padded_operator, padded_product, quiet_sparse
 from ..tracing import plain_forms
 from .batching import check_per_point, from_static, mask_static, pooled_batch, to_static
 from .precision import GeometryModule, accumulate_in
@@ -125,14 +125,14 @@ class GaussianPool(GeometryModule):
         acc = accumulate_in(xs.dtype)
         xf = xs.transpose(0, 1).to(acc)  # [N, B, C]
         m = torch.ones(N, B, dtype=acc, device=xs.device) if ms is None else ms.t().to(acc)
-        val = buffer_as(self, "val", acc)
         if plain_forms():
-            layout = padded_layout(self, "")
-            den = padded_matmul(*layout, val, m)  # [M, B]
-            num = padded_matmul(*layout, val, xf * m[..., None])
+            op = padded_operator(self, "", acc)
+            den = padded_product(*op, m)  # [M, B]
+            num = padded_product(*op, xf * m[..., None])
         else:
             with quiet_sparse():
-                P = torch.sparse_csr_tensor(self.crow, self.col, val, (self.num_coarse, self.num_fine))
+                P = torch.sparse_csr_tensor(self.crow, self.col, buffer_as(self, "val", acc),
+                                            (self.num_coarse, self.num_fine))
                 den = P @ m
                 num = (P @ (xf * m[..., None]).reshape(N, B * C)).view(-1, B, C)
         y = (num / den.clamp_min(1e-30)[..., None]).to(xs.dtype)
