@@ -39,7 +39,7 @@ if [ ${#missing[@]} -gt 0 ]; then
   "$VENV/bin/python" -c "import torch_scatter, torch_cluster" \
     || { echo "torch-scatter/torch-cluster failed to build; see the log above" >&2; exit 1; }
 fi
-say "installing usf-graph (editable) with its test and demo extras"
-"${pip[@]}" install -q -e ".[test,demo]"
+say "installing usf-graph (editable) with its test, demo and export extras"
+"${pip[@]}" install -q -e ".[test,demo,export]"
 echo "$want" > "$stamp"
 say "done: $("$VENV/bin/python" -c 'import torch, torch_geometric; print("torch", torch.__version__, "| torch_geometric", torch_geometric.__version__)')"

@@ -132,7 +132,7 @@ def test_every_command_and_option_has_help(capsys):
     parser = build_parser()
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     assert set(subs.choices) == {"info", "camera", "lift", "render", "scenes", "cache", "train", "eval",
-                                 "predict", "targets"}
+                                 "predict", "targets", "export"}
     for name, sub in subs.choices.items():
         assert sub.description, name
         for a in sub._actions:
@@ -659,3 +659,40 @@ def test_predict_up_lines_reads_a_pinholes_straight_lines(tmp_path, capsys):
     assert "perspective camera" in capsys.readouterr().err
     with pytest.raises(ValueError, match="or 'lines'"):
         detect_image(det, rgb, cam, up="level")
+
+
+def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys):
+    """``export seg``: a checkpoint and a calibration file in, an ONNX program out that
+    gives ``segment_image``'s labels; its refusals exit 2 with the fix."""
+    import json
+
+    pytest.importorskip("onnxruntime")
+    from usf_graph.cameras import KannalaBrandt
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train import save_checkpoint
+    from usf_graph.train.apply import UNSEEN, segment_image
+    from usf_graph.train.export import load_exported
+
+    cam = KannalaBrandt(12.0, 12.0, 15.5, 15.5, 32, 32, k=(0.01, 0.0, 0.0, 0.0))
+    cam.save(tmp_path / "fish.yaml")
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8), gravity=True, pairs=0)
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", "size": 32, **seg.config}, {})
+    out = tmp_path / "seg.onnx"
+    args = ["export", "seg", str(tmp_path / "seg.pt"), "--camera", str(tmp_path / "fish.yaml")]
+    assert main([*args, "--fov", "180", "--up-input", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "100.00% of" in printed and "up float32 [3]" in printed
+    info = json.loads(printed.strip().splitlines()[-1])
+    assert info["format"] == "ONNX" and info["size"] == [32, 32]
+    image = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    labels, _ = load_exported(out)(image, [0.0, 0.0, 1.0])
+    ref = segment_image(seg.eval(), image, cam.with_fov(180), up=[0.0, 0.0, 1.0])["labels"]
+    seen = ref != UNSEEN
+    assert np.array_equal(labels == UNSEEN, ~seen) and (labels[seen] == ref[seen]).mean() > 0.99
+    for bad, why in ((["--out", str(tmp_path / "a.onnx")], "eigendecomposition"),
+                     (["--up", "0", "0", "1", "--level-prior", "10", "--out", str(tmp_path / "a.pt2")],
+                      "--level-prior shapes"),
+                     (["--up-input", "--out", str(tmp_path / "a.onnx.txt")], ".onnx")):
+        assert main([*args, *bad]) == 2
+        assert why in capsys.readouterr().err

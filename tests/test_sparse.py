@@ -31,3 +31,65 @@ def test_csr_parts_rebuild_the_matrix_and_alias_nothing():
         assert part._base is None  # a view of the sparse tensor stops torch.compile
     val.mul_(2)  # and editing a part leaves the matrix alone
     assert torch.equal(A.values(), torch.tensor([1.0, 2.0, 4.0, 3.0]))
+
+
+# -- the padded layout of the plain forms (usf_graph.tracing) --------------------------------
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from usf_graph.sparse import padded_operator, padded_product, padded_rows, padded_values  # noqa: E402
+
+
+def _random_csr(seed: int, rows: int, cols: int, density: float, group: int = 1):
+    """A random sparse ``[rows * group, cols]`` matrix (empty rows included), dense and as
+    CSR parts; with ``group`` > 1 each block of ``group`` rows shares its columns."""
+    gen = torch.Generator().manual_seed(seed)
+    pattern = torch.rand(rows, cols, generator=gen) < density
+    pattern = pattern.repeat_interleave(group, 0)
+    dense = torch.randn(rows * group, cols, generator=gen, dtype=torch.float64) * pattern
+    A = dense.to_sparse_csr()
+    return dense, A.crow_indices(), A.col_indices(), A.values()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), rows=st.integers(1, 12), cols=st.integers(1, 9),
+       density=st.floats(0.0, 1.0), group=st.sampled_from([1, 2, 5]), feat=st.integers(1, 3))
+def test_padded_product_is_the_matrix_product(seed, rows, cols, density, group, feat):
+    dense, crow, col, val = _random_csr(seed, rows, cols, density, group)
+    c, slot = padded_rows(crow, col, group)
+    assert c.dtype == slot.dtype == torch.int32
+    x = torch.randn(cols, 2, feat, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    y = padded_product(c, padded_values(val, slot), x)
+    want = (dense @ x.reshape(cols, -1)).reshape(-1, 2, feat)
+    assert y.shape == want.shape and (y - want).abs().max() < 1e-12
+    if len(val):  # the shared rows of a block are gathered once
+        assert slot.shape[:2] == (rows * group // slot.shape[1], slot.shape[1])
+
+
+def test_blocks_with_different_columns_are_laid_out_row_by_row():
+    dense = torch.tensor([[1.0, 0.0, 2.0], [0.0, 3.0, 4.0], [5.0, 0.0, 0.0], [6.0, 0.0, 0.0]],
+                         dtype=torch.float64)
+    A = dense.to_sparse_csr()
+    cols, slot = padded_rows(A.crow_indices(), A.col_indices(), group=2)
+    assert slot.shape[1] == 1  # rows 0 and 1 differ: no sharing
+    x = torch.randn(3, 2, dtype=torch.float64)
+    assert torch.allclose(padded_product(cols, padded_values(A.values(), slot), x), dense @ x)
+
+
+def test_padded_operators_share_one_layout_and_follow_edits():
+    dense, crow, col, val = _random_csr(3, 6, 5, 0.5)
+    a, b = torch.nn.Module(), torch.nn.Module()
+    for m in (a, b):  # two modules holding the same operator, as the jets of one graph do
+        for name, t in (("op_crow", crow), ("op_col", col), ("op_val", val)):
+            m.register_buffer(name, t, persistent=False)
+    ca, wa = padded_operator(a, "op", torch.float32)
+    cb, wb = padded_operator(b, "op", torch.float32)
+    assert ca is cb and wa is wb and wa.dtype == torch.float32
+    x = torch.randn(5, 3, dtype=torch.float64)
+    assert (padded_product(*padded_operator(a, "op", torch.float64), x) - dense @ x).abs().max() < 1e-12
+    c = torch.nn.Module()
+    for name, t in (("op_crow", crow), ("op_col", col), ("op_val", val.clone())):
+        c.register_buffer(name, t, persistent=False)
+    c.op_val.mul_(2.0)  # new values: a layout of its own
+    assert (padded_product(*padded_operator(c, "op", torch.float64), x) - 2 * dense @ x).abs().max() < 1e-12

@@ -377,6 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
     from .cli_det import add_device_option, add_eval_options, add_targets_parser, add_train_options
+    from .cli_export import add_export_parser
     from .cli_predict import add_predict_parser
     from .train import defaults
     from .train.mnist import run as mnist_run
@@ -427,6 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="digits (see train)")
     add_targets_parser(sub, fmt)
     add_predict_parser(sub, fmt)
+    add_export_parser(sub, fmt)
     return p
 
 

@@ -161,7 +161,8 @@ def padded_operator(module: torch.nn.Module, name: str, dtype: torch.dtype, grou
 def padded_product(cols: torch.Tensor, weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """``A @ x`` for ``A`` as :func:`padded_operator` gives it (``weights`` in ``x``'s dtype)
     and a dense ``x [M, ...]`` -> ``[R, ...]``: one gather and one batched product."""
-    g = x.index_select(0, cols.view(-1)).view(*cols.shape, -1)  # [R/g, D, F]
+    flat = x.reshape(len(x), -1)
+    g = flat.index_select(0, cols.view(-1)).view(*cols.shape, flat.shape[1])  # [R/g, D, F]
     return (weights @ g).reshape(weights.shape[0] * weights.shape[1], *x.shape[1:])
 
 

@@ -1,9 +1,10 @@
 """The blockwise sparse kernel's kept tiles: reused for the same coefficients, never stale."""
 
+import pytest
 import torch
 
-from tests.nn.test_wide import per_edge
-from usf_graph import grids
+from tests.nn.test_wide import case, per_edge
+from usf_graph import grids, tracing
 from usf_graph.nn import EdgePlan, aggregate, geodesic_radius_graph
 
 
@@ -38,3 +39,22 @@ def test_tiles_are_kept_for_the_same_coefficients_and_rebuilt_when_they_change(m
     assert plan._memo[False][0]() is scratch
     del scratch  # coefficients that can never come back: their tiles are freed with them
     assert False not in plan._memo
+
+
+@pytest.mark.parametrize("c_in, c_out", [(5, 3), (2, 9)])
+@pytest.mark.parametrize("per_sample", [False, True])
+def test_plain_form_equals_the_per_edge_sum_with_gradients(c_in, c_out, per_sample):
+    """The form an export traces (padded rows, batched products) against the per-edge
+    reference, on new graphs, sorted or not, with gradients in x, weights and coefficients."""
+    for call, (n, batch, shuffle) in enumerate([(120, 3, False), (90, 1, True), (120, 2, True)]):
+        x, w, coef, ei = case(10 + call, n, batch, c_in, c_out, 3, per_sample, shuffle)
+        plan = EdgePlan(ei, n)
+        with tracing.plain():
+            got = aggregate.basis_aggregate(x, w, coef, plan)
+        ref = per_edge(x, w, coef, ei)
+        assert (got - ref).abs().max() < 1e-12, call
+        g = torch.randn(ref.shape, dtype=ref.dtype)
+        for a, b in zip(torch.autograd.grad(got, (x, w, coef), g),
+                        torch.autograd.grad(ref, (x, w, coef), g)):
+            assert (a - b).abs().max() < 1e-11 * (1 + b.abs().max()), call
+        assert plan.pad_col.dtype == torch.int32  # kept for the next call on this graph

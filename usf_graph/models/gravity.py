@@ -20,7 +20,7 @@ from ..geometry import geodesic_distance
 from ..grids import icosahedral
 from ..nn import FillHidden, SurfaceJet
 from ..nn.precision import GeometryModule
-from ..tracing import check_values
+from ..tracing import check_values, field_of
 
 #: Below this :class:`GravityHead` ``margin`` (score units) an up estimate is ambiguous
 #: between vanishing directions; read off the rooms protocols' test views (README).
@@ -42,7 +42,7 @@ def level_scores(candidates: torch.Tensor, pos: torch.Tensor, area: torch.Tensor
     which :math:`m` points along: about :math:`-\beta` for a candidate on the axis of a
     90-degree pinhole (:math:`\lVert m \rVert = 0.83`), :math:`-\beta / 2` for a
     190-degree fisheye (0.46), 0 for the whole sphere (:math:`m = 0`)."""
-    if not mask.any():
+    if not field_of(mask).any():
         raise ValueError("level_scores: the field of view (mask) sees no point")
     w = area * mask.to(area.dtype)
     m = (w[:, None] * pos).sum(0) / w.sum()

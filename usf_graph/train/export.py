@@ -172,7 +172,8 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
             "size": list(bound.size), "interpolation": bound.interpolation,
             "export_s": time.perf_counter() - t0}
     if check:
-        info["check"] = check_exported(path, model, camera, up, bound.interpolation, seed)
+        reads = None if bound.up_mode == "none" else up  # an isotropic model reads no up
+        info["check"] = check_exported(path, model, camera, reads, bound.interpolation, seed)
     return info
 
 
@@ -240,9 +241,10 @@ def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed:
     seen = ref["labels"] != UNSEEN
     agree = float((labels[seen] == ref["labels"][seen]).mean()) if seen.any() else 1.0
     same_unseen = bool(((labels == UNSEEN) == ~seen).all())
-    cos = float(np.clip(np.dot(u, ref["up"]) / np.linalg.norm(u) / np.linalg.norm(ref["up"]), -1, 1))
+    a, b = np.asarray(u, np.float64), np.asarray(ref["up"] if ref["up"] is not None else u, np.float64)
+    angle = math.atan2(np.linalg.norm(np.cross(a, b)), float(np.dot(a, b))) if np.isfinite(a).all() else 0.0
     out = {"room": seed, "pixels_seen": int(seen.sum()), "agree": agree,
-           "unseen_match": same_unseen, "up_angle_deg": math.degrees(math.acos(cos)),
+           "unseen_match": same_unseen, "up_angle_deg": math.degrees(angle),
            "load_s": load, "frame_s": time.perf_counter() - t0}
     if agree < 0.99 or not same_unseen:
         raise RuntimeError(f"the exported {path} disagrees with usf-graph on a rendered room: "

@@ -1,0 +1,66 @@
+"""What layers do while exported: the plain forms give the fast forms' outputs and
+gradients on every model, and the fields of view an export is bound to are recorded by
+value and never confused."""
+
+import numpy as np
+import pytest
+import torch
+
+from tests.models.test_gray import SPHERICAL, _flat, _input
+from usf_graph import tracing
+
+
+def test_fields_are_recorded_by_size_and_two_masks_of_one_size_refused():
+    a = torch.tensor([True, False, True])
+    with tracing.fixed_fields() as rec:
+        assert tracing.plain_forms()  # the recording call builds the plain forms' tables
+        assert np.array_equal(tracing.field_of(a), a.numpy())
+        tracing.note_field(torch.ones(5, dtype=torch.bool))
+        tracing.field_of(a.clone())  # the same values again: fine
+        with pytest.raises(ValueError, match="two different fields of view of 3 points"):
+            tracing.field_of(torch.tensor([True, True, False]))
+    assert set(rec) == {3, 5} and rec[5].all()
+    assert not tracing.plain_forms()
+    tracing.note_field(a)  # outside a recording: nothing kept, nothing raised
+    assert np.array_equal(tracing.field_of(~a), [False, True, False])
+
+
+def test_an_export_without_recorded_fields_says_how_to_record_them():
+    class ReadsItsField(torch.nn.Module):
+        def forward(self, x, mask):
+            return x * bool(tracing.field_of(mask).all())
+
+    args = (torch.ones(3), torch.tensor([True, False, True]))
+    with pytest.raises(RuntimeError, match="no recorded field of view of 3 points"):
+        torch.export.export(ReadsItsField(), args)
+    with tracing.fixed_fields() as rec:
+        ReadsItsField()(*args)
+    with tracing.fixed_fields(rec):
+        program = torch.export.export(ReadsItsField(), args)
+    assert torch.equal(program.module()(*args), torch.zeros(3))
+
+
+@pytest.mark.parametrize("cls, kw", SPHERICAL, ids=[c.__name__ for c, _ in SPHERICAL])
+def test_plain_forms_give_the_fast_forms_outputs_and_gradients(cls, kw):
+    """Every spherical model, float64, a new field of view on every call, its up estimate
+    and a given up: the same outputs (1e-10) and input gradients in both forms."""
+    torch.manual_seed(0)
+    model = cls(**kw).double().eval()
+    for seed in range(2):
+        x, mask, _ = _input(cls, kw, seed)
+        for up in (None, torch.nn.functional.normalize(torch.randn(len(x), 3, dtype=torch.float64), dim=1)):
+            xs = [x.clone().requires_grad_() for _ in range(2)]
+            outs = []
+            for form, xi in zip((False, True), xs):
+                ctx = tracing.plain() if form else torch.enable_grad()
+                with ctx:
+                    out = model(xi, mask) if up is None else model(xi, mask, up=up)
+                outs.append([t for t in _flat(out) if t.is_floating_point()])
+            # the plain forms ran: their padded tables exist now
+            assert any(hasattr(m, "pad_col") for m in model.modules())
+            for a, b in zip(*outs):
+                assert (a - b).abs().max() < 1e-10 * (1 + b.abs().max()), (seed, up is None)
+            loss = [sum((t * torch.linspace(-1, 1, t.numel(), dtype=t.dtype).view(t.shape)).sum()
+                        for t in o if t.requires_grad) for o in outs]
+            ga, gb = (torch.autograd.grad(l_, xi) for l_, xi in zip(loss, xs))
+            assert (ga[0] - gb[0]).abs().max() < 1e-9 * (1 + gb[0].abs().max())

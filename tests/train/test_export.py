@@ -1,0 +1,127 @@
+"""A segmenter bound to one camera and exported (ONNX, torch.export): the written program
+gives usf-graph's labels on rendered rooms, says so in its outputs where up is unusable,
+and every refusal names the fix."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from usf_graph.cameras import KannalaBrandt, Pinhole
+from usf_graph.models import SphericalDeepLabV3, SphericalUNet
+from usf_graph.scenes import make_room
+from usf_graph.scenes.render import render
+from usf_graph.train.apply import UNSEEN, lift_for, segment_image
+from usf_graph.train.export import BoundSegmenter, export_segmenter, load_exported
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnxscript")
+
+
+def _deeplab(seed=0, **kw):
+    """A small DeepLab whose labels vary over a room (at initialization one class wins
+    everywhere): its norms' statistics and its head centred on a rendered room's features."""
+    torch.manual_seed(seed)
+    cfg = dict(num_classes=5, level=3, channels=(4, 6), aspp_channels=8, rates=(2,),
+               low_channels=4, pairs=0, gravity=True, upright=True, up_fields=2, upright_convs=2)
+    model = SphericalDeepLabV3(**{**cfg, **kw})
+    cam, up = _fisheye(32), torch.tensor([[0.0, 0.0, 1.0]])
+    lifted = [lift_for(model, _room_image(cam, s), cam)[1:] for s in (7, 8)]
+    with torch.no_grad():
+        model.train()
+        for x, mask in lifted:  # the norms' running statistics from rooms
+            model(x, mask, up=up)
+        seen = []
+        hook = model.head.register_forward_hook(lambda m, i, o: seen.append(i[0][0]))
+        model.eval()(*lifted[0], up=up)
+        hook.remove()
+        mean = seen[0][lifted[0][1]].mean(0)
+        model.head.weight.mul_(500.0)
+        model.head.bias.copy_(-model.head.weight @ mean)
+    return model.eval()
+
+
+def _fisheye(size=48):
+    f = (size / 2) / math.radians(95)
+    c = (size - 1) / 2
+    return KannalaBrandt(f, f, c, c, size, size, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
+
+
+def _pinhole(w=40, h=30):
+    return Pinhole(w / 2, w / 2, (w - 1) / 2, (h - 1) / 2, w, h)
+
+
+def _room_image(camera, seed):
+    return render(make_room(seed), camera, boxes=False).rgb
+
+
+def test_onnx_with_an_imu_up_gives_usf_graphs_labels(tmp_path):
+    model, cam = _deeplab(), _fisheye()
+    info = export_segmenter(model, cam, tmp_path / "seg.onnx", up="input")
+    assert info["format"] == "ONNX" and info["check"]["agree"] >= 0.99
+    assert not list(tmp_path.glob(".*part*"))  # written atomically
+    run = load_exported(tmp_path / "seg.onnx")
+    for seed, up in ((1, [0.0, 0.0, 1.0]), (2, [0.3, -0.2, 0.9])):  # new rooms, a tilted up
+        image = _room_image(cam, seed)
+        labels, u = run(image, up)
+        ref = segment_image(model, image, cam, up=up)
+        seen = ref["labels"] != UNSEEN
+        assert labels.dtype == np.uint8 and labels.shape == image.shape[:2]
+        assert np.array_equal(labels == UNSEEN, ~seen)
+        assert (labels[seen] == ref["labels"][seen]).mean() > 0.99
+        assert len(np.unique(ref["labels"][seen])) > 1  # a test that a mirror would fail
+        assert np.allclose(u, np.asarray(up) / np.linalg.norm(up), atol=1e-6)
+    for bad in ([math.nan, 0.0, 1.0], [0.0, 0.0, 0.0]):  # no raising in a program: all unseen
+        labels, u = run(image, bad)
+        assert (labels == UNSEEN).all() and np.isnan(u).all()
+    with pytest.raises(ValueError, match="takes an image and up"):
+        run(image)
+
+
+def test_pt2_holds_the_models_own_up_estimate(tmp_path):
+    model, cam = _deeplab(1), _pinhole()
+    info = export_segmenter(model, cam, tmp_path / "seg.pt2", up=None)
+    assert info["format"] == "torch.export" and info["inputs"] == ["image uint8 [H, W, 3] RGB"]
+    image = _room_image(cam, 3)
+    labels, u = load_exported(tmp_path / "seg.pt2")(image)
+    ref = segment_image(model, image, cam)
+    seen = ref["labels"] != UNSEEN
+    assert (labels[seen] == ref["labels"][seen]).mean() > 0.99
+    u, r = np.asarray(u, np.float64), np.asarray(ref["up"])
+    assert np.degrees(np.arctan2(np.linalg.norm(np.cross(u, r)), u @ r)) < 0.01
+
+
+def test_a_fixed_up_and_a_model_without_gravity(tmp_path):
+    cam = _fisheye(40)
+    info = export_segmenter(_deeplab(2), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])
+    assert info["inputs"] == ["image uint8 [H, W, 3] RGB"]  # the up is a constant
+    torch.manual_seed(3)
+    iso = SphericalUNet(num_classes=4, level=3, channels=(4, 6), pairs=0).eval()
+    info = export_segmenter(iso, cam, tmp_path / "iso.onnx")  # no up to read
+    labels, u = load_exported(tmp_path / "iso.onnx")(_room_image(cam, 4))
+    assert np.isnan(u).all() and (labels != UNSEEN).any()
+
+
+def test_refusals_name_the_fix(tmp_path):
+    model, cam = _deeplab(), _fisheye(32)
+    with pytest.raises(ValueError, match="eigendecomposition"):
+        export_segmenter(model, cam, tmp_path / "a.onnx", up=None)
+    with pytest.raises(ValueError, match=r"\.onnx \(ONNX\) or \.pt2"):
+        export_segmenter(model, cam, tmp_path / "a.tflite")
+    with pytest.raises(ValueError, match="up must be 'input'"):
+        BoundSegmenter(model, cam, up=[0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="planar"):
+        from usf_graph.models import PlanarUNet
+        BoundSegmenter(PlanarUNet(num_classes=4, channels=(4, 6)), cam)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_failed_export_leaves_no_file(tmp_path, monkeypatch):
+    def fail(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(torch.export, "save", fail)
+    with pytest.raises(RuntimeError, match="disk full"):
+        export_segmenter(_deeplab(), _fisheye(32), tmp_path / "a.pt2", up="input", check=False)
+    assert not list(tmp_path.iterdir())

@@ -1,0 +1,74 @@
+"""``usf-graph export seg``: a trained spherical segmenter bound to one camera, written as
+one ONNX or ``torch.export`` program for deployment (:mod:`usf_graph.train.export`)."""
+
+from __future__ import annotations
+
+import json
+
+from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options
+
+
+def add_export_parser(sub, fmt) -> None:
+    """The ``export`` subcommand and its options."""
+    from .cli_det import nonnegative
+    from .frontend.interpolation import METHODS
+
+    p = sub.add_parser("export", help="write a segmenter bound to one camera as ONNX or .pt2",
+                       formatter_class=fmt,
+                       description="Bind a trained spherical segmenter to one camera and write "
+                                   "it as one program, image in, labels out: the lifting "
+                                   "table, the field of view, every layer's coefficients and "
+                                   "the render table held as constants. ONNX runs in "
+                                   "onnxruntime (checked here) or any ONNX runtime, without usf-graph; "
+                                   ".pt2 is torch.export's. Checked against usf-graph on a "
+                                   "procedural room rendered through the camera.")
+    p.add_argument("task", choices=["seg"], help="the checkpoint's task (segmentation)")
+    p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg'")
+    p.add_argument("--camera", required=True, help=CAMERA_HELP)
+    camera_options(p)
+    up = p.add_mutually_exclusive_group()
+    up.add_argument("--up-input", action="store_true",
+                    help="the program takes gravity's up in the camera's sphere frame (x "
+                         "forward, y left, z up) as a second input, float32 [3]: an IMU")
+    up.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                    help="a fixed up in the camera's sphere frame: a camera mounted at a fixed "
+                         "angle to gravity (0 0 1: level)")
+    p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
+                   help="without --up/--up-input (.pt2): the up estimate assumes a level camera "
+                        "with this strength (10 in the README; 0 off)")
+    p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
+                   help="how the image is lifted (as predict's)")
+    p.add_argument("--no-check", action="store_true",
+                   help="skip running the written file against usf-graph on a rendered room")
+    p.add_argument("--out", required=True, metavar="PATH",
+                   help="the program: .onnx (needs usf-graph[export]) or .pt2; without "
+                        "--up/--up-input only .pt2 holds the model's own up estimate")
+    p.set_defaults(func=cmd_export, sign_check=None)
+
+
+def cmd_export(args) -> int:
+    from .cli_det import ready_model
+    from .train.checkpoints import load_protocol_model
+    from .train.export import export_segmenter
+
+    up = "input" if args.up_input else args.up
+    if args.level_prior and up is not None:
+        raise ValueError("--level-prior shapes the model's up estimate, which --up and "
+                         "--up-input replace")
+    camera = camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
+    ckpt = load_protocol_model(args.checkpoint).require("seg", spherical=True)
+    args.device = "cpu"
+    model = ready_model(ckpt, args)
+    info = export_segmenter(model, camera, args.out, up=up, interpolation=args.interpolation,
+                            check=not args.no_check)
+    print(f"wrote {info['path']} ({info['format']}, {info['bytes'] / 1e6:.1f} MB) in "
+          f"{info['export_s']:.1f} s")
+    print(f"inputs: {', '.join(info['inputs'])} (H x W = {info['size'][0]} x {info['size'][1]}); "
+          f"outputs: labels uint8 [H, W] (255: unseen), up float32 [3]")
+    if "check" in info:
+        c = info["check"]
+        print(f"check on a room rendered through the camera: {100 * c['agree']:.2f}% of "
+              f"{c['pixels_seen']} pixels agree with usf-graph, ups {c['up_angle_deg']:.3f} deg "
+              f"apart; {1000 * c['frame_s']:.0f} ms a frame here (loaded in {c['load_s']:.1f} s)")
+    print(json.dumps({k: v for k, v in info.items() if k != "check"}, default=str))
+    return 0
