@@ -74,3 +74,11 @@ def test_predict_frame_benchmark_times_the_other_modes():
     for row in ("network, inference_mode", "network, autocast bfloat16", "network, torch.compile",
                 "answer, soft labels"):
         assert f"| {row} |" in out, row
+
+
+@pytest.mark.slow  # two exports of the protocol's level-5 DeepLab: about 40 s
+def test_export_frame_benchmark_runs():
+    pytest.importorskip("onnxruntime")
+    out = run("benchmarks/export_frame.py", "--size", "32", "--channel-scale", "0.25", "--reps", "1")
+    assert "| ONNX in onnxruntime, up given |" in out and "| seg.pt2 |" in out
+    assert out.count("| 100.00% |") == 2  # both files agree with usf-graph

@@ -157,3 +157,28 @@ def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
     assert Path("predictions/fisheye_seg.png").stat().st_size > 0
     doc = json.loads(Path("predictions/fisheye_boxes.json").read_text())
     assert doc["up"]["source"] == "given" and doc["interpolation"] == "area"
+
+
+def test_deploying_section_runs_its_onnxruntime_code(tmp_path, monkeypatch):
+    """The section's onnxruntime snippet runs as printed on a program exported for the
+    README's fisheye (a small model, the check skipped: tests/train/test_export.py has it)."""
+    import pytest
+    import torch
+
+    pytest.importorskip("onnxruntime")
+    from usf_graph import cameras
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train.export import export_segmenter
+
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Deploying: `usf-graph export`", 1)[1].split("\n## ", 1)[0]
+    code = "\n".join(re.findall(r"```python\n(.*?)```", section, re.S))
+    cam = cameras.load(ROOT / "tests/fixtures/opencv_sample_fisheye.yaml", fov_deg=190)
+    torch.manual_seed(0)
+    model = SphericalUNet(13, level=3, channels=(4, 4), gravity=True, pairs=0).eval()
+    monkeypatch.chdir(tmp_path)
+    export_segmenter(model, cam, "deploy/fisheye_seg.onnx", up="input", check=False)
+    ns = {}
+    exec(compile(code, "README", "exec"), ns)
+    assert ns["labels"].shape == (960, 1280) and ns["labels"].dtype.name == "uint8"
+    assert (ns["labels"] == 255).any() and ns["up_read"].tolist() == [0.0, 0.0, 1.0]

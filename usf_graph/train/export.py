@@ -83,16 +83,23 @@ class BoundSegmenter(nn.Module):
         self.camera, self.interpolation = camera, interpolation
         self.model = model.eval()
         self.size = (camera.height, camera.width)
+        # the lift over the points with pixels only (a pinhole's table pads 16x otherwise),
+        # then each point reads its row or a zero row at the end
         crow, col, val = fe.lift_table()
-        cols, slot = padded_rows(crow, col)
+        counts = crow.long().diff()
+        rows = torch.nonzero(counts > 0)[:, 0]  # every entry is in one of these, in order
+        cols, slot = padded_rows(torch.cat([counts.new_zeros(1), counts[rows].cumsum(0)]), col)
         self.register_buffer("lift_col", cols)
         self.register_buffer("lift_w", padded_values(val.float(), slot))
+        row_of = torch.full((len(counts),), len(rows), dtype=torch.int32)
+        row_of[rows] = torch.arange(len(rows), dtype=torch.int32)
+        self.register_buffer("lift_row", row_of)
         # None where the camera sees the whole sphere, as the models take it
         self.register_buffer("mask", None if bool(fe.mask.all()) else fe.mask.clone())
         crow, col, _ = fe.render_table("nearest")
         if not bool((crow.diff() == 1).all()):
             raise RuntimeError("the nearest render table must hold one point per pixel")
-        self.register_buffer("nearest", col.long().clone())
+        self.register_buffer("nearest", col.int().clone())
         self.register_buffer("seen", torch.from_numpy(valid_pixels(camera).ravel().copy()))
         if isinstance(self.up_mode, torch.Tensor):
             self.register_buffer("fixed_up", self.up_mode[None].clone())
@@ -104,7 +111,8 @@ class BoundSegmenter(nn.Module):
 
     def forward(self, image: torch.Tensor, up: torch.Tensor | None = None):
         rgb = image.reshape(-1, 3).float() / 255.0
-        x = padded_product(self.lift_col, self.lift_w, rgb)[None]  # [1, N, 3]
+        lifted = padded_product(self.lift_col, self.lift_w, rgb)  # [points with pixels, 3]
+        x = torch.cat([lifted, lifted.new_zeros(1, 3)]).index_select(0, self.lift_row)[None]
         if self.up_mode == "none":
             logits = self.model(x, self.mask)
             u, ok = x.new_full((1, 3), math.nan), torch.ones((), dtype=torch.bool, device=x.device)
@@ -118,7 +126,8 @@ class BoundSegmenter(nn.Module):
             u = u / u.norm()
             logits = self.model(x, self.mask, up=u)
         points = logits[0].argmax(-1)
-        labels = torch.where(self.seen & ok, points[self.nearest], UNSEEN).to(torch.uint8)
+        labels = torch.where(self.seen & ok, points.index_select(0, self.nearest), UNSEEN)
+        labels = labels.to(torch.uint8)
         return labels.reshape(self.size), torch.where(ok, u[0], math.nan)
 
 
@@ -177,10 +186,11 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
     return info
 
 
-def load_exported(path):
+def load_exported(path, threads: int | None = None):
     """An exported file as a function ``(image uint8 [H, W, 3], up [3] or None) ->
-    (labels [H, W] uint8, up [3])`` on numpy arrays: ONNX files run in onnxruntime,
-    ``.pt2`` files through ``torch.export.load``. Load once, call per frame."""
+    (labels [H, W] uint8, up [3])`` on numpy arrays: ONNX files run in onnxruntime (on
+    ``threads`` CPU threads; None: its default), ``.pt2`` files through
+    ``torch.export.load`` (on torch's threads). Load once, call per frame."""
     path = Path(path)
     if path.suffix.lower() == ".onnx":
         try:
@@ -188,7 +198,10 @@ def load_exported(path):
         except ImportError:
             raise ImportError("running an ONNX file needs onnxruntime: pip install "
                               "'usf-graph[export]'") from None
-        session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        options = ort.SessionOptions()
+        if threads:
+            options.intra_op_num_threads = int(threads)
+        session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         names = [i.name for i in session.get_inputs()]
 
         def run(image, up=None):
