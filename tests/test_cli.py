@@ -684,12 +684,17 @@ def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys
     printed = capsys.readouterr().out
     assert "100.00% of" in printed and "up float32 [3]" in printed
     info = json.loads(printed.strip().splitlines()[-1])
-    assert info["format"] == "ONNX" and info["size"] == [32, 32]
+    assert info["format"] == "ONNX" and info["inputs"] == ["image uint8 [32, 32, 3] RGB", "up float32 [3]"]
     image = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
     labels, _ = load_exported(out)(image, [0.0, 0.0, 1.0])
     ref = segment_image(seg.eval(), image, cam.with_fov(180), up=[0.0, 0.0, 1.0])["labels"]
     seen = ref != UNSEEN
     assert np.array_equal(labels == UNSEEN, ~seen) and (labels[seen] == ref[seen]).mean() > 0.99
+    rig = ["export", "seg", str(tmp_path / "seg.pt"), "--camera", str(FIXTURES / "kalibr_rig.yaml"),
+           "--rig", "--fov", "190", "--up", "0", "0", "1", "--out", str(tmp_path / "rig.onnx")]
+    assert main(rig) == 0  # two back-to-back fisheyes: an image and a label image each
+    assert "outputs: labels_cam0, labels_cam1 uint8" in capsys.readouterr().out
+    assert main([*rig, "--key", "cam1"]) == 2 and "--key picks one camera" in capsys.readouterr().err
     for bad, why in ((["--out", str(tmp_path / "a.onnx")], "eigendecomposition"),
                      (["--up", "0", "0", "1", "--level-prior", "10", "--out", str(tmp_path / "a.pt2")],
                       "--level-prior shapes"),

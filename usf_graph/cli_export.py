@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options
+from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, rig_from_spec
 
 
 def add_export_parser(sub, fmt) -> None:
@@ -26,6 +26,10 @@ def add_export_parser(sub, fmt) -> None:
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg'")
     p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
+    p.add_argument("--rig", action="store_true",
+                   help="every camera of a Kalibr camchain (--camera), lifted onto one sphere: "
+                        "the program takes one image per camera, in the file's order, and "
+                        "gives one label image per camera")
     up = p.add_mutually_exclusive_group()
     up.add_argument("--up-input", action="store_true",
                     help="the program takes gravity's up in the camera's sphere frame (x "
@@ -55,7 +59,10 @@ def cmd_export(args) -> int:
     if args.level_prior and up is not None:
         raise ValueError("--level-prior shapes the model's up estimate, which --up and "
                          "--up-input replace")
-    camera = camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
+    if args.rig and args.key is not None:
+        raise ValueError("--key picks one camera; --rig binds every camera of the camchain")
+    camera = rig_from_spec(args.camera, args.fov, args.image_mask) if args.rig else \
+        camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
     ckpt = load_protocol_model(args.checkpoint).require("seg", spherical=True)
     args.device = "cpu"
     model = ready_model(ckpt, args)
@@ -63,8 +70,8 @@ def cmd_export(args) -> int:
                             check=not args.no_check)
     print(f"wrote {info['path']} ({info['format']}, {info['bytes'] / 1e6:.1f} MB) in "
           f"{info['export_s']:.1f} s")
-    print(f"inputs: {', '.join(info['inputs'])} (H x W = {info['size'][0]} x {info['size'][1]}); "
-          f"outputs: labels uint8 [H, W] (255: unseen), up float32 [3]")
+    print(f"inputs: {', '.join(info['inputs'])}; outputs: {', '.join(info['outputs'][:-1])} "
+          f"uint8 [H, W] (255: unseen), {info['outputs'][-1]} float32 [3]")
     if "check" in info:
         c = info["check"]
         print(f"check on a room rendered through the camera: {100 * c['agree']:.2f}% of "

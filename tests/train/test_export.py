@@ -75,14 +75,14 @@ def test_onnx_with_an_imu_up_gives_usf_graphs_labels(tmp_path):
     for bad in ([math.nan, 0.0, 1.0], [0.0, 0.0, 0.0]):  # no raising in a program: all unseen
         labels, u = run(image, bad)
         assert (labels == UNSEEN).all() and np.isnan(u).all()
-    with pytest.raises(ValueError, match="takes an image and up"):
+    with pytest.raises(ValueError, match="takes 1 image and up; got 1 image$"):
         run(image)
 
 
 def test_pt2_holds_the_models_own_up_estimate(tmp_path):
     model, cam = _deeplab(1), _pinhole()
     info = export_segmenter(model, cam, tmp_path / "seg.pt2", up=None)
-    assert info["format"] == "torch.export" and info["inputs"] == ["image uint8 [H, W, 3] RGB"]
+    assert info["format"] == "torch.export" and info["inputs"] == ["image uint8 [30, 40, 3] RGB"]
     image = _room_image(cam, 3)
     labels, u = load_exported(tmp_path / "seg.pt2")(image)
     ref = segment_image(model, image, cam)
@@ -95,7 +95,7 @@ def test_pt2_holds_the_models_own_up_estimate(tmp_path):
 def test_a_fixed_up_and_a_model_without_gravity(tmp_path):
     cam = _fisheye(40)
     info = export_segmenter(_deeplab(2), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])
-    assert info["inputs"] == ["image uint8 [H, W, 3] RGB"]  # the up is a constant
+    assert info["inputs"] == ["image uint8 [40, 40, 3] RGB"]  # the up is a constant
     torch.manual_seed(3)
     iso = SphericalUNet(num_classes=4, level=3, channels=(4, 6), pairs=0).eval()
     info = export_segmenter(iso, cam, tmp_path / "iso.onnx")  # no up to read
@@ -125,3 +125,26 @@ def test_a_failed_export_leaves_no_file(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="disk full"):
         export_segmenter(_deeplab(), _fisheye(32), tmp_path / "a.pt2", up="input", check=False)
     assert not list(tmp_path.iterdir())
+
+
+def test_a_rig_is_one_program_with_an_image_and_labels_per_camera(tmp_path):
+    """Two back-to-back fisheyes: one sphere, blended as RigFrontend blends them, and each
+    camera's labels as segment_image gives them for the rig."""
+    front = _fisheye(36)
+    back = front.with_rotation(np.diag([-1.0, -1.0, 1.0]) @ front.rotation)
+    rig = {"front": front, "back": back}
+    model = _deeplab(4)
+    info = export_segmenter(model, rig, tmp_path / "rig.onnx", up="input")
+    assert info["inputs"] == ["front uint8 [36, 36, 3] RGB", "back uint8 [36, 36, 3] RGB",
+                              "up float32 [3]"]
+    assert info["outputs"] == ["labels_front", "labels_back", "up_read"]
+    assert info["check"]["agree"] >= 0.99
+    room = make_room(5)
+    images = [render(room, c, boxes=False).rgb for c in (front, back)]
+    labels, _ = load_exported(tmp_path / "rig.onnx")(images, [0.0, 0.0, 1.0])
+    ref = segment_image(model, images, rig, up=[0.0, 0.0, 1.0])["labels"]
+    for got, want in zip(labels, ref):
+        seen = want != UNSEEN
+        assert np.array_equal(got == UNSEEN, ~seen) and (got[seen] == want[seen]).mean() > 0.99
+    swapped = segment_image(model, images[::-1], rig, up=[0.0, 0.0, 1.0])["labels"][0]
+    assert (swapped != ref[0]).mean() > 0.05  # the cameras' order matters: a test that can fail

@@ -21,17 +21,18 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-from ..frontend import SphericalFrontend
+from ..frontend import RigFrontend, SphericalFrontend
 from ..frontend.interpolation import valid_pixels
 from ..sparse import padded_product, padded_rows, padded_values
 from ..tracing import fixed_fields
-from .apply import UNSEEN, choose_interpolation, input_grid, segment_image
+from .apply import UNSEEN, choose_interpolation, input_grid, is_rig, segment_image
 
 #: What the exported files are: by their suffix.
 FORMATS = {".onnx": "ONNX", ".pt2": "torch.export"}
@@ -51,84 +52,131 @@ def _up_mode(up):
     return torch.from_numpy(u / np.linalg.norm(u)).float()
 
 
-class BoundSegmenter(nn.Module):
-    r"""A spherical segmenter and one camera, as one module from image to labels.
+class CameraIO(nn.Module):
+    """One camera's part of a bound program: its lifting table, weighted by its share of
+    each point (a rig's blend; 1 for one camera) and kept over the points it lifts only (a
+    pinhole's table would pad 16x otherwise), and its nearest-point render table."""
 
-    ``forward(image [H, W, 3] uint8[, up [3] float32])`` -> ``(labels [H, W] uint8, up
-    [3] float32)``: the image in [0, 1] is lifted through the camera's table (``x_i =
-    \sum_p T_{ip} I_p``), segmented on the grid with the camera's field of view, and each
-    pixel takes the label of its nearest visible grid point. Where the given ``up`` is
-    not finite or is zero, every label is :data:`UNSEEN` and the returned up is NaN: an
-    exported program cannot raise, so it says so in its outputs.
-
-    Args:
-        model: a spherical segmenter (:class:`~usf_graph.models.SphericalUNet`,
-            :class:`~usf_graph.models.SphericalDeepLabV3`), in evaluation mode here.
-        camera: any :mod:`usf_graph.cameras` model (its mask and ``fov`` included).
-        up: ``"input"`` (a second input), a fixed ``[3]`` vector, or ``None``: the
-            model's own estimate (``.pt2`` only: ONNX has no eigendecomposition, which its
-            polish needs).
-        interpolation: as :func:`~usf_graph.train.apply.lift_for` (``auto`` picks
-            ``area`` for images much finer than the grid).
-    """
-
-    def __init__(self, model: nn.Module, camera, up="input", interpolation: str = "auto"):
+    def __init__(self, fe: SphericalFrontend, share: torch.Tensor | None = None):
         super().__init__()
-        grid = input_grid(model)
-        # a model without gravity reads no up (it is isotropic): it takes the image alone
-        self.up_mode = _up_mode(up) if getattr(model, "gravity", None) is not None else "none"
-        if interpolation == "auto":
-            interpolation = choose_interpolation(camera, grid)
-        fe = SphericalFrontend(camera, grid, interpolation)
-        self.camera, self.interpolation = camera, interpolation
-        self.model = model.eval()
-        self.size = (camera.height, camera.width)
-        # the lift over the points with pixels only (a pinhole's table pads 16x otherwise),
-        # then each point reads its row or a zero row at the end
-        crow, col, val = fe.lift_table()
+        cam = fe.camera
+        self.size = (cam.height, cam.width)
+        crow, col, val = (t.clone() for t in fe.lift_table())
         counts = crow.long().diff()
+        if share is not None:  # a rig: each entry weighted by its point's share, zeros dropped
+            row = torch.repeat_interleave(torch.arange(len(counts)), counts)
+            w = share.to(val.dtype)[row]
+            keep = w > 0
+            col, val = col[keep], val[keep] * w[keep]
+            counts = torch.bincount(row[keep], minlength=len(counts))
         rows = torch.nonzero(counts > 0)[:, 0]  # every entry is in one of these, in order
         cols, slot = padded_rows(torch.cat([counts.new_zeros(1), counts[rows].cumsum(0)]), col)
         self.register_buffer("lift_col", cols)
         self.register_buffer("lift_w", padded_values(val.float(), slot))
         row_of = torch.full((len(counts),), len(rows), dtype=torch.int32)
         row_of[rows] = torch.arange(len(rows), dtype=torch.int32)
-        self.register_buffer("lift_row", row_of)
-        # None where the camera sees the whole sphere, as the models take it
-        self.register_buffer("mask", None if bool(fe.mask.all()) else fe.mask.clone())
+        self.register_buffer("lift_row", row_of)  # each point's row, or the zero row past the end
         crow, col, _ = fe.render_table("nearest")
         if not bool((crow.diff() == 1).all()):
             raise RuntimeError("the nearest render table must hold one point per pixel")
         self.register_buffer("nearest", col.int().clone())
-        self.register_buffer("seen", torch.from_numpy(valid_pixels(camera).ravel().copy()))
+        self.register_buffer("seen", torch.from_numpy(valid_pixels(cam).ravel().copy()))
+
+    def lift(self, image: torch.Tensor) -> torch.Tensor:
+        """``uint8 [H, W, 3]`` -> ``[N, 3]`` in [0, 1], 0 where the camera adds nothing."""
+        rgb = image.reshape(-1, 3).float() / 255.0
+        lifted = padded_product(self.lift_col, self.lift_w, rgb)
+        return torch.cat([lifted, lifted.new_zeros(1, 3)]).index_select(0, self.lift_row)
+
+    def labels(self, points: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+        """Per-point labels ``[N]`` -> ``uint8 [H, W]``, :data:`UNSEEN` where the camera has
+        no ray or ``ok`` is False."""
+        out = torch.where(self.seen & ok, points.index_select(0, self.nearest), UNSEEN)
+        return out.to(torch.uint8).reshape(self.size)
+
+
+class BoundSegmenter(nn.Module):
+    r"""A spherical segmenter and one camera (or one rig), as one module from images to
+    labels.
+
+    ``forward(image [H, W, 3] uint8, ...[, up [3] float32])`` -> ``(labels [H, W] uint8,
+    ..., up [3] float32)``, one image and one label image per camera: the images in [0,
+    1] are lifted through the cameras' tables (``x_i = \sum_c \sum_p w_{ci} T^c_{ip}
+    I^c_p``, a rig's blend weights :math:`w_{ci}` as :class:`~usf_graph.frontend.
+    RigFrontend` makes them), segmented on the grid with the joint field of view, and each
+    pixel takes the label of its camera's nearest visible grid point. Where the given
+    ``up`` is not finite or is zero, every label is :data:`UNSEEN` and the returned up is
+    NaN: an exported program cannot raise, so it says so in its outputs.
+
+    Args:
+        model: a spherical segmenter (:class:`~usf_graph.models.SphericalUNet`,
+            :class:`~usf_graph.models.SphericalDeepLabV3`), in evaluation mode here.
+        camera: any :mod:`usf_graph.cameras` model (its mask and ``fov`` included), or a
+            rig: a list or ``{name: camera}`` of cameras mounted by their ``rotation``
+            (:func:`usf_graph.cameras.load_rig`), one image each, in that order.
+        up: ``"input"`` (the last input), a fixed ``[3]`` vector, or ``None``: the model's
+            own estimate (``.pt2`` only: ONNX has no eigendecomposition, which its polish
+            needs). A model without gravity reads no up and takes the images alone.
+        interpolation: as :func:`~usf_graph.train.apply.lift_for` (``auto`` picks
+            ``area`` for images much finer than the grid, for a rig if any camera needs it).
+    """
+
+    def __init__(self, model: nn.Module, camera, up="input", interpolation: str = "auto"):
+        super().__init__()
+        grid = input_grid(model)
+        self.up_mode = _up_mode(up) if getattr(model, "gravity", None) is not None else "none"
+        cams = list(camera.values()) if isinstance(camera, Mapping) else \
+            list(camera) if is_rig(camera) else [camera]
+        self.names = list(camera) if isinstance(camera, Mapping) else \
+            [f"cam{i}" for i in range(len(cams))] if is_rig(camera) else ["image"]
+        if interpolation == "auto":
+            picks = {choose_interpolation(c, grid) for c in cams}
+            interpolation = "area" if "area" in picks else "bilinear"
+        self.camera, self.interpolation = camera, interpolation
+        self.model = model.eval()
+        if is_rig(camera):
+            rig = RigFrontend(camera, grid, interpolation=interpolation)
+            fes, shares, mask = rig.frontends, list(rig.weights), rig.mask
+        else:
+            fe = SphericalFrontend(camera, grid, interpolation)
+            fes, shares, mask = [fe], [None], fe.mask
+        self.cameras = nn.ModuleList(CameraIO(f, w) for f, w in zip(fes, shares))
+        # None where the cameras see the whole sphere, as the models take it
+        self.register_buffer("mask", None if bool(mask.all()) else mask.clone())
         if isinstance(self.up_mode, torch.Tensor):
             self.register_buffer("fixed_up", self.up_mode[None].clone())
 
-    def example(self) -> tuple:
-        """Inputs of the right shapes and dtypes (a gray image, the up of a level camera)."""
-        image = torch.full((*self.size, 3), 128, dtype=torch.uint8)
-        return (image, torch.tensor([0.0, 0.0, 1.0])) if self.up_mode == "input" else (image,)
+    @property
+    def input_names(self) -> list[str]:
+        return self.names + (["up"] if self.up_mode == "input" else [])
 
-    def forward(self, image: torch.Tensor, up: torch.Tensor | None = None):
-        rgb = image.reshape(-1, 3).float() / 255.0
-        lifted = padded_product(self.lift_col, self.lift_w, rgb)  # [points with pixels, 3]
-        x = torch.cat([lifted, lifted.new_zeros(1, 3)]).index_select(0, self.lift_row)[None]
+    @property
+    def output_names(self) -> list[str]:
+        return (["labels"] if self.names == ["image"] else [f"labels_{n}" for n in self.names]) \
+            + ["up_read"]
+
+    def example(self) -> tuple:
+        """Inputs of the right shapes and dtypes (gray images, the up of a level camera)."""
+        images = tuple(torch.full((*c.size, 3), 128, dtype=torch.uint8) for c in self.cameras)
+        return images + ((torch.tensor([0.0, 0.0, 1.0]),) if self.up_mode == "input" else ())
+
+    def forward(self, *inputs: torch.Tensor):
+        k = len(self.cameras)
+        x = sum(c.lift(im) for c, im in zip(self.cameras, inputs[:k]))[None]  # [1, N, 3]
+        true = torch.ones((), dtype=torch.bool, device=x.device)
         if self.up_mode == "none":
-            logits = self.model(x, self.mask)
-            u, ok = x.new_full((1, 3), math.nan), torch.ones((), dtype=torch.bool, device=x.device)
+            logits, u, ok = self.model(x, self.mask), x.new_full((1, 3), math.nan), true
         elif self.up_mode is None:
             logits, grav = self.model(x, self.mask, return_gravity=True)
-            u, ok = grav["up"], torch.ones((), dtype=torch.bool, device=x.device)
+            u, ok = grav["up"], true
         else:
-            u = self.fixed_up if up is None else up.reshape(1, 3).float()
+            u = inputs[k].reshape(1, 3).float() if self.up_mode == "input" else self.fixed_up
             ok = torch.isfinite(u).all() & (u.norm() > 0)
             u = torch.where(ok, u, torch.tensor([[0.0, 0.0, 1.0]], device=x.device))
             u = u / u.norm()
             logits = self.model(x, self.mask, up=u)
         points = logits[0].argmax(-1)
-        labels = torch.where(self.seen & ok, points.index_select(0, self.nearest), UNSEEN)
-        labels = labels.to(torch.uint8)
-        return labels.reshape(self.size), torch.where(ok, u[0], math.nan)
+        return (*(c.labels(points, ok) for c in self.cameras), torch.where(ok, u[0], math.nan))
 
 
 def _onnx_ready() -> None:
@@ -168,17 +216,18 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
             bound(*example)
         with fixed_fields(fields):
             if fmt == "ONNX":
-                names = ["image", "up"][:len(example)]
                 program = torch.onnx.export(bound, example, dynamo=True, opset_version=OPSET,
-                                            input_names=names, output_names=["labels", "up_read"],
-                                            verbose=False)
+                                            input_names=bound.input_names,
+                                            output_names=bound.output_names, verbose=False)
                 program.save(str(tmp))
             else:
                 torch.export.save(torch.export.export(bound, example), str(tmp))
     tmp.replace(path)  # atomic: a failed export leaves no half-written file
     info = {"path": str(path), "format": fmt, "bytes": path.stat().st_size,
-            "inputs": ["image uint8 [H, W, 3] RGB"] + (["up float32 [3]"] if len(example) > 1 else []),
-            "size": list(bound.size), "interpolation": bound.interpolation,
+            "inputs": [f"{n} uint8 [{c.size[0]}, {c.size[1]}, 3] RGB"
+                       for n, c in zip(bound.names, bound.cameras)]
+            + (["up float32 [3]"] if bound.up_mode == "input" else []),
+            "outputs": bound.output_names, "interpolation": bound.interpolation,
             "export_s": time.perf_counter() - t0}
     if check:
         reads = None if bound.up_mode == "none" else up  # an isotropic model reads no up
@@ -187,10 +236,11 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
 
 
 def load_exported(path, threads: int | None = None):
-    """An exported file as a function ``(image uint8 [H, W, 3], up [3] or None) ->
-    (labels [H, W] uint8, up [3])`` on numpy arrays: ONNX files run in onnxruntime (on
-    ``threads`` CPU threads; None: its default), ``.pt2`` files through
-    ``torch.export.load`` (on torch's threads). Load once, call per frame."""
+    """An exported file as a function ``(images, up=None) -> (labels, up [3])`` on numpy
+    arrays: ``images`` one ``uint8 [H, W, 3]`` image, or a list of one per camera for a
+    rig (``labels`` then a list too); ``up`` given exactly when the program takes it. ONNX
+    files run in onnxruntime (on ``threads`` CPU threads; None: its default), ``.pt2``
+    files through ``torch.export.load`` (on torch's threads). Load once, call per frame."""
     path = Path(path)
     if path.suffix.lower() == ".onnx":
         try:
@@ -203,62 +253,72 @@ def load_exported(path, threads: int | None = None):
             options.intra_op_num_threads = int(threads)
         session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         names = [i.name for i in session.get_inputs()]
+        takes = (len([n for n in names if n != "up"]), "up" in names)
 
-        def run(image, up=None):
-            feeds = _feeds(image, up, len(names), path)
-            labels, u = session.run(None, dict(zip(names, feeds)))
-            return labels, u
-        return run
-    program = torch.export.load(str(path)).module()
-    takes = len(program.graph.find_nodes(op="placeholder")) if hasattr(program, "graph") else None
+        def call(feeds):
+            return session.run(None, dict(zip(names, feeds)))
+    else:
+        program = torch.export.load(str(path)).module()
+        kinds = [n.meta["val"].dtype for n in program.graph.find_nodes(op="placeholder")
+                 if "val" in n.meta]
+        takes = (kinds.count(torch.uint8), torch.float32 in kinds)
 
-    def run(image, up=None):
-        feeds = _feeds(image, up, takes, path)
-        with torch.no_grad():
-            labels, u = program(*(torch.from_numpy(f) for f in feeds))
-        return labels.numpy(), u.numpy()
+        def call(feeds):
+            with torch.no_grad():
+                return [t.numpy() for t in program(*(torch.from_numpy(f) for f in feeds))]
+
+    def run(images, up=None):
+        rig = isinstance(images, (list, tuple))
+        ims = [np.ascontiguousarray(im, np.uint8) for im in (images if rig else [images])]
+        if (len(ims), up is not None) != takes:
+            want = f"{takes[0]} image{'s' if takes[0] > 1 else ''}" + (" and up" if takes[1] else "")
+            raise ValueError(f"{path} takes {want}; got {len(ims)} image{'s' if len(ims) > 1 else ''}"
+                             + (" and up" if up is not None else ""))
+        feeds = ims + ([np.asarray(up, np.float32).reshape(3)] if up is not None else [])
+        *labels, u = call(feeds)
+        return (labels if rig else labels[0]), u
     return run
-
-
-def _feeds(image, up, takes: int | None, path) -> list:
-    feeds = [np.ascontiguousarray(image, np.uint8)]
-    if up is not None:
-        feeds.append(np.asarray(up, np.float32).reshape(3))
-    if takes is not None and takes != len(feeds):
-        raise ValueError(f"{path} takes {'an image and up' if takes == 2 else 'an image alone'}; "
-                         f"give up exactly when it takes one")
-    return feeds
 
 
 def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed: int = 0) -> dict:
     """The exported file against :func:`~usf_graph.train.apply.segment_image` on room
-    ``seed`` rendered through ``camera``: the share of the camera's pixels where both give
-    the same label (argmax ties and float32 summation order can flip a few), the largest
-    angle between their ups (degrees), and the program's time per frame.
+    ``seed`` rendered through ``camera`` (a rig: through each of its cameras, from one
+    viewpoint): the share of the cameras' pixels where both give the same label (argmax
+    ties and float32 summation order can flip a few), the angle between their ups
+    (degrees), and the program's time per frame.
 
-    Raises ``RuntimeError`` when fewer than 99% of the pixels agree: the file would be a
-    silent wrong answer."""
+    Raises ``RuntimeError`` when fewer than 99% of the pixels agree, or the unseen pixels
+    differ: the file would be a silent wrong answer."""
     from ..scenes import make_room
     from ..scenes.render import render
 
-    view = render(make_room(seed), camera, boxes=False)
+    room = make_room(seed)
+    cams = list(camera.values()) if isinstance(camera, Mapping) else list(camera) if is_rig(camera) \
+        else [camera]
+    images = [render(room, c, boxes=False).rgb for c in cams]
     given = None if up is None else [0.0, 0.0, 1.0] if up == "input" else up
-    ref = segment_image(model, view.rgb, camera, up=given, interpolation=interpolation)
+    ref = segment_image(model, images if is_rig(camera) else images[0], camera, up=given,
+                        interpolation=interpolation)
+    feed = images if is_rig(camera) else images[0]
     feed_up = [0.0, 0.0, 1.0] if up == "input" else None
     t0 = time.perf_counter()
     run = load_exported(path)
     load = time.perf_counter() - t0
-    labels, u = run(view.rgb, feed_up)
+    labels, u = run(feed, feed_up)
     t0 = time.perf_counter()
-    run(view.rgb, feed_up)
-    seen = ref["labels"] != UNSEEN
-    agree = float((labels[seen] == ref["labels"][seen]).mean()) if seen.any() else 1.0
-    same_unseen = bool(((labels == UNSEEN) == ~seen).all())
+    run(feed, feed_up)
+    frame = time.perf_counter() - t0
+    got = labels if is_rig(camera) else [labels]
+    want = ref["labels"] if is_rig(camera) else [ref["labels"]]
+    seen = np.concatenate([(w != UNSEEN).ravel() for w in want])
+    same = np.concatenate([(g == w).ravel() for g, w in zip(got, want)])
+    agree = float(same[seen].mean()) if seen.any() else 1.0
+    same_unseen = bool(all(((g == UNSEEN) == (w == UNSEEN)).all() for g, w in zip(got, want)))
     a, b = np.asarray(u, np.float64), np.asarray(ref["up"] if ref["up"] is not None else u, np.float64)
     angle = math.atan2(np.linalg.norm(np.cross(a, b)), float(np.dot(a, b))) if np.isfinite(a).all() else 0.0
     out = {"room": seed, "pixels_seen": int(seen.sum()), "agree": agree,
            "unseen_match": same_unseen, "up_angle_deg": math.degrees(angle),
-           "load_s": load, "frame_s": time.perf_counter() - t0}
+           "load_s": load, "frame_s": frame}
     if agree < 0.99 or not same_unseen:
         raise RuntimeError(f"the exported {path} disagrees with usf-graph on a rendered room: "
                            f"{100 * agree:.2f}% of the pixels agree, unseen pixels "
@@ -267,4 +327,4 @@ def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed:
     return out
 
 
-__all__ = ["BoundSegmenter", "FORMATS", "check_exported", "export_segmenter", "load_exported"]
+__all__ = ["BoundSegmenter", "CameraIO", "FORMATS", "check_exported", "export_segmenter", "load_exported"]
