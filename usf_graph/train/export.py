@@ -19,6 +19,7 @@ procedural room rendered through the camera (:func:`check_exported`).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Mapping
@@ -221,7 +222,10 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
                                             output_names=bound.output_names, verbose=False)
                 program.save(str(tmp))
             else:
-                torch.export.save(torch.export.export(bound, example), str(tmp))
+                program = torch.export.export(bound, example)
+                with _unused_buffers_emptied(bound, program):  # the fast forms' geometry
+                    program = torch.export.export(bound, example)
+                torch.export.save(program, str(tmp))
     tmp.replace(path)  # atomic: a failed export leaves no half-written file
     info = {"path": str(path), "format": fmt, "bytes": path.stat().st_size,
             "inputs": [f"{n} uint8 [{c.size[0]}, {c.size[1]}, 3] RGB"
@@ -233,6 +237,35 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
         reads = None if bound.up_mode == "none" else up  # an isotropic model reads no up
         info["check"] = check_exported(path, model, camera, reads, bound.interpolation, seed)
     return info
+
+
+@contextlib.contextmanager
+def _unused_buffers_emptied(module: nn.Module, program):
+    """Inside, every buffer of ``module`` that ``program`` (its export) never reads, and
+    that no read buffer shares its tensor with, is a zero-stride tensor of its shape: a
+    ``.pt2`` keeps every buffer of the module, and the fast forms' tables (a jet's
+    transposed operator, the float64 geometry) would triple its size. Restored after."""
+    users = {n.name: len(n.users) for n in program.graph.find_nodes(op="placeholder")}
+    to_buffer = program.graph_signature.inputs_to_buffers
+
+    def owner(fqn):
+        mod, _, name = fqn.rpartition(".")
+        return module.get_submodule(mod), name
+
+    read = {id(m._buffers[n]) for ph, fqn in to_buffer.items() if users.get(ph, 1)
+            for m, n in [owner(fqn)]}
+    kept = {}
+    for ph, fqn in to_buffer.items():
+        m, n = owner(fqn)
+        t = m._buffers[n]
+        if users.get(ph, 1) == 0 and id(t) not in read:
+            kept[(m, n)] = t
+            m._buffers[n] = torch.zeros((), dtype=t.dtype, device=t.device).expand(t.shape)
+    try:
+        yield
+    finally:
+        for (m, n), t in kept.items():
+            m._buffers[n] = t
 
 
 def load_exported(path, threads: int | None = None):
