@@ -99,7 +99,7 @@ def test_pt2_holds_the_models_own_up_estimate(tmp_path):
 
 def test_a_fixed_up_and_a_model_without_gravity(tmp_path):
     cam = _fisheye(40)
-    info = export_segmenter(_deeplab(2), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])
+    info = export_segmenter(_deeplab(2, gray=True), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])
     assert info["inputs"] == ["image uint8 [40, 40, 3] RGB"]  # the up is a constant
     torch.manual_seed(3)
     iso = SphericalUNet(num_classes=4, level=3, channels=(4, 6), pairs=0).eval()

@@ -207,6 +207,9 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
                              "eigendecomposition, which its polish needs): export with "
                              "up='input' (--up-input: an IMU) or a fixed up (--up X Y Z), "
                              "or to .pt2")
+    if any(t.device.type != "cpu" for t in model.parameters()):
+        raise ValueError("export traces on the CPU: move the model there first (model.cpu()); "
+                         "the written file runs on whatever devices its runtime has")
     t0 = time.perf_counter()
     bound = BoundSegmenter(model, camera, up, interpolation).eval()
     example = bound.example()
