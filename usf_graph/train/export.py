@@ -20,8 +20,10 @@ procedural room rendered through the camera (:func:`check_exported`).
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import time
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -215,7 +217,7 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
     example = bound.example()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.part{path.suffix}")
-    with torch.no_grad():
+    with torch.no_grad(), _quiet_exporters():
         with fixed_fields() as fields:  # builds the plain forms' tables, records the masks
             bound(*example)
         with fixed_fields(fields):
@@ -240,6 +242,21 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
         reads = None if bound.up_mode == "none" else up  # an isotropic model reads no up
         info["check"] = check_exported(path, model, camera, reads, bound.interpolation, seed)
     return info
+
+
+@contextlib.contextmanager
+def _quiet_exporters():
+    """The exporters' notes that say nothing about this export (torchvision's operators
+    skipped, a deprecation inside torch's own pytree code), kept off the user's screen."""
+    log = logging.getLogger("torch.onnx._internal.exporter._registration")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*LeafSpec", category=FutureWarning)
+            yield
+    finally:
+        log.setLevel(level)
 
 
 @contextlib.contextmanager
