@@ -316,3 +316,32 @@ class _Sized:
 
     def __len__(self):
         return len(self.label_image)
+
+
+def test_deploy_onnx_example_runs_an_exported_file_without_usf_graph(tmp_path, capsys):
+    """The example reads frames from disk (BGR), runs the exported program, and writes the
+    labels the program gives for the RGB frame; it names classes from the file itself."""
+    import cv2
+
+    pytest.importorskip("onnxruntime")
+    from usf_graph.cameras import KannalaBrandt
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train.export import export_segmenter, load_exported
+
+    cam = KannalaBrandt(10.0, 10.0, 15.5, 11.5, 32, 24, k=(0.0, 0.0, 0.0, 0.0)).with_fov(180)
+    torch.manual_seed(0)
+    model = SphericalUNet(13, level=3, channels=(4, 4), gravity=True, pairs=0).eval()
+    export_segmenter(model, cam, tmp_path / "seg.onnx", up="input", check=False)
+    rgb = np.random.default_rng(1).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "frame.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    ex = load("deploy_onnx")
+    args = [str(tmp_path / "seg.onnx"), str(tmp_path / "frame.png"), "--out", str(tmp_path / "o")]
+    assert ex.main([*args, "--up", "0", "0", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith("frame: ") and "%" in printed and "up read [0.0, 0.0, 1.0]" in printed
+    got = cv2.imread(str(tmp_path / "o" / "frame_labels.png"), cv2.IMREAD_UNCHANGED)
+    want, _ = load_exported(tmp_path / "seg.onnx")(rgb, [0.0, 0.0, 1.0])
+    assert np.array_equal(got, want) and (got == 255).any() and (got != 255).any()
+    assert (tmp_path / "o" / "frame_overlay.png").exists()
+    with pytest.raises(SystemExit, match="give --up"):
+        ex.main(args)

@@ -2,6 +2,7 @@
 gives usf-graph's labels on rendered rooms, says so in its outputs where up is unusable,
 and every refusal names the fix."""
 
+import json
 import math
 
 import numpy as np
@@ -62,6 +63,10 @@ def test_onnx_with_an_imu_up_gives_usf_graphs_labels(tmp_path):
     assert info["format"] == "ONNX" and info["check"]["agree"] >= 0.99
     assert not list(tmp_path.glob(".*part*"))  # written atomically
     run = load_exported(tmp_path / "seg.onnx")
+    meta = run.metadata  # the file says what it is
+    assert json.loads(meta["classes"]) == [f"class {k}" for k in range(5)] and meta["unseen"] == "255"
+    assert meta["up"] == "input" and json.loads(meta["inputs"]) == ["image", "up"]
+    assert json.loads(meta["cameras"])["image"] == cam.key() and meta["grid"] == "icosahedral:3"
     for seed, up in ((1, [0.0, 0.0, 1.0]), (2, [0.3, -0.2, 0.9])):  # new rooms, a tilted up
         image = _room_image(cam, seed)
         labels, u = run(image, up)
@@ -89,7 +94,9 @@ def test_pt2_holds_the_models_own_up_estimate(tmp_path):
     assert info["bytes"] < 0.6 * everything  # the fast forms' tables are not in the file
     assert info["format"] == "torch.export" and info["inputs"] == ["image uint8 [30, 40, 3] RGB"]
     image = _room_image(cam, 3)
-    labels, u = load_exported(tmp_path / "seg.pt2")(image)
+    run = load_exported(tmp_path / "seg.pt2")
+    assert run.metadata["up"] == "estimate" and run.metadata["task"] == "seg"
+    labels, u = run(image)
     ref = segment_image(model, image, cam)
     seen = ref["labels"] != UNSEEN
     assert (labels[seen] == ref["labels"][seen]).mean() > 0.99

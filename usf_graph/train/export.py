@@ -20,6 +20,7 @@ procedural room rendered through the camera (:func:`check_exported`).
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
 import time
@@ -35,12 +36,14 @@ from ..frontend import RigFrontend, SphericalFrontend
 from ..frontend.interpolation import valid_pixels
 from ..sparse import padded_product, padded_rows, padded_values
 from ..tracing import fixed_fields
-from .apply import UNSEEN, choose_interpolation, input_grid, is_rig, segment_image
+from .apply import UNSEEN, choose_interpolation, class_names, input_grid, is_rig, segment_image
 
 #: What the exported files are: by their suffix.
 FORMATS = {".onnx": "ONNX", ".pt2": "torch.export"}
 #: ONNX opset of the files written (the exporter's default in torch 2.13).
 OPSET = 18
+#: The ``.pt2`` archive's extra file that holds :func:`metadata`.
+META_FILE = "usf_graph.json"
 
 
 def _up_mode(up):
@@ -63,7 +66,7 @@ class CameraIO(nn.Module):
     def __init__(self, fe: SphericalFrontend, share: torch.Tensor | None = None):
         super().__init__()
         cam = fe.camera
-        self.size = (cam.height, cam.width)
+        self.size, self.camera_key = (cam.height, cam.width), cam.key()
         crow, col, val = (t.clone() for t in fe.lift_table())
         counts = crow.long().diff()
         if share is not None:  # a rig: each entry weighted by its point's share, zeros dropped
@@ -191,6 +194,27 @@ def _onnx_ready() -> None:
                           "'usf-graph[export]' (or export to .pt2)") from None
 
 
+def metadata(bound: BoundSegmenter) -> dict[str, str]:
+    """What an exported file says of itself (ONNX ``metadata_props``, a ``.pt2``'s
+    :data:`META_FILE`), every value a string: ``classes`` (a JSON list, index = label),
+    ``unseen`` (the label of pixels without a ray), ``inputs`` and ``outputs`` (names),
+    ``up`` (``input``, ``estimate``, ``none`` or a fixed JSON ``[x, y, z]``), ``up_frame``,
+    ``cameras`` (each camera's calibration as ``Camera.key()``, JSON), ``grid``,
+    ``interpolation`` and the ``usf_graph`` version that wrote it."""
+    from .. import __version__
+
+    mode = bound.up_mode
+    up = "estimate" if mode is None else mode if isinstance(mode, str) else json.dumps(mode.tolist())
+    return {"usf_graph": __version__, "task": "seg",
+            "classes": json.dumps(class_names("seg", bound.model.config["num_classes"])),
+            "unseen": str(UNSEEN), "inputs": json.dumps(bound.input_names),
+            "outputs": json.dumps(bound.output_names), "up": up,
+            "up_frame": "the sphere frame of the camera (of a rig's first camera): x forward, "
+                        "y left, z up",
+            "cameras": json.dumps({n: io.camera_key for n, io in zip(bound.names, bound.cameras)}),
+            "grid": bound.model.input_grid, "interpolation": bound.interpolation}
+
+
 def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: str = "auto",
                      check: bool = True, seed: int = 0) -> dict:
     """Write ``model`` bound to ``camera`` (:class:`BoundSegmenter`) to ``path``: ONNX for
@@ -221,16 +245,18 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
         with fixed_fields() as fields:  # builds the plain forms' tables, records the masks
             bound(*example)
         with fixed_fields(fields):
+            meta = metadata(bound)
             if fmt == "ONNX":
                 program = torch.onnx.export(bound, example, dynamo=True, opset_version=OPSET,
                                             input_names=bound.input_names,
                                             output_names=bound.output_names, verbose=False)
+                program.model.metadata_props.update(meta)
                 program.save(str(tmp))
             else:
                 program = torch.export.export(bound, example)
                 with _unused_buffers_emptied(bound, program):  # the fast forms' geometry
                     program = torch.export.export(bound, example)
-                torch.export.save(program, str(tmp))
+                torch.export.save(program, str(tmp), extra_files={META_FILE: json.dumps(meta)})
     tmp.replace(path)  # atomic: a failed export leaves no half-written file
     info = {"path": str(path), "format": fmt, "bytes": path.stat().st_size,
             "inputs": [f"{n} uint8 [{c.size[0]}, {c.size[1]}, 3] RGB"
@@ -293,7 +319,8 @@ def load_exported(path, threads: int | None = None):
     arrays: ``images`` one ``uint8 [H, W, 3]`` image, or a list of one per camera for a
     rig (``labels`` then a list too); ``up`` given exactly when the program takes it. ONNX
     files run in onnxruntime (on ``threads`` CPU threads; None: its default), ``.pt2``
-    files through ``torch.export.load`` (on torch's threads). Load once, call per frame."""
+    files through ``torch.export.load`` (on torch's threads). Load once, call per frame.
+    The function's ``metadata`` is the file's :func:`metadata` (class names and more)."""
     path = Path(path)
     if path.suffix.lower() == ".onnx":
         try:
@@ -306,12 +333,15 @@ def load_exported(path, threads: int | None = None):
             options.intra_op_num_threads = int(threads)
         session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         names = [i.name for i in session.get_inputs()]
+        meta = dict(session.get_modelmeta().custom_metadata_map)
         takes = (len([n for n in names if n != "up"]), "up" in names)
 
         def call(feeds):
             return session.run(None, dict(zip(names, feeds)))
     else:
-        program = torch.export.load(str(path)).module()
+        extra = {META_FILE: ""}
+        program = torch.export.load(str(path), extra_files=extra).module()
+        meta = json.loads(extra[META_FILE]) if extra[META_FILE] else {}
         kinds = [n.meta["val"].dtype for n in program.graph.find_nodes(op="placeholder")
                  if "val" in n.meta]
         takes = (kinds.count(torch.uint8), torch.float32 in kinds)
@@ -330,6 +360,7 @@ def load_exported(path, threads: int | None = None):
         feeds = ims + ([np.asarray(up, np.float32).reshape(3)] if up is not None else [])
         *labels, u = call(feeds)
         return (labels if rig else labels[0]), u
+    run.metadata = meta  # what the file says of itself (metadata())
     return run
 
 
@@ -380,4 +411,4 @@ def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed:
     return out
 
 
-__all__ = ["BoundSegmenter", "CameraIO", "FORMATS", "check_exported", "export_segmenter", "load_exported"]
+__all__ = ["BoundSegmenter", "CameraIO", "FORMATS", "META_FILE", "check_exported", "export_segmenter", "load_exported", "metadata"]
