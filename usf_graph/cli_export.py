@@ -38,15 +38,15 @@ def add_export_parser(sub, fmt) -> None:
                     help="a fixed up in the camera's sphere frame: a camera mounted at a fixed "
                          "angle to gravity (0 0 1: level)")
     p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
-                   help="without --up/--up-input (.pt2): the up estimate assumes a level camera "
-                        "with this strength (10 in the README; 0 off)")
+                   help="without --up/--up-input: the up estimate assumes a level camera with "
+                        "this strength (10 in the README; 0 off)")
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted (as predict's)")
     p.add_argument("--no-check", action="store_true",
                    help="skip running the written file against usf-graph on a rendered room")
     p.add_argument("--out", required=True, metavar="PATH",
                    help="the program: .onnx (needs usf-graph[export]) or .pt2; without "
-                        "--up/--up-input only .pt2 holds the model's own up estimate")
+                        "--up/--up-input it holds the model's own up estimate")
     p.set_defaults(func=cmd_export, sign_check=None)
 
 

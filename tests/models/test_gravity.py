@@ -6,10 +6,12 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from usf_graph import grids
 from usf_graph.models import GravityHead
-from usf_graph.models.gravity import heights, rank2_gap
+from usf_graph.models.gravity import heights, rank2_gap, symmetric_eigh3
 
 
 def _set_cosine_detector(head: GravityHead, gain: float):
@@ -516,3 +518,26 @@ def test_on_a_gpu_the_polish_of_a_protocol_batch_follows_the_cpu_in_little_memor
     assert torch.cuda.max_memory_allocated() < 2**30
     assert max(_deg(a.double(), b.double()) for a, b in zip(cpu, gpu)) < 0.05
     assert max(_deg(u.double(), a) for u, a in zip(gpu, axes)) < 1.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), repeated=st.sampled_from([None, (0, 1), (1, 2), (0, 1, 2)]),
+       scale=st.floats(1e-6, 1e6))
+def test_jacobi_eigh3_is_torchs_eigendecomposition(seed, repeated, scale):
+    """The polish's plain form: ascending eigenvalues to float64's precision, orthonormal
+    eigenvectors with A v = lambda v, on random symmetric matrices, repeated eigenvalues
+    and diagonal ones included."""
+    gen = torch.Generator().manual_seed(seed)
+    lam = torch.randn(4, 3, generator=gen, dtype=torch.float64) * scale
+    if repeated is not None:
+        lam[:, list(repeated)] = lam[:, repeated[0]:repeated[0] + 1]
+    Q = torch.linalg.qr(torch.randn(4, 3, 3, generator=gen, dtype=torch.float64))[0]
+    A = Q @ torch.diag_embed(lam) @ Q.transpose(1, 2)
+    A = torch.cat([A, torch.diag_embed(lam[:1])])  # already diagonal: no rotation at all
+    A = (A + A.transpose(1, 2)) / 2
+    val, vec = symmetric_eigh3(A)
+    ref = torch.linalg.eigvalsh(A)
+    big = A.abs().amax((1, 2), keepdim=True).clamp_min(1e-300)
+    assert ((val - ref).abs() / big[..., 0]).max() < 1e-13
+    assert ((A @ vec - vec * val[:, None, :]).abs() / big).max() < 1e-13
+    assert (vec.transpose(1, 2) @ vec - torch.eye(3, dtype=torch.float64)).abs().max() < 1e-13

@@ -295,7 +295,9 @@ class UpPolish(GeometryModule):
             # a squared sine: >= 0 up to the rounding of T, which an edge at u would blow up
             e = (torch.einsum("bi,bkij,bj->bk", u, T, u) / s2).clamp_min(0)
             a = w * torch.exp(-kappa * e)
-            val, vec = torch.linalg.eigh(torch.einsum("bk,bkij->bij", a, T))
+            # ONNX has no eigendecomposition: its export traces Jacobi rotations instead
+            eigh = symmetric_eigh3 if torch.onnx.is_in_onnx_export() else torch.linalg.eigh
+            val, vec = eigh(torch.einsum("bk,bkij->bij", a, T))
             # a fit is only defined with edges and a unique smallest eigenvalue
             ok = ok & (a.sum(-1) > 1e-9) & (val[:, 1] - val[:, 0] > 1e-9 * val[:, 2])
             new = vec[..., 0] * torch.where((vec[..., 0] * u).sum(-1, keepdim=True) < 0, -1.0, 1.0)
@@ -325,6 +327,42 @@ def rank2_gap(T: torch.Tensor) -> torch.Tensor:
     return (2 * (T * T).sum((-2, -1)) - t * t).clamp_min(0)
 
 
+def _jacobi_rotation(p: int, q: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The constant parts of a rotation in the (p, q) plane: ``J = I + (c - 1) D + s R``."""
+    D, R = torch.zeros(3, 3, dtype=torch.float64), torch.zeros(3, 3, dtype=torch.float64)
+    D[p, p] = D[q, q] = 1.0
+    R[p, q], R[q, p] = 1.0, -1.0
+    return D, R
+
+
+_ROTATIONS = {pq: _jacobi_rotation(*pq) for pq in ((0, 1), (0, 2), (1, 2))}
+
+
+def symmetric_eigh3(A: torch.Tensor, sweeps: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""``torch.linalg.eigh`` of symmetric ``A [..., 3, 3]`` by cyclic Jacobi rotations:
+    ``(values [..., 3] ascending, vectors [..., 3, 3] as columns)``. Each rotation zeroes
+    one off-diagonal entry (:math:`t = \operatorname{sgn}\tau / (|\tau| + \sqrt{1 +
+    \tau^2})`, :math:`\tau = (a_{qq} - a_{pp}) / 2 a_{pq}`); convergence is quadratic, and
+    4 sweeps reach float64's precision on 3x3 matrices (repeated eigenvalues included).
+    What the up polish runs while ``torch.onnx.export`` traces it: square roots and
+    products only, which ONNX can hold, where it has no eigendecomposition."""
+    eye = torch.eye(3, dtype=A.dtype, device=A.device)
+    a, v = A, eye.expand_as(A)
+    tiny = torch.finfo(A.dtype).tiny
+    for _ in range(sweeps):
+        for (p, q), (D, R) in _ROTATIONS.items():
+            apq, app, aqq = a[..., p, q], a[..., p, p], a[..., q, q]
+            zero = apq.abs() <= tiny
+            tau = (aqq - app) / (2 * torch.where(zero, 1.0, apq))
+            t = torch.where(zero, 0.0, torch.sign(tau) + (tau == 0)) / (tau.abs() + torch.sqrt(1 + tau * tau))
+            c = torch.rsqrt(1 + t * t)
+            J = eye + (c - 1)[..., None, None] * D.to(A) + (t * c)[..., None, None] * R.to(A)
+            a = J.transpose(-1, -2) @ a @ J
+            v = v @ J
+    val, order = torch.sort(torch.diagonal(a, dim1=-2, dim2=-1), dim=-1)
+    return val, torch.gather(v, -1, order[..., None, :].expand_as(v))
+
+
 def strongest_edges(jet: SurfaceJet, x: torch.Tensor, mask: torch.Tensor | None, k: int,
                     min_strength: float | None = None):
     """The ``k`` strongest visible edges of ``x [B, N, C]`` (largest trace of their
@@ -341,4 +379,4 @@ def strongest_edges(jet: SurfaceJet, x: torch.Tensor, mask: torch.Tensor | None,
 
 
 __all__ = ["UNSURE_MARGIN", "GravityHead", "EdgeVotes", "UpPolish", "heights", "pick_axis", "rank2_gap",
-           "structure_tensors", "strongest_edges"]
+           "structure_tensors", "strongest_edges", "symmetric_eigh3"]
