@@ -166,6 +166,22 @@ def test_info_reports_versions_and_working_extensions(capsys):
     assert "USF_GRAPH_CACHE" in out and f"torch threads        {torch.get_num_threads()}" in out
 
 
+def test_info_says_how_to_get_the_optional_export_packages(capsys, monkeypatch):
+    import builtins
+
+    real = builtins.__import__
+
+    def no_onnxruntime(name, *args, **kwargs):
+        if name == "onnxruntime":
+            raise ImportError("No module named 'onnxruntime'")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_onnxruntime)
+    assert main(["info"]) == 0  # optional: still a healthy install
+    out = capsys.readouterr().out
+    assert "onnxruntime          not installed (optional, for usf-graph export: pip install " in out
+
+
 def test_camera_cli_prints_field_of_view_and_plots(tmp_path, capsys):
     path = "tests/fixtures/ros_equidistant.yaml"
     cam = cameras.load(path)

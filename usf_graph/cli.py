@@ -28,6 +28,12 @@ def cmd_info(args) -> int:
             rows.append((mod, getattr(m, "__version__", "ok")))
         except Exception as e:  # noqa: BLE001 - report, do not crash
             rows.append((mod, f"NOT AVAILABLE ({type(e).__name__}: {e})"))
+    for mod in ("onnx", "onnxscript", "onnxruntime"):  # optional: what usf-graph export needs
+        try:
+            rows.append((mod, __import__(mod).__version__))
+        except ImportError:
+            rows.append((mod, "not installed (optional, for usf-graph export: "
+                              "pip install 'usf-graph[export]')"))
     ok = True
     try:
         import torch_cluster
