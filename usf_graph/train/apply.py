@@ -77,6 +77,20 @@ def _auto(camera, grid) -> str:
     return _per_camera("interpolation", camera, lambda: choose_interpolation(camera, grid), grid.spec)
 
 
+def auto_interpolation(cameras: list, grid) -> str:
+    """``interpolation="auto"`` for one camera or a rig's (:func:`choose_interpolation`):
+    ``area`` if any of them needs it."""
+    return "area" if "area" in {_auto(c, grid) for c in cameras} else "bilinear"
+
+
+def cameras_of(camera) -> list:
+    """The cameras of ``camera``: itself alone, or a rig's (a list, or a mapping's values)
+    in their order."""
+    if isinstance(camera, Mapping):
+        return list(camera.values())
+    return list(camera) if is_rig(camera) else [camera]
+
+
 def rgb_channels(image, colour_model: bool = True) -> np.ndarray:
     """``image``'s three colour channels ``[H, W, 3]``, in its dtype: a fourth (alpha)
     channel is dropped, and a grayscale image (``[H, W]`` or ``[H, W, 1]``: a mono camera's)
@@ -129,7 +143,7 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
     if not is_rig(camera):
         rgb = rgb01(image, colour)  # before any table is built: a wrong image costs nothing
         if interpolation == "auto":
-            interpolation = _auto(camera, grid)
+            interpolation = auto_interpolation([camera], grid)
         if image_mask is not None:
             camera = camera.with_image_mask(image_mask, combine=True)
         # one frontend per camera: its remap maps are built on its first lift, not per frame
@@ -140,12 +154,11 @@ def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None)
 
     if image_mask is not None:
         raise ValueError("a rig's image masks go with its cameras: cameras.with_fov_and_mask")
-    cams = list(camera.values()) if isinstance(camera, Mapping) else list(camera)
+    cams = cameras_of(camera)
     rgb = {k: rgb01(v, colour) for k, v in image.items()} if isinstance(image, Mapping) else \
         [rgb01(v, colour) for v in image]
     if interpolation == "auto":
-        picks = {_auto(c, grid) for c in cams}
-        interpolation = "area" if "area" in picks else "bilinear"
+        interpolation = auto_interpolation(cams, grid)
     fe = _per_camera("rig", cams, lambda: RigFrontend(camera, grid, interpolation=interpolation),
                      (grid.spec, interpolation, tuple(camera) if isinstance(camera, Mapping) else None))
     return _on_model(model, fe, fe.lift(rgb)[None])

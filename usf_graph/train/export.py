@@ -36,7 +36,15 @@ from ..frontend import RigFrontend, SphericalFrontend
 from ..frontend.interpolation import valid_pixels
 from ..sparse import padded_product, padded_rows, padded_values
 from ..tracing import fixed_fields
-from .apply import UNSEEN, choose_interpolation, class_names, input_grid, is_rig, segment_image
+from .apply import (
+    UNSEEN,
+    auto_interpolation,
+    cameras_of,
+    class_names,
+    input_grid,
+    is_rig,
+    segment_image,
+)
 
 #: What the exported files are: by their suffix.
 FORMATS = {".onnx": "ONNX", ".pt2": "torch.export"}
@@ -136,13 +144,11 @@ class BoundSegmenter(nn.Module):
         super().__init__()
         grid = input_grid(model)
         self.up_mode = _up_mode(up) if getattr(model, "gravity", None) is not None else "none"
-        cams = list(camera.values()) if isinstance(camera, Mapping) else \
-            list(camera) if is_rig(camera) else [camera]
+        cams = cameras_of(camera)
         self.names = list(camera) if isinstance(camera, Mapping) else \
             [f"cam{i}" for i in range(len(cams))] if is_rig(camera) else ["image"]
         if interpolation == "auto":
-            picks = {choose_interpolation(c, grid) for c in cams}
-            interpolation = "area" if "area" in picks else "bilinear"
+            interpolation = auto_interpolation(cams, grid)
         self.camera, self.interpolation = camera, interpolation
         self.model = model.eval()
         if is_rig(camera):
@@ -389,9 +395,7 @@ def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed:
     from ..scenes.render import render
 
     room = make_room(seed)
-    cams = list(camera.values()) if isinstance(camera, Mapping) else list(camera) if is_rig(camera) \
-        else [camera]
-    images = [render(room, c, boxes=False).rgb for c in cams]
+    images = [render(room, c, boxes=False).rgb for c in cameras_of(camera)]
     given = None if up is None else [0.0, 0.0, 1.0] if up == "input" else up
     feed = images if is_rig(camera) else images[0]
     ref = segment_image(model, feed, camera, up=given, interpolation=interpolation)
