@@ -9,7 +9,7 @@ import weakref
 
 import torch
 
-from .tracing import exporting
+from .tracing import exporting, require_eager
 
 
 @contextlib.contextmanager
@@ -75,26 +75,26 @@ def padded_rows(crow: torch.Tensor, col: torch.Tensor, group: int = 1
     crow, col = crow.long(), col.long()
     r, nnz = len(crow) - 1, len(col)
     counts = crow.diff()
+    row = entry_rows(counts)
+    pos = torch.arange(nnz, device=col.device) - crow[row]  # each entry's place in its row
     if group > 1 and r % group == 0 and nnz:
-        lead = crow[:-1:group]
         same = bool((counts.view(-1, group) == counts[::group, None]).all())
-        if same:
-            row = torch.repeat_interleave(torch.arange(r, device=col.device), counts)
-            offset = torch.arange(nnz, device=col.device) - crow[row]
-            first = col[lead[row // group] + offset]
-            same = bool((first == col).all())
-        if not same:
+        # each entry against the entry at its place in its block's first row
+        if not (same and bool((col[crow[:-1:group][row // group] + pos] == col).all())):
             group = 1
     else:
         group = 1
     d = int(counts.max()) if r and nnz else 0
-    row = torch.repeat_interleave(torch.arange(r, device=col.device), counts)
-    pos = torch.arange(nnz, device=col.device) - crow[row]
     slot = torch.full((r, d), nnz, dtype=torch.int32, device=col.device)
     slot[row, pos] = torch.arange(nnz, dtype=torch.int32, device=col.device)
     cols = torch.zeros((r, d), dtype=torch.int32, device=col.device)
     cols[row, pos] = col.int()
     return cols[::group].contiguous(), slot.view(r // group, group, d)
+
+
+def entry_rows(counts: torch.Tensor) -> torch.Tensor:
+    """The row of every entry of a CSR matrix whose rows hold ``counts [R]`` entries."""
+    return torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
 
 
 def padded_values(val: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
@@ -137,9 +137,7 @@ def padded_operator(module: torch.nn.Module, name: str, dtype: torch.dtype, grou
     pre = f"{name}_" if name else ""
     key = f"{pre}pad_w_{str(dtype).rsplit('.', 1)[-1]}"
     if not hasattr(module, key):
-        if exporting():
-            raise RuntimeError("plain forms are built by an eager call first: export inside "
-                               "usf_graph.tracing.fixed_fields, after one eager call there")
+        require_eager("plain forms' tables")
         crow, col, val = (getattr(module, f"{pre}{part}") for part in ("crow", "col", "val"))
         # modules that share one operator (the jets of one graph) share its layout too
         ref, entry = _PADDED.get(id(val), (None, None))

@@ -90,6 +90,15 @@ def note_field(mask: torch.Tensor | None) -> None:
         field_of(mask)
 
 
+def require_eager(what: str) -> None:
+    """Refuse to build ``what`` while exporting: a traced call sees no values to build it
+    from, so an eager call inside :func:`fixed_fields` must build it first."""
+    if exporting():
+        raise RuntimeError(f"{what} are built by an eager call first: export inside "
+                           "usf_graph.tracing.fixed_fields, after one eager call there "
+                           "(usf_graph.train.export does this)")
+
+
 def check_values() -> bool:
     """Whether checks that read values (NaN, empty fields of view) can run: not while
     exporting. An exported model checks its own inputs (:mod:`usf_graph.train.export`)."""

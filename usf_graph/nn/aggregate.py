@@ -15,7 +15,7 @@ from torch import nn
 from torch.autograd.function import once_differentiable
 
 from ..sparse import kept, padded_rows, padded_values, quiet_sparse, version
-from ..tracing import exporting, plain_forms
+from ..tracing import plain_forms, require_eager
 from .precision import accumulate_in
 from .wide import wide_aggregate
 
@@ -112,10 +112,7 @@ class EdgePlan(nn.Module):
         most (:func:`usf_graph.sparse.padded_rows`), ``slot`` indexing the edges in their
         given order (``E`` for padding). What the plain form reads; built on first use."""
         if getattr(self, "pad_col", None) is None:
-            if exporting():
-                raise RuntimeError("plain forms are built by an eager call first: export "
-                                   "inside usf_graph.tracing.fixed_fields, after one eager "
-                                   "call there")
+            require_eager("plain forms' tables")
             with kept():
                 row, col = self.sorted_edges()
                 cols, slot = padded_rows(_crow(row, self.num_nodes), col)

@@ -34,7 +34,7 @@ from torch import nn
 
 from ..frontend import RigFrontend, SphericalFrontend
 from ..frontend.interpolation import valid_pixels
-from ..sparse import padded_product, padded_rows, padded_values
+from ..sparse import entry_rows, padded_product, padded_rows, padded_values
 from ..tracing import fixed_fields
 from .apply import (
     UNSEEN,
@@ -78,10 +78,10 @@ class CameraIO(nn.Module):
         super().__init__()
         cam = fe.camera
         self.size, self.camera_key = (cam.height, cam.width), cam.key()
-        crow, col, val = (t.clone() for t in fe.lift_table())
+        crow, col, val = fe.lift_table()
         counts = crow.long().diff()
         if share is not None:  # a rig: each entry weighted by its point's share, zeros dropped
-            row = torch.repeat_interleave(torch.arange(len(counts)), counts)
+            row = entry_rows(counts)
             w = share.to(val.dtype)[row]
             keep = w > 0
             col, val = col[keep], val[keep] * w[keep]
