@@ -5,54 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 from pathlib import Path
 
+from .cli_info import cmd_cache, cmd_info
 from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_image, rig_from_spec
-
-
-def cmd_info(args) -> int:
-    import numpy
-    import torch
-
-    from . import __version__
-    from .frontend.cache import default_cache_dir
-
-    rows = [("usf-graph", __version__), ("python", platform.python_version()),
-            ("torch", torch.__version__), ("numpy", numpy.__version__)]
-    for mod in ("torch_geometric", "torch_scatter", "torch_cluster", "scipy", "cv2", "healpy"):
-        try:
-            m = __import__(mod)
-            rows.append((mod, getattr(m, "__version__", "ok")))
-        except Exception as e:  # noqa: BLE001 - report, do not crash
-            rows.append((mod, f"NOT AVAILABLE ({type(e).__name__}: {e})"))
-    for mod in ("onnx", "onnxscript", "onnxruntime"):  # optional: what usf-graph export needs
-        try:
-            rows.append((mod, __import__(mod).__version__))
-        except ImportError:
-            rows.append((mod, "not installed (optional, for usf-graph export: "
-                              "pip install 'usf-graph[export]')"))
-    ok = True
-    try:
-        import torch_cluster
-        import torch_scatter
-
-        torch_scatter.segment_csr(torch.ones(4), torch.tensor([0, 2, 4]))
-        torch_cluster.radius_graph(torch.rand(10, 3), 0.5)
-        rows.append(("compiled extensions", "load and run"))
-    except Exception as e:  # noqa: BLE001
-        ok = False
-        rows.append(("compiled extensions", f"FAILED: {e}"))
-    cache = default_cache_dir()
-    rows += [("cache directory", f"{cache} (USF_GRAPH_CACHE)" if cache else "disabled"),
-             ("torch threads", str(torch.get_num_threads())), ("cpu count", str(os.cpu_count())),
-             ("cuda", str(torch.cuda.is_available()))]
-    w = max(len(k) for k, _ in rows)
-    for k, v in rows:
-        print(f"{k:<{w}}  {v}")
-    return 0 if ok else 1
 
 
 def cmd_camera(args) -> int:
@@ -183,30 +140,6 @@ def _export_layout(args, out: Path, camera) -> int:
         n = export_pandora(views, camera, out)
         print(f"wrote {n['train']} train and {n['test']} test panoramas in PANDORA's layout "
               f"under {out}; e.g. usf-graph train det --dataset pandora --root {out}")
-    return 0
-
-
-def cmd_cache(args) -> int:
-    from .frontend.cache import GEOMETRY_VERSION, default_cache_dir
-
-    d = default_cache_dir()
-    if d is None:
-        print("the disk cache is off (USF_GRAPH_CACHE=off); geometry is cached in memory only")
-        return 0
-    files = sorted(d.glob("*.npz")) if d.exists() else []
-    print(f"cache directory  {d} (set USF_GRAPH_CACHE to move it, 'off' to disable)")
-    print(f"geometry version {GEOMETRY_VERSION}")
-    kinds: dict[str, list[int]] = {}
-    for f in files:
-        kinds.setdefault(f.name.split("-")[0], []).append(f.stat().st_size)
-    for k, sizes in sorted(kinds.items()):
-        print(f"  {k:<8} {len(sizes):5d} files {sum(sizes) / 1e6:10.2f} MB")
-    total = sum(sum(v) for v in kinds.values())
-    print(f"  {'total':<8} {len(files):5d} files {total / 1e6:10.2f} MB")
-    if args.clear:
-        for f in files:
-            f.unlink(missing_ok=True)
-        print(f"removed {len(files)} files; geometry is rebuilt on next use")
     return 0
 
 
