@@ -149,7 +149,7 @@ class BoundSegmenter(nn.Module):
             [f"cam{i}" for i in range(len(cams))] if is_rig(camera) else ["image"]
         if interpolation == "auto":
             interpolation = auto_interpolation(cams, grid)
-        self.camera, self.interpolation = camera, interpolation
+        self.interpolation = interpolation
         self.model = model.eval()
         if is_rig(camera):
             rig = RigFrontend(camera, grid, interpolation=interpolation)
