@@ -47,7 +47,8 @@ def add_export_parser(sub, fmt) -> None:
     p.add_argument("--out", required=True, metavar="PATH",
                    help="the program: .onnx (needs usf-graph[export]) or .pt2; without "
                         "--up/--up-input it holds the model's own up estimate")
-    p.set_defaults(func=cmd_export, sign_check=None)
+    # what ready_model reads from predict's options: export traces on the CPU, with no sign check
+    p.set_defaults(func=cmd_export, sign_check=None, device="cpu")
 
 
 def cmd_export(args) -> int:
@@ -64,7 +65,6 @@ def cmd_export(args) -> int:
     camera = rig_from_spec(args.camera, args.fov, args.image_mask) if args.rig else \
         camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
     ckpt = load_protocol_model(args.checkpoint).require("seg", spherical=True)
-    args.device = "cpu"
     model = ready_model(ckpt, args)
     info = export_segmenter(model, camera, args.out, up=up, interpolation=args.interpolation,
                             check=not args.no_check)
