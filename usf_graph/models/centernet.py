@@ -8,15 +8,13 @@ geodesic distance on the sphere, so they learn the same targets from the same bo
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from ..geometry import from_latlon, geodesic_distance, tangent_towards
 from ..nn.precision import GeometryModule
-from ..ops import spherical_nms
+from ..ops import nms_keep
+from ..sparse import padded_rows
 
 # A box's heatmap is a Gaussian of geodesic distance with this share of its size as sigma,
 # never narrower than half an output spacing (CenterNet ties it to the box size likewise).
@@ -34,17 +32,6 @@ def nearest_points(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return (box_centres(boxes.double()).to(points.dtype) @ points.T).argmax(1)
 
 
-def centres_seen(boxes: np.ndarray, points: torch.Tensor, seen: torch.Tensor | None, b: int = 0):
-    """Bool ``[D]``: whether the camera sees the input point (of ``points [N, 3]``, unit)
-    nearest the centre of each box (``boxes [D, 5]``) of image ``b``; ``seen [N]`` (or
-    ``[B, N]``, per image) is its field of view (``None``: everything, and ``None`` is
-    returned)."""
-    if seen is None:
-        return None
-    seen = seen.cpu() if seen.dim() == 1 else seen[b].cpu()
-    return seen[nearest_points(torch.as_tensor(boxes).reshape(-1, 5), points.detach().cpu())]
-
-
 def logmap(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     """Tangent vectors at unit ``p`` pointing to ``q`` with length their geodesic distance."""
     return tangent_towards(p, q) * geodesic_distance(p, q)[..., None]
@@ -53,7 +40,7 @@ def logmap(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
 def expmap(p: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """The unit vector reached from ``p`` along tangent ``v`` for the length ``|v|``."""
     n = v.norm(dim=-1, keepdim=True)
-    return torch.cos(n) * p + torch.sin(n) * v / n.clamp_min(1e-300)
+    return torch.cos(n) * p + torch.sin(n) * v / n.clamp_min(torch.finfo(v.dtype).tiny)
 
 
 def heatmap_targets(points: torch.Tensor, boxes: torch.Tensor, classes: torch.Tensor,
@@ -125,47 +112,42 @@ def focal_loss(logits: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | 
     return -loss.sum() / pos.sum().clamp_min(1)
 
 
-def peaks(prob: torch.Tensor, neighbours: torch.Tensor, k: int, threshold: float):
-    """The ``k`` highest local maxima of ``prob [M, C]`` above ``threshold``: a point is a
-    maximum of class c when no neighbour (``neighbours [2, E]``, row 0 the neighbour, row 1
-    the centre) is higher. Returns ``(point [D], class [D], score [D])`` by falling score."""
-    j, i = neighbours
-    M, C = prob.shape
-    top = prob.new_full((M, C), -math.inf).scatter_reduce(0, i[:, None].expand(-1, C), prob[j], "amax")
-    keep = (prob >= top) & (prob > threshold)
+def neighbour_table(edges: torch.Tensor, num_points: int) -> torch.Tensor:
+    """Each point and its neighbours (``edges [2, E]``, row 0 the neighbour, row 1 the
+    centre) as a table ``[M, R]`` (int64), each row starting with its own point and padded
+    with it: what :func:`peaks` gathers from."""
+    j, i = edges.long()
+    own = torch.arange(num_points, device=edges.device)
+    order = torch.argsort(i, stable=True)
+    crow = torch.cat([i.new_zeros(1), torch.bincount(i, minlength=num_points).cumsum(0)])
+    cols, slot = padded_rows(crow, j[order])
+    table = torch.where(slot[:, 0] == len(j), own[:, None], cols.long())
+    return torch.cat([own[:, None], table], 1)
+
+
+def peaks(prob: torch.Tensor, table: torch.Tensor, k: int, threshold: float):
+    """The ``k`` highest local maxima of ``prob [M, C]``: a point is a maximum of class c
+    when no point of its row of ``table [M, R]`` (:func:`neighbour_table`) is higher.
+    Returns ``(point [k], class [k], score [k])`` by falling score, fixed in shape (an
+    exported detector traces it): the peaks are the rows whose score is above
+    ``threshold``; the rest score 0."""
+    C = prob.shape[1]
+    keep = (prob >= prob[table].amax(1)) & (prob > threshold)
     score = torch.where(keep, prob, torch.zeros_like(prob)).flatten()
     s, idx = score.topk(min(k, score.numel()))
-    ok = s > threshold
-    return idx[ok] // C, idx[ok] % C, s[ok]
+    return idx // C, idx % C, s
 
 
 def fields_on_cpu(out: dict) -> dict:
-    """A detector's output fields, detached and on the CPU, where boxes are decoded (peaks,
-    NMS and cameras work per image, in numpy)."""
-    return {k: v.detach().cpu() if torch.is_tensor(v) else v for k, v in out.items()}
-
-
-def detections(boxes: np.ndarray, cls: torch.Tensor, score: torch.Tensor,
-               nms: float | None, seen: torch.Tensor | None = None) -> dict:
-    """One image's decoded peaks as ``{"boxes", "classes", "scores"}`` (numpy), after
-    class-wise spherical NMS at IoU ``nms`` (``None``: none), best first. ``seen [D]``
-    (bool): the peaks kept before NMS (``None``: all), so that a dropped one suppresses
-    nothing."""
-    if seen is not None:
-        seen = seen.cpu()
-        boxes, cls, score = boxes[seen.numpy()], cls[seen], score[seen]
-    keep = torch.arange(len(boxes))
-    if nms is not None and len(boxes):
-        kept = [torch.nonzero(cls == k).flatten() for k in cls.unique().tolist()]
-        keep = torch.cat([i[spherical_nms(torch.as_tensor(boxes[i.numpy()]), score[i], nms)]
-                          for i in kept])
-        keep = keep[score[keep].argsort(descending=True)]
-    keep = keep.numpy()
-    return {"boxes": boxes[keep], "classes": cls[keep].numpy(), "scores": score[keep].numpy()}
+    """A detector's output fields, detached, on the CPU and floating ones in float64, where
+    eager decoding runs (peaks, boxes and NMS in double precision)."""
+    return {k: (v.detach().cpu().double() if v.is_floating_point() else v.detach().cpu())
+            if torch.is_tensor(v) else v for k, v in out.items()}
 
 
 class Detector(GeometryModule):
-    """What both detectors share: ``detect(x, mask, **decode_kw)`` in evaluation mode."""
+    """What both detectors share: decoding (:meth:`decode`, :meth:`decode_image`) from a
+    subclass's :meth:`boxes_at`, and ``detect(x, mask, **decode_kw)`` in evaluation mode."""
 
     input_dims = 3  # x without its batch dimension
 
@@ -179,7 +161,44 @@ class Detector(GeometryModule):
         finally:
             self.train(was)
 
-    def _centres_seen(self, out: dict, boxes: np.ndarray, b: int, drop_hidden: bool):
-        """:func:`centres_seen` of image ``b``'s boxes on the input's points
-        (``self.input_pos``), or ``None`` (keep all) without ``drop_hidden`` or a mask."""
-        return centres_seen(boxes, self.input_pos, out.get("seen") if drop_hidden else None, b)
+    def decode(self, out: dict, k: int = 100, threshold: float = 0.05,
+               nms: float | None = 0.5, drop_hidden: bool = True) -> list[dict]:
+        """Boxes from the fields of ``forward``, per image: ``{"boxes": [D, 5] (float64
+        numpy, radians), "classes": [D], "scores": [D]}``, best first, decoded in float64 on
+        the CPU (:meth:`decode_image`)."""
+        out, res = fields_on_cpu(out), []
+        for b in range(out["heat"].shape[0]):
+            boxes, cls, score, kept = self.decode_image(out, b, k, threshold, nms, drop_hidden)
+            res.append({"boxes": boxes[kept].numpy().reshape(-1, 5), "classes": cls[kept].numpy(),
+                        "scores": score[kept].numpy()})
+        return res
+
+    def decode_image(self, out: dict, b: int, k: int = 100, threshold: float = 0.05,
+                     nms: float | None = 0.5, drop_hidden: bool = True):
+        """Image ``b``'s detections in fixed shapes, in the fields' dtype and on their
+        device (what an exported detector traces): ``(boxes [k, 5], classes [k], scores
+        [k], kept [k] bool)``, best first; the detections are the kept rows. Peaks
+        (:func:`peaks` over the output points' one-ring, inside the mask) above
+        ``threshold``; with ``drop_hidden``, less those whose box centre falls on an input
+        point the camera does not see (``out["seen"]``: a point the camera sees in part can
+        put a centre outside the view, where it can only be a guess; ``False`` keeps boxes
+        of objects the view cuts); then greedy NMS per class at IoU ``nms`` (``None``:
+        none), in which dropped peaks suppress nothing."""
+        prob = torch.sigmoid(out["heat"][b])
+        if out["mask"] is not None:
+            prob = prob * out["mask"][:, None].to(prob.dtype)
+        pt, cls, score = peaks(prob, self.ring.to(prob.device), k, threshold)
+        boxes = self.boxes_at(out, b, pt)
+        kept = score > threshold
+        seen = out.get("seen") if drop_hidden else None
+        if seen is not None:
+            seen = seen if seen.dim() == 1 else seen[b]
+            kept = kept & seen.to(kept.device)[nearest_points(boxes, self.input_pos.to(boxes.device))]
+        if nms is not None:
+            kept = nms_keep(boxes, kept, nms, cls)
+        return boxes, cls, score, kept
+
+    def boxes_at(self, out: dict, b: int, point: torch.Tensor) -> torch.Tensor:
+        """The boxes ``[k, 5]`` (radians) that image ``b``'s fields give at output points
+        ``point [k]``."""
+        raise NotImplementedError

@@ -39,13 +39,11 @@ from ..nn import SurfaceJet, up_frame
 from ..ops import box_axes, boxes_from_axes
 from .centernet import (
     Detector,
-    detections,
     expmap,
-    fields_on_cpu,
     focal_loss,
     heatmap_targets,
     logmap,
-    peaks,
+    neighbour_table,
 )
 from .stages import ConvStage, _oriented
 from .unet import FillHidden, SphericalBackbone, WithUp, _check_upright
@@ -143,7 +141,7 @@ class SphericalDetector(Detector, WithUp):
         self.register_buffer("input_pos", self.backbone.grids[input_level].pos, persistent=False)
         self.head_spacing = float(h.spacing)
         n1, _ = grid_graph(h, 1.5 * h.spacing)
-        self.register_buffer("ring", n1, persistent=False)
+        self.register_buffer("ring", neighbour_table(n1, len(h.pos)), persistent=False)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -245,39 +243,20 @@ class SphericalDetector(Detector, WithUp):
                        "shape": shape.item()}
 
     # -- inference ----------------------------------------------------------------------
-    def decode(self, out: dict, k: int = 100, threshold: float = 0.05,
-               nms: float | None = 0.5, drop_hidden: bool = True) -> list[dict]:
-        """Boxes from the fields of :meth:`forward`, per image: ``{"boxes": [D, 5]
-        (float64 numpy, radians), "classes": [D], "scores": [D]}``, best first. Peaks are
-        local maxima of a class's heatmap over the one-ring of the head grid, inside the
-        mask; ``nms`` (an IoU, per class) drops overlapping peaks. ``drop_hidden``: drop,
-        before NMS, the boxes whose centre falls on an input point the camera does not see
-        (``out["seen"]``, the input's mask): a head point the camera sees in part can put a
-        box's centre outside the view, where it can only be a guess. ``False`` keeps them
-        (boxes of objects the view cuts)."""
-        out = fields_on_cpu(out)
-        prob = torch.sigmoid(out["heat"].double())
-        if out["mask"] is not None:
-            prob = prob * out["mask"][:, None]
-        frame, ring, pos = self.surface.frame.cpu(), self.ring.cpu(), self.head_pos.cpu()
-        res = []
-        for b in range(prob.shape[0]):
-            pt, cls, score = peaks(prob[b], ring, k, threshold)
-            p = pos[pt]
-            c = expmap(p, out["offset"][b, pt].double())
-            s, dv = out["s"][b, pt].double(), out["dev"][b, pt].double()
-            q = out["quad"][b, pt].double()
-            # the rectangle's axes (mod 90 degrees) from the spin-4 field; the long one, and
-            # the aspect along it, from the spin-2 traceless shape
-            phi = torch.atan2(q[:, 1], q[:, 0]) / 4
-            arg = torch.atan2(dv[:, 1], dv[:, 0])
-            phi = torch.where(torch.cos(2 * phi - arg) < 0, phi + torch.pi / 2, phi)
-            r = dv.norm(dim=-1) * torch.cos(2 * phi - arg)
-            e = torch.cos(phi)[:, None] * frame[pt, 0] + torch.sin(phi)[:, None] * frame[pt, 1]
-            fx, fy = (s + r).exp().clamp(max=MAX_FOV), (s - r).exp().clamp(max=MAX_FOV)
-            boxes = boxes_from_axes(c.numpy(), e.numpy(), fx.numpy(), fy.numpy()).reshape(-1, 5)
-            res.append(detections(boxes, cls, score, nms, self._centres_seen(out, boxes, b, drop_hidden)))
-        return res
+    def boxes_at(self, out: dict, b: int, point: torch.Tensor) -> torch.Tensor:
+        """The boxes ``[k, 5]`` that image ``b``'s fields give at head points ``point``:
+        the centre from the offset, the rectangle's axes (mod 90 degrees) from the spin-4
+        field, the long one and the aspect along it from the spin-2 traceless shape."""
+        dt = out["offset"].dtype
+        frame, p = self.surface.frame.to(dt)[point], self.head_pos.to(dt)[point]
+        c = expmap(p, out["offset"][b, point])
+        s, dv, q = out["s"][b, point], out["dev"][b, point], out["quad"][b, point]
+        phi = torch.atan2(q[:, 1], q[:, 0]) / 4
+        arg = torch.atan2(dv[:, 1], dv[:, 0])
+        phi = torch.where(torch.cos(2 * phi - arg) < 0, phi + torch.pi / 2, phi)
+        r = dv.norm(dim=-1) * torch.cos(2 * phi - arg)
+        e = torch.cos(phi)[:, None] * frame[:, 0] + torch.sin(phi)[:, None] * frame[:, 1]
+        return boxes_from_axes(c, e, (s + r).exp().clamp(max=MAX_FOV), (s - r).exp().clamp(max=MAX_FOV))
 
 
 __all__ = ["SphericalDetector"]

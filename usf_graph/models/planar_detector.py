@@ -13,11 +13,9 @@ from ..geometry import to_latlon
 from .centernet import (
     Detector,
     box_centres,
-    detections,
-    fields_on_cpu,
     focal_loss,
     heatmap_targets,
-    peaks,
+    neighbour_table,
 )
 from .detector import MAX_FOV
 from .planar_seg import PlanarUNet
@@ -73,7 +71,8 @@ class PlanarDetector(Detector):
         rays, _ = Equirectangular(width, height).lens_normal_map()
         self.register_buffer("input_pos", torch.as_tensor(rays.reshape(-1, 3)), persistent=False)
         self.spacing = math.pi / (height // 2)
-        self.register_buffer("ring", _ring(height // 2, width // 2), persistent=False)
+        self.register_buffer("ring", neighbour_table(_ring(height // 2, width // 2),
+                                                     (height // 2) * (width // 2)), persistent=False)
         self.reset_parameters()
 
     @property
@@ -130,25 +129,16 @@ class PlanarDetector(Detector):
         reg = (err * (w / w.sum()).to(err.dtype)).sum()
         return heat + reg, {"heat": heat.item(), "box": reg.item()}
 
-    def decode(self, out: dict, k: int = 100, threshold: float = 0.05,
-               nms: float | None = 0.5, drop_hidden: bool = True) -> list[dict]:
-        """Boxes per image, as :meth:`SphericalDetector.decode` (``drop_hidden`` too, on
-        the input's pixels): peaks over each pixel's 8 neighbours (wrapping around the
-        seam), centres from pixel coordinates."""
-        out = fields_on_cpu(out)
-        prob = torch.sigmoid(out["heat"].double())
-        if out["mask"] is not None:
-            prob = prob * out["mask"][:, None]
-        res, ring = [], self.ring.cpu()
-        for b in range(prob.shape[0]):
-            pt, cls, score = peaks(prob[b], ring, k, threshold)
-            W = self.out_camera.width
-            bx = out["box"][b, pt].double()
-            uv = torch.stack([pt % W + bx[:, 0], pt // W + bx[:, 1]], -1).numpy()
-            rays, _ = self.out_camera.unproject(uv)
-            lat, lon = to_latlon(np.nan_to_num(rays, nan=1.0))
-            fov = bx[:, 2:4].exp().clamp(max=MAX_FOV).numpy()
-            roll = np.mod(bx[:, 4].numpy() + np.pi / 2, np.pi) - np.pi / 2
-            boxes = np.stack([lon, lat, fov[:, 0], fov[:, 1], roll], -1).reshape(-1, 5)
-            res.append(detections(boxes, cls, score, nms, self._centres_seen(out, boxes, b, drop_hidden)))
-        return res
+    def boxes_at(self, out: dict, b: int, point: torch.Tensor) -> torch.Tensor:
+        """The boxes ``[k, 5]`` that image ``b``'s map gives at output pixels ``point``:
+        centres from pixel coordinates (the panorama's layout), sizes and roll as read."""
+        W = self.out_camera.width
+        bx = out["box"][b, point]
+        uv = torch.stack([point % W + bx[:, 0], point // W + bx[:, 1]], -1)
+        rays, _ = self.out_camera.unproject(uv.detach().cpu().double().numpy())
+        lat, lon = to_latlon(np.nan_to_num(rays, nan=1.0))
+        fov = bx[:, 2:4].exp().clamp(max=MAX_FOV)
+        roll = torch.remainder(bx[:, 4] + np.pi / 2, np.pi) - np.pi / 2
+        centre = torch.as_tensor(np.stack([lon, lat], -1).reshape(-1, 2), dtype=bx.dtype,
+                                 device=bx.device)
+        return torch.cat([centre, fov, roll[:, None]], -1)

@@ -27,17 +27,19 @@ from ..geometry import (
     rotation_from_axis_angle,
     to_latlon,
 )
+from ..tracing import check_values
 
 __all__ = ["box_axes", "box_planes", "boxes_from_axes", "canonical_boxes", "from_pandora", "to_pandora",
            "points_in_boxes", "share_in_view", "rotate_boxes", "fit_box", "box_corners", "box_edges"]
 
 
 def _as_boxes(boxes):
-    """Boxes as float64 numpy, or tensors as they are; shape and finiteness checked."""
+    """Boxes as float64 numpy, or tensors as they are; shape and finiteness checked (the
+    values not while exporting: :func:`~usf_graph.tracing.check_values`)."""
     b = boxes if torch.is_tensor(boxes) else np.asarray(boxes, np.float64)
     if tuple(b.shape[-1:]) != (5,):
         raise ValueError(f"boxes must have shape [..., 5] (lon, lat, fov_x, fov_y, roll), got {tuple(b.shape)}")
-    if not bool((torch.isfinite(b) if torch.is_tensor(b) else np.isfinite(b)).all()):
+    if check_values() and not bool((torch.isfinite(b) if torch.is_tensor(b) else np.isfinite(b)).all()):
         raise ValueError("boxes contain NaN or infinite values")
     return b
 
@@ -80,14 +82,23 @@ def box_planes(boxes):
 
 def boxes_from_axes(c, e, fov_x, fov_y):
     """The boxes with centre ``c [..., 3]``, horizontal axis ``e`` (projected onto the
-    tangent plane at ``c``) and fields of view (radians); roll in [-pi/2, pi/2)."""
-    c = normalize(np.asarray(c, np.float64))
-    e = np.asarray(e, np.float64)
-    e = normalize(e - (e * c).sum(-1, keepdims=True) * c)
+    tangent plane at ``c``) and fields of view (radians); roll in [-pi/2, pi/2). Numpy in,
+    float64 numpy out; tensors in, tensors of their dtype out (traceable)."""
+    if torch.is_tensor(c):
+        c = normalize(c)
+        e = normalize(e - (e * c).sum(-1, keepdim=True) * c)
+    else:
+        c = normalize(np.asarray(c, np.float64))
+        e = np.asarray(e, np.float64)
+        e = normalize(e - (e * c).sum(-1, keepdims=True) * c)
+    xp = torch if torch.is_tensor(c) else np
     lat, lon = to_latlon(c)
     e0, n0 = _local_frame(lon, lat)
-    roll = np.arctan2((e * n0).sum(-1), (e * e0).sum(-1))
-    roll = np.mod(roll + np.pi / 2, np.pi) - np.pi / 2  # a half turn maps a box onto itself
+    roll = xp.arctan2((e * n0).sum(-1), (e * e0).sum(-1))
+    roll = xp.remainder(roll + np.pi / 2, np.pi) - np.pi / 2  # a half turn maps a box onto itself
+    if xp is torch:
+        fx, fy = torch.as_tensor(fov_x, dtype=c.dtype), torch.as_tensor(fov_y, dtype=c.dtype)
+        return torch.stack(torch.broadcast_tensors(lon, lat, fx, fy, roll), -1)
     fx, fy = np.broadcast_arrays(np.asarray(fov_x, np.float64), np.asarray(fov_y, np.float64))
     return np.stack(np.broadcast_arrays(lon, lat, fx, fy, roll), -1)
 

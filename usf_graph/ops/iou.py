@@ -20,9 +20,10 @@ import math
 import numpy as np
 import torch
 
+from ..tracing import check_values
 from .boxes import _as_boxes, box_planes
 
-__all__ = ["box_area", "box_iou", "pairwise_box_iou", "spherical_nms"]
+__all__ = ["box_area", "box_iou", "nms_keep", "pairwise_box_iou", "spherical_nms"]
 
 
 def _tensor(boxes, dtype=None) -> torch.Tensor:
@@ -50,7 +51,7 @@ def _fields_of_view(b, what: str, closed: bool):
     (``closed``) or [0, 180): a box's edges are great circles, so it spans at most a
     hemisphere, and the IoU's clipping needs less."""
     fov = b[..., 2:4]
-    if bool((fov < 0).any()) or bool((fov > math.pi if closed else fov >= math.pi).any()):
+    if check_values() and bool((fov < 0).any()) or bool((fov > math.pi if closed else fov >= math.pi).any()):
         raise ValueError(f"box {what} needs fields of view in [0, 180{']' if closed else ')'} "
                          "degrees (a box's edges are great circles, so it spans at most a "
                          f"hemisphere), got fields of view from {float(fov.min()):.4g} to "
@@ -79,8 +80,11 @@ def _clip(poly: torch.Tensor, count: torch.Tensor, m: torch.Tensor, eps: float):
     hit = _safe_unit((d[..., None] * nxt - dn[..., None] * poly) * torch.sign(d - dn)[..., None])
     cand = torch.stack([poly, hit], 2).reshape(P, 2 * S, 3)
     flag = torch.stack([keep, cross], 2).reshape(P, 2 * S)
-    order = torch.sort((~flag).to(torch.int8), dim=1, stable=True).indices[:, :S]
-    new = cand.gather(1, order[..., None].expand(P, S, 3))
+    # the kept candidates, in order, into the first slots: slot s takes the (s+1)-th
+    # flagged one (a gather, which exporters take; a stable sort they may not)
+    place = flag.cumsum(1) - 1
+    pick = (flag[:, None] & (place[:, None] == slot[None, :, None])).to(torch.uint8).argmax(-1)
+    new = cand.gather(1, pick[..., None].expand(P, S, 3))
     return new, flag.sum(1).clamp_max(S)
 
 
@@ -126,18 +130,32 @@ def pairwise_box_iou(a, b, dtype=None, chunk: int = 65536) -> torch.Tensor:
     return torch.cat(out) if out else a.new_zeros(0, len(b))
 
 
-def spherical_nms(boxes, scores, iou_threshold: float) -> torch.Tensor:
+def spherical_nms(boxes, scores, iou_threshold: float, classes=None) -> torch.Tensor:
     """Indices of the boxes kept by greedy non-maximum suppression with the spherical IoU,
-    highest score first (as ``torchvision.ops.nms``)."""
+    highest score first (as ``torchvision.ops.nms``); with ``classes [N]``, boxes suppress
+    only boxes of their own class (as ``torchvision.ops.batched_nms``)."""
     boxes, scores = _tensor(boxes).reshape(-1, 5), torch.as_tensor(scores)
     if scores.shape != (len(boxes),):
         raise ValueError(f"scores must have shape [{len(boxes)}] (one per box), got {tuple(scores.shape)}")
     if not bool(torch.isfinite(scores).all()):
         raise ValueError("scores contain NaN or infinite values")
     order = torch.argsort(scores, descending=True)
-    iou = pairwise_box_iou(boxes[order], boxes[order])
-    alive = torch.ones(len(order), dtype=torch.bool)
-    for i in range(len(order)):
-        if alive[i]:
-            alive[i + 1:] &= iou[i, i + 1:] <= iou_threshold
-    return order[alive]
+    cls = None if classes is None else torch.as_tensor(classes).reshape(-1)[order]
+    return order[nms_keep(boxes[order], torch.ones(len(order), dtype=torch.bool), iou_threshold, cls)]
+
+
+def nms_keep(boxes: torch.Tensor, alive: torch.Tensor, iou_threshold: float,
+             classes: torch.Tensor | None = None) -> torch.Tensor:
+    """Greedy NMS on boxes ``[N, 5]`` already in order of falling score: bool ``[N]``, the
+    boxes of ``alive [N]`` (bool) that no better kept box (of their class, with
+    ``classes [N]``) overlaps by more than ``iou_threshold``; boxes not alive suppress
+    nothing. A fixed sequence of N steps and no branch on values, so an exported detector
+    traces it (:class:`~usf_graph.train.bound.BoundDetector`)."""
+    n = len(boxes)
+    over = pairwise_box_iou(boxes, boxes) > iou_threshold
+    if classes is not None:
+        over = over & (classes[:, None] == classes[None, :])
+    over = torch.triu(over, diagonal=1)  # a box suppresses only worse ones
+    for i in range(n):
+        alive = alive & ~(alive[i] & over[i])
+    return alive
