@@ -35,7 +35,7 @@ from usf_graph.scenes import make_room
 from usf_graph.scenes.lenses import protocol_cameras
 from usf_graph.scenes.render import render
 from usf_graph.train import apply
-from usf_graph.train.export import export_segmenter, load_exported
+from usf_graph.train.export import export_model, load_exported
 from usf_graph.train.seg import make_model
 
 LENSES = {"fisheye": "fisheye190", "pinhole": "pinhole90", "panorama": "equirectangular"}
@@ -69,7 +69,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         for name, given, key in (("seg.onnx", "input", "ONNX in onnxruntime, up given"),
                                  ("seg.pt2", None, ".pt2 (torch.export), its up estimate")):
-            info = export_segmenter(net, cam, Path(d) / name, up=given)
+            info = export_model(net, cam, Path(d) / name, up=given)
             run = load_exported(info["path"], threads=args.threads)
             feed = up if given == "input" else None
             rows[key] = best_time(lambda run=run, feed=feed: run(image, feed), args.reps)

@@ -326,12 +326,12 @@ def test_deploy_onnx_example_runs_an_exported_file_without_usf_graph(tmp_path, c
     pytest.importorskip("onnxruntime")
     from usf_graph.cameras import KannalaBrandt
     from usf_graph.models import SphericalUNet
-    from usf_graph.train.export import export_segmenter, load_exported
+    from usf_graph.train.export import export_model, load_exported
 
     cam = KannalaBrandt(10.0, 10.0, 15.5, 11.5, 32, 24, k=(0.0, 0.0, 0.0, 0.0)).with_fov(180)
     torch.manual_seed(0)
     model = SphericalUNet(13, level=3, channels=(4, 4), gravity=True, pairs=0).eval()
-    export_segmenter(model, cam, tmp_path / "seg.onnx", up="input", check=False)
+    export_model(model, cam, tmp_path / "seg.onnx", up="input", check=False)
     rgb = np.random.default_rng(1).integers(0, 256, (24, 32, 3), dtype=np.uint8)
     cv2.imwrite(str(tmp_path / "frame.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     ex = load("deploy_onnx")

@@ -168,7 +168,7 @@ def test_deploying_section_runs_its_onnxruntime_code(tmp_path, monkeypatch):
     pytest.importorskip("onnxruntime")
     from usf_graph import cameras
     from usf_graph.models import SphericalUNet
-    from usf_graph.train.export import export_segmenter
+    from usf_graph.train.export import export_model
 
     text = (ROOT / "README.md").read_text()
     section = text.split("## Deploying: `usf-graph export`", 1)[1].split("\n## ", 1)[0]
@@ -177,7 +177,7 @@ def test_deploying_section_runs_its_onnxruntime_code(tmp_path, monkeypatch):
     torch.manual_seed(0)
     model = SphericalUNet(13, level=3, channels=(4, 4), gravity=True, pairs=0).eval()
     monkeypatch.chdir(tmp_path)
-    export_segmenter(model, cam, "deploy/fisheye_seg.onnx", up="input", check=False)
+    export_model(model, cam, "deploy/fisheye_seg.onnx", up="input", check=False)
     ns = {}
     exec(compile(code, "README", "exec"), ns)
     assert ns["labels"].shape == (960, 1280) and ns["labels"].dtype.name == "uint8"

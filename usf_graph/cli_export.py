@@ -1,5 +1,6 @@
-"""``usf-graph export seg``: a trained spherical segmenter bound to one camera, written as
-one ONNX or ``torch.export`` program for deployment (:mod:`usf_graph.train.export`)."""
+"""``usf-graph export seg|det``: a trained spherical segmenter or detector bound to one
+camera, written as one ONNX or ``torch.export`` program for deployment
+(:mod:`usf_graph.train.export`)."""
 
 from __future__ import annotations
 
@@ -10,26 +11,29 @@ from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, rig_from_
 
 def add_export_parser(sub, fmt) -> None:
     """The ``export`` subcommand and its options."""
-    from .cli_det import nonnegative
+    from .cli_det import nonnegative, positive_int, share
     from .frontend.interpolation import METHODS
 
-    p = sub.add_parser("export", help="write a segmenter bound to one camera as ONNX or .pt2",
+    p = sub.add_parser("export", help="write a segmenter or detector bound to one camera as "
+                                      "ONNX or .pt2",
                        formatter_class=fmt,
-                       description="Bind a trained spherical segmenter to one camera and write "
-                                   "it as one program, image in, labels out: the lifting "
-                                   "table, the field of view, every layer's coefficients and "
-                                   "the render table held as constants. ONNX runs in "
+                       description="Bind a trained spherical segmenter or detector to one "
+                                   "camera and write it as one program, image in, labels or "
+                                   "boxes out: the lifting table, the field of view, every "
+                                   "layer's coefficients and the render table held as "
+                                   "constants. ONNX runs in "
                                    "onnxruntime (checked here) or any ONNX runtime, without usf-graph; "
                                    ".pt2 is torch.export's. Checked against usf-graph on a "
                                    "procedural room rendered through the camera.")
-    p.add_argument("task", choices=["seg"], help="the checkpoint's task (segmentation)")
-    p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg'")
+    p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
+    p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
     p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
     p.add_argument("--rig", action="store_true",
                    help="every camera of a Kalibr camchain (--camera), lifted onto one sphere: "
                         "the program takes one image per camera, in the file's order, and "
-                        "gives one label image per camera")
+                        "gives one label image per camera (seg) or one set of boxes in the "
+                        "rig's sphere frame (det)")
     up = p.add_mutually_exclusive_group()
     up.add_argument("--up-input", action="store_true",
                     help="the program takes gravity's up in the camera's sphere frame (x "
@@ -42,6 +46,14 @@ def add_export_parser(sub, fmt) -> None:
                         "this strength (10 in the README; 0 off)")
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted (as predict's)")
+    g = p.add_argument_group("det: the decoding inside the program (predict's and eval's)")
+    g.add_argument("--max-boxes", type=positive_int, default=100, metavar="K",
+                   help="the boxes output holds the K best peaks; the detections are the rows "
+                        "with score > 0")
+    g.add_argument("--threshold", type=share, default=0.05,
+                   help="a peak's lowest score")
+    g.add_argument("--nms", type=share, default=0.5, metavar="IOU",
+                   help="greedy NMS per class at this spherical IoU (1: none)")
     p.add_argument("--no-check", action="store_true",
                    help="skip running the written file against usf-graph on a rendered room")
     p.add_argument("--out", required=True, metavar="PATH",
@@ -54,7 +66,7 @@ def add_export_parser(sub, fmt) -> None:
 def cmd_export(args) -> int:
     from .cli_det import ready_model
     from .train.checkpoints import load_protocol_model
-    from .train.export import export_segmenter
+    from .train.export import export_model
 
     up = "input" if args.up_input else args.up
     if args.level_prior and up is not None:
@@ -64,18 +76,25 @@ def cmd_export(args) -> int:
         raise ValueError("--key picks one camera; --rig binds every camera of the camchain")
     camera = rig_from_spec(args.camera, args.fov, args.image_mask) if args.rig else \
         camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
-    ckpt = load_protocol_model(args.checkpoint).require("seg", spherical=True)
+    ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
     model = ready_model(ckpt, args)
-    info = export_segmenter(model, camera, args.out, up=up, interpolation=args.interpolation,
-                            check=not args.no_check)
+    decoding = {} if args.task == "seg" else \
+        dict(k=args.max_boxes, threshold=args.threshold, nms=None if args.nms >= 1 else args.nms)
+    info = export_model(model, camera, args.out, up=up, interpolation=args.interpolation,
+                        check=not args.no_check, **decoding)
     print(f"wrote {info['path']} ({info['format']}, {info['bytes'] / 1e6:.1f} MB) in "
           f"{info['export_s']:.1f} s")
-    print(f"inputs: {', '.join(info['inputs'])}; outputs: {', '.join(info['outputs'][:-1])} "
-          f"uint8 [H, W] (255: unseen), {info['outputs'][-1]} float32 [3]")
+    k = args.max_boxes
+    outputs = ", ".join(f"{n} uint8 [H, W] (255: unseen)" for n in info["outputs"][:-1]) \
+        if args.task == "seg" else (f"boxes float32 [{k}, 5] (radians), classes int64 [{k}], "
+                                    f"scores float32 [{k}] (the detections: score > 0)")
+    print(f"inputs: {', '.join(info['inputs'])}; outputs: {outputs}, {info['outputs'][-1]} float32 [3]")
     if "check" in info:
         c = info["check"]
-        print(f"check on a room rendered through the camera: {100 * c['agree']:.2f}% of "
-              f"{c['pixels_seen']} pixels agree with usf-graph, ups {c['up_angle_deg']:.3f} deg "
-              f"apart; {1000 * c['frame_s']:.0f} ms a frame here (loaded in {c['load_s']:.1f} s)")
+        agree = (f"{100 * c['agree']:.2f}% of {c['pixels_seen']} pixels agree" if args.task == "seg"
+                 else f"{c['matched']} of {c['detections']} detections found alike")
+        print(f"check on a room rendered through the camera: {agree} with usf-graph, ups "
+              f"{c['up_angle_deg']:.3f} deg apart; {1000 * c['frame_s']:.0f} ms a frame here "
+              f"(loaded in {c['load_s']:.1f} s)")
     print(json.dumps({k: v for k, v in info.items() if k != "check"}, default=str))
     return 0

@@ -44,7 +44,7 @@ def to_latlon(p):
     """Unit vectors ``p [..., 3]`` -> (lat, lon): lat in [-pi/2, pi/2], lon in [-pi, pi)."""
     if _is_torch(p):
         x, y, z = p.unbind(-1)
-        lat = torch.atan2(z, torch.hypot(x, y))
+        lat = torch.atan2(z, torch.sqrt(x * x + y * y))  # not hypot: ONNX has none
         lon = torch.atan2(y, x)
         lon = torch.where(lon >= math.pi, lon - 2 * math.pi, lon)
         return lat, lon

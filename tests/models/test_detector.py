@@ -6,9 +6,18 @@ import pytest
 import torch
 
 from usf_graph import grids
+from usf_graph.frontend import grid_graph
 from usf_graph.geometry import geodesic_distance, rotation_from_axis_angle
 from usf_graph.models import PlanarDetector, SphericalDetector
-from usf_graph.models.centernet import box_centres, expmap, heatmap_targets, logmap, nearest_points
+from usf_graph.models.centernet import (
+    box_centres,
+    expmap,
+    heatmap_targets,
+    logmap,
+    nearest_points,
+    neighbour_table,
+    peaks,
+)
 from usf_graph.nn import SurfaceJet, geodesic_radius_graph
 from usf_graph.ops import box_corners, box_iou, rotate_boxes
 from usf_graph.testing import smooth_signal, symmetry_permutation
@@ -54,6 +63,26 @@ def _same_boxes(a, b, tol):
     ca, cb = box_corners(torch.as_tensor(a)), box_corners(torch.as_tensor(b))
     d = torch.cdist(ca, cb).amin(-1).amax()
     return float(d) <= tol
+
+
+def test_peaks_are_the_local_maxima_above_the_threshold():
+    g = grids.icosahedral(2)
+    edges, _ = grid_graph(g, 1.5 * g.spacing)
+    M = len(g.pos)
+    prob = torch.rand(M, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    near = {i: set() for i in range(M)}  # the reference reads the edge list itself
+    for j, i in edges.T.tolist():
+        near[i].add(j)
+    want = sorted(((float(prob[i, c]), i, c) for i in range(M) for c in range(3)
+                   if prob[i, c] > 0.3 and all(prob[i, c] >= prob[j, c] for j in near[i])), reverse=True)
+    assert 10 < len(want) < M  # some points are peaks, most are not
+    table = neighbour_table(edges, M)
+    for k in (len(want) + 20, 7):
+        pt, cls, score = peaks(prob, table, k, 0.3)
+        assert len(pt) == k  # fixed in shape; the peaks are the rows above the threshold
+        got = [(float(s), int(p), int(c)) for p, c, s in zip(pt, cls, score) if s > 0.3]
+        assert got == want[:k]
+        assert (score[len(got):] == 0).all()
 
 
 def test_surface_jet_gives_tangent_gradients_of_linear_functions():

@@ -12,6 +12,7 @@ from usf_graph.ops import (
     box_area,
     box_iou,
     from_pandora,
+    nms_keep,
     pairwise_box_iou,
     points_in_boxes,
     rotate_boxes,
@@ -145,6 +146,43 @@ def test_nms_keeps_the_best_of_each_cluster():
     scores = torch.tensor([0.9, 0.95, 0.5, 0.8, 0.1])
     keep = spherical_nms(boxes, scores, 0.5)
     assert keep.tolist() == [1, 3, 4]  # 1 beats 0; 3 beats 2 across the seam
+
+
+def _greedy(boxes, scores, thr, classes):
+    """Greedy NMS as its definition reads, box by box in a Python list: the reference."""
+    order = sorted(range(len(boxes)), key=lambda i: -scores[i])
+    kept = []
+    for i in order:
+        if all(classes[j] != classes[i] or iou64_boxes(boxes[i], boxes[j]) <= thr for j in kept):
+            kept.append(i)
+    return kept
+
+
+def iou64_boxes(a, b):
+    return float(box_iou(a, b, dtype=F64))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 25), st.sampled_from([0.1, 0.3, 0.5]),
+       st.integers(1, 3))
+def test_nms_by_class_is_greedy_nms(seed, n, thr, num_classes):
+    rng = np.random.default_rng(seed)
+    first = _random_boxes(n, seed)
+    boxes = np.concatenate([first, _random_boxes(n, seed + 1, near=first)])  # overlapping pairs
+    scores = torch.as_tensor(rng.permutation(2 * n) / (2 * n))  # no ties: one greedy answer
+    classes = torch.as_tensor(rng.integers(0, num_classes, 2 * n))
+    keep = spherical_nms(boxes, scores, thr, classes=classes)
+    assert keep.tolist() == _greedy(boxes, scores.tolist(), thr, classes.tolist())
+    if num_classes == 1:  # classes that are all one are no classes
+        assert keep.tolist() == spherical_nms(boxes, scores, thr).tolist()
+
+
+def test_nms_keep_lets_only_live_boxes_suppress():
+    boxes = torch.as_tensor(np.array([P(0, 0, 20, 20, 0), P(5, 0, 20, 20, 0), P(10, 0, 20, 20, 0)]))
+    everyone = nms_keep(boxes, torch.ones(3, dtype=torch.bool), 0.5)
+    assert everyone.tolist() == [True, False, True]  # 1 falls to 0, so 2 (far from 0) stays
+    first_dead = nms_keep(boxes, torch.tensor([False, True, True]), 0.5)
+    assert first_dead.tolist() == [False, True, False]  # a dead box suppresses nothing
 
 
 def test_nms_refuses_scores_that_do_not_match_the_boxes():

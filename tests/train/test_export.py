@@ -1,6 +1,6 @@
-"""A segmenter bound to one camera and exported (ONNX, torch.export): the written program
-gives usf-graph's labels on rendered rooms, says so in its outputs where up is unusable,
-and every refusal names the fix."""
+"""A segmenter or detector bound to one camera and exported (ONNX, torch.export): the
+written program gives usf-graph's labels or boxes on rendered rooms, says so in its
+outputs where up is unusable, and every refusal names the fix."""
 
 import json
 import math
@@ -10,11 +10,14 @@ import pytest
 import torch
 
 from usf_graph.cameras import KannalaBrandt, Pinhole
-from usf_graph.models import SphericalDeepLabV3, SphericalUNet
+from usf_graph.geometry import from_latlon
+from usf_graph.models import SphericalDeepLabV3, SphericalDetector, SphericalUNet
+from usf_graph.ops import box_iou
 from usf_graph.scenes import make_room
 from usf_graph.scenes.render import render
-from usf_graph.train.apply import UNSEEN, lift_for, segment_image
-from usf_graph.train.export import BoundSegmenter, export_segmenter, load_exported
+from usf_graph.train.apply import UNSEEN, detect_image, lift_for, segment_image
+from usf_graph.train.bound import BoundDetector, BoundSegmenter
+from usf_graph.train.export import export_model, load_exported
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
@@ -59,7 +62,7 @@ def _room_image(camera, seed):
 
 def test_onnx_with_an_imu_up_gives_usf_graphs_labels(tmp_path):
     model, cam = _deeplab(), _fisheye()
-    info = export_segmenter(model, cam, tmp_path / "seg.onnx", up="input")
+    info = export_model(model, cam, tmp_path / "seg.onnx", up="input")
     assert info["format"] == "ONNX" and info["check"]["agree"] >= 0.99
     assert not list(tmp_path.glob(".*part*"))  # written atomically
     run = load_exported(tmp_path / "seg.onnx")
@@ -90,7 +93,7 @@ def test_onnx_holds_the_models_own_up_estimate(tmp_path):
     model, cam = _deeplab(1), _pinhole()
     with torch.no_grad():  # an untrained head's scores tie: sharpen them
         model.gravity.head.score.weight.mul_(3000.0)
-    info = export_segmenter(model, cam, tmp_path / "seg.onnx", up=None)
+    info = export_model(model, cam, tmp_path / "seg.onnx", up=None)
     assert info["inputs"] == ["image uint8 [30, 40, 3] RGB"] and info["check"]["agree"] >= 0.99
     run = load_exported(tmp_path / "seg.onnx")
     assert run.metadata["up"] == "estimate"
@@ -112,7 +115,7 @@ def test_onnx_holds_the_models_own_up_estimate(tmp_path):
 def test_pt2_holds_the_models_own_up_estimate(tmp_path):
     model, cam = _deeplab(1), _pinhole()
     before = dict(model.named_buffers())
-    info = export_segmenter(model, cam, tmp_path / "seg.pt2", up=None)
+    info = export_model(model, cam, tmp_path / "seg.pt2", up=None)
     after = dict(model.named_buffers())  # the buffers it left out of the file are restored
     assert all(after[k] is t for k, t in before.items())
     everything = sum(t.numel() * t.element_size() for t in after.values())
@@ -131,11 +134,11 @@ def test_pt2_holds_the_models_own_up_estimate(tmp_path):
 
 def test_a_fixed_up_and_a_model_without_gravity(tmp_path):
     cam = _fisheye(40)
-    info = export_segmenter(_deeplab(2, gray=True), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])
+    info = export_model(_deeplab(2, gray=True), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])
     assert info["inputs"] == ["image uint8 [40, 40, 3] RGB"]  # the up is a constant
     torch.manual_seed(3)
     iso = SphericalUNet(num_classes=4, level=3, channels=(4, 6), pairs=0).eval()
-    info = export_segmenter(iso, cam, tmp_path / "iso.onnx")  # no up to read
+    info = export_model(iso, cam, tmp_path / "iso.onnx")  # no up to read
     labels, u = load_exported(tmp_path / "iso.onnx")(_room_image(cam, 4))
     assert np.isnan(u).all() and (labels != UNSEEN).any()
 
@@ -143,7 +146,7 @@ def test_a_fixed_up_and_a_model_without_gravity(tmp_path):
 def test_refusals_name_the_fix(tmp_path):
     model, cam = _deeplab(), _fisheye(32)
     with pytest.raises(ValueError, match=r"\.onnx \(ONNX\) or \.pt2"):
-        export_segmenter(model, cam, tmp_path / "a.tflite")
+        export_model(model, cam, tmp_path / "a.tflite")
     with pytest.raises(ValueError, match="up must be 'input'"):
         BoundSegmenter(model, cam, up=[0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="planar"):
@@ -158,7 +161,7 @@ def test_a_failed_export_leaves_no_file(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch.export, "save", fail)
     with pytest.raises(RuntimeError, match="disk full"):
-        export_segmenter(_deeplab(), _fisheye(32), tmp_path / "a.pt2", up="input", check=False)
+        export_model(_deeplab(), _fisheye(32), tmp_path / "a.pt2", up="input", check=False)
     assert not list(tmp_path.iterdir())
 
 
@@ -169,7 +172,7 @@ def test_a_rig_is_one_program_with_an_image_and_labels_per_camera(tmp_path):
     back = front.with_rotation(np.diag([-1.0, -1.0, 1.0]) @ front.rotation)
     rig = {"front": front, "back": back}
     model = _deeplab(4)
-    info = export_segmenter(model, rig, tmp_path / "rig.onnx", up="input")
+    info = export_model(model, rig, tmp_path / "rig.onnx", up="input")
     assert info["inputs"] == ["front uint8 [36, 36, 3] RGB", "back uint8 [36, 36, 3] RGB",
                               "up float32 [3]"]
     assert info["outputs"] == ["labels_front", "labels_back", "up_read"]
@@ -183,3 +186,74 @@ def test_a_rig_is_one_program_with_an_image_and_labels_per_camera(tmp_path):
         assert np.array_equal(got == UNSEEN, ~seen) and (got[seen] == want[seen]).mean() > 0.99
     swapped = segment_image(model, images[::-1], rig, up=[0.0, 0.0, 1.0])["labels"][0]
     assert (swapped != ref[0]).mean() > 0.05  # the cameras' order matters: a test that can fail
+
+
+def _detector(seed=0):
+    """A small upright detector whose heatmaps peak here and there over a room (at
+    initialization CenterNet's prior keeps every score near 0.01)."""
+    torch.manual_seed(seed)
+    model = SphericalDetector(num_classes=3, input_level=3, head_level=2, min_level=1,
+                              channels=(4, 6, 8), pairs=2, gradient_fields=2, gravity=True,
+                              upright=True, up_fields=2, upright_convs=2).eval()
+    with torch.no_grad():
+        model.head.weight[:3].mul_(30.0)
+        model.head.bias[:3].fill_(-1.0)
+    return model
+
+
+def _same_detections(got, want):
+    assert len(want["boxes"]) > 3 and len(got["boxes"]) == len(want["boxes"])
+    assert np.array_equal(got["classes"], want["classes"])
+    np.testing.assert_allclose(got["scores"], want["scores"], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(got["boxes"][:, 2:4], want["boxes"][:, 2:4], rtol=0, atol=1e-4)
+    centres = [from_latlon(b[:, 1], b[:, 0]) for b in (got["boxes"], want["boxes"])]
+    assert np.abs(centres[0] - centres[1]).max() < 1e-4
+    # the axes of a square box at the zenith, where an upright model's spin fields vanish,
+    # are ill-conditioned: float32 turns them by up to a degree (IoU 0.99)
+    assert float(box_iou(got["boxes"], want["boxes"], dtype=torch.float64).min()) > 0.98
+
+
+def test_a_detector_exported_finds_usf_graphs_boxes(tmp_path):
+    model, cam = _detector(), _fisheye(40)
+    decoding = dict(k=40, nms=0.2, drop_hidden=False)  # boxes the view cuts, overlapping
+    info = export_model(model, cam, tmp_path / "det.onnx", up="input", **decoding)
+    assert info["outputs"] == ["boxes", "classes", "scores", "up_read"]
+    assert info["check"]["unmatched"] == 0 and info["check"]["matched"] > 3
+    run = load_exported(tmp_path / "det.onnx")
+    meta = run.metadata
+    assert meta["task"] == "det" and json.loads(meta["classes"]) == [f"class {k}" for k in range(3)]
+    assert json.loads(meta["decoding"]) == {"threshold": 0.05, **decoding}
+    for seed, up in ((1, [0.0, 0.0, 1.0]), (2, [0.3, -0.2, 0.9])):  # new rooms, a tilted up
+        image = _room_image(cam, seed)
+        got, u = run(image, up)
+        want = detect_image(model, image, cam, up=up, **decoding)
+        _same_detections(got, want)
+        assert np.allclose(u, np.asarray(up) / np.linalg.norm(up), atol=1e-6)
+        # NMS was at work, and the boxes centred where the camera does not see were kept
+        assert len(detect_image(model, image, cam, up=up, **{**decoding, "nms": None})["boxes"]) \
+            > len(want["boxes"]) > len(detect_image(model, image, cam, up=up, k=40, nms=0.2)["boxes"])
+    got, u = run(image, [math.nan, 0.0, 1.0])  # no raising in a program: no detections
+    assert len(got["boxes"]) == 0 and np.isnan(u).all()
+
+
+def test_a_detector_on_a_rig_with_its_own_up_estimate_as_pt2(tmp_path):
+    front = _fisheye(36)
+    rig = [front, front.with_rotation(np.diag([-1.0, -1.0, 1.0]) @ front.rotation)]
+    model = _detector(1)
+    info = export_model(model, rig, tmp_path / "det.pt2", up=None, nms=0.3)
+    assert info["inputs"] == ["cam0 uint8 [36, 36, 3] RGB", "cam1 uint8 [36, 36, 3] RGB"]
+    room = make_room(5)
+    images = [render(room, c, boxes=False).rgb for c in rig]
+    got, u = load_exported(tmp_path / "det.pt2")(images)
+    want = detect_image(model, images, rig, nms=0.3)
+    _same_detections(got, want)
+    u, r = np.asarray(u, np.float64), np.asarray(want["up"])
+    assert np.degrees(np.arctan2(np.linalg.norm(np.cross(u, r)), u @ r)) < 0.01
+
+
+def test_detector_refusals_name_the_fix(tmp_path):
+    with pytest.raises(ValueError, match="k, nms: options of a detector's decoding"):
+        export_model(_deeplab(), _fisheye(32), tmp_path / "a.onnx", k=5, nms=0.1)
+    with pytest.raises(ValueError, match="not a spherical detector"):
+        BoundDetector(_deeplab(), _fisheye(32))
+    assert not list(tmp_path.iterdir())

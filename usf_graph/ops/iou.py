@@ -51,7 +51,7 @@ def _fields_of_view(b, what: str, closed: bool):
     (``closed``) or [0, 180): a box's edges are great circles, so it spans at most a
     hemisphere, and the IoU's clipping needs less."""
     fov = b[..., 2:4]
-    if check_values() and bool((fov < 0).any()) or bool((fov > math.pi if closed else fov >= math.pi).any()):
+    if check_values() and (bool((fov < 0).any()) or bool((fov > math.pi if closed else fov >= math.pi).any())):
         raise ValueError(f"box {what} needs fields of view in [0, 180{']' if closed else ')'} "
                          "degrees (a box's edges are great circles, so it spans at most a "
                          f"hemisphere), got fields of view from {float(fov.min()):.4g} to "

@@ -285,18 +285,19 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
 
 @torch.no_grad()
 def detect_image(model, image, camera, up=None, interpolation: str = "auto", image_mask=None,
-                 threshold: float = 0.05, k: int = 100, nms: float | None = 0.5) -> dict:
+                 threshold: float = 0.05, k: int = 100, nms: float | None = 0.5,
+                 drop_hidden: bool = True) -> dict:
     """A trained spherical detector on one image of ``camera`` (or a rig's images, as one
     sphere: :func:`lift_for`): ``{"boxes": [D, 5] (radians, the camera's or the rig's
     sphere frame; :mod:`usf_graph.ops.boxes`), "classes": [D],
     "scores": [D], "up": ..., "interpolation": ...}``, best first. ``up`` as
-    :func:`segment_image`'s; ``threshold``, ``k``, ``nms`` as
-    :meth:`~usf_graph.models.SphericalDetector.decode`'s."""
+    :func:`segment_image`'s; ``threshold``, ``k``, ``nms``, ``drop_hidden`` as
+    :meth:`~usf_graph.models.SphericalDetector.decode_image`'s."""
     fe, x, mask = lift_for(model, image, camera, interpolation, image_mask)
     with _evaluating(model):
         given, how = _read_up(model, up, image, fe, x, mask)
         out = model(x, mask) if given is None else model(x, mask, up=given)
-    found = model.decode(out, k=k, threshold=threshold, nms=nms)[0]
+    found = model.decode(out, k=k, threshold=threshold, nms=nms, drop_hidden=drop_hidden)[0]
     return {**found, "interpolation": _frontends(fe)[0].interpolation,
             **_up_info(given, out.get("gravity"), how)}
 

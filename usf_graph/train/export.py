@@ -1,20 +1,23 @@
-"""A trained spherical segmenter bound to one camera, exported as one self-contained
-program: ONNX (``.onnx``: onnxruntime, TensorRT, OpenVINO, C++) or ``torch.export``
-(``.pt2``: ``torch.export.load``, AOTInductor). What ``usf-graph export`` runs.
+"""A trained spherical segmenter or detector bound to one camera, exported as one
+self-contained program: ONNX (``.onnx``: onnxruntime, TensorRT, OpenVINO, C++) or
+``torch.export`` (``.pt2``: ``torch.export.load``, AOTInductor). What ``usf-graph
+export`` runs.
 
 The program takes the camera's image as it comes (``uint8 [H, W, 3]``, RGB) and, where
 asked, gravity's up in the camera's sphere frame (``float32 [3]``, e.g. from an IMU), and
-returns ``labels uint8 [H, W]`` (:data:`~usf_graph.train.apply.UNSEEN` where the camera
-has no ray or its mask ignores the pixel) and the ``up [3]`` it read. Everything that
-depends only on the camera and the grid is computed here once and held as constants: the
-lifting table, the field of view, every layer's coefficients and the render table. So the
-deployed program does per frame what :func:`~usf_graph.train.apply.segment_image` does,
-and nothing else.
+returns a segmenter's ``labels uint8 [H, W]`` (:data:`~usf_graph.train.apply.UNSEEN`
+where the camera has no ray or its mask ignores the pixel) or a detector's spherical
+boxes, classes and scores, and the ``up [3]`` it read (:mod:`usf_graph.train.bound`).
+Everything that depends only on the camera and the grid is computed here once and held
+as constants: the lifting table, the field of view, every layer's coefficients and the
+render table. So the deployed program does per frame what
+:func:`~usf_graph.train.apply.segment_image` or
+:func:`~usf_graph.train.apply.detect_image` does, and nothing else.
 
 The layers take their plain forms (:mod:`usf_graph.tracing`): gathers into padded rows
 and batched products instead of sparse tensors, which neither exporter can take. Export
-checks the written program against :func:`~usf_graph.train.apply.segment_image` on a
-procedural room rendered through the camera (:func:`check_exported`).
+checks the written program against usf-graph on a procedural room rendered through the
+camera (:func:`check_exported`).
 """
 
 from __future__ import annotations
@@ -25,26 +28,15 @@ import logging
 import math
 import time
 import warnings
-from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-from ..frontend import RigFrontend, SphericalFrontend
-from ..frontend.interpolation import valid_pixels
-from ..sparse import entry_rows, padded_product, padded_rows, padded_values
 from ..tracing import fixed_fields
-from .apply import (
-    UNSEEN,
-    auto_interpolation,
-    cameras_of,
-    class_names,
-    input_grid,
-    is_rig,
-    segment_image,
-)
+from .apply import UNSEEN, cameras_of, class_names, detect_image, is_rig, segment_image
+from .bound import BoundDetector, BoundModel, BoundSegmenter
 
 #: What the exported files are: by their suffix.
 FORMATS = {".onnx": "ONNX", ".pt2": "torch.export"}
@@ -57,145 +49,6 @@ TIE_MARGIN = 1e-3
 META_FILE = "usf_graph.json"
 
 
-def _up_mode(up):
-    """``"input"``, ``None`` (the model's estimate) or a unit ``[3]`` vector (a camera
-    mounted at a fixed angle to gravity)."""
-    if up is None or (isinstance(up, str) and up == "input"):
-        return up
-    u = np.asarray(up, np.float64).reshape(-1)
-    if u.shape != (3,) or not np.isfinite(u).all() or np.linalg.norm(u) < 1e-9:
-        raise ValueError(f"up must be 'input', None (the model's estimate) or 3 finite numbers, "
-                         f"not all 0 (x forward, y left, z up), got {up!r}")
-    return torch.from_numpy(u / np.linalg.norm(u)).float()
-
-
-class CameraIO(nn.Module):
-    """One camera's part of a bound program: its lifting table, weighted by its share of
-    each point (a rig's blend; 1 for one camera) and kept over the points it lifts only (a
-    pinhole's table would pad 16x otherwise), and its nearest-point render table."""
-
-    def __init__(self, fe: SphericalFrontend, share: torch.Tensor | None = None):
-        super().__init__()
-        cam = fe.camera
-        self.size, self.camera_key = (cam.height, cam.width), cam.key()
-        crow, col, val = fe.lift_table()
-        counts = crow.long().diff()
-        if share is not None:  # a rig: each entry weighted by its point's share, zeros dropped
-            row = entry_rows(counts)
-            w = share.to(val.dtype)[row]
-            keep = w > 0
-            col, val = col[keep], val[keep] * w[keep]
-            counts = torch.bincount(row[keep], minlength=len(counts))
-        rows = torch.nonzero(counts > 0)[:, 0]  # every entry is in one of these, in order
-        cols, slot = padded_rows(torch.cat([counts.new_zeros(1), counts[rows].cumsum(0)]), col)
-        self.register_buffer("lift_col", cols)
-        self.register_buffer("lift_w", padded_values(val.float(), slot))
-        row_of = torch.full((len(counts),), len(rows), dtype=torch.int32)
-        row_of[rows] = torch.arange(len(rows), dtype=torch.int32)
-        self.register_buffer("lift_row", row_of)  # each point's row, or the zero row past the end
-        crow, col, _ = fe.render_table("nearest")
-        if not bool((crow.diff() == 1).all()):
-            raise RuntimeError("the nearest render table must hold one point per pixel")
-        self.register_buffer("nearest", col.int().clone())
-        self.register_buffer("seen", torch.from_numpy(valid_pixels(cam).ravel().copy()))
-
-    def lift(self, image: torch.Tensor) -> torch.Tensor:
-        """``uint8 [H, W, 3]`` -> ``[N, 3]`` in [0, 1], 0 where the camera adds nothing."""
-        rgb = image.reshape(-1, 3).float() / 255.0
-        lifted = padded_product(self.lift_col, self.lift_w, rgb)
-        return torch.cat([lifted, lifted.new_zeros(1, 3)]).index_select(0, self.lift_row)
-
-    def labels(self, points: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
-        """Per-point labels ``[N]`` -> ``uint8 [H, W]``, :data:`UNSEEN` where the camera has
-        no ray or ``ok`` is False."""
-        out = torch.where(self.seen & ok, points.index_select(0, self.nearest), UNSEEN)
-        return out.to(torch.uint8).reshape(self.size)
-
-
-class BoundSegmenter(nn.Module):
-    r"""A spherical segmenter and one camera (or one rig), as one module from images to
-    labels.
-
-    ``forward(image [H, W, 3] uint8, ...[, up [3] float32])`` -> ``(labels [H, W] uint8,
-    ..., up [3] float32)``, one image and one label image per camera: the images in [0,
-    1] are lifted through the cameras' tables (``x_i = \sum_c \sum_p w_{ci} T^c_{ip}
-    I^c_p``, a rig's blend weights :math:`w_{ci}` as :class:`~usf_graph.frontend.
-    RigFrontend` makes them), segmented on the grid with the joint field of view, and each
-    pixel takes the label of its camera's nearest visible grid point. Where the given
-    ``up`` is not finite or is zero, every label is :data:`UNSEEN` and the returned up is
-    NaN: an exported program cannot raise, so it says so in its outputs.
-
-    Args:
-        model: a spherical segmenter (:class:`~usf_graph.models.SphericalUNet`,
-            :class:`~usf_graph.models.SphericalDeepLabV3`), in evaluation mode here.
-        camera: any :mod:`usf_graph.cameras` model (its mask and ``fov`` included), or a
-            rig: a list or ``{name: camera}`` of cameras mounted by their ``rotation``
-            (:func:`usf_graph.cameras.load_rig`), one image each, in that order.
-        up: ``"input"`` (the last input), a fixed ``[3]`` vector, or ``None``: the model's
-            own estimate (its polish's eigendecompositions by Jacobi rotations,
-            :func:`~usf_graph.models.gravity.symmetric_eigh3`, since ONNX has no
-            eigendecomposition). A model without gravity reads no up and takes the images
-            alone.
-        interpolation: as :func:`~usf_graph.train.apply.lift_for` (``auto`` picks
-            ``area`` for images much finer than the grid, for a rig if any camera needs it).
-    """
-
-    def __init__(self, model: nn.Module, camera, up="input", interpolation: str = "auto"):
-        super().__init__()
-        grid = input_grid(model)
-        self.up_mode = _up_mode(up) if getattr(model, "gravity", None) is not None else "none"
-        cams = cameras_of(camera)
-        self.names = list(camera) if isinstance(camera, Mapping) else \
-            [f"cam{i}" for i in range(len(cams))] if is_rig(camera) else ["image"]
-        if interpolation == "auto":
-            interpolation = auto_interpolation(cams, grid)
-        self.interpolation = interpolation
-        self.model = model.eval()
-        if is_rig(camera):
-            rig = RigFrontend(camera, grid, interpolation=interpolation)
-            fes, shares, mask = rig.frontends, list(rig.weights), rig.mask
-        else:
-            fe = SphericalFrontend(camera, grid, interpolation)
-            fes, shares, mask = [fe], [None], fe.mask
-        self.cameras = nn.ModuleList(CameraIO(f, w) for f, w in zip(fes, shares))
-        # None where the cameras see the whole sphere, as the models take it
-        self.register_buffer("mask", None if bool(mask.all()) else mask.clone())
-        if isinstance(self.up_mode, torch.Tensor):
-            self.register_buffer("fixed_up", self.up_mode[None].clone())
-
-    @property
-    def input_names(self) -> list[str]:
-        return self.names + (["up"] if self.up_mode == "input" else [])
-
-    @property
-    def output_names(self) -> list[str]:
-        return (["labels"] if self.names == ["image"] else [f"labels_{n}" for n in self.names]) \
-            + ["up_read"]
-
-    def example(self) -> tuple:
-        """Inputs of the right shapes and dtypes (gray images, the up of a level camera)."""
-        images = tuple(torch.full((*c.size, 3), 128, dtype=torch.uint8) for c in self.cameras)
-        return images + ((torch.tensor([0.0, 0.0, 1.0]),) if self.up_mode == "input" else ())
-
-    def forward(self, *inputs: torch.Tensor):
-        k = len(self.cameras)
-        x = sum(c.lift(im) for c, im in zip(self.cameras, inputs[:k]))[None]  # [1, N, 3]
-        true = torch.ones((), dtype=torch.bool, device=x.device)
-        if self.up_mode == "none":
-            logits, u, ok = self.model(x, self.mask), x.new_full((1, 3), math.nan), true
-        elif self.up_mode is None:
-            logits, grav = self.model(x, self.mask, return_gravity=True)
-            u, ok = grav["up"], true
-        else:
-            u = inputs[k].reshape(1, 3).float() if self.up_mode == "input" else self.fixed_up
-            ok = torch.isfinite(u).all() & (u.norm() > 0)
-            u = torch.where(ok, u, torch.tensor([[0.0, 0.0, 1.0]], device=x.device))
-            u = u / u.norm()
-            logits = self.model(x, self.mask, up=u)
-        points = logits[0].argmax(-1)
-        return (*(c.labels(points, ok) for c in self.cameras), torch.where(ok, u[0], math.nan))
-
-
 def _onnx_ready() -> None:
     try:
         import onnx  # noqa: F401
@@ -205,34 +58,47 @@ def _onnx_ready() -> None:
                           "'usf-graph[export]' (or export to .pt2)") from None
 
 
-def metadata(bound: BoundSegmenter) -> dict[str, str]:
+def metadata(bound: BoundModel) -> dict[str, str]:
     """What an exported file says of itself (ONNX ``metadata_props``, a ``.pt2``'s
-    :data:`META_FILE`), every value a string: ``classes`` (a JSON list, index = label),
-    ``unseen`` (the label of pixels without a ray), ``inputs`` and ``outputs`` (names),
-    ``up`` (``input``, ``estimate``, ``none`` or a fixed JSON ``[x, y, z]``), ``up_frame``,
+    :data:`META_FILE`), every value a string: ``task`` (``seg`` or ``det``), ``classes``
+    (a JSON list, index = label), ``inputs`` and ``outputs`` (names), ``up``
+    (``input``, ``estimate``, ``none`` or a fixed JSON ``[x, y, z]``), ``up_frame``,
     ``cameras`` (each camera's calibration as ``Camera.key()``, JSON), ``grid``,
-    ``interpolation`` and the ``usf_graph`` version that wrote it."""
+    ``interpolation`` and the ``usf_graph`` version that wrote it; a segmenter's
+    ``unseen`` (the label of pixels without a ray), a detector's ``boxes`` (their form)
+    and ``decoding`` (JSON: ``k``, ``threshold``, ``nms``, ``drop_hidden``)."""
     from .. import __version__
 
     mode = bound.up_mode
     up = "estimate" if mode is None else mode if isinstance(mode, str) else json.dumps(mode.tolist())
-    return {"usf_graph": __version__, "task": "seg",
-            "classes": json.dumps(class_names("seg", bound.model.config["num_classes"])),
-            "unseen": str(UNSEEN), "inputs": json.dumps(bound.input_names),
+    meta = {"usf_graph": __version__, "task": bound.task,
+            "classes": json.dumps(class_names(bound.task, bound.model.config["num_classes"])),
+            "inputs": json.dumps(bound.input_names),
             "outputs": json.dumps(bound.output_names), "up": up,
             "up_frame": "the sphere frame of the camera (of a rig's first camera): x forward, "
                         "y left, z up",
             "cameras": json.dumps({n: io.camera_key for n, io in zip(bound.names, bound.cameras)}),
             "grid": bound.model.input_grid, "interpolation": bound.interpolation}
+    if bound.task == "seg":
+        meta["unseen"] = str(UNSEEN)
+    else:
+        meta["boxes"] = ("[lon, lat, fov_x, fov_y, roll] in radians in the sphere frame (lon "
+                         "counter-clockwise from x, roll from the local east towards north), "
+                         "best first; the detections are the rows with score > 0")
+        meta["decoding"] = json.dumps(bound.decoding)
+    return meta
 
 
-def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: str = "auto",
-                     check: bool = True, seed: int = 0) -> dict:
-    """Write ``model`` bound to ``camera`` (:class:`BoundSegmenter`) to ``path``: ONNX for
-    ``.onnx``, ``torch.export`` for ``.pt2``; then, with ``check``, run the written file
-    on a procedural room rendered through the camera (room ``seed``) and compare with
-    :func:`~usf_graph.train.apply.segment_image` (:func:`check_exported`). Returns what
-    it did: the file, its format and size, the seconds taken and the check's numbers."""
+def export_model(model: nn.Module, camera, path, up="input", interpolation: str = "auto",
+                 check: bool = True, seed: int = 0, **decoding) -> dict:
+    """Write ``model`` bound to ``camera`` to ``path``: a spherical segmenter as
+    :class:`~usf_graph.train.bound.BoundSegmenter`, a spherical detector as
+    :class:`~usf_graph.train.bound.BoundDetector` (``decoding``: its ``k``,
+    ``threshold``, ``nms`` and ``drop_hidden``); ONNX for ``.onnx``, ``torch.export`` for
+    ``.pt2``. Then, with ``check``, run the written file on a procedural room rendered
+    through the camera (room ``seed``) and compare with usf-graph
+    (:func:`check_exported`). Returns what it did: the file, its format and size, the
+    seconds taken and the check's numbers."""
     path = Path(path)
     fmt = FORMATS.get(path.suffix.lower())
     if fmt is None:
@@ -243,7 +109,13 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
         raise ValueError("export traces on the CPU: move the model there first (model.cpu()); "
                          "the written file runs on whatever devices its runtime has")
     t0 = time.perf_counter()
-    bound = BoundSegmenter(model, camera, up, interpolation).eval()
+    if hasattr(model, "decode_image"):
+        bound = BoundDetector(model, camera, up, interpolation, **decoding).eval()
+    elif decoding:
+        raise ValueError(f"{', '.join(decoding)}: options of a detector's decoding, and "
+                         f"{type(model).__name__} is not a detector")
+    else:
+        bound = BoundSegmenter(model, camera, up, interpolation).eval()
     example = bound.example()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.part{path.suffix}")
@@ -272,20 +144,24 @@ def export_segmenter(model: nn.Module, camera, path, up="input", interpolation: 
             "export_s": time.perf_counter() - t0}
     if check:
         reads = None if bound.up_mode == "none" else up  # an isotropic model reads no up
-        info["check"] = check_exported(path, model, camera, reads, bound.interpolation, seed)
+        info["check"] = check_exported(path, model, camera, reads, bound.interpolation, seed,
+                                       getattr(bound, "decoding", None))
     return info
 
 
 @contextlib.contextmanager
 def _quiet_exporters():
     """The exporters' notes that say nothing about this export (torchvision's operators
-    skipped, a deprecation inside torch's own pytree code), kept off the user's screen."""
+    skipped, a deprecation inside torch's own pytree code, the archive's note on tensors
+    that share storage), kept off the user's screen."""
     log = logging.getLogger("torch.onnx._internal.exporter._registration")
     level = log.level
     log.setLevel(logging.ERROR)
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*LeafSpec", category=FutureWarning)
+            # .pt2 archives of the emptied buffers (_unused_buffers_emptied), all on the CPU
+            warnings.filterwarnings("ignore", message="No complete tensor found", category=UserWarning)
             yield
     finally:
         log.setLevel(level)
@@ -321,9 +197,11 @@ def _unused_buffers_emptied(module: nn.Module, program):
 
 
 def load_exported(path, threads: int | None = None):
-    """An exported file as a function ``(images, up=None) -> (labels, up [3])`` on numpy
+    """An exported file as a function ``(images, up=None) -> (answer, up [3])`` on numpy
     arrays: ``images`` one ``uint8 [H, W, 3]`` image, or a list of one per camera for a
-    rig (``labels`` then a list too); ``up`` given exactly when the program takes it. ONNX
+    rig; ``up`` given exactly when the program takes it. A segmenter's answer is its
+    ``labels`` (a list of them for a rig); a detector's ``{"boxes": [D, 5], "classes":
+    [D], "scores": [D]}``, its detections best first (the rows scoring above 0). ONNX
     files run in onnxruntime (on ``threads`` CPU threads; None: its default), ``.pt2``
     files through ``torch.export.load`` (on torch's threads). Load once, call per frame.
     The function's ``metadata`` is the file's :func:`metadata` (class names and more)."""
@@ -364,8 +242,13 @@ def load_exported(path, threads: int | None = None):
             raise ValueError(f"{path} takes {want}; got {len(ims)} image{'s' if len(ims) > 1 else ''}"
                              + (" and up" if up is not None else ""))
         feeds = ims + ([np.asarray(up, np.float32).reshape(3)] if up is not None else [])
-        *labels, u = call(feeds)
-        return (labels if rig else labels[0]), u
+        *answer, u = call(feeds)
+        if meta.get("task") == "det":
+            boxes, classes, scores = answer
+            kept = scores > 0
+            return {"boxes": boxes[kept].astype(np.float64), "classes": classes[kept],
+                    "scores": scores[kept]}, u
+        return (answer if rig else answer[0]), u
     run.metadata = meta  # what the file says of itself (metadata())
     return run
 
@@ -379,57 +262,104 @@ def _angle(u, v) -> float:
     return math.atan2(float(np.linalg.norm(np.cross(a, b))), float(np.dot(a, b)))
 
 
-def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed: int = 0) -> dict:
-    """The exported file against :func:`~usf_graph.train.apply.segment_image` on room
-    ``seed`` rendered through ``camera`` (a rig: through each of its cameras, from one
-    viewpoint): the share of the cameras' pixels where both give the same label (argmax
-    ties and float32 summation order can flip a few), the angle between their ups
-    (degrees), and the program's time per frame.
+def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed: int = 0,
+                   decoding: dict | None = None) -> dict:
+    """The exported file against usf-graph on room ``seed`` rendered through ``camera``
+    (a rig: through each of its cameras, from one viewpoint), with the program's own up
+    where usf-graph estimates it too: the angle between their ups (degrees), the
+    program's time per frame, and for a segmenter the share of the cameras' pixels where
+    both give the same label (:func:`~usf_graph.train.apply.segment_image`; argmax ties
+    and float32 summation order can flip a few), for a detector (``decoding`` its options)
+    the detections both find (:func:`~usf_graph.train.apply.detect_image`;
+    :func:`_matched`).
 
-    Raises ``RuntimeError`` when fewer than 99% of the pixels agree, the unseen pixels
-    differ, or the program's up estimate is over 0.01 degrees from usf-graph's where that
+    Raises ``RuntimeError`` when fewer than 99% of the pixels agree or the unseen pixels
+    differ, when more than 2% of the detections (and more than one) have no match, or
+    when the program's up estimate is over 0.01 degrees from usf-graph's where that
     estimate is sure (margin at least :data:`TIE_MARGIN`; below, the two may pick either
-    of tied candidates, and the labels are compared given the program's up): the file
-    would be a silent wrong answer."""
+    of tied candidates, and the rest is compared given the program's up): the file would
+    be a silent wrong answer."""
     from ..scenes import make_room
     from ..scenes.render import render
 
     room = make_room(seed)
     images = [render(room, c, boxes=False).rgb for c in cameras_of(camera)]
-    given = None if up is None else [0.0, 0.0, 1.0] if up == "input" else up
     feed = images if is_rig(camera) else images[0]
-    ref = segment_image(model, feed, camera, up=given, interpolation=interpolation)
+    if decoding is None:
+        def reference(u):
+            return segment_image(model, feed, camera, up=u, interpolation=interpolation)
+    else:
+        def reference(u):
+            return detect_image(model, feed, camera, up=u, interpolation=interpolation, **decoding)
+    ref = reference(None if up is None else [0.0, 0.0, 1.0] if up == "input" else up)
     feed_up = [0.0, 0.0, 1.0] if up == "input" else None
     t0 = time.perf_counter()
     run = load_exported(path)
     load = time.perf_counter() - t0
-    labels, u = run(feed, feed_up)
+    got, u = run(feed, feed_up)
     t0 = time.perf_counter()
     run(feed, feed_up)
     frame = time.perf_counter() - t0
     angle = _angle(u, ref["up"])
     tie = up is None and angle > math.radians(0.01) and (ref.get("margin") or 0.0) < TIE_MARGIN
     if tie:  # the estimate's own scores tie: float32 order picks either; compare the rest
-        ref = segment_image(model, feed, camera, up=u, interpolation=interpolation)
+        ref = reference(u)
     elif up is None and angle > math.radians(0.01):
         raise RuntimeError(f"the exported {path} reads up {math.degrees(angle):.3f} degrees away "
                            "from usf-graph's estimate on a rendered room, where the estimate is "
                            "sure of it. Please report it with the checkpoint and the calibration")
-    got = labels if is_rig(camera) else [labels]
-    want = ref["labels"] if is_rig(camera) else [ref["labels"]]
-    seen = np.concatenate([(w != UNSEEN).ravel() for w in want])
-    same = np.concatenate([(g == w).ravel() for g, w in zip(got, want)])
-    agree = float(same[seen].mean()) if seen.any() else 1.0
-    same_unseen = bool(all(((g == UNSEEN) == (w == UNSEEN)).all() for g, w in zip(got, want)))
-    out = {"room": seed, "pixels_seen": int(seen.sum()), "agree": agree,
-           "unseen_match": same_unseen, "up_angle_deg": math.degrees(angle), "up_tie": tie,
-           "load_s": load, "frame_s": frame}
-    if agree < 0.99 or not same_unseen:
+    out = {"room": seed, "up_angle_deg": math.degrees(angle), "up_tie": tie, "load_s": load,
+           "frame_s": frame}
+    if decoding is None:
+        out.update(_same_labels(got, ref["labels"], is_rig(camera)))
+        bad = out["agree"] < 0.99 or not out["unseen_match"]
+        said = (f"{100 * out['agree']:.2f}% of the pixels agree, unseen pixels "
+                f"{'match' if out['unseen_match'] else 'differ'}")
+    else:
+        out.update(_matched(got, ref))
+        n = max(out["detections"], out["detections_exported"])
+        bad = out["unmatched"] > max(1, 0.02 * n)
+        said = (f"{out['unmatched']} of {n} detections have no match in the other "
+                "(same class, IoU at least 0.95, scores within 1e-3)")
+    if bad:
         raise RuntimeError(f"the exported {path} disagrees with usf-graph on a rendered room: "
-                           f"{100 * agree:.2f}% of the pixels agree, unseen pixels "
-                           f"{'match' if same_unseen else 'differ'}. Please report it with "
-                           "the checkpoint and the calibration")
+                           f"{said}. Please report it with the checkpoint and the calibration")
     return out
 
 
-__all__ = ["BoundSegmenter", "CameraIO", "FORMATS", "META_FILE", "check_exported", "export_segmenter", "load_exported", "metadata"]
+def _same_labels(got, want, rig: bool) -> dict:
+    """How far two segmentations of the same images agree: the share of seen pixels with
+    the same label, and whether the unseen pixels are the same."""
+    got, want = (got, want) if rig else ([got], [want])
+    seen = np.concatenate([(w != UNSEEN).ravel() for w in want])
+    same = np.concatenate([(g == w).ravel() for g, w in zip(got, want)])
+    return {"pixels_seen": int(seen.sum()), "agree": float(same[seen].mean()) if seen.any() else 1.0,
+            "unseen_match": bool(all(((g == UNSEEN) == (w == UNSEEN)).all() for g, w in zip(got, want)))}
+
+
+def _matched(got: dict, want: dict) -> dict:
+    """How far two sets of detections of the same image agree: each of ``want``'s, best
+    first, takes the unmatched one of ``got`` of its class that overlaps it most, a match
+    where their IoU is at least 0.95 and their scores within 1e-3. Float32 against float64
+    decoding: a score at the threshold or an IoU at the NMS threshold can flip, and the
+    axes of a nearly square box where the spin fields nearly vanish (at the zenith, about
+    which an upright model's fields are symmetric) can turn by a degree. Returns the
+    counts, the largest score difference and the smallest IoU of the matches."""
+    from ..ops import pairwise_box_iou
+
+    iou = pairwise_box_iou(torch.as_tensor(want["boxes"]), torch.as_tensor(got["boxes"]),
+                           dtype=torch.float64).numpy()
+    iou = np.where(want["classes"][:, None] == got["classes"][None, :], iou, -1.0)
+    free, matched, worst, least = np.ones(len(got["boxes"]), bool), 0, 0.0, 1.0
+    for i in range(len(want["boxes"])):
+        j = int(np.argmax(np.where(free, iou[i], -1.0))) if free.any() else -1
+        diff = abs(float(want["scores"][i]) - float(got["scores"][j])) if j >= 0 else 1.0
+        if j >= 0 and free[j] and iou[i, j] >= 0.95 and diff <= 1e-3:
+            free[j], matched = False, matched + 1
+            worst, least = max(worst, diff), min(least, float(iou[i, j]))
+    unmatched = len(want["boxes"]) - matched + int(free.sum())
+    return {"detections": len(want["boxes"]), "detections_exported": len(got["boxes"]),
+            "matched": matched, "unmatched": unmatched, "score_diff": worst, "iou_min": least}
+
+
+__all__ = ["FORMATS", "META_FILE", "check_exported", "export_model", "load_exported", "metadata"]
