@@ -1,5 +1,6 @@
 """The benchmark scripts still run (tiny sizes; what they time is not asserted here)."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -76,9 +77,15 @@ def test_predict_frame_benchmark_times_the_other_modes():
         assert f"| {row} |" in out, row
 
 
-@pytest.mark.slow  # two exports of the protocol's level-5 DeepLab: about 40 s
-def test_export_frame_benchmark_runs():
+@pytest.mark.slow  # two exports of a protocol's level-5 model: about 40 s each task
+@pytest.mark.parametrize("task", ["seg", "det"])
+def test_export_frame_benchmark_runs(task):
     pytest.importorskip("onnxruntime")
-    out = run("benchmarks/export_frame.py", "--size", "32", "--channel-scale", "0.25", "--reps", "1")
-    assert "| ONNX in onnxruntime, up given |" in out and "| seg.pt2 |" in out
-    assert out.count("| 100.00% |") == 2  # both files agree with usf-graph
+    out = run("benchmarks/export_frame.py", "--task", task, "--size", "32", "--channel-scale", "0.25",
+              "--reps", "1")
+    assert "| ONNX in onnxruntime, up given |" in out and f"| {task}.pt2 |" in out
+    if task == "seg":
+        assert out.count("| 100.00% |") == 2  # both files agree with usf-graph
+    else:  # every detection of both files found alike
+        alike = re.findall(r"\| (\d+) of (\d+) \|", out)
+        assert len(alike) == 2 and all(a == b and int(a) > 0 for a, b in alike)

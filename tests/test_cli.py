@@ -716,3 +716,48 @@ def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys
                      (["--up-input", "--out", str(tmp_path / "a.onnx.txt")], ".onnx")):
         assert main([*args, *bad]) == 2
         assert why in capsys.readouterr().err
+
+
+def test_export_cli_writes_a_detector_with_its_decoding(tmp_path, capsys):
+    """``export det``: the decoding options reach the program, which gives
+    ``detect_image``'s boxes with the same options; a segmentation checkpoint is refused."""
+    import json
+
+    pytest.importorskip("onnxruntime")
+    from usf_graph.cameras import KannalaBrandt
+    from usf_graph.models import SphericalDetector, SphericalUNet
+    from usf_graph.train import save_checkpoint
+    from usf_graph.train.apply import detect_image
+    from usf_graph.train.export import load_exported
+
+    cam = KannalaBrandt(12.0, 12.0, 15.5, 15.5, 32, 32, k=(0.01, 0.0, 0.0, 0.0))
+    cam.save(tmp_path / "fish.yaml")
+    torch.manual_seed(0)
+    det = SphericalDetector(num_classes=12, input_level=3, head_level=2, min_level=1,
+                            channels=(4, 6, 8), pairs=2, gradient_fields=2, gravity=True)
+    with torch.no_grad():  # heatmaps that peak above the threshold here and there
+        det.head.weight[:12].mul_(30.0)
+        det.head.bias[:12].fill_(-1.0)
+    save_checkpoint(tmp_path / "det.pt", det, {"size": 32, **det.config}, {})
+    out = tmp_path / "det.onnx"
+    args = ["export", "det", str(tmp_path / "det.pt"), "--camera", str(tmp_path / "fish.yaml"),
+            "--fov", "180", "--up", "0", "0", "1"]
+    assert main([*args, "--max-boxes", "30", "--threshold", "0.1", "--nms", "1", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "boxes float32 [30, 5] (radians)" in printed and "detections found alike" in printed
+    run = load_exported(out)
+    assert json.loads(run.metadata["decoding"]) == {"k": 30, "threshold": 0.1, "nms": None,
+                                                    "drop_hidden": True}
+    image = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    got, _ = run(image)
+    want = detect_image(det.eval(), image, cam.with_fov(180), up=[0.0, 0.0, 1.0], k=30,
+                        threshold=0.1, nms=None)
+    assert len(got["boxes"]) == len(want["boxes"]) > 0
+    assert np.array_equal(got["classes"], want["classes"])
+    np.testing.assert_allclose(got["scores"], want["scores"], atol=1e-5)
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8), pairs=0)
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", "size": 32, **seg.config}, {})
+    args[2] = str(tmp_path / "seg.pt")
+    assert main([*args, "--out", str(out)]) == 2
+    assert "not a spherical det model" in capsys.readouterr().err

@@ -345,3 +345,41 @@ def test_deploy_onnx_example_runs_an_exported_file_without_usf_graph(tmp_path, c
     assert (tmp_path / "o" / "frame_overlay.png").exists()
     with pytest.raises(SystemExit, match="give --up"):
         ex.main(args)
+
+
+def test_deploy_onnx_example_writes_an_exported_detectors_boxes(tmp_path, capsys):
+    """A detector's file: the example writes the program's detections, named, in radians
+    and in PANDORA's degrees (as usf-graph's own to_pandora gives them)."""
+    import json
+
+    import cv2
+
+    pytest.importorskip("onnxruntime")
+    from usf_graph.cameras import KannalaBrandt
+    from usf_graph.models import SphericalDetector
+    from usf_graph.ops import to_pandora
+    from usf_graph.train.export import export_model, load_exported
+
+    cam = KannalaBrandt(10.0, 10.0, 15.5, 11.5, 32, 24, k=(0.0, 0.0, 0.0, 0.0)).with_fov(180)
+    torch.manual_seed(0)
+    model = SphericalDetector(num_classes=12, input_level=3, head_level=2, min_level=1,
+                              channels=(4, 6, 8), pairs=2, gradient_fields=2).eval()
+    with torch.no_grad():  # heatmaps that peak above the threshold here and there
+        model.head.weight[:12].mul_(30.0)
+        model.head.bias[:12].fill_(-1.0)
+    export_model(model, cam, tmp_path / "det.onnx", check=False, drop_hidden=False)
+    rgb = np.random.default_rng(1).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "frame.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    out = tmp_path / "o"
+    assert load("deploy_onnx").main([str(tmp_path / "det.onnx"), str(tmp_path / "frame.png"),
+                                     "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    found = json.loads((out / "frame_boxes.json").read_text())
+    run = load_exported(tmp_path / "det.onnx")
+    want, _ = run(rgb)
+    assert len(found) == len(want["boxes"]) > 0 and f"({len(found)} detections)" in printed
+    names = [d["class"] for d in found]
+    assert names == [json.loads(run.metadata["classes"])[c] for c in want["classes"]]
+    assert names[0] in printed and len(set(names)) > 1
+    np.testing.assert_allclose([d["box_rad"] for d in found], want["boxes"], atol=1e-6)
+    np.testing.assert_allclose([d["pandora_deg"] for d in found], to_pandora(want["boxes"]), atol=2e-3)

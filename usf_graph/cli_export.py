@@ -85,7 +85,7 @@ def cmd_export(args) -> int:
     print(f"wrote {info['path']} ({info['format']}, {info['bytes'] / 1e6:.1f} MB) in "
           f"{info['export_s']:.1f} s")
     k = args.max_boxes
-    outputs = ", ".join(f"{n} uint8 [H, W] (255: unseen)" for n in info["outputs"][:-1]) \
+    outputs = ", ".join(info["outputs"][:-1]) + " uint8 [H, W] (255: unseen)" \
         if args.task == "seg" else (f"boxes float32 [{k}, 5] (radians), classes int64 [{k}], "
                                     f"scores float32 [{k}] (the detections: score > 0)")
     print(f"inputs: {', '.join(info['inputs'])}; outputs: {outputs}, {info['outputs'][-1]} float32 [3]")

@@ -321,6 +321,11 @@ def check_exported(path, model: nn.Module, camera, up, interpolation: str, seed:
         bad = out["unmatched"] > max(1, 0.02 * n)
         said = (f"{out['unmatched']} of {n} detections have no match in the other "
                 "(same class, IoU at least 0.95, scores within 1e-3)")
+        spread = float(np.ptp(ref["scores"])) if len(ref["scores"]) else 1.0
+        if bad and spread < 1e-3:  # float32 rounding then picks among tied peaks
+            said += (f"; but usf-graph's own scores all lie within {spread:.1e} of each other, "
+                     "so the two pick differently among tied peaks: is the model trained? "
+                     "(--no-check writes it unchecked)")
     if bad:
         raise RuntimeError(f"the exported {path} disagrees with usf-graph on a rendered room: "
                            f"{said}. Please report it with the checkpoint and the calibration")
