@@ -63,7 +63,7 @@ def main() -> None:
         net, answer = make_detector(channel_scale=args.channel_scale).eval(), apply.detect_image
         with torch.no_grad():  # CenterNet's prior keeps an untrained detector's scores at
             # 0.01, and its scores tie: raised and spread, so that it decodes distinct peaks
-            net.head.weight[: net.num_classes].mul_(30.0)
+            net.head.weight[: net.num_classes].mul_(300.0)
             net.head.bias[: net.num_classes].fill_(-1.0)
     cam = protocol_cameras(args.size)[LENSES[args.lens]]
     image = render(make_room(0), cam, boxes=False).rgb

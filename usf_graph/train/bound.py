@@ -39,9 +39,10 @@ def _up_mode(up):
 class CameraIO(nn.Module):
     """One camera's part of a bound program: its lifting table, weighted by its share of
     each point (a rig's blend; 1 for one camera) and kept over the points it lifts only (a
-    pinhole's table would pad 16x otherwise), and its nearest-point render table."""
+    pinhole's table would pad 16x otherwise), and, with ``render``, its nearest-point
+    render table (a segmenter's labels go back to the pixels; a detector's boxes do not)."""
 
-    def __init__(self, fe: SphericalFrontend, share: torch.Tensor | None = None):
+    def __init__(self, fe: SphericalFrontend, share: torch.Tensor | None = None, render: bool = True):
         super().__init__()
         cam = fe.camera
         self.size, self.camera_key = (cam.height, cam.width), cam.key()
@@ -60,6 +61,8 @@ class CameraIO(nn.Module):
         row_of = torch.full((len(counts),), len(rows), dtype=torch.int32)
         row_of[rows] = torch.arange(len(rows), dtype=torch.int32)
         self.register_buffer("lift_row", row_of)  # each point's row, or the zero row past the end
+        if not render:
+            return
         crow, col, _ = fe.render_table("nearest")
         if not bool((crow.diff() == 1).all()):
             raise RuntimeError("the nearest render table must hold one point per pixel")
@@ -122,7 +125,7 @@ class BoundModel(nn.Module):
         else:
             fe = SphericalFrontend(camera, grid, interpolation)
             fes, shares, mask = [fe], [None], fe.mask
-        self.cameras = nn.ModuleList(CameraIO(f, w) for f, w in zip(fes, shares))
+        self.cameras = nn.ModuleList(CameraIO(f, w, render=self.task == "seg") for f, w in zip(fes, shares))
         # None where the cameras see the whole sphere, as the models take it
         self.register_buffer("mask", None if bool(mask.all()) else mask.clone())
         if isinstance(self.up_mode, torch.Tensor):
