@@ -9,6 +9,7 @@ from torch import nn
 
 from ..geometry import tangent_towards
 from ..sparse import kept
+from ..tracing import exporting
 from .aggregate import EdgePlan, basis_aggregate
 from .conv import SphericalConv, _distances
 from .precision import accumulate_in
@@ -113,13 +114,15 @@ class UprightConv(SphericalConv):
         mask's, as the coefficients are; never with an autograd graph."""
         slot = "bound" if coef is self._coef else "call" if coef is self._call_coef else None
         cached = self._oriented.get(slot)
-        if cached is not None and cached[0] is coef and cached[1].dtype == dtype:
+        # while exporting, the module's tensor attributes (the bound coefficients) are fakes
+        # of those the eager call before kept: the slot names them, and nothing is stored
+        if cached is not None and (cached[0] is coef or exporting()) and cached[1].dtype == dtype:
             return cached[1]
         # coefficients that need a gradient are not cached ones, nor is their basis
         with contextlib.nullcontext() if slot is None else kept():
             basis = oriented_basis(coef.to(dtype), self.directions.to(dtype),
                                    self.bound_edge_index[1], self.plan.num_nodes)
-        if slot is not None:
+        if slot is not None and not exporting():
             self._oriented[slot] = (coef, basis)
         return basis
 
