@@ -711,8 +711,16 @@ def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys
     assert main(rig) == 0  # two back-to-back fisheyes: an image and a label image each
     assert "outputs: labels_cam0, labels_cam1 uint8" in capsys.readouterr().out
     assert main([*rig, "--key", "cam1"]) == 2 and "--key picks one camera" in capsys.readouterr().err
+    from usf_graph.models import SignCheck
+
+    check = SignCheck(level=3, channels=(4, 4))
+    save_checkpoint(tmp_path / "sign.pt", check, {"model": "sign_check", **check.config}, {})
+    signed = ["--sign-check", str(tmp_path / "sign.pt"), "--out", str(tmp_path / "signed.pt2")]
+    assert main([*args, "--fov", "180", *signed]) == 0  # the estimate and its check inside
+    assert "100.00% of" in capsys.readouterr().out
     for bad, why in ((["--up", "0", "0", "1", "--level-prior", "10", "--out", str(tmp_path / "a.pt2")],
                       "--level-prior shapes"),
+                     (["--up-input", *signed], "--sign-check corrects"),
                      (["--up-input", "--out", str(tmp_path / "a.onnx.txt")], ".onnx")):
         assert main([*args, *bad]) == 2
         assert why in capsys.readouterr().err

@@ -44,6 +44,9 @@ def add_export_parser(sub, fmt) -> None:
     p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
                    help="without --up/--up-input: the up estimate assumes a level camera with "
                         "this strength (10 in the README; 0 off)")
+    p.add_argument("--sign-check", default=None, metavar="PATH",
+                   help="without --up/--up-input: the up estimate passes through this sign "
+                        "check (examples/up_sign.py --save), inside the program")
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted (as predict's)")
     g = p.add_argument_group("det: the decoding inside the program (predict's and eval's)")
@@ -59,8 +62,8 @@ def add_export_parser(sub, fmt) -> None:
     p.add_argument("--out", required=True, metavar="PATH",
                    help="the program: .onnx (needs usf-graph[export]) or .pt2; without "
                         "--up/--up-input it holds the model's own up estimate")
-    # what ready_model reads from predict's options: export traces on the CPU, with no sign check
-    p.set_defaults(func=cmd_export, sign_check=None, device="cpu")
+    # what ready_model reads from predict's options: export traces on the CPU
+    p.set_defaults(func=cmd_export, device="cpu")
 
 
 def cmd_export(args) -> int:
@@ -69,9 +72,10 @@ def cmd_export(args) -> int:
     from .train.export import export_model
 
     up = "input" if args.up_input else args.up
-    if args.level_prior and up is not None:
-        raise ValueError("--level-prior shapes the model's up estimate, which --up and "
-                         "--up-input replace")
+    for option, given in (("--level-prior shapes", args.level_prior),
+                          ("--sign-check corrects", args.sign_check)):
+        if given and up is not None:
+            raise ValueError(f"{option} the model's up estimate, which --up and --up-input replace")
     if args.rig and args.key is not None:
         raise ValueError("--key picks one camera; --rig binds every camera of the camchain")
     camera = rig_from_spec(args.camera, args.fov, args.image_mask) if args.rig else \

@@ -133,6 +133,34 @@ def test_pt2_holds_the_models_own_up_estimate(tmp_path):
     assert np.degrees(np.arctan2(np.linalg.norm(np.cross(u, r)), u @ r)) < 0.01
 
 
+def test_pt2_holds_the_up_estimates_sign_check(tmp_path):
+    """A sign check on the estimate (a fisheye sees enough of the sphere to ask it) is in
+    the program: its up is usf-graph's with the check, turned where the check turns it."""
+    from usf_graph.models import SignCheck, set_sign_check
+
+    model, cam = _deeplab(1), _fisheye(40)
+    with torch.no_grad():  # an untrained head's scores tie: sharpen them
+        model.gravity.head.score.weight.mul_(3000.0)
+    torch.manual_seed(0)
+    check = SignCheck(level=3, channels=(4, 6)).eval()
+    set_sign_check(model, check)
+    info = export_model(model, cam, tmp_path / "seg.pt2", up=None)
+    assert info["check"]["agree"] >= 0.99 and info["check"]["up_angle_deg"] < 0.01
+    run = load_exported(tmp_path / "seg.pt2")
+    assert json.loads(run.metadata["estimate"]) == {"level_prior": 0.0, "sign_check": True}
+    turned = 0
+    for seed in (0, 2):  # the check turns room 0's estimate and keeps room 2's
+        image = _room_image(cam, seed)
+        _, u = run(image)
+        want = segment_image(model, image, cam)["up"]
+        set_sign_check(model, None)
+        bare = segment_image(model, image, cam)["up"]
+        set_sign_check(model, check)
+        np.testing.assert_allclose(u, want, atol=1e-5)
+        turned += bool(np.allclose(want, -np.asarray(bare), atol=1e-9))
+    assert turned == 1
+
+
 def test_a_fixed_up_and_a_model_without_gravity(tmp_path):
     cam = _fisheye(40)
     info = export_model(_deeplab(2, gray=True), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])

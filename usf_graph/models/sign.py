@@ -25,6 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..tracing import field_of
 from .stages import refined_copy
 from .unet import SphericalUNet, UpNet
 
@@ -62,6 +63,7 @@ class SignCheck(nn.Module):
                                  channels=channels, gravity=True, upright=True, pairs=0,
                                  up_fields=4, refine=refine)
         self.net.gravity.requires_grad_(False)
+        self._areas = self.area.detach().cpu().numpy().copy()  # for the gate (asked)
 
     @property
     def area(self) -> torch.Tensor:
@@ -85,7 +87,9 @@ class SignCheck(nn.Module):
         """Whether the camera's field of view (``mask [N]``) is wide enough to ask the check."""
         if mask is None:
             return True
-        return bool((self.area * mask).sum() >= self.config["min_field"] * self.area.sum())
+        # numpy, as the field of view is (recorded while exporting: the gate is geometry)
+        area = self._areas
+        return bool((area * field_of(mask)).sum() >= self.config["min_field"] * area.sum())
 
     def correct(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
         """``up [B, 3]`` with the rows where s(-up) > s(up) turned, whatever the field of view."""

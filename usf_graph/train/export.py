@@ -64,7 +64,8 @@ def metadata(bound: BoundModel) -> dict[str, str]:
     (a JSON list, index = label), ``inputs`` and ``outputs`` (names), ``up``
     (``input``, ``estimate``, ``none`` or a fixed JSON ``[x, y, z]``), ``up_frame``,
     ``cameras`` (each camera's calibration as ``Camera.key()``, JSON), ``grid``,
-    ``interpolation`` and the ``usf_graph`` version that wrote it; a segmenter's
+    ``interpolation`` and the ``usf_graph`` version that wrote it; with the estimate inside,
+    ``estimate`` (JSON: its ``level_prior`` and whether a ``sign_check`` corrects it); a segmenter's
     ``unseen`` (the label of pixels without a ray), a detector's ``boxes`` (their form)
     and ``decoding`` (JSON: ``k``, ``threshold``, ``nms``, ``drop_hidden``)."""
     from .. import __version__
@@ -79,6 +80,12 @@ def metadata(bound: BoundModel) -> dict[str, str]:
                         "y left, z up",
             "cameras": json.dumps({n: io.camera_key for n, io in zip(bound.names, bound.cameras)}),
             "grid": bound.model.input_grid, "interpolation": bound.interpolation}
+    if mode is None:  # how the estimate inside reads up
+        from ..models.unet import UpNet
+
+        net = next(m for m in bound.model.modules() if isinstance(m, UpNet))
+        meta["estimate"] = json.dumps({"level_prior": float(net.level_prior),
+                                       "sign_check": net.sign_check is not None})
     if bound.task == "seg":
         meta["unseen"] = str(UNSEEN)
     else:
