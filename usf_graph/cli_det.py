@@ -112,9 +112,7 @@ def add_eval_options(e) -> None:
     e.add_argument("--up-lines", action="store_true", help="det, seg on rooms: through the pinhole "
                    "(d), the up estimate picks among the Manhattan axes of each image's straight "
                    "lines (docs/up_estimate.md); other cameras keep the estimate")
-    e.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
-                   help="det, seg: the up estimate assumes level cameras (optical axis "
-                        "horizontal) with this strength; 10 in the README, 0 (default) off")
+    estimate_options(e, "det, seg: ")
     e.add_argument("--render", default=None, choices=("nearest", "soft"),
                    help="seg: how the grid's predictions reach the pixels; nearest: the nearest "
                         "point's label (the protocols'); soft: the argmax of the "
@@ -125,9 +123,18 @@ def add_eval_options(e) -> None:
                         "camera records them (what a colour model loses there; a checkpoint of "
                         "'train --gray' reads them so anyway)")
     add_device_option(e)
-    e.add_argument("--sign-check", default=None, metavar="PATH",
-                   help="det, seg: pass the up estimate through this sign check on wide fields "
-                        "of view (a file of 'examples/up_sign.py --save')")
+
+
+def estimate_options(p, scope: str = "") -> None:
+    """``--level-prior`` and ``--sign-check``, the up estimate's test-time options
+    (:func:`up_options` sets them), for ``eval``, ``predict`` and ``export``; ``scope``
+    begins their help (where they apply)."""
+    p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
+                   help=f"{scope}the up estimate assumes a level camera (optical axis "
+                        "horizontal) with this strength (10 in the README; 0, the default, off)")
+    p.add_argument("--sign-check", default=None, metavar="PATH",
+                   help=f"{scope}the up estimate passes through this sign check, asked on wide "
+                        "fields of view (a file of 'examples/up_sign.py --save')")
 
 
 def given_or_default(args, run, keys) -> dict:

@@ -11,7 +11,7 @@ from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, rig_from_
 
 def add_export_parser(sub, fmt) -> None:
     """The ``export`` subcommand and its options."""
-    from .cli_det import nonnegative, positive_int, share
+    from .cli_det import estimate_options, positive_int, share
     from .frontend.interpolation import METHODS
 
     p = sub.add_parser("export", help="write a segmenter or detector bound to one camera as "
@@ -41,12 +41,7 @@ def add_export_parser(sub, fmt) -> None:
     up.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                     help="a fixed up in the camera's sphere frame: a camera mounted at a fixed "
                          "angle to gravity (0 0 1: level)")
-    p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
-                   help="without --up/--up-input: the up estimate assumes a level camera with "
-                        "this strength (10 in the README; 0 off)")
-    p.add_argument("--sign-check", default=None, metavar="PATH",
-                   help="without --up/--up-input: the up estimate passes through this sign "
-                        "check (examples/up_sign.py --save), inside the program")
+    estimate_options(p, "without --up/--up-input, inside the program: ")
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted (as predict's)")
     g = p.add_argument_group("det: the decoding inside the program (predict's and eval's)")

@@ -16,7 +16,7 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
 
 def add_predict_parser(sub, fmt) -> None:
     """The ``predict`` subcommand and its options."""
-    from .cli_det import add_device_option, nonnegative, positive_int, share
+    from .cli_det import add_device_option, estimate_options, positive_int, share
     from .frontend.interpolation import METHODS
 
     p = sub.add_parser("predict", help="run a trained seg or det model on your own image",
@@ -46,11 +46,7 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("--up-lines", action="store_true",
                    help="a pinhole's image: the up estimate picks among the Manhattan axes of "
                         "its straight lines (docs/up_estimate.md); not with --up or --rig")
-    p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
-                   help="the up estimate assumes a level camera with this strength (10 in the "
-                        "README; 0 off)")
-    p.add_argument("--sign-check", default=None, metavar="PATH",
-                   help="pass the up estimate through this sign check (examples/up_sign.py --save)")
+    estimate_options(p)
     add_device_option(p)
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted; auto: area where the image is over twice as "
