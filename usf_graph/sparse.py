@@ -157,11 +157,13 @@ def padded_operator(module: torch.nn.Module, name: str, dtype: torch.dtype, grou
 
 
 def padded_product(cols: torch.Tensor, weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """``A @ x`` for ``A`` as :func:`padded_operator` gives it (``weights`` in ``x``'s dtype)
-    and a dense ``x [M, ...]`` -> ``[R, ...]``: one gather and one batched product."""
+    """``A @ x`` for ``A`` as :func:`padded_operator` gives it and a dense ``x [M, ...]`` ->
+    ``[R, ...]`` in ``weights``' dtype: one gather and one batched product. An ``x`` of
+    another dtype (an image's uint8 pixels) is gathered as it is and converted after, which
+    moves a quarter of the bytes."""
     flat = x.reshape(len(x), -1)
     g = flat.index_select(0, cols.view(-1)).view(*cols.shape, flat.shape[1])  # [R/g, D, F]
-    return (weights @ g).reshape(weights.shape[0] * weights.shape[1], *x.shape[1:])
+    return (weights @ g.to(weights.dtype)).reshape(weights.shape[0] * weights.shape[1], *x.shape[1:])
 
 
 def buffer_as(module: torch.nn.Module, name: str, dtype: torch.dtype) -> torch.Tensor:

@@ -66,20 +66,23 @@ class CameraIO(nn.Module):
         crow, col, _ = fe.render_table("nearest")
         if not bool((crow.diff() == 1).all()):
             raise RuntimeError("the nearest render table must hold one point per pixel")
-        self.register_buffer("nearest", col.int().clone())
-        self.register_buffer("seen", torch.from_numpy(valid_pixels(cam).ravel().copy()))
+        seen = torch.from_numpy(valid_pixels(cam).ravel().copy())
+        # each pixel's point, or N (past the points: the unseen label) where it has no ray
+        self.register_buffer("nearest", torch.where(seen, col, len(counts)).int())
 
     def lift(self, image: torch.Tensor) -> torch.Tensor:
-        """``uint8 [H, W, 3]`` -> ``[N, 3]`` in [0, 1], 0 where the camera adds nothing."""
-        rgb = image.reshape(-1, 3).float() / 255.0
-        lifted = padded_product(self.lift_col, self.lift_w, rgb)
+        """``uint8 [H, W, 3]`` -> ``[N, 3]`` in [0, 1], 0 where the camera adds nothing (the
+        pixels gathered as bytes, then converted)."""
+        lifted = padded_product(self.lift_col, self.lift_w, image.reshape(-1, 3)) / 255.0
         return torch.cat([lifted, lifted.new_zeros(1, 3)]).index_select(0, self.lift_row)
 
     def labels(self, points: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
         """Per-point labels ``[N]`` -> ``uint8 [H, W]``, :data:`UNSEEN` where the camera has
-        no ray or ``ok`` is False."""
-        out = torch.where(self.seen & ok, points.index_select(0, self.nearest), UNSEEN)
-        return out.to(torch.uint8).reshape(self.size)
+        no ray or ``ok`` is False: one gather of bytes from the points' labels and the
+        unseen one after them."""
+        table = torch.where(ok, points, UNSEEN).to(torch.uint8)
+        table = torch.cat([table, table.new_full((1,), UNSEEN)])
+        return table.index_select(0, self.nearest).reshape(self.size)
 
 
 class BoundModel(nn.Module):
