@@ -159,11 +159,14 @@ def export_model(model: nn.Module, camera, path, up="input", interpolation: str 
 @contextlib.contextmanager
 def _quiet_exporters():
     """The exporters' notes that say nothing about this export (torchvision's operators
-    skipped, a deprecation inside torch's own pytree code, the archive's note on tensors
-    that share storage), kept off the user's screen."""
-    log = logging.getLogger("torch.onnx._internal.exporter._registration")
-    level = log.level
-    log.setLevel(logging.ERROR)
+    skipped, a constant output left out of the initializers' deduplication: the NaN up of
+    a model that reads none, a deprecation inside torch's own pytree code, the archive's
+    note on tensors that share storage), kept off the user's screen."""
+    logs = [logging.getLogger(n) for n in ("torch.onnx._internal.exporter._registration",
+                                           "onnx_ir.passes.common.initializer_deduplication")]
+    levels = [log.level for log in logs]
+    for log in logs:
+        log.setLevel(logging.ERROR)
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*LeafSpec", category=FutureWarning)
@@ -171,7 +174,8 @@ def _quiet_exporters():
             warnings.filterwarnings("ignore", message="No complete tensor found", category=UserWarning)
             yield
     finally:
-        log.setLevel(level)
+        for log, level in zip(logs, levels):
+            log.setLevel(level)
 
 
 @contextlib.contextmanager
