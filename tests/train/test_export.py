@@ -282,6 +282,24 @@ def test_a_detector_on_a_rig_with_its_own_up_estimate_as_pt2(tmp_path):
     assert np.degrees(np.arctan2(np.linalg.norm(np.cross(u, r)), u @ r)) < 0.01
 
 
+def test_a_detector_without_gravity_reads_no_up(tmp_path, caplog):
+    torch.manual_seed(2)
+    model = SphericalDetector(num_classes=3, input_level=3, head_level=2, min_level=1,
+                              channels=(4, 6, 8), pairs=2, gradient_fields=2).eval()
+    with torch.no_grad():
+        model.head.weight[:3].mul_(300.0)
+        model.head.bias[:3].fill_(-1.0)
+    cam = _fisheye(40)
+    info = export_model(model, cam, tmp_path / "iso.onnx", drop_hidden=False)
+    assert info["inputs"] == ["image uint8 [40, 40, 3] RGB"] and info["check"]["unmatched"] == 0
+    # the exporter's note on the constant NaN up stays off the screen
+    assert not [r for r in caplog.records if "Skipped deduplication" in r.getMessage()]
+    image = _room_image(cam, 3)
+    got, u = load_exported(tmp_path / "iso.onnx")(image)
+    _same_detections(got, detect_image(model, image, cam, drop_hidden=False))
+    assert np.isnan(u).all()
+
+
 def test_detector_refusals_name_the_fix(tmp_path):
     with pytest.raises(ValueError, match="k, nms: options of a detector's decoding"):
         export_model(_deeplab(), _fisheye(32), tmp_path / "a.onnx", k=5, nms=0.1)
