@@ -726,6 +726,19 @@ def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys
         assert why in capsys.readouterr().err
 
 
+def test_export_det_decodes_by_default_as_predict_and_eval_do(tmp_path, capsys):
+    from usf_graph.cli_export import DECODING
+    from usf_graph.train.apply import detect_image
+    from usf_graph.train.engine import defaults
+
+    d = defaults(detect_image)
+    assert DECODING == {"max_boxes": d["k"], "threshold": d["threshold"], "nms": d["nms"]}
+    (tmp_path / "seg.pt").write_bytes(b"")  # refused before it is read
+    assert main(["export", "seg", str(tmp_path / "seg.pt"), "--camera", "equirectangular:64x32",
+                 "--nms", "0.3", "--out", str(tmp_path / "seg.onnx")]) == 2
+    assert "--nms: a detector's decoding" in capsys.readouterr().err
+
+
 def test_export_cli_writes_a_detector_with_its_decoding(tmp_path, capsys):
     """``export det``: the decoding options reach the program, which gives
     ``detect_image``'s boxes with the same options; a segmentation checkpoint is refused."""

@@ -8,6 +8,9 @@ import json
 
 from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, rig_from_spec
 
+#: ``export det``'s decoding by default: predict's and eval's (``detect_image``)
+DECODING = {"max_boxes": 100, "threshold": 0.05, "nms": 0.5}
+
 
 def add_export_parser(sub, fmt) -> None:
     """The ``export`` subcommand and its options."""
@@ -20,8 +23,8 @@ def add_export_parser(sub, fmt) -> None:
                        description="Bind a trained spherical segmenter or detector to one "
                                    "camera and write it as one program, image in, labels or "
                                    "boxes out: the lifting table, the field of view, every "
-                                   "layer's coefficients and the render table held as "
-                                   "constants. ONNX runs in "
+                                   "layer's coefficients and (for labels) the render table "
+                                   "held as constants. ONNX runs in "
                                    "onnxruntime (checked here) or any ONNX runtime, without usf-graph; "
                                    ".pt2 is torch.export's. Checked against usf-graph on a "
                                    "procedural room rendered through the camera.")
@@ -45,13 +48,14 @@ def add_export_parser(sub, fmt) -> None:
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
                    help="how the image is lifted (as predict's)")
     g = p.add_argument_group("det: the decoding inside the program (predict's and eval's)")
-    g.add_argument("--max-boxes", type=positive_int, default=100, metavar="K",
+    g.add_argument("--max-boxes", type=positive_int, default=None, metavar="K",
                    help="the boxes output holds the K best peaks; the detections are the rows "
-                        "with score > 0")
-    g.add_argument("--threshold", type=share, default=0.05,
-                   help="a peak's lowest score")
-    g.add_argument("--nms", type=share, default=0.5, metavar="IOU",
-                   help="greedy NMS per class at this spherical IoU (1: none)")
+                        f"with score > 0 (default: {DECODING['max_boxes']})")
+    g.add_argument("--threshold", type=share, default=None,
+                   help=f"a peak's lowest score (default: {DECODING['threshold']})")
+    g.add_argument("--nms", type=share, default=None, metavar="IOU",
+                   help=f"greedy NMS per class at this spherical IoU (1: none; default: "
+                        f"{DECODING['nms']})")
     p.add_argument("--no-check", action="store_true",
                    help="skip running the written file against usf-graph on a rendered room")
     p.add_argument("--out", required=True, metavar="PATH",
@@ -66,10 +70,15 @@ def cmd_export(args) -> int:
     from .train.checkpoints import load_protocol_model
     from .train.export import export_model
 
+    given = {k: getattr(args, k) for k in DECODING if getattr(args, k) is not None}
+    if args.task == "seg" and given:
+        raise ValueError(f"{', '.join('--' + k.replace('_', '-') for k in given)}: a detector's "
+                         "decoding; a segmenter's program gives labels")
+    opts = {**DECODING, **given}
     up = "input" if args.up_input else args.up
-    for option, given in (("--level-prior shapes", args.level_prior),
+    for option, value in (("--level-prior shapes", args.level_prior),
                           ("--sign-check corrects", args.sign_check)):
-        if given and up is not None:
+        if value and up is not None:
             raise ValueError(f"{option} the model's up estimate, which --up and --up-input replace")
     if args.rig and args.key is not None:
         raise ValueError("--key picks one camera; --rig binds every camera of the camchain")
@@ -78,12 +87,12 @@ def cmd_export(args) -> int:
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
     model = ready_model(ckpt, args)
     decoding = {} if args.task == "seg" else \
-        dict(k=args.max_boxes, threshold=args.threshold, nms=None if args.nms >= 1 else args.nms)
+        dict(k=opts["max_boxes"], threshold=opts["threshold"], nms=None if opts["nms"] >= 1 else opts["nms"])
     info = export_model(model, camera, args.out, up=up, interpolation=args.interpolation,
                         check=not args.no_check, **decoding)
     print(f"wrote {info['path']} ({info['format']}, {info['bytes'] / 1e6:.1f} MB) in "
           f"{info['export_s']:.1f} s")
-    k = args.max_boxes
+    k = opts["max_boxes"]
     outputs = ", ".join(info["outputs"][:-1]) + " uint8 [H, W] (255: unseen)" \
         if args.task == "seg" else (f"boxes float32 [{k}, 5] (radians), classes int64 [{k}], "
                                     f"scores float32 [{k}] (the detections: score > 0)")
