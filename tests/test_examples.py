@@ -367,7 +367,7 @@ def test_deploy_onnx_example_writes_an_exported_detectors_boxes(tmp_path, capsys
     with torch.no_grad():  # heatmaps that peak above the threshold here and there
         model.head.weight[:12].mul_(30.0)
         model.head.bias[:12].fill_(-1.0)
-    export_model(model, cam, tmp_path / "det.onnx", check=False, drop_hidden=False)
+    export_model(model, cam, tmp_path / "det.onnx", check=False, k=20, drop_hidden=False)
     rgb = np.random.default_rng(1).integers(0, 256, (24, 32, 3), dtype=np.uint8)
     cv2.imwrite(str(tmp_path / "frame.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     out = tmp_path / "o"

@@ -271,12 +271,12 @@ def test_a_detector_on_a_rig_with_its_own_up_estimate_as_pt2(tmp_path):
     front = _fisheye(36)
     rig = [front, front.with_rotation(np.diag([-1.0, -1.0, 1.0]) @ front.rotation)]
     model = _detector(1)
-    info = export_model(model, rig, tmp_path / "det.pt2", up=None, nms=0.3)
+    info = export_model(model, rig, tmp_path / "det.pt2", up=None, k=30, nms=0.3)
     assert info["inputs"] == ["cam0 uint8 [36, 36, 3] RGB", "cam1 uint8 [36, 36, 3] RGB"]
     room = make_room(5)
     images = [render(room, c, boxes=False).rgb for c in rig]
     got, u = load_exported(tmp_path / "det.pt2")(images)
-    want = detect_image(model, images, rig, nms=0.3)
+    want = detect_image(model, images, rig, k=30, nms=0.3)
     _same_detections(got, want)
     u, r = np.asarray(u, np.float64), np.asarray(want["up"])
     assert np.degrees(np.arctan2(np.linalg.norm(np.cross(u, r)), u @ r)) < 0.01
@@ -290,13 +290,13 @@ def test_a_detector_without_gravity_reads_no_up(tmp_path, caplog):
         model.head.weight[:3].mul_(300.0)
         model.head.bias[:3].fill_(-1.0)
     cam = _fisheye(40)
-    info = export_model(model, cam, tmp_path / "iso.onnx", drop_hidden=False)
+    info = export_model(model, cam, tmp_path / "iso.onnx", k=20, drop_hidden=False)
     assert info["inputs"] == ["image uint8 [40, 40, 3] RGB"] and info["check"]["unmatched"] == 0
     # the exporter's note on the constant NaN up stays off the screen
     assert not [r for r in caplog.records if "Skipped deduplication" in r.getMessage()]
     image = _room_image(cam, 3)
     got, u = load_exported(tmp_path / "iso.onnx")(image)
-    _same_detections(got, detect_image(model, image, cam, drop_hidden=False))
+    _same_detections(got, detect_image(model, image, cam, k=20, drop_hidden=False))
     assert np.isnan(u).all()
 
 
