@@ -86,6 +86,8 @@ def test_onnx_with_an_imu_up_gives_usf_graphs_labels(tmp_path):
         assert (labels == UNSEEN).all() and np.isnan(u).all()
     with pytest.raises(ValueError, match="takes 1 image and up; got 1 image$"):
         run(image)
+    with pytest.raises(ValueError, match=r"shape \(48, 47, 3\); .* takes uint8 \[48, 48, 3\].*export it again"):
+        run(image[:, :47], [0.0, 0.0, 1.0])
 
 
 @pytest.mark.slow  # ONNX's export of the estimate's unrolled Jacobi rotations: about a minute
@@ -125,6 +127,8 @@ def test_pt2_holds_the_models_own_up_estimate(tmp_path):
     image = _room_image(cam, 3)
     run = load_exported(tmp_path / "seg.pt2")
     assert run.metadata["up"] == "estimate" and run.metadata["task"] == "seg"
+    with pytest.raises(ValueError, match=r"shape \(30, 40\); .* takes uint8 \[30, 40, 3\]"):
+        run(image[..., 0])  # a gray frame: three equal channels go in
     labels, u = run(image)
     ref = segment_image(model, image, cam)
     seen = ref["labels"] != UNSEEN

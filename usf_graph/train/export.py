@@ -230,6 +230,7 @@ def load_exported(path, threads: int | None = None):
         names = [i.name for i in session.get_inputs()]
         meta = dict(session.get_modelmeta().custom_metadata_map)
         takes = (len([n for n in names if n != "up"]), "up" in names)
+        sizes = [tuple(i.shape) for i in session.get_inputs() if i.name != "up"]
 
         def call(feeds):
             return session.run(None, dict(zip(names, feeds)))
@@ -240,6 +241,8 @@ def load_exported(path, threads: int | None = None):
         kinds = [n.meta["val"].dtype for n in program.graph.find_nodes(op="placeholder")
                  if "val" in n.meta]
         takes = (kinds.count(torch.uint8), torch.float32 in kinds)
+        sizes = [tuple(n.meta["val"].shape) for n in program.graph.find_nodes(op="placeholder")
+                 if "val" in n.meta and n.meta["val"].dtype == torch.uint8]
 
         def call(feeds):
             with torch.no_grad():
@@ -252,6 +255,12 @@ def load_exported(path, threads: int | None = None):
             want = f"{takes[0]} image{'s' if takes[0] > 1 else ''}" + (" and up" if takes[1] else "")
             raise ValueError(f"{path} takes {want}; got {len(ims)} image{'s' if len(ims) > 1 else ''}"
                              + (" and up" if up is not None else ""))
+        for k, (im, size) in enumerate(zip(ims, sizes)):
+            if im.shape != size:
+                which = f"image {k}" if rig else "the image"
+                raise ValueError(f"{which} has shape {tuple(im.shape)}; {path} takes uint8 "
+                                 f"{list(size)} (RGB at the size of the camera it was exported "
+                                 "for): export it again for this camera's calibration")
         feeds = ims + ([np.asarray(up, np.float32).reshape(3)] if up is not None else [])
         *answer, u = call(feeds)
         if meta.get("task") == "det":
