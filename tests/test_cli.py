@@ -699,6 +699,7 @@ def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys
     assert main([*args, "--fov", "180", "--up-input", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "100.00% of" in printed and "up float32 [3]" in printed
+    assert f"examples/deploy_onnx.py {out} FRAME.png --up X Y Z" in printed
     info = json.loads(printed.strip().splitlines()[-1])
     assert info["format"] == "ONNX" and info["inputs"] == ["image uint8 [32, 32, 3] RGB", "up float32 [3]"]
     image = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)

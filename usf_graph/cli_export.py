@@ -104,5 +104,8 @@ def cmd_export(args) -> int:
         print(f"check on a room rendered through the camera: {agree} with usf-graph, ups "
               f"{c['up_angle_deg']:.3f} deg apart; {1000 * c['frame_s']:.0f} ms a frame here "
               f"(loaded in {c['load_s']:.1f} s)")
+    if info["format"] == "ONNX" and not args.rig:
+        print(f"run it on frames without usf-graph: python examples/deploy_onnx.py {info['path']} "
+              f"FRAME.png{' --up X Y Z' if up == 'input' else ''}")
     print(json.dumps({k: v for k, v in info.items() if k != "check"}, default=str))
     return 0
