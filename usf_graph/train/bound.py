@@ -143,6 +143,14 @@ class BoundModel(nn.Module):
         images = tuple(torch.full((*c.size, 3), 128, dtype=torch.uint8) for c in self.cameras)
         return images + ((torch.tensor([0.0, 0.0, 1.0]),) if self.up_mode == "input" else ())
 
+    def _model(self, x: torch.Tensor, up: torch.Tensor | None):
+        """The model on ``x [1, N, 3]`` given ``up [1, 3]`` (None: it reads none)."""
+        raise NotImplementedError
+
+    def _estimate(self, x: torch.Tensor):
+        """The model on ``x`` with its own up estimate: ``(its output, up [1, 3])``."""
+        raise NotImplementedError
+
     def _run(self, inputs: tuple):
         """The model on the lifted images: ``(its output, up [1, 3], ok)``, ``ok`` a bool
         scalar, False where the given up is unusable (the up then NaN)."""
