@@ -97,6 +97,11 @@ def entry_rows(counts: torch.Tensor) -> torch.Tensor:
     return torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
 
 
+def row_pointers(counts: torch.Tensor) -> torch.Tensor:
+    """The CSR row pointers ``[R + 1]`` of rows that hold ``counts [R]`` entries."""
+    return torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+
+
 def padded_values(val: torch.Tensor, slot: torch.Tensor) -> torch.Tensor:
     """``val [nnz, ...]`` laid out as :func:`padded_rows`' ``slot``: ``[*slot.shape, ...]``,
     0 in the padding."""

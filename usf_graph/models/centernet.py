@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from ..geometry import from_latlon, geodesic_distance, tangent_towards
 from ..nn.precision import GeometryModule
 from ..ops import nms_keep
-from ..sparse import padded_rows
+from ..sparse import padded_rows, row_pointers
 
 # A box's heatmap is a Gaussian of geodesic distance with this share of its size as sigma,
 # never narrower than half an output spacing (CenterNet ties it to the box size likewise).
@@ -119,8 +119,7 @@ def neighbour_table(edges: torch.Tensor, num_points: int) -> torch.Tensor:
     j, i = edges.long()
     own = torch.arange(num_points, device=edges.device)
     order = torch.argsort(i, stable=True)
-    crow = torch.cat([i.new_zeros(1), torch.bincount(i, minlength=num_points).cumsum(0)])
-    cols, slot = padded_rows(crow, j[order])
+    cols, slot = padded_rows(row_pointers(torch.bincount(i, minlength=num_points)), j[order])
     table = torch.where(slot[:, 0] == len(j), own[:, None], cols.long())
     return torch.cat([own[:, None], table], 1)
 

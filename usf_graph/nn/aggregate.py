@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.autograd.function import once_differentiable
 
-from ..sparse import kept, padded_rows, padded_values, quiet_sparse, version
+from ..sparse import kept, padded_rows, padded_values, quiet_sparse, row_pointers, version
 from ..tracing import plain_forms, require_eager
 from .precision import accumulate_in
 from .wide import wide_aggregate
@@ -195,8 +195,7 @@ def _dropper(memo: dict, key):
 
 def _crow(rows: torch.Tensor, n: int) -> torch.Tensor:
     """CSR row pointers of sorted row indices."""
-    counts = torch.bincount(rows, minlength=n)
-    return torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    return row_pointers(torch.bincount(rows, minlength=n))
 
 
 def basis_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,

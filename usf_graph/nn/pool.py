@@ -9,7 +9,15 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from ..graph import euclidean_radius, geodesic_radius
-from ..sparse import buffer_as, csr, csr_parts, padded_operator, padded_product, quiet_sparse
+from ..sparse import (
+    buffer_as,
+    csr,
+    csr_parts,
+    padded_operator,
+    padded_product,
+    quiet_sparse,
+    row_pointers,
+)
 from ..tracing import plain_forms
 from .batching import check_per_point, from_static, mask_static, pooled_batch, to_static
 from .precision import GeometryModule, accumulate_in
@@ -43,8 +51,7 @@ class GridPool(GeometryModule):
         counts = torch.bincount(cluster, minlength=self.num_coarse)
         self.register_buffer("cluster", cluster, persistent=False)
         self.register_buffer("perm", perm, persistent=False)
-        self.register_buffer("indptr", torch.cat([counts.new_zeros(1), counts.cumsum(0)]),
-                             persistent=False)
+        self.register_buffer("indptr", row_pointers(counts), persistent=False)
         self.register_buffer("area", None if area is None else torch.as_tensor(area),
                              persistent=False)
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch.autograd.function import once_differentiable
 
-from ..sparse import kept, quiet_sparse
+from ..sparse import kept, quiet_sparse, row_pointers
 
 #: Index counts below this take int32 indices (half the memory); larger ones int64.
 INT32_LIMIT = 2 ** 31
@@ -62,7 +62,7 @@ def _structure(plan, kind: str, batch: int, K: int, per_sample: bool, device) ->
     (r, c, rows, cols), m = _local(kind, row, col, plan.num_nodes, K)
     perm = torch.argsort(r * cols + c)
     counts = torch.bincount(r[perm], minlength=rows)
-    crow0 = torch.cat([counts.new_zeros(1), counts.cumsum(0)])
+    crow0 = row_pointers(counts)
     nnz = len(perm)
     b = torch.arange(batch, device=device)[:, None]
     crow = torch.cat([(crow0[:-1][None] + b * nnz).reshape(-1), crow0.new_full((1,), batch * nnz)])

@@ -20,7 +20,7 @@ from torch import nn
 
 from ..frontend import RigFrontend, SphericalFrontend
 from ..frontend.interpolation import valid_pixels
-from ..sparse import entry_rows, padded_product, padded_rows, padded_values
+from ..sparse import entry_rows, padded_product, padded_rows, padded_values, row_pointers
 from .apply import UNSEEN, auto_interpolation, cameras_of, input_grid, is_rig
 
 
@@ -55,7 +55,7 @@ class CameraIO(nn.Module):
             col, val = col[keep], val[keep] * w[keep]
             counts = torch.bincount(row[keep], minlength=len(counts))
         rows = torch.nonzero(counts > 0)[:, 0]  # every entry is in one of these, in order
-        cols, slot = padded_rows(torch.cat([counts.new_zeros(1), counts[rows].cumsum(0)]), col)
+        cols, slot = padded_rows(row_pointers(counts[rows]), col)
         self.register_buffer("lift_col", cols)
         self.register_buffer("lift_w", padded_values(val.float(), slot))
         row_of = torch.full((len(counts),), len(rows), dtype=torch.int32)
