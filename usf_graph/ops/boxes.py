@@ -84,14 +84,11 @@ def boxes_from_axes(c, e, fov_x, fov_y):
     """The boxes with centre ``c [..., 3]``, horizontal axis ``e`` (projected onto the
     tangent plane at ``c``) and fields of view (radians); roll in [-pi/2, pi/2). Numpy in,
     float64 numpy out; tensors in, tensors of their dtype out (traceable)."""
-    if torch.is_tensor(c):
-        c = normalize(c)
-        e = normalize(e - (e * c).sum(-1, keepdim=True) * c)
-    else:
-        c = normalize(np.asarray(c, np.float64))
-        e = np.asarray(e, np.float64)
-        e = normalize(e - (e * c).sum(-1, keepdims=True) * c)
     xp = torch if torch.is_tensor(c) else np
+    if xp is np:
+        c, e = np.asarray(c, np.float64), np.asarray(e, np.float64)
+    c = normalize(c)
+    e = normalize(e - (e * c).sum(-1, keepdims=True) * c)
     lat, lon = to_latlon(c)
     e0, n0 = _local_frame(lon, lat)
     roll = xp.arctan2((e * n0).sum(-1), (e * e0).sum(-1))
