@@ -216,9 +216,9 @@ class BoundDetector(BoundModel):
     def __init__(self, model: nn.Module, camera, up="input", interpolation: str = "auto",
                  k: int = 100, threshold: float = 0.05, nms: float | None = 0.5,
                  drop_hidden: bool = True):
-        super().__init__(model, camera, up, interpolation)
-        if not hasattr(model, "decode_image"):
+        if not hasattr(model, "decode_image"):  # before the camera's tables are built
             raise ValueError(f"{type(model).__name__} is not a spherical detector")
+        super().__init__(model, camera, up, interpolation)
         self.decoding = dict(k=int(k), threshold=float(threshold),
                              nms=None if nms is None else float(nms), drop_hidden=bool(drop_hidden))
 
@@ -238,4 +238,6 @@ class BoundDetector(BoundModel):
         boxes, cls, score, kept = self.model.decode_image(out, 0, **self.decoding)
         score = torch.where(kept & ok, score, torch.zeros_like(score))
         return boxes, cls, score, u[0]
+
+
 __all__ = ["BoundDetector", "BoundModel", "BoundSegmenter", "CameraIO"]

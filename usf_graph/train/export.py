@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..ops import pairwise_box_iou
 from ..tracing import fixed_fields
 from .apply import UNSEEN, cameras_of, class_names, detect_image, is_rig, segment_image
 from .bound import BoundDetector, BoundModel, BoundSegmenter
@@ -370,8 +371,6 @@ def _matched(got: dict, want: dict) -> dict:
     axes of a nearly square box where the spin fields nearly vanish (at the zenith, about
     which an upright model's fields are symmetric) can turn by a degree. Returns the
     counts, the largest score difference and the smallest IoU of the matches."""
-    from ..ops import pairwise_box_iou
-
     iou = pairwise_box_iou(torch.as_tensor(want["boxes"]), torch.as_tensor(got["boxes"]),
                            dtype=torch.float64).numpy()
     iou = np.where(want["classes"][:, None] == got["classes"][None, :], iou, -1.0)
