@@ -7,14 +7,16 @@ from pathlib import Path
 
 CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
-               "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML; or "
+               "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML, COLMAP "
+               "cameras.txt/.bin or a sparse model's folder; or "
                "'equirectangular' (size from the image) / 'equirectangular:WxH'")
 
 
 def camera_options(p, mask: bool = True) -> None:
     """``--key``, ``--fov`` and (with ``mask``) ``--image-mask``."""
     p.add_argument("--key", default=None, metavar="CAM",
-                   help="camera of a Kalibr camchain (default: the first, cam0)")
+                   help="camera of a Kalibr camchain (default: the first, cam0) or the id "
+                        "of a COLMAP camera (needed when the list has several)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="usable field of view in degrees, about the optical axis (default: "
                         "all the calibration models: a 190-degree fisheye calibrated as "

@@ -259,6 +259,25 @@ def test_lens_normal_map_camera_round_trip():
     assert not ok3[0]
 
 
+
+
+def test_lens_normal_map_with_a_hole_and_its_outer_half_pixel():
+    ref = C.KannalaBrandt(60, 60, 50, 40, 100, 80, k=(0.03, -0.004, 0, 0), fov_deg=190)
+    rays = ref.unproject(ref.pixel_grid())[0]
+    hole = np.zeros((80, 100), bool)
+    hole[30:50, 40:60] = True  # pixels without a ray, e.g. a lens mount in the middle
+    full, cam = C.LensNormalMap(rays), C.LensNormalMap(np.where(hole[..., None], np.nan, rays))
+    # rays into, around and away from the hole: no crash, and no wrong pixel
+    uv = np.stack(np.meshgrid(np.linspace(25, 75, 41), np.linspace(20, 60, 33)), -1).reshape(-1, 2)
+    got, ok = cam.project(full.unproject(uv)[0])
+    np.testing.assert_allclose(got[ok], uv[ok], atol=1e-6)
+    inside = (uv[:, 0] > 39) & (uv[:, 0] < 60) & (uv[:, 1] > 29) & (uv[:, 1] < 50)
+    assert not ok[inside].any() and ok[~inside].mean() > 0.8
+    # the image's outer half pixel extrapolates the edge cell instead of repeating its rays
+    edge = np.array([[-0.4, 40.0], [99.4, 40.0], [50.0, -0.45], [50.0, 79.45]])
+    r, ok = full.unproject(edge)
+    assert ok.all()
+    assert np.degrees(np.arccos(np.sum(r * ref.unproject(edge)[0], -1))).max() < 0.01
 def test_lens_normal_maps_cover_the_right_solid_angle():
     half = C.Fisheye(150, 255.5, 255.5, 512, 512, model="equidistant", fov_deg=180)
     assert half.solid_angle() == pytest.approx(2 * math.pi, rel=1e-2)

@@ -19,6 +19,8 @@ Formats (detected from the content, not the file name):
   (``.npy``), paths relative to the file. CamOdoCal's flat form (``model_type: MEI``) too.
 - OCamCalib ``calib_results.txt``; lens normal maps ``.npy``/``.npz`` (``rays``, ``valid``).
 - usf-graph's own YAML (:meth:`Camera.save`), with optional ``fov_deg`` and ``image_mask``.
+- COLMAP's ``cameras.txt``/``cameras.bin``, or a sparse model's folder holding one
+  (:mod:`.colmap`); ``key`` is the camera's id.
 
 Every error names the file, the key and what would be accepted.
 """
@@ -29,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import colmap
 from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
 from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import Fisheye, KannalaBrandt
@@ -49,8 +52,9 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
 
     Args:
         path: the file.
-        key: the camera in a Kalibr camchain (``cam0`` by default; ``--key`` on the
-            command line). An error for files that hold one camera.
+        key: the camera in a Kalibr camchain (``cam0`` by default) or a COLMAP camera
+            list (its id; needed when the list holds several); ``--key`` on the command
+            line. An error for files that hold one camera.
         fov_deg: optional usable field of view (:meth:`Camera.with_fov`), over the file's.
         image_mask: optional ``[H, W]`` mask or image file, over the file's.
 
@@ -59,10 +63,10 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
     along +x). See :func:`load_rig` for all of them at once.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"calibration file {path} does not exist")
-    data = read_document(path, _load_ocamcalib)
-    if isinstance(data, Camera):
+    data = _document(path)
+    if isinstance(data, colmap.CameraList):
+        cam, fmt = data.pick(key), None
+    elif isinstance(data, Camera):
         fmt, cam = ("OCamCalib" if isinstance(data, Scaramuzza) else "lens normal map"), data
     elif is_kalibr(data):
         names = kalibr_names(data)
@@ -99,12 +103,11 @@ def load_rig(path) -> dict[str, Camera]:
     each a ``T_cam_imu``). Translations are ignored: the rig is treated as one centre of
     projection, which holds for scenes far away compared to the baseline."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"calibration file {path} does not exist")
-    data = read_document(path, _load_ocamcalib)
-    if isinstance(data, Camera) or not is_kalibr(data):
+    data = _document(path)
+    if not isinstance(data, dict) or isinstance(data, colmap.CameraList) or not is_kalibr(data):
         raise ValueError(f"{path}: a rig is read from a Kalibr camchain (cam0, cam1, ... with "
-                         "T_cn_cnm1); this file holds one camera, use cameras.load")
+                         "T_cn_cnm1); this file is not one, so read its cameras one by one "
+                         "with cameras.load")
     rig = {}
     for name in kalibr_names(data):
         rot = kalibr_rotation(path, data, name)
@@ -113,6 +116,19 @@ def load_rig(path) -> dict[str, Camera]:
                              f"cam0), so its place in the rig is unknown; add the extrinsics")
         rig[name] = load_kalibr(Src(path, name), data[name]).with_rotation(DEFAULT_ROTATION @ rot)
     return rig
+
+
+def _document(path: Path):
+    """A calibration file's content: a camera, a COLMAP camera list or a dict of the file."""
+    if path.is_dir():
+        path = colmap.in_folder(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"calibration file {path} does not exist")
+    if path.suffix not in (".npy", ".npz"):
+        cams = colmap.read_file(path)
+        if cams is not None:
+            return cams
+    return read_document(path, _load_ocamcalib)
 
 
 def save(cam: Camera, path) -> None:

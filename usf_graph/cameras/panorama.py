@@ -123,10 +123,11 @@ class LensNormalMap(Camera):
         return LensNormalMap(self.rays, self.valid_table, rotation, self.source)
 
     def _cell(self, uv):
-        u = np.clip(uv[..., 0], 0, self.width - 1)
-        v = np.clip(uv[..., 1], 0, self.height - 1)
-        j = np.minimum(np.floor(u).astype(np.int64), self.width - 2)
-        i = np.minimum(np.floor(v).astype(np.int64), self.height - 2)
+        # the outer half pixel extrapolates its cell linearly, as a lens model would
+        u = np.clip(uv[..., 0], -0.5, self.width - 0.5)
+        v = np.clip(uv[..., 1], -0.5, self.height - 0.5)
+        j = np.clip(np.floor(u).astype(np.int64), 0, self.width - 2)
+        i = np.clip(np.floor(v).astype(np.int64), 0, self.height - 2)
         T, V = self.rays, self.valid_table
         c = [T[i, j], T[i, j + 1], T[i + 1, j], T[i + 1, j + 1]]
         ok = V[i, j] & V[i, j + 1] & V[i + 1, j] & V[i + 1, j + 1]
@@ -156,6 +157,7 @@ class LensNormalMap(Camera):
         for _ in range(30):
             r, _, du, dv = self._interp(uv, jacobian=True)
             n = np.linalg.norm(r, axis=-1, keepdims=True)
+            n = np.where(n > 0, n, np.nan)  # a cell with a hole has no ray: no step
             p = r / n
             # derivative of the normalized ray, projected off its radial component
             du = (du - p * (p * du).sum(-1, keepdims=True)) / n
@@ -166,10 +168,11 @@ class LensNormalMap(Camera):
             det = a * c - b * b
             det = np.where(np.abs(det) > 1e-300, det, np.nan)
             step = np.stack([(c * gu - b * gv) / det, (a * gv - b * gu) / det], -1)
+            step = np.where(np.isfinite(step), step, 0.0)  # stays put; the check below fails it
             uv = uv - step
             uv[..., 0] = np.clip(uv[..., 0], -0.5, self.width - 0.5)
             uv[..., 1] = np.clip(uv[..., 1], -0.5, self.height - 0.5)
-            if np.all(~np.isfinite(step) | (np.abs(step) < 1e-13)):
+            if np.all(np.abs(step) < 1e-13):
                 break
         back, ok = self._unproject(uv)
         ok &= np.linalg.norm(back - t, axis=-1) < 1e-11

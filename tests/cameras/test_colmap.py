@@ -1,0 +1,134 @@
+"""COLMAP's camera lists, checked against pycolmap (COLMAP's own camera models)."""
+
+import struct
+import sys
+
+import numpy as np
+import pycolmap
+import pytest
+
+from tests.fixtures.make_colmap_fixture import CAMERAS, H, W
+from tests.helpers import FIXTURES
+from usf_graph import cameras as C
+from usf_graph.cameras.colmap import CLOSED_FORM, HALF_PIXEL
+from usf_graph.cli import main
+
+FOLDERS = {"text": FIXTURES / "colmap", "binary": FIXTURES / "colmap_bin"}
+IDS = {model: i for i, model in enumerate(CAMERAS, 1)}
+TYPES = {"EUCM": C.EUCM, "EQUIRECTANGULAR": C.Equirectangular}
+
+
+def reference(model: str):
+    cam = pycolmap.Camera.create_from_model_name(IDS[model], model, 1.0, W, H)
+    cam.params = CAMERAS[model]
+    return cam
+
+
+def both_ways(ref, n: int = 3000, seed: int = 0):
+    """COLMAP pixels (its convention) and their rays, where pycolmap maps both ways (its
+    fisheyes end at 90 degrees: past that its ray is mirrored)."""
+    uv = np.random.default_rng(seed).uniform([0, 0], [W, H], (n, 2))
+    rays = np.asarray(ref.cam_ray_from_img(uv), np.float64)
+    ok = np.all(np.isfinite(rays), -1)
+    ok[ok] = np.linalg.norm(np.asarray(ref.img_from_cam(rays[ok])) - uv[ok], axis=-1) < 1e-6
+    return uv[ok], rays[ok] / np.linalg.norm(rays[ok], axis=-1, keepdims=True)
+
+
+@pytest.mark.parametrize("form", sorted(FOLDERS))
+@pytest.mark.parametrize("model", CLOSED_FORM)
+def test_closed_form_models_match_pycolmap(form, model):
+    cam = C.load(FOLDERS[form], key=IDS[model])
+    kind = C.KannalaBrandt if "FISHEYE" in model else C.Pinhole
+    assert type(cam) is TYPES.get(model, kind)
+    uv, rays = both_ways(reference(model))
+    assert len(uv) > 2000
+    sphere = rays @ C.DEFAULT_ROTATION.T  # COLMAP's camera frame is OpenCV's
+    px, seen = cam.sees(sphere)
+    assert seen.all()
+    np.testing.assert_allclose(px + HALF_PIXEL, uv, atol=1e-6, rtol=0)
+    back, valid = cam.unproject(uv - HALF_PIXEL)
+    assert valid.all()
+    err = np.arccos(np.clip(np.sum((back @ cam.rotation.T) * sphere, -1), -1, 1))
+    assert err.max() < 1e-7
+
+
+@pytest.mark.parametrize("model", ["FOV", "THIN_PRISM_FISHEYE", "DIVISION"])
+def test_other_models_become_pycolmaps_ray_table(model):
+    cam = C.load(FOLDERS["binary"], key=IDS[model])
+    assert isinstance(cam, C.LensNormalMap) and f"COLMAP {model}" in cam.source
+    ref = reference(model)
+    uv, rays = both_ways(ref)
+    px, seen = cam.sees(rays @ C.DEFAULT_ROTATION.T)
+    assert seen.mean() > 0.95  # all but the cells that touch the table's edge of validity
+    # bilinear between pixel centres, 1.4-2.9 degrees apart on these tiny images
+    assert np.abs(px[seen] + HALF_PIXEL - uv[seen]).max() < 2e-2
+    lnm, valid = cam.lens_normal_map()
+    grid = np.stack(np.meshgrid(np.arange(W), np.arange(H)), -1).reshape(-1, 2) + HALF_PIXEL
+    want = np.asarray(ref.cam_ray_from_img(grid), np.float64).reshape(H, W, 3)
+    want = want / np.linalg.norm(want, axis=-1, keepdims=True) @ C.DEFAULT_ROTATION.T
+    np.testing.assert_allclose(lnm[valid], want[valid], atol=1e-12)
+    if model == "THIN_PRISM_FISHEYE":  # past 90 degrees COLMAP's ray is mirrored: dropped
+        assert 0.5 < valid.mean() < 0.98 and cam.fov_deg <= 180.0 + 1e-6
+
+
+def test_text_and_binary_lists_read_alike_and_the_principal_point_moves_half_a_pixel():
+    for model, i in IDS.items():
+        a, b = (C.load(FOLDERS[f], key=i) for f in ("text", "binary"))
+        strip = (lambda k: {**k, "params": {**k["params"], "source": None}}) \
+            if model in ("FOV", "THIN_PRISM_FISHEYE", "DIVISION") else (lambda k: k)
+        assert type(a) is type(b) and strip(a.key()) == strip(b.key()), model
+    cam = C.load(FOLDERS["text"], key="2")  # PINHOLE 40 41 32.3 24.7; a string id works too
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (40.0, 41.0, 32.3 - 0.5, 24.7 - 0.5)
+    np.testing.assert_allclose(cam.project(np.array([0.0, 0.0, 1.0]))[0], [31.8, 24.2])
+    assert C.load(FOLDERS["text"] / "cameras.txt", key=7).k[3] == -0.0005
+
+
+def test_keys_and_bad_files_get_clear_errors(tmp_path):
+    with pytest.raises(ValueError, match=r"16 COLMAP cameras \(ids 1, 2, .*--key"):
+        C.load(FOLDERS["text"])
+    with pytest.raises(ValueError, match=r"no COLMAP camera '99'"):
+        C.load(FOLDERS["text"], key="99")
+    with pytest.raises(ValueError, match=r"no COLMAP camera 'cam0'"):
+        C.load(FOLDERS["binary"], key="cam0")
+    one = tmp_path / "cameras.txt"
+    one.write_text("# Camera list with one line of data per camera:\n1 PINHOLE 64 48 40 40 32 24\n")
+    assert C.load(one).cx == 31.5 and C.load(tmp_path).cx == 31.5  # one camera: no key needed
+    with pytest.raises(ValueError, match="Kalibr camchain"):
+        C.load_rig(one)
+    bad = {"line 2: COLMAP's OPENCV has 8 parameters, got 4": "1 PINHOLE 64 48 40 40 32 24\n"
+           "2 OPENCV 64 48 40 40 32 24\n",
+           "unknown COLMAP camera model 'KB4'": "# Camera list\n1 KB4 64 48 40 40 32 24\n",
+           "camera id 1 appears twice": "1 PINHOLE 64 48 40 40 32 24\n1 PINHOLE 64 48 40 40 32 24\n",
+           "must be numbers": "# Camera list\n1 PINHOLE 64 x 40 40 32 24\n",
+           "EQUIRECTANGULAR's parameters .* must equal its image size": "1 EQUIRECTANGULAR 64 32 64 48\n",
+           "fx must be": "1 PINHOLE 64 48 -40 40 32 24\n"}
+    for why, text in bad.items():
+        one.write_text(text)
+        with pytest.raises(ValueError, match=why):
+            C.load(one, key=1)
+    data = (FOLDERS["binary"] / "cameras.bin").read_bytes()
+    cut = tmp_path / "cut" / "cameras.bin"
+    cut.parent.mkdir()
+    cut.write_bytes(data[:-8])
+    with pytest.raises(ValueError, match="not COLMAP's cameras.bin"):
+        C.load(cut.parent, key=1)
+    cut.write_bytes(struct.pack("<QIiQQ", 1, 1, 99, 64, 48))  # model id 99
+    with pytest.raises(ValueError, match="not COLMAP's cameras.bin"):
+        C.load(cut, key=1)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="without cameras.bin or cameras.txt"):
+        C.load(tmp_path / "empty")
+
+
+def test_ray_table_models_without_pycolmap_say_how_to_read_them(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pycolmap", None)
+    with pytest.raises(ValueError, match=r"COLMAP's FOV has no closed form.*pip install pycolmap"):
+        C.load(FOLDERS["text"], key=IDS["FOV"])
+    assert isinstance(C.load(FOLDERS["text"], key=IDS["OPENCV_FISHEYE"]), C.KannalaBrandt)
+
+
+def test_cli_reads_a_sparse_model(capsys):
+    assert main(["camera", str(FOLDERS["binary"]), "--key", str(IDS["OPENCV_FISHEYE"])]) == 0
+    assert "kannala-brandt" in capsys.readouterr().out.lower()
+    assert main(["camera", str(FOLDERS["binary"])]) == 2
+    assert "--key" in capsys.readouterr().err

@@ -1,0 +1,208 @@
+"""COLMAP's camera lists: ``cameras.txt`` and ``cameras.bin``, alone or in a sparse model's
+folder (``sparse/0``).
+
+COLMAP puts the centre of the top-left pixel at (0.5, 0.5); OpenCV and usf-graph put it at
+(0, 0). The principal point is shifted by half a pixel on reading, so that a COLMAP
+camera and its usf-graph model map every ray to the same pixel of the image.
+
+Models with a closed form here (the rest of COLMAP's list, such as FOV or
+THIN_PRISM_FISHEYE, are read through ``pycolmap`` as a measured ray table):
+
+- SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV: :class:`Pinhole`
+  with OpenCV's distortion;
+- SIMPLE_FISHEYE, FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, OPENCV_FISHEYE:
+  :class:`KannalaBrandt`, theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8);
+- EUCM: :class:`EUCM`; EQUIRECTANGULAR: :class:`Equirectangular` (forward at the image's
+  centre, as in COLMAP).
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from .base import Camera
+from .files import Src, plain_list
+from .fisheye import KannalaBrandt
+from .omni import EUCM
+from .panorama import Equirectangular, LensNormalMap
+from .pinhole import Pinhole
+
+# COLMAP's model ids, names and parameter counts (src/colmap/sensor/models.h).
+MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4),
+          3: ("RADIAL", 5), 4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12),
+          7: ("FOV", 5), 8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5),
+          10: ("THIN_PRISM_FISHEYE", 12), 11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
+          12: ("SIMPLE_DIVISION", 4), 13: ("DIVISION", 5), 14: ("SIMPLE_FISHEYE", 3),
+          15: ("FISHEYE", 4), 16: ("EUCM", 6), 17: ("EQUIRECTANGULAR", 2)}
+_COUNTS = {name: n for name, n in MODELS.values()}
+_PINHOLES = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4,
+             "FULL_OPENCV": 8}  # -> how many of OpenCV's coefficients follow the intrinsics
+_FISHEYES = {"SIMPLE_FISHEYE": 0, "FISHEYE": 0, "SIMPLE_RADIAL_FISHEYE": 1,
+             "RADIAL_FISHEYE": 2, "OPENCV_FISHEYE": 4}
+CLOSED_FORM = tuple(_PINHOLES) + tuple(_FISHEYES) + ("EUCM", "EQUIRECTANGULAR")
+HALF_PIXEL = 0.5  # COLMAP's pixel centres sit half a pixel right of and below OpenCV's
+
+
+class CameraList(dict):
+    """COLMAP's cameras of one file, by id: ``{id: (model name, width, height, params)}``."""
+
+    def __init__(self, path: Path, entries: dict):
+        super().__init__(entries)
+        self.path = path
+
+    def pick(self, key) -> Camera:
+        """The camera whose COLMAP id is ``key`` (``None``: the only one)."""
+        ids = sorted(self)
+        if not ids:
+            raise ValueError(f"{self.path}: the COLMAP camera list is empty")
+        if key is None:
+            if len(ids) > 1:
+                raise ValueError(f"{self.path}: {len(ids)} COLMAP cameras (ids {_ids(ids)}); "
+                                 "choose one with key= (--key on the command line)")
+            key = ids[0]
+        try:
+            cid = int(key)
+        except (TypeError, ValueError):
+            cid = None
+        if cid not in self:
+            raise ValueError(f"{self.path}: no COLMAP camera {key!r} (ids {_ids(ids)}); "
+                             "choose one with key= (--key on the command line)")
+        model, w, h, params = self[cid]
+        return colmap_camera(Src(self.path, f"camera {cid}"), model, w, h, params)
+
+
+def _ids(ids: list) -> str:
+    return ", ".join(map(str, ids[:8])) + (f", ... ({len(ids)} in all)" if len(ids) > 8 else "")
+
+
+def is_colmap_text(text: str) -> bool:
+    """True for COLMAP's ``cameras.txt``: its header, or a first row ``ID MODEL W H ...``
+    with a model COLMAP knows."""
+    if "# Camera list" in text[:200]:
+        return True
+    rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    return bool(rows) and len(rows[0]) >= 4 and rows[0][1] in _COUNTS and rows[0][0].isdigit()
+
+
+def read_text(path: Path, text: str) -> CameraList:
+    cams = {}
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        tok = line.split()
+        where = f"{path}, line {n}"
+        if len(tok) < 4:
+            raise ValueError(f"{where}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', "
+                             f"got {line.strip()!r}")
+        try:
+            cid, w, h = int(tok[0]), int(tok[2]), int(tok[3])
+            params = [float(t) for t in tok[4:]]
+        except ValueError:
+            raise ValueError(f"{where}: the id, size and parameters must be numbers, got "
+                             f"{line.strip()!r}") from None
+        if tok[1] not in _COUNTS:
+            raise ValueError(f"{where}: unknown COLMAP camera model {tok[1]!r}; COLMAP's "
+                             f"models: {', '.join(_COUNTS)}")
+        if cid in cams:
+            raise ValueError(f"{where}: camera id {cid} appears twice")
+        cams[cid] = _entry(where, tok[1], w, h, params)
+    return CameraList(path, cams)
+
+
+def read_binary(path: Path, data: bytes) -> CameraList | None:
+    """COLMAP's ``cameras.bin`` (little-endian: uint64 count; per camera uint32 id, int32
+    model, uint64 width, uint64 height, float64 params), or None when ``data`` is not one."""
+    if len(data) < 8:
+        return None
+    (count,), at, cams = struct.unpack_from("<Q", data), 8, {}
+    for _ in range(count):
+        if at + 24 > len(data):
+            return None
+        cid, mid, w, h = struct.unpack_from("<IiQQ", data, at)
+        if mid not in MODELS:
+            return None
+        name, n = MODELS[mid]
+        if at + 24 + 8 * n > len(data):
+            return None
+        params = list(struct.unpack_from(f"<{n}d", data, at + 24))
+        at += 24 + 8 * n
+        cams[cid] = _entry(f"{path}, camera {cid}", name, w, h, params)
+    return CameraList(path, cams) if at == len(data) else None
+
+
+def _entry(where: str, name: str, w: int, h: int, params: list) -> tuple:
+    if len(params) != _COUNTS[name]:
+        raise ValueError(f"{where}: COLMAP's {name} has {_COUNTS[name]} parameters, got "
+                         f"{len(params)}: {plain_list(params)}")
+    return name, w, h, np.asarray(params, np.float64)
+
+
+def colmap_camera(src: Src, model: str, w: int, h: int, p: np.ndarray) -> Camera:
+    """One COLMAP camera as a usf-graph model, its principal point moved to OpenCV's pixel
+    centres (:data:`HALF_PIXEL`)."""
+    if model == "EQUIRECTANGULAR":
+        if tuple(p) != (w, h):
+            raise src.error(f"EQUIRECTANGULAR's parameters {plain_list(p)} must equal its "
+                            f"image size [{w}, {h}]")
+        return src.build(Equirectangular, width=w, height=h)
+    if model in _PINHOLES or model in _FISHEYES or model == "EUCM":
+        one_f = model.startswith("SIMPLE") or model in ("RADIAL", "RADIAL_FISHEYE")
+        f = (p[0], p[0]) if one_f else (p[0], p[1])
+        c, rest = (p[1:3], p[3:]) if one_f else (p[2:4], p[4:])
+        K = dict(fx=f[0], fy=f[1], cx=c[0] - HALF_PIXEL, cy=c[1] - HALF_PIXEL, width=w, height=h)
+        if model == "EUCM":
+            return src.build(EUCM, **K, alpha=rest[0], beta=rest[1])
+        if model in _FISHEYES:
+            return src.build(KannalaBrandt, **K, k=np.pad(rest, (0, 4 - len(rest))))
+        return src.build(Pinhole, **K, dist=np.pad(rest, (0, max(0, 4 - len(rest)))) if len(rest) else None)
+    return _ray_table(src, model, w, h, p)
+
+
+def _ray_table(src: Src, model: str, w: int, h: int, p: np.ndarray) -> Camera:
+    """A model without a closed form here, as the ray of every pixel centre that pycolmap
+    computes (a :class:`LensNormalMap`)."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise src.error(f"COLMAP's {model} has no closed form in usf-graph (those are "
+                        f"{', '.join(CLOSED_FORM)}); install pycolmap (pip install pycolmap) "
+                        "to read it as a per-pixel ray table") from None
+    cam = pycolmap.Camera.create_from_model_name(1, model, 1.0, int(w), int(h))
+    cam.params = p
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    uv = np.stack([u, v], -1).reshape(-1, 2) + HALF_PIXEL
+    rays = np.asarray(cam.cam_ray_from_img(uv), np.float64)
+    # COLMAP's fisheyes end at 90 degrees: past it pycolmap's ray is mirrored and does not
+    # project back to its pixel, so only the pixels it maps both ways keep a ray
+    back = np.asarray(cam.img_from_cam(rays), np.float64)
+    valid = np.all(np.isfinite(rays), -1) & (np.linalg.norm(back - uv, axis=-1) < 1e-6)
+    rays, valid = rays.reshape(h, w, 3), valid.reshape(h, w)
+    if not valid.any():
+        raise src.error(f"pycolmap gives no pixel of this {model} camera a ray; check its "
+                        f"parameters {plain_list(p)}")
+    return LensNormalMap(rays, valid, source=f"{src.path} (COLMAP {model}, via pycolmap)")
+
+
+def read_file(path: Path) -> CameraList | None:
+    """``path``'s COLMAP camera list, or None when it is not ``cameras.txt``/``.bin``."""
+    raw = path.read_bytes()
+    if b"\0" in raw[:64]:
+        cams = read_binary(path, raw)
+        if cams is None:
+            raise ValueError(f"{path}: a binary file, but not COLMAP's cameras.bin (its records "
+                             "do not add up to the file's length); pass a calibration file")
+        return cams
+    text = raw.decode(errors="replace")
+    return read_text(path, text) if is_colmap_text(text) else None
+
+
+def in_folder(path: Path) -> Path:
+    """The camera list of a COLMAP sparse model's folder: cameras.bin, else cameras.txt."""
+    for name in ("cameras.bin", "cameras.txt"):
+        if (path / name).is_file():
+            return path / name
+    raise FileNotFoundError(f"{path} is a folder without cameras.bin or cameras.txt; pass a "
+                            "calibration file, or a COLMAP sparse model's folder (sparse/0)")
