@@ -182,3 +182,25 @@ def test_deploying_section_runs_its_onnxruntime_code(tmp_path, monkeypatch):
     exec(compile(code, "README", "exec"), ns)
     assert ns["labels"].shape == (960, 1280) and ns["labels"].dtype.name == "uint8"
     assert (ns["labels"] == 255).any() and ns["up_read"].tolist() == [0.0, 0.0, 1.0]
+
+
+def test_markdown_links_resolve():
+    """Every relative link of the README, docs/, benchmarks/README.md and the changelog
+    names a file that exists and, with a #fragment, a heading of it (GitHub's anchors)."""
+    def anchors(path):
+        heads = re.findall(r"^#+\s+(.*)$", path.read_text(), re.M)
+        return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in heads}
+
+    pages = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "benchmarks" / "README.md",
+             *sorted((ROOT / "docs").glob("*.md"))]
+    broken = []
+    for page in pages:
+        for link in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+            if link.startswith(("http://", "https://", "mailto:")):
+                continue
+            path, _, frag = link.partition("#")
+            target = (page.parent / path) if path else page
+            if not target.exists() or (frag and target.suffix == ".md" and frag not in anchors(target)):
+                broken.append(f"{page.relative_to(ROOT)}: {link}")
+    assert not broken, broken
+    assert len(pages) > 5
