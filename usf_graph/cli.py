@@ -43,7 +43,8 @@ def cmd_lift(args) -> int:
     if len(images) > 1:
         if args.key is not None:
             raise ValueError("--key picks one camera; several images are lifted with the whole "
-                             "rig of a Kalibr camchain, one image per camera in file order")
+                             "rig of a Kalibr camchain or Basalt calibration, one image per camera in "
+                             "file order")
         rig = rig_from_spec(args.camera, args.fov, args.image_mask)
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
                          radius=args.radius)
@@ -253,7 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
     li = sub.add_parser("lift", help="lift an image (or a rig's images) onto a spherical grid",
                         formatter_class=fmt,
                         description="Lift one image through its camera onto a grid on the "
-                                    "sphere, or one image per camera of a Kalibr camchain onto "
+                                    "sphere, or one image per camera of a Kalibr camchain or a "
+                                    "Basalt calibration onto "
                                     "one grid (a rig).")
     li.add_argument("image", nargs="+",
                     help="image file(s) (any format OpenCV reads, or .npy); several: one per "

@@ -33,7 +33,8 @@ def add_export_parser(sub, fmt) -> None:
     p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
     p.add_argument("--rig", action="store_true",
-                   help="every camera of a Kalibr camchain (--camera), lifted onto one sphere: "
+                   help="every camera of a Kalibr camchain or Basalt calibration (--camera), "
+                        "lifted onto one sphere: "
                         "the program takes one image per camera, in the file's order, and "
                         "gives one label image per camera (seg) or one set of boxes in the "
                         "rig's sphere frame (det)")

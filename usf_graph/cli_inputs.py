@@ -1,11 +1,11 @@
 """What the commands that read a user's camera and images share: the camera from a
-calibration file or a panorama spec (and a Kalibr rig), its options, and the image."""
+calibration file or a panorama spec (and a Kalibr or Basalt rig), its options, and the image."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fisheye_model "
+CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
                "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML, COLMAP "
                "cameras.txt/.bin or a sparse model's folder; or "
@@ -15,7 +15,8 @@ CAMERA_HELP = ("calibration file: Kalibr camchain, OpenCV FileStorage (incl. fis
 def camera_options(p, mask: bool = True) -> None:
     """``--key``, ``--fov`` and (with ``mask``) ``--image-mask``."""
     p.add_argument("--key", default=None, metavar="CAM",
-                   help="camera of a Kalibr camchain (default: the first, cam0) or the id "
+                   help="camera of a Kalibr camchain or Basalt calibration (default: the "
+                        "first, cam0) or the id "
                         "of a COLMAP camera (needed when the list has several)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="usable field of view in degrees, about the optical axis (default: "
@@ -33,7 +34,8 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
 
     if spec.split(":")[0].lower() in ("equirectangular", "panorama"):
         if key is not None:
-            raise ValueError("--key picks a camera in a Kalibr camchain; a panorama has none")
+            raise ValueError("--key picks a camera in a Kalibr, Basalt or COLMAP file; a "
+                             "panorama has none")
         size = spec.partition(":")[2]
         if size:
             try:
@@ -50,7 +52,7 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
 
 
 def rig_from_spec(spec: str, fov=None, image_mask=None) -> dict:
-    """Every camera of a Kalibr camchain, mounted in the rig, each with the usable field of
+    """Every camera of a Kalibr camchain or Basalt calibration, mounted in the rig, each with the usable field of
     view and image mask given."""
     from . import cameras
 

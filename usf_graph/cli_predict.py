@@ -37,7 +37,8 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
     p.add_argument("--rig", action="store_true",
-                   help="the images are one frame of a Kalibr camchain's cameras (--camera), "
+                   help="the images are one frame of a Kalibr camchain's or Basalt calibration's "
+                        "cameras (--camera), "
                         "one per camera in its order, lifted onto one sphere")
     p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="gravity's up in the camera's sphere frame (x forward, y left, z up; "

@@ -3,6 +3,7 @@ file and the camera in it)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ from .panorama import LensNormalMap
 FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.omnidir xi)",
            "K/D/DIM (cv2.fisheye scripts)", "ROS camera_info", "USF sensor YAML",
            "OCamCalib calib_results.txt", "lens normal map .npy/.npz", "usf-graph YAML",
-           "COLMAP cameras.txt/cameras.bin or a sparse model's folder")
+           "COLMAP cameras.txt/cameras.bin or a sparse model's folder", "Basalt calibration JSON")
 
 
 class Src:
@@ -96,6 +97,11 @@ def read_document(path: Path, ocamcalib):
         return LensNormalMap.from_file(path)
     text = path.read_text(errors="replace")
     head = text.lstrip()[:64]
+    if head.startswith("{"):  # JSON (Basalt); YAML 1.1 would read 1e-05 as a string
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: not valid JSON ({e})") from e
     if path.suffix == ".xml" or head.startswith(("%YAML", "<?xml", "<opencv_storage")) \
             or "opencv-matrix" in text:
         return _read_filestorage(path)

@@ -19,6 +19,8 @@ Formats (detected from the content, not the file name):
   (``.npy``), paths relative to the file. CamOdoCal's flat form (``model_type: MEI``) too.
 - OCamCalib ``calib_results.txt``; lens normal maps ``.npy``/``.npz`` (``rays``, ``valid``).
 - usf-graph's own YAML (:meth:`Camera.save`), with optional ``fov_deg`` and ``image_mask``.
+- Basalt's calibration JSON (``value0``: ``intrinsics``, ``resolution``, ``T_imu_cam``):
+  pinhole | pinhole-radtan8 | kb4 | ds | eucm | unified, mounted in the rig.
 - COLMAP's ``cameras.txt``/``cameras.bin``, or a sparse model's folder holding one
   (:mod:`.colmap`); ``key`` is the camera's id.
 
@@ -27,11 +29,14 @@ Every error names the file, the key and what would be accepted.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from . import colmap
+from .basalt import basalt_names, basalt_rotation, is_basalt, load_basalt
 from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
 from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import Fisheye, KannalaBrandt
@@ -52,15 +57,16 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
 
     Args:
         path: the file.
-        key: the camera in a Kalibr camchain (``cam0`` by default) or a COLMAP camera
+        key: the camera in a Kalibr camchain or a Basalt calibration (``cam0`` by
+            default) or a COLMAP camera
             list (its id; needed when the list holds several); ``--key`` on the command
             line. An error for files that hold one camera.
         fov_deg: optional usable field of view (:meth:`Camera.with_fov`), over the file's.
         image_mask: optional ``[H, W]`` mask or image file, over the file's.
 
-    A camera of a Kalibr chain comes back mounted in the rig: its ``rotation`` is the
-    rotation from its optical frame to the rig's sphere frame, which is cam0's (cam0 looks
-    along +x). See :func:`load_rig` for all of them at once.
+    A camera of a Kalibr chain or a Basalt calibration comes back mounted in the rig: its
+    ``rotation`` is the rotation from its optical frame to the rig's sphere frame, which is
+    cam0's (cam0 looks along +x). See :func:`load_rig` for all of them at once.
     """
     path = Path(path)
     data = _document(path)
@@ -68,19 +74,20 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
         cam, fmt = data.pick(key), None
     elif isinstance(data, Camera):
         fmt, cam = ("OCamCalib" if isinstance(data, Scaramuzza) else "lens normal map"), data
-    elif is_kalibr(data):
-        names = kalibr_names(data)
+    elif (chain := _chain(data)) is not None:
+        names = chain.names(data)
         key = key or names[0]
-        if key not in data:
-            raise ValueError(f"{path}: no camera '{key}' in the camchain (it has {names}); "
+        if key not in names:
+            raise ValueError(f"{path}: no camera '{key}' in the {chain.kind} (it has {names}); "
                              "choose one with key= (--key on the command line)")
-        cam = load_kalibr(Src(path, key), data[key])
-        rot = kalibr_rotation(path, data, key)
+        rot = chain.rotation(path, data, key)
+        cam = chain.camera(Src(path, key), data, key)
         cam, fmt = cam.with_rotation(DEFAULT_ROTATION @ rot if rot is not None else None), None
     else:
         fmt, cam = _load_single(path, data)
     if key is not None and fmt is not None:
-        raise ValueError(f"{path}: key={key!r} (--key) picks a camera in a Kalibr camchain, but "
+        raise ValueError(f"{path}: key={key!r} (--key) picks a camera in a Kalibr camchain, a "
+                         "Basalt calibration or a COLMAP camera list, but "
                          f"this is {'an' if fmt[0] in 'AEIOU' else 'a'} {fmt} file with one camera; leave "
                          "the key out")
     return with_fov_and_mask(cam, fov_deg, image_mask)
@@ -98,24 +105,49 @@ def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None
 
 
 def load_rig(path) -> dict[str, Camera]:
-    """All cameras of a Kalibr camchain, each mounted in the rig (cam0's frame, looking
-    along +x), in the file's order. Every camera after the first needs ``T_cn_cnm1`` (or
-    each a ``T_cam_imu``). Translations are ignored: the rig is treated as one centre of
+    """All cameras of a Kalibr camchain or a Basalt calibration, each mounted in the rig
+    (cam0's frame, looking along +x), in the file's order. Every camera after the first
+    needs its extrinsics (Kalibr: ``T_cn_cnm1``, or each a ``T_cam_imu``; Basalt:
+    ``T_imu_cam``). Translations are ignored: the rig is treated as one centre of
     projection, which holds for scenes far away compared to the baseline."""
     path = Path(path)
     data = _document(path)
-    if not isinstance(data, dict) or isinstance(data, colmap.CameraList) or not is_kalibr(data):
+    chain = _chain(data)
+    if chain is None:
         raise ValueError(f"{path}: a rig is read from a Kalibr camchain (cam0, cam1, ... with "
-                         "T_cn_cnm1); this file is not one, so read its cameras one by one "
-                         "with cameras.load")
+                         "T_cn_cnm1) or a Basalt calibration (T_imu_cam); this file is not "
+                         "one, so read its cameras one by one with cameras.load")
     rig = {}
-    for name in kalibr_names(data):
-        rot = kalibr_rotation(path, data, name)
+    for name in chain.names(data):
+        rot = chain.rotation(path, data, name)
         if rot is None:
-            raise ValueError(f"{path} [{name}]: no 'T_cn_cnm1' (or 'T_cam_imu' on it and on "
-                             f"cam0), so its place in the rig is unknown; add the extrinsics")
-        rig[name] = load_kalibr(Src(path, name), data[name]).with_rotation(DEFAULT_ROTATION @ rot)
+            raise ValueError(f"{path} [{name}]: no {chain.extrinsics}, so its place in the rig "
+                             "is unknown; add the extrinsics")
+        rig[name] = chain.camera(Src(path, name), data, name).with_rotation(DEFAULT_ROTATION @ rot)
     return rig
+
+
+class _Chain(NamedTuple):
+    """A file format that holds a rig's cameras, cam0 first."""
+    kind: str
+    test: Callable
+    names: Callable  # data -> camera names
+    camera: Callable  # (Src, data, name) -> Camera in its optical frame
+    rotation: Callable  # (path, data, name) -> rotation to cam0's optical frame, or None
+    extrinsics: str  # what an error asks for
+
+
+_CHAINS = (
+    _Chain("camchain", is_kalibr, kalibr_names, lambda src, data, name: load_kalibr(src, data[name]),
+           kalibr_rotation, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)"),
+    _Chain("Basalt calibration", is_basalt, basalt_names, load_basalt, basalt_rotation,
+           "'T_imu_cam' for it"))
+
+
+def _chain(data) -> _Chain | None:
+    if not isinstance(data, dict) or isinstance(data, colmap.CameraList):
+        return None
+    return next((c for c in _CHAINS if c.test(data)), None)
 
 
 def _document(path: Path):

@@ -76,7 +76,8 @@ class RigFrontend:
 
     @classmethod
     def from_file(cls, path, grid: Grid, **kw) -> RigFrontend:
-        """A rig from a Kalibr camchain (:func:`usf_graph.cameras.load_rig`)."""
+        """A rig from a Kalibr camchain or a Basalt calibration
+        (:func:`usf_graph.cameras.load_rig`)."""
         from ..cameras import load_rig
 
         return cls(load_rig(path), grid, **kw)

@@ -1,0 +1,83 @@
+"""Basalt's calibration JSON (``value0``: ``intrinsics``, ``resolution``, ``T_imu_cam``): each
+camera's model, and its place in the rig from the extrinsics.
+
+Camera types: ``pinhole``, ``pinhole-radtan8`` (OpenCV's 8 coefficients), ``kb4``
+(Kannala-Brandt), ``ds`` (Double Sphere), ``eucm``, and ``unified`` (the unified model in
+its alpha form: EUCM with beta = 1). Basalt, like Kalibr and OpenCV, puts pixel centres at
+integers, so the intrinsics are used as written.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .base import Camera, check_rotation
+from .files import Src, plain_list
+from .fisheye import KannalaBrandt
+from .omni import EUCM, DoubleSphere
+from .pinhole import Pinhole
+
+_TYPES = {"pinhole": "fx fy cx cy", "pinhole-radtan8": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6",
+          "kb4": "fx fy cx cy k1 k2 k3 k4", "ds": "fx fy cx cy xi alpha",
+          "eucm": "fx fy cx cy alpha beta", "unified": "fx fy cx cy alpha"}
+_OPTIONAL = {"rpmax"}  # radtan8's injective radius: ours is computed from the coefficients
+
+
+def is_basalt(data: dict) -> bool:
+    v = data.get("value0")
+    return isinstance(v, dict) and "intrinsics" in v
+
+
+def basalt_names(data: dict) -> list[str]:
+    return [f"cam{i}" for i in range(len(data["value0"]["intrinsics"] or []))]
+
+
+def load_basalt(src: Src, data: dict, name: str) -> Camera:
+    v, i = data["value0"], int(name[3:])
+    c = v["intrinsics"][i]
+    kind = src.need(c, "camera_type")
+    if kind not in _TYPES:
+        raise src.error(f"Basalt camera_type '{kind}' is not supported; supported: "
+                        f"{', '.join(_TYPES)}")
+    want = _TYPES[kind].split()
+    p = src.need(c, "intrinsics")
+    extra = sorted(set(p) - set(want) - _OPTIONAL) if isinstance(p, dict) else []
+    if extra:
+        raise src.error(f"Basalt '{kind}' intrinsics are {want}; unexpected {extra}")
+    p = {k: src.number(src.need(p, k, "intrinsics"), k) for k in want}
+    res = src.array(src.need(v, "resolution"), "resolution")
+    if res.size < 2 * (i + 1):
+        raise src.error(f"'resolution' lists {res.size // 2} cameras' sizes, but this is "
+                        f"camera {i}: {plain_list(res)}")
+    w, h = (int(x) for x in res[2 * i:2 * i + 2])
+    K = dict(fx=p["fx"], fy=p["fy"], cx=p["cx"], cy=p["cy"], width=w, height=h)
+    if kind == "pinhole":
+        return src.build(Pinhole, **K)
+    if kind == "pinhole-radtan8":
+        return src.build(Pinhole, **K, dist=[p[k] for k in want[4:]])
+    if kind == "kb4":
+        return src.build(KannalaBrandt, **K, k=[p[k] for k in want[4:]])
+    if kind == "ds":
+        return src.build(DoubleSphere, **K, xi=p["xi"], alpha=p["alpha"])
+    return src.build(EUCM, **K, alpha=p["alpha"], beta=p.get("beta", 1.0))
+
+
+def _imu_from_cam(src: Src, T) -> np.ndarray:
+    q = [src.number(src.need(T, k, "T_imu_cam"), k) for k in ("qx", "qy", "qz", "qw")]
+    if not 0.9 < np.linalg.norm(q) < 1.1:
+        raise src.error(f"'T_imu_cam' has a quaternion of norm {np.linalg.norm(q):.4g}, not a "
+                        "rotation")
+    return check_rotation(Rotation.from_quat(q).as_matrix())  # scalar last, as Basalt writes
+
+
+def basalt_rotation(path, data: dict, name: str) -> np.ndarray | None:
+    """Rotation from ``name``'s optical frame to cam0's, from both cameras' ``T_imu_cam``;
+    None when the file has none."""
+    T = data["value0"].get("T_imu_cam") or []
+    i = int(name[3:])
+    if i == 0:
+        return np.eye(3)
+    if len(T) <= i:
+        return None
+    return _imu_from_cam(Src(path, "cam0"), T[0]).T @ _imu_from_cam(Src(path, name), T[i])
