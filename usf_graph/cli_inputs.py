@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, OpenCV FileStorage (incl. fisheye_model "
+CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, ORB-SLAM3 "
+               "settings, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
                "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML, COLMAP "
                "cameras.txt/.bin or a sparse model's folder; or "
@@ -15,8 +16,8 @@ CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, Open
 def camera_options(p, mask: bool = True) -> None:
     """``--key``, ``--fov`` and (with ``mask``) ``--image-mask``."""
     p.add_argument("--key", default=None, metavar="CAM",
-                   help="camera of a Kalibr camchain or Basalt calibration (default: the "
-                        "first, cam0) or the id "
+                   help="camera of a Kalibr camchain, Basalt calibration or ORB-SLAM3 stereo "
+                        "pair (default: the first: cam0, Camera1) or the id "
                         "of a COLMAP camera (needed when the list has several)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="usable field of view in degrees, about the optical axis (default: "

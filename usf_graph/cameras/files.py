@@ -15,7 +15,8 @@ from .panorama import LensNormalMap
 FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.omnidir xi)",
            "K/D/DIM (cv2.fisheye scripts)", "ROS camera_info", "USF sensor YAML",
            "OCamCalib calib_results.txt", "lens normal map .npy/.npz", "usf-graph YAML",
-           "COLMAP cameras.txt/cameras.bin or a sparse model's folder", "Basalt calibration JSON")
+           "COLMAP cameras.txt/cameras.bin or a sparse model's folder", "Basalt calibration JSON",
+           "ORB-SLAM3 settings")
 
 
 class Src:

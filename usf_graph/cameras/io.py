@@ -19,6 +19,8 @@ Formats (detected from the content, not the file name):
   (``.npy``), paths relative to the file. CamOdoCal's flat form (``model_type: MEI``) too.
 - OCamCalib ``calib_results.txt``; lens normal maps ``.npy``/``.npz`` (``rays``, ``valid``).
 - usf-graph's own YAML (:meth:`Camera.save`), with optional ``fov_deg`` and ``image_mask``.
+- ORB-SLAM3's settings (FileStorage): ``Camera.type`` PinHole | KannalaBrandt8 | Rectified,
+  ``Camera1.*``/``Camera2.*`` (or the older ``Camera.*``), mounted by ``Stereo.T_c1_c2``.
 - Basalt's calibration JSON (``value0``: ``intrinsics``, ``resolution``, ``T_imu_cam``):
   pinhole | pinhole-radtan8 | kb4 | ds | eucm | unified, mounted in the rig.
 - COLMAP's ``cameras.txt``/``cameras.bin``, or a sparse model's folder holding one
@@ -42,6 +44,7 @@ from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import Fisheye, KannalaBrandt
 from .kalibr import is_kalibr, kalibr_names, kalibr_rotation, load_kalibr
 from .omni import EUCM, DoubleSphere, Mei
+from .orbslam import is_orbslam, load_orbslam, orbslam_names, orbslam_rotation
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Pinhole
 from .scaramuzza import Scaramuzza
@@ -105,18 +108,20 @@ def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None
 
 
 def load_rig(path) -> dict[str, Camera]:
-    """All cameras of a Kalibr camchain or a Basalt calibration, each mounted in the rig
-    (cam0's frame, looking along +x), in the file's order. Every camera after the first
-    needs its extrinsics (Kalibr: ``T_cn_cnm1``, or each a ``T_cam_imu``; Basalt:
-    ``T_imu_cam``). Translations are ignored: the rig is treated as one centre of
-    projection, which holds for scenes far away compared to the baseline."""
+    """All cameras of a Kalibr camchain, a Basalt calibration or ORB-SLAM3 settings, each
+    mounted in the rig (the first camera's frame, looking along +x), in the file's order.
+    Every camera after the first needs its extrinsics (Kalibr: ``T_cn_cnm1``, or each a
+    ``T_cam_imu``; Basalt: ``T_imu_cam``; ORB-SLAM3: ``Stereo.T_c1_c2``). Translations are
+    ignored: the rig is treated as one centre of projection, which holds for scenes far
+    away compared to the baseline."""
     path = Path(path)
     data = _document(path)
     chain = _chain(data)
     if chain is None:
         raise ValueError(f"{path}: a rig is read from a Kalibr camchain (cam0, cam1, ... with "
-                         "T_cn_cnm1) or a Basalt calibration (T_imu_cam); this file is not "
-                         "one, so read its cameras one by one with cameras.load")
+                         "T_cn_cnm1), a Basalt calibration (T_imu_cam) or ORB-SLAM3 settings "
+                         "(Stereo.T_c1_c2); this file is none, so read its cameras one by one "
+                         "with cameras.load")
     rig = {}
     for name in chain.names(data):
         rot = chain.rotation(path, data, name)
@@ -141,7 +146,9 @@ _CHAINS = (
     _Chain("camchain", is_kalibr, kalibr_names, lambda src, data, name: load_kalibr(src, data[name]),
            kalibr_rotation, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)"),
     _Chain("Basalt calibration", is_basalt, basalt_names, load_basalt, basalt_rotation,
-           "'T_imu_cam' for it"))
+           "'T_imu_cam' for it"),
+    _Chain("ORB-SLAM3 settings", is_orbslam, orbslam_names, load_orbslam, orbslam_rotation,
+           "'Stereo.T_c1_c2' (or 'Tlr')"))
 
 
 def _chain(data) -> _Chain | None:

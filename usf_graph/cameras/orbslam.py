@@ -1,0 +1,66 @@
+"""ORB-SLAM3's settings files (OpenCV FileStorage): ``Camera.type`` PinHole, KannalaBrandt8 or
+Rectified; ``Camera1.fx`` ... (``File.version: "1.0"``) or the older ``Camera.fx`` ...;
+``Camera.width``/``Camera.height``; a stereo pair's ``Camera2.*`` mounted by
+``Stereo.T_c1_c2`` (the older files: ``Tlr``), which maps Camera2's coordinates to
+Camera1's. Pixel centres at integers, as in OpenCV."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Camera, check_rotation
+from .files import Src
+from .fisheye import KannalaBrandt
+from .pinhole import Pinhole
+
+_TYPES = ("PinHole", "KannalaBrandt8", "Rectified")
+
+
+def is_orbslam(data: dict) -> bool:
+    return any(k in data for k in ("Camera.type", "Camera1.fx", "Camera.fx"))
+
+
+def orbslam_names(data: dict) -> list[str]:
+    if "Camera1.fx" not in data:
+        return ["Camera"]
+    return ["Camera1"] + (["Camera2"] if "Camera2.fx" in data else [])
+
+
+def load_orbslam(src: Src, data: dict, name: str) -> Camera:
+    kind = str(data.get("Camera.type", "PinHole"))
+    if kind not in _TYPES:
+        raise src.error(f"ORB-SLAM3 Camera.type '{kind}' is not supported; supported: "
+                        f"{', '.join(_TYPES)}")
+
+    def num(key: str, default=None) -> float:
+        full = f"{name}.{key}"
+        if default is not None and full not in data:
+            return default
+        return src.number(src.need(data, full), full)
+
+    size = {k: int(src.number(src.need(data, f"Camera.{k}", hint="ORB-SLAM3 settings give "
+                                       "the image size as Camera.width and Camera.height"),
+                              f"Camera.{k}")) for k in ("width", "height")}
+    K = dict(fx=num("fx"), fy=num("fy"), cx=num("cx"), cy=num("cy"), **size)
+    if kind == "KannalaBrandt8":
+        return src.build(KannalaBrandt, **K, k=[num(f"k{i}") for i in range(1, 5)])
+    if kind == "Rectified":
+        return src.build(Pinhole, **K)
+    dist = [num("k1", 0.0), num("k2", 0.0), num("p1", 0.0), num("p2", 0.0), num("k3", 0.0)]
+    return src.build(Pinhole, **K, dist=dist)
+
+
+def orbslam_rotation(path, data: dict, name: str) -> np.ndarray | None:
+    """Rotation from ``name``'s optical frame to the first camera's; None when the file
+    does not give the pair's extrinsics."""
+    if name != "Camera2":
+        return np.eye(3)
+    key = "Stereo.T_c1_c2" if "Stereo.T_c1_c2" in data else "Tlr"
+    if key not in data:
+        return None
+    src = Src(path, name)
+    T = src.array(data[key], key, (12, 16))
+    try:
+        return check_rotation(T.reshape(-1, 4)[:3, :3])  # c1 <- c2
+    except ValueError as e:
+        raise src.error(f"'{key}' is not a rigid transform ({e})") from None
