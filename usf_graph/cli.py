@@ -12,7 +12,14 @@ from .cli_info import cmd_cache, cmd_info
 from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_image, rig_from_spec
 
 
+def _axis(cam) -> str:
+    a = cam.rotation @ cam.optical_axis
+    return f"({a[0]:+.4f}, {a[1]:+.4f}, {a[2]:+.4f})"
+
+
 def cmd_camera(args) -> int:
+    if args.all:
+        return _list_cameras(args)
     cam = camera_from_spec(args.calib, args.key, args.fov, args.image_mask)
     om = cam.solid_angle()
     print(f"model          {type(cam).__name__} ({cam.model})")
@@ -20,9 +27,7 @@ def cmd_camera(args) -> int:
     print(f"field of view  {cam.fov_deg:.2f} deg (max incidence {math.degrees(cam.max_incidence):.2f} deg)")
     print(f"solid angle    {om:.4f} sr = {om / (4 * math.pi):.2%} of the sphere")
     print(f"parameters     {json.dumps(cam.key()['params'])}")
-    axis = cam.rotation @ cam.optical_axis
-    print(f"optical axis   ({axis[0]:+.4f}, {axis[1]:+.4f}, {axis[2]:+.4f}) in the sphere frame "
-          "(x forward, y left, z up)")
+    print(f"optical axis   {_axis(cam)} in the sphere frame (x forward, y left, z up)")
     if args.plot:
         from .viz import plot_lens_normal_map
 
@@ -31,6 +36,22 @@ def cmd_camera(args) -> int:
     if args.save:
         cam.save(args.save)
         print(f"wrote {args.save} (usf-graph YAML; read it with --camera {args.save})")
+    return 0
+
+
+def _list_cameras(args) -> int:
+    """``camera --all``: one line per camera of the file."""
+    from . import cameras
+
+    if args.key is not None or args.plot or args.save:
+        raise ValueError("--all lists every camera of the file; leave out --key, --plot and "
+                         "--save (then pick one with --key)")
+    print(f"{'key':<10} {'model':<16} {'image':>11} {'fov (deg)':>10}  optical axis (sphere frame)")
+    for key, cam in cameras.load_all(args.calib).items():
+        cam = cameras.with_fov_and_mask(cam, args.fov, args.image_mask)
+        size = f"{cam.width}x{cam.height}"
+        print(f"{'-' if key is None else key!s:<10} {cam.model:<16} {size:>11} "
+              f"{cam.fov_deg:>10.2f}  {_axis(cam)}")
     return 0
 
 
@@ -245,6 +266,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "field of view and solid angle it covers.")
     c.add_argument("calib", help=CAMERA_HELP)
     camera_options(c)
+    c.add_argument("--all", action="store_true",
+                   help="list every camera of the file (a camchain's, a rig's, a COLMAP "
+                        "model's), one line each, with the key that picks it")
     c.add_argument("--plot", default=None, metavar="PNG",
                    help="write a figure of the lens normal map and its coverage of the sphere")
     c.add_argument("--save", default=None, metavar="YAML",

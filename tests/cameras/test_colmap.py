@@ -132,3 +132,18 @@ def test_cli_reads_a_sparse_model(capsys):
     assert "kannala-brandt" in capsys.readouterr().out.lower()
     assert main(["camera", str(FOLDERS["binary"])]) == 2
     assert "--key" in capsys.readouterr().err
+
+
+def test_load_all_lists_every_camera_by_the_key_that_picks_it(capsys):
+    everything = C.load_all(FOLDERS["text"])
+    assert list(everything) == list(range(1, 17))
+    assert everything[7].key() == C.load(FOLDERS["text"], key=7).key()
+    rig = C.load_all(FIXTURES / "kalibr_rig.yaml")
+    assert list(rig) == ["cam0", "cam1"] and rig["cam1"].key() == C.load_rig(FIXTURES / "kalibr_rig.yaml")["cam1"].key()
+    one = C.load_all(FIXTURES / "opencv_pinhole.yaml")
+    assert list(one) == [None] and one[None].key() == C.load(FIXTURES / "opencv_pinhole.yaml").key()
+    assert main(["camera", str(FOLDERS["binary"]), "--all"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert len(rows) == 17 and rows[7].split()[:3] == ["7", "kannala-brandt", "64x48"]
+    assert main(["camera", str(FOLDERS["binary"]), "--all", "--key", "2"]) == 2
+    assert "leave out --key" in capsys.readouterr().err

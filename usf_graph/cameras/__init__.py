@@ -2,11 +2,11 @@
 
 from .base import DEFAULT_ROTATION, Camera
 from .fisheye import Fisheye, KannalaBrandt
-from .io import from_doc, load, load_rig, read_mask, save, with_fov_and_mask
+from .io import from_doc, load, load_all, load_rig, read_mask, save, with_fov_and_mask
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Pinhole
 from .scaramuzza import Scaramuzza
 
 __all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Fisheye", "KannalaBrandt", "Mei",
-           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "load", "load_rig", "read_mask", "save", "with_fov_and_mask"]
+           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "load", "load_all", "load_rig", "read_mask", "save", "with_fov_and_mask"]

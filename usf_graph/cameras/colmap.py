@@ -61,7 +61,8 @@ class CameraList(dict):
         if key is None:
             if len(ids) > 1:
                 raise ValueError(f"{self.path}: {len(ids)} COLMAP cameras (ids {_ids(ids)}); "
-                                 "choose one with key= (--key on the command line)")
+                                 "choose one with key= (--key on the command line), or list "
+                                 "them with cameras.load_all (usf-graph camera --all)")
             key = ids[0]
         try:
             cid = int(key)

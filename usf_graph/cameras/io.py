@@ -96,6 +96,20 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
     return with_fov_and_mask(cam, fov_deg, image_mask)
 
 
+def load_all(path) -> dict:
+    """Every camera of a calibration file, by the key :func:`load` takes for it: a Kalibr
+    camchain's, Basalt calibration's or ORB-SLAM3 stereo pair's names (each mounted in the
+    rig where the file says how), a COLMAP list's ids; ``{None: camera}`` for a file that
+    holds one camera."""
+    path = Path(path)
+    data = _document(path)
+    if isinstance(data, colmap.CameraList):
+        return {i: data.pick(i) for i in sorted(data)}
+    if (chain := _chain(data)) is not None:
+        return {name: load(path, key=name) for name in chain.names(data)}
+    return {None: load(path)}
+
+
 def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None) -> Camera:
     """``cam`` with a usable field of view (:meth:`Camera.with_fov`) and an image mask
     (``[H, W]`` array, or an image file: :func:`read_mask`), each where given."""
