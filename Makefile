@@ -47,9 +47,10 @@ protocols: setup
 	  $(RUNS)/det15_seed3 $(RUNS)/det15_seed4 $(RUNS)/det_full; \
 	$(VENV)/bin/usf-graph targets $(RUNS)/seg15_seed0 $(RUNS)/seg15_seed1 $(RUNS)/seg15_seed2 $(RUNS)/seg_full
 
+# two worker processes (pytest-xdist), one torch thread each: 5 minutes where one took 8
 test: setup
 	@$(VENV)/bin/ruff check usf_graph tests examples benchmarks
-	@$(PY) -m pytest
+	@$(PY) -m pytest -n 2
 
 test-slow: setup
 	@$(PY) -m pytest -m slow
