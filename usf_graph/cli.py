@@ -21,6 +21,8 @@ def cmd_camera(args) -> int:
     if args.all:
         return _list_cameras(args)
     cam = camera_from_spec(args.calib, args.key, args.fov, args.image_mask)
+    if args.save_colmap:
+        _save_colmap({1: cam}, args.save_colmap)
     om = cam.solid_angle()
     print(f"model          {type(cam).__name__} ({cam.model})")
     print(f"image          {cam.width} x {cam.height}")
@@ -47,12 +49,24 @@ def _list_cameras(args) -> int:
         raise ValueError("--all lists every camera of the file; leave out --key, --plot and "
                          "--save (then pick one with --key)")
     print(f"{'key':<10} {'model':<16} {'image':>11} {'fov (deg)':>10}  optical axis (sphere frame)")
-    for key, cam in cameras.load_all(args.calib).items():
+    found = cameras.load_all(args.calib)
+    for key, cam in found.items():
         cam = cameras.with_fov_and_mask(cam, args.fov, args.image_mask)
         size = f"{cam.width}x{cam.height}"
         print(f"{'-' if key is None else key!s:<10} {cam.model:<16} {size:>11} "
               f"{cam.fov_deg:>10.2f}  {_axis(cam)}")
+    if args.save_colmap:  # COLMAP's ids where the file had them, else 1, 2, ... in its order
+        ids = list(found) if all(isinstance(k, int) for k in found) else range(1, len(found) + 1)
+        _save_colmap(dict(zip(ids, found.values())), args.save_colmap)
     return 0
+
+
+def _save_colmap(cams: dict, path) -> None:
+    from .cameras.colmap import save_text
+
+    save_text(cams, path)
+    print(f"wrote {path} (COLMAP's camera list, {len(cams)} camera{'s' * (len(cams) > 1)}; "
+          "field-of-view limits, image masks and a rig's mounting are not in COLMAP's list)")
 
 
 def cmd_lift(args) -> int:
@@ -269,6 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--all", action="store_true",
                    help="list every camera of the file (a camchain's, a rig's, a COLMAP "
                         "model's), one line each, with the key that picks it")
+    c.add_argument("--save-colmap", default=None, metavar="TXT",
+                   help="write the camera (with --all: every camera) as COLMAP's cameras.txt, "
+                        "e.g. to reconstruct with intrinsics calibrated elsewhere")
     c.add_argument("--plot", default=None, metavar="PNG",
                    help="write a figure of the lens normal map and its coverage of the sphere")
     c.add_argument("--save", default=None, metavar="YAML",

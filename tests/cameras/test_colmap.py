@@ -147,3 +147,54 @@ def test_load_all_lists_every_camera_by_the_key_that_picks_it(capsys):
     assert len(rows) == 17 and rows[7].split()[:3] == ["7", "kannala-brandt", "64x48"]
     assert main(["camera", str(FOLDERS["binary"]), "--all", "--key", "2"]) == 2
     assert "leave out --key" in capsys.readouterr().err
+
+
+WRITABLE = {
+    1: C.Pinhole(300, 310, 320.2, 240.7, 640, 480),
+    2: C.Pinhole(300, 310, 320.2, 240.7, 640, 480, dist=(0.1, -0.05, 0.001, 0.002)),
+    3: C.Pinhole(300, 310, 320.2, 240.7, 640, 480, dist=(0.1, -0.05, 0.001, 0.002, 0.01, 0.02, 0.001, 0.0005)),
+    4: C.KannalaBrandt(200, 205, 320.2, 240.7, 640, 480, k=(0.01, 0.002, -0.001, 0.0001)),
+    5: C.Fisheye(200, 320.2, 240.7, 640, 480, model="equidistant"),
+    6: C.EUCM(250, 255, 320.2, 240.7, 640, 480, alpha=0.6, beta=1.1),
+    7: C.Mei(500, 505, 320.2, 240.7, 640, 480, xi=1.2),  # undistorted Mei: COLMAP's EUCM
+    8: C.Equirectangular(640, 320),
+}
+
+
+def test_cameras_written_for_colmap_project_as_pycolmap_reads_them(tmp_path):
+    from usf_graph.cameras.colmap import save_text
+
+    save_text(WRITABLE, tmp_path / "cameras.txt")
+    for name in ("images.txt", "points3D.txt"):  # pycolmap reads a whole sparse model
+        (tmp_path / name).write_text("")
+    rec = pycolmap.Reconstruction()
+    rec.read_text(str(tmp_path))
+    assert sorted(rec.cameras) == sorted(WRITABLE)
+    rays = np.random.default_rng(1).normal(size=(4000, 3)) + [0, 0, 1.2]
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    for cid, cam in WRITABLE.items():
+        sphere = rays @ C.DEFAULT_ROTATION.T
+        ours, seen = cam.sees(sphere)
+        theirs = np.asarray(rec.cameras[cid].img_from_cam(rays), np.float64)
+        both = seen & np.all(np.isfinite(theirs), -1)
+        assert both.mean() > 0.3, cid
+        np.testing.assert_allclose(ours[both] + HALF_PIXEL, theirs[both], atol=1e-6, rtol=0,
+                                   err_msg=f"camera {cid}")
+        back = C.load(tmp_path, key=cid)  # and our reader takes it back
+        np.testing.assert_allclose(back.sees(sphere)[0][seen], ours[seen], atol=1e-9)
+
+
+def test_cameras_colmap_cannot_hold_are_refused_and_nothing_is_written(tmp_path, capsys):
+    from usf_graph.cameras.colmap import save_text
+
+    out = tmp_path / "cameras.txt"
+    for bad in (C.DoubleSphere(300, 300, 320, 240, 640, 480, xi=-0.2, alpha=0.6),
+                C.Mei(500, 500, 320, 240, 640, 480, xi=1.2, dist=(0.1, 0, 0, 0)),
+                C.Pinhole(300, 300, 320, 240, 640, 480, dist=[0.1, 0, 0, 0, 0, 0, 0, 0, 0.01, 0, 0, 0]),
+                C.Equirectangular(640, 160, lat_range=(0.0, 1.5))):
+        with pytest.raises(ValueError, match=r"camera 2: COLMAP has no model for this"):
+            save_text({1: WRITABLE[1], 2: bad}, out)
+        assert not out.exists()
+    assert main(["camera", str(FIXTURES / "kalibr_rig.yaml"), "--all", "--save-colmap", str(out)]) == 0
+    assert "not in COLMAP's list" in capsys.readouterr().out
+    assert list(C.load_all(out)) == [1, 2] and isinstance(C.load(out, key=2), C.KannalaBrandt)

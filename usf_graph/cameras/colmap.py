@@ -207,3 +207,54 @@ def in_folder(path: Path) -> Path:
             return path / name
     raise FileNotFoundError(f"{path} is a folder without cameras.bin or cameras.txt; pass a "
                             "calibration file, or a COLMAP sparse model's folder (sparse/0)")
+
+
+def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
+    """``cam`` as COLMAP's (model name, parameters), its principal point moved to COLMAP's
+    pixel centres; a ValueError for a model COLMAP has no closed form of."""
+    from .fisheye import Fisheye
+
+    k = [cam.fx + 0.0, cam.fy + 0.0, cam.cx + HALF_PIXEL, cam.cy + HALF_PIXEL] \
+        if hasattr(cam, "fy") else None
+    if isinstance(cam, Equirectangular) and cam.wraps_u and cam.lat_range == (-np.pi / 2, np.pi / 2):
+        return "EQUIRECTANGULAR", [float(cam.width), float(cam.height)]
+    if isinstance(cam, Pinhole) and not np.any(cam.dist[8:]):
+        d = cam.dist.tolist()
+        if not np.any(cam.dist):
+            return "PINHOLE", k
+        return ("OPENCV", k + d[:4]) if not np.any(cam.dist[4:8]) else ("FULL_OPENCV", k + d[:8])
+    if isinstance(cam, KannalaBrandt):
+        return "OPENCV_FISHEYE", k + cam.k.tolist()
+    if isinstance(cam, Fisheye) and cam.projection == "equidistant":
+        return "SIMPLE_FISHEYE", [cam.f, cam.cx + HALF_PIXEL, cam.cy + HALF_PIXEL]
+    if isinstance(cam, EUCM):
+        return "EUCM", k + [cam.alpha, cam.beta]
+    from .omni import Mei
+
+    if isinstance(cam, Mei) and not np.any(cam.dist) and cam.skew == 0:
+        s = 1 + cam.xi  # Mei's gamma (z + xi d) is EUCM's f (alpha d + (1 - alpha) z), beta 1
+        return "EUCM", [cam.fx / s, cam.fy / s] + k[2:] + [cam.xi / s, 1.0]
+    raise ValueError(f"COLMAP has no model for this {type(cam).__name__} ({cam.model}); it "
+                     "takes pinholes with OpenCV's radial and tangential distortion, "
+                     "Kannala-Brandt and equidistant fisheyes, EUCM (and Mei without "
+                     "distortion) and full panoramas. Keep it in usf-graph's YAML (cam.save, "
+                     "usf-graph camera --save)")
+
+
+def save_text(cams: dict, path) -> None:
+    """Write ``cams`` (``{camera id: Camera}``) as COLMAP's ``cameras.txt``, atomically.
+    COLMAP keeps no field-of-view limit, image mask or mounting: those stay behind."""
+    from ..fileio import atomic_write
+
+    rows = []
+    for cid, cam in cams.items():
+        try:
+            model, params = colmap_entry(cam)
+        except ValueError as e:
+            raise ValueError(f"camera {cid}: {e}") from None
+        rows.append(" ".join([str(int(cid)), model, str(cam.width), str(cam.height),
+                              *(repr(float(v)) for v in params)]))
+    text = ("# Camera list with one line of data per camera:\n"
+            "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+            f"# Number of cameras: {len(rows)}\n" + "\n".join(rows) + "\n")
+    atomic_write(path, lambda f: f.write(text), mode="w")
