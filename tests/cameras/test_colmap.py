@@ -6,6 +6,8 @@ import sys
 import numpy as np
 import pycolmap
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tests.fixtures.make_colmap_fixture import CAMERAS, H, W
 from tests.helpers import FIXTURES
@@ -198,3 +200,38 @@ def test_cameras_colmap_cannot_hold_are_refused_and_nothing_is_written(tmp_path,
     assert main(["camera", str(FIXTURES / "kalibr_rig.yaml"), "--all", "--save-colmap", str(out)]) == 0
     assert "not in COLMAP's list" in capsys.readouterr().out
     assert list(C.load_all(out)) == [1, 2] and isinstance(C.load(out, key=2), C.KannalaBrandt)
+
+
+@settings(max_examples=40, deadline=None)
+@given(f=st.tuples(st.floats(50, 2000), st.floats(50, 2000)), c=st.tuples(st.floats(0, 640), st.floats(0, 480)),
+       d=st.lists(st.floats(-0.05, 0.05), min_size=8, max_size=8), kind=st.sampled_from(["OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "EUCM"]),
+       binary=st.booleans())
+def test_colmap_parameters_survive_a_write_and_a_read_to_the_bit(tmp_path_factory, f, c, d, kind, binary):
+    """Any calibration written (text) and read back, as text or after pycolmap rewrote it
+    as binary, has the same parameters to the last bit; the principal point to the
+    rounding of the half pixel added and taken away."""
+    from usf_graph.cameras.colmap import colmap_entry, save_text
+
+    K = dict(fx=f[0], fy=f[1], cx=c[0], cy=c[1], width=640, height=480)
+    cam = {"OPENCV": lambda: C.Pinhole(**K, dist=d[:4]),
+           "FULL_OPENCV": lambda: C.Pinhole(**K, dist=d[:4] + [0.0] * 3 + [0.01]),
+           "OPENCV_FISHEYE": lambda: C.KannalaBrandt(**K, k=[abs(v) / 10 for v in d[:4]]),
+           "EUCM": lambda: C.EUCM(**K, alpha=abs(d[0]) * 10, beta=1 + d[1])}[kind]()
+    folder = tmp_path_factory.mktemp("colmap")
+    save_text({3: cam}, folder / "cameras.txt")
+    if binary:
+        for name in ("images.txt", "points3D.txt"):
+            (folder / name).write_text("")
+        rec = pycolmap.Reconstruction()
+        rec.read_text(str(folder))
+        (folder / "cameras.txt").unlink()
+        rec.write_binary(str(folder))
+        assert rec.cameras[3].model_name == colmap_entry(cam)[0]
+    back = C.load(folder, key=3)
+    assert type(back) is type(cam)
+    want, got = cam.params(), back.params()
+    if isinstance(cam, C.Pinhole):  # no distortion is written as PINHOLE: dist None, same camera
+        want["dist"], got["dist"] = cam.dist.tolist(), back.dist.tolist()
+    for name in ("cx", "cy"):  # moved half a pixel and back: a rounding of the sum at most
+        assert got.pop(name) == pytest.approx(want.pop(name), rel=0, abs=1e-12)
+    assert got == want
