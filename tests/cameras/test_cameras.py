@@ -154,6 +154,22 @@ def test_eucm_round_trip(i, alpha, beta, seed):
 
 
 @settings(**SETTINGS)
+@given(intr, st.floats(0.05, 2.5), st.integers(0, 2**31))
+def test_fov_round_trip_and_its_formula(i, omega, seed):
+    f, aspect, dx, dy = i
+    cam = C.FOV(f, f * aspect, 640 + dx, 480 + dy, 1280, 960, omega=omega)
+    rays = random_rays(np.random.default_rng(seed), 300, math.radians(89))
+    uv = check_round_trips(cam, rays)
+    # Devernay and Faugeras: r_d = atan(2 tan(theta) tan(omega / 2)) / omega, on x/z, y/z
+    x, y = rays[:, 0] / rays[:, 2], rays[:, 1] / rays[:, 2]
+    r = np.hypot(x, y)
+    s = np.arctan(2 * r * math.tan(omega / 2)) / (omega * np.where(r > 0, r, 1))
+    np.testing.assert_allclose(uv, np.stack([f * s * x + 640 + dx, f * aspect * s * y + 480 + dy], -1),
+                               atol=1e-7, rtol=0)
+    assert not cam.project(np.array([0.0, 1.0, -0.1]))[1]  # behind the camera
+
+
+@settings(**SETTINGS)
 @given(intr, st.floats(0.05, 0.9), st.integers(0, 2**31))
 def test_eucm_with_beta_one_is_mei(i, alpha, seed):
     # EUCM(alpha, beta=1) is the unified model with xi = alpha/(1-alpha), f' = f/(1-alpha):
@@ -219,6 +235,7 @@ def test_double_sphere_220_degree_lens():
     C.Mei(300, 300, 320.2, 240.7, 640, 480, xi=1.2, dist=(-0.1, 0.02, 0, 0)),
     C.DoubleSphere(300, 300, 320.2, 240.7, 640, 480, xi=-0.2, alpha=0.6),
     C.EUCM(300, 300, 320.2, 240.7, 640, 480, alpha=0.6, beta=1.3),
+    C.FOV(300, 300, 320.2, 240.7, 640, 480, omega=0.9),
 ])
 def test_principal_point_is_the_optical_axis(cam):
     # the iterative inverses must stay at an exact root instead of bisecting away from it

@@ -17,7 +17,7 @@ from usf_graph.cli import main
 
 FOLDERS = {"text": FIXTURES / "colmap", "binary": FIXTURES / "colmap_bin"}
 IDS = {model: i for i, model in enumerate(CAMERAS, 1)}
-TYPES = {"EUCM": C.EUCM, "EQUIRECTANGULAR": C.Equirectangular}
+TYPES = {"EUCM": C.EUCM, "EQUIRECTANGULAR": C.Equirectangular, "FOV": C.FOV}
 
 
 def reference(model: str):
@@ -54,7 +54,7 @@ def test_closed_form_models_match_pycolmap(form, model):
     assert err.max() < 1e-7
 
 
-@pytest.mark.parametrize("model", ["FOV", "THIN_PRISM_FISHEYE", "DIVISION"])
+@pytest.mark.parametrize("model", ["THIN_PRISM_FISHEYE", "DIVISION"])
 def test_other_models_become_pycolmaps_ray_table(model):
     cam = C.load(FOLDERS["binary"], key=IDS[model])
     assert isinstance(cam, C.LensNormalMap) and f"COLMAP {model}" in cam.source
@@ -77,7 +77,7 @@ def test_text_and_binary_lists_read_alike_and_the_principal_point_moves_half_a_p
     for model, i in IDS.items():
         a, b = (C.load(FOLDERS[f], key=i) for f in ("text", "binary"))
         strip = (lambda k: {**k, "params": {**k["params"], "source": None}}) \
-            if model in ("FOV", "THIN_PRISM_FISHEYE", "DIVISION") else (lambda k: k)
+            if model in ("THIN_PRISM_FISHEYE", "DIVISION") else (lambda k: k)
         assert type(a) is type(b) and strip(a.key()) == strip(b.key()), model
     cam = C.load(FOLDERS["text"], key="2")  # PINHOLE 40 41 32.3 24.7; a string id works too
     assert (cam.fx, cam.fy, cam.cx, cam.cy) == (40.0, 41.0, 32.3 - 0.5, 24.7 - 0.5)
@@ -124,8 +124,8 @@ def test_keys_and_bad_files_get_clear_errors(tmp_path):
 
 def test_ray_table_models_without_pycolmap_say_how_to_read_them(monkeypatch):
     monkeypatch.setitem(sys.modules, "pycolmap", None)
-    with pytest.raises(ValueError, match=r"COLMAP's FOV has no closed form.*pip install pycolmap"):
-        C.load(FOLDERS["text"], key=IDS["FOV"])
+    with pytest.raises(ValueError, match=r"COLMAP's DIVISION has no closed form.*pip install pycolmap"):
+        C.load(FOLDERS["text"], key=IDS["DIVISION"])
     assert isinstance(C.load(FOLDERS["text"], key=IDS["OPENCV_FISHEYE"]), C.KannalaBrandt)
 
 
@@ -160,6 +160,7 @@ WRITABLE = {
     6: C.EUCM(250, 255, 320.2, 240.7, 640, 480, alpha=0.6, beta=1.1),
     7: C.Mei(500, 505, 320.2, 240.7, 640, 480, xi=1.2),  # undistorted Mei: COLMAP's EUCM
     8: C.Equirectangular(640, 320),
+    9: C.FOV(300, 305, 320.2, 240.7, 640, 480, omega=0.9),
 }
 
 

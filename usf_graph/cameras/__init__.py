@@ -1,12 +1,12 @@
 """Camera models: pixel <-> ray in both directions, lens normal maps, calibration files."""
 
 from .base import DEFAULT_ROTATION, Camera
-from .fisheye import Fisheye, KannalaBrandt
+from .fisheye import FOV, Fisheye, KannalaBrandt
 from .io import from_doc, load, load_all, load_rig, read_mask, save, with_fov_and_mask
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Pinhole
 from .scaramuzza import Scaramuzza
 
-__all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Fisheye", "KannalaBrandt", "Mei",
+__all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Fisheye", "KannalaBrandt", "FOV", "Mei",
            "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "load", "load_all", "load_rig", "read_mask", "save", "with_fov_and_mask"]

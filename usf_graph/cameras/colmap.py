@@ -5,15 +5,16 @@ COLMAP puts the centre of the top-left pixel at (0.5, 0.5); OpenCV and usf-graph
 (0, 0). The principal point is shifted by half a pixel on reading, so that a COLMAP
 camera and its usf-graph model map every ray to the same pixel of the image.
 
-Models with a closed form here (the rest of COLMAP's list, such as FOV or
-THIN_PRISM_FISHEYE, are read through ``pycolmap`` as a measured ray table):
+Models with a closed form here (the rest of COLMAP's list, THIN_PRISM_FISHEYE,
+RAD_TAN_THIN_PRISM_FISHEYE and the division models, are read through ``pycolmap`` as a
+measured ray table):
 
 - SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV: :class:`Pinhole`
   with OpenCV's distortion;
 - SIMPLE_FISHEYE, FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, OPENCV_FISHEYE:
   :class:`KannalaBrandt`, theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8);
-- EUCM: :class:`EUCM`; EQUIRECTANGULAR: :class:`Equirectangular` (forward at the image's
-  centre, as in COLMAP).
+- FOV: :class:`FOV`; EUCM: :class:`EUCM`; EQUIRECTANGULAR: :class:`Equirectangular`
+  (forward at the image's centre, as in COLMAP).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 
 from .base import Camera
 from .files import Src, plain_list
-from .fisheye import KannalaBrandt
+from .fisheye import FOV, KannalaBrandt
 from .omni import EUCM
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Pinhole
@@ -42,7 +43,7 @@ _PINHOLES = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2,
              "FULL_OPENCV": 8}  # -> how many of OpenCV's coefficients follow the intrinsics
 _FISHEYES = {"SIMPLE_FISHEYE": 0, "FISHEYE": 0, "SIMPLE_RADIAL_FISHEYE": 1,
              "RADIAL_FISHEYE": 2, "OPENCV_FISHEYE": 4}
-CLOSED_FORM = tuple(_PINHOLES) + tuple(_FISHEYES) + ("EUCM", "EQUIRECTANGULAR")
+CLOSED_FORM = tuple(_PINHOLES) + tuple(_FISHEYES) + ("FOV", "EUCM", "EQUIRECTANGULAR")
 HALF_PIXEL = 0.5  # COLMAP's pixel centres sit half a pixel right of and below OpenCV's
 
 
@@ -149,13 +150,15 @@ def colmap_camera(src: Src, model: str, w: int, h: int, p: np.ndarray) -> Camera
             raise src.error(f"EQUIRECTANGULAR's parameters {plain_list(p)} must equal its "
                             f"image size [{w}, {h}]")
         return src.build(Equirectangular, width=w, height=h)
-    if model in _PINHOLES or model in _FISHEYES or model == "EUCM":
+    if model in _PINHOLES or model in _FISHEYES or model in ("EUCM", "FOV"):
         one_f = model.startswith("SIMPLE") or model in ("RADIAL", "RADIAL_FISHEYE")
         f = (p[0], p[0]) if one_f else (p[0], p[1])
         c, rest = (p[1:3], p[3:]) if one_f else (p[2:4], p[4:])
         K = dict(fx=f[0], fy=f[1], cx=c[0] - HALF_PIXEL, cy=c[1] - HALF_PIXEL, width=w, height=h)
         if model == "EUCM":
             return src.build(EUCM, **K, alpha=rest[0], beta=rest[1])
+        if model == "FOV":  # omega 0 is COLMAP's undistorted limit
+            return src.build(FOV, **K, omega=rest[0]) if rest[0] else src.build(Pinhole, **K)
         if model in _FISHEYES:
             return src.build(KannalaBrandt, **K, k=np.pad(rest, (0, 4 - len(rest))))
         return src.build(Pinhole, **K, dist=np.pad(rest, (0, max(0, 4 - len(rest)))) if len(rest) else None)
@@ -229,6 +232,8 @@ def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
         return "SIMPLE_FISHEYE", [cam.f, cam.cx + HALF_PIXEL, cam.cy + HALF_PIXEL]
     if isinstance(cam, EUCM):
         return "EUCM", k + [cam.alpha, cam.beta]
+    if isinstance(cam, FOV):
+        return "FOV", k + [cam.omega]
     from .omni import Mei
 
     if isinstance(cam, Mei) and not np.any(cam.dist) and cam.skew == 0:
@@ -236,7 +241,7 @@ def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
         return "EUCM", [cam.fx / s, cam.fy / s] + k[2:] + [cam.xi / s, 1.0]
     raise ValueError(f"COLMAP has no model for this {type(cam).__name__} ({cam.model}); it "
                      "takes pinholes with OpenCV's radial and tangential distortion, "
-                     "Kannala-Brandt and equidistant fisheyes, EUCM (and Mei without "
+                     "Kannala-Brandt, equidistant and FOV fisheyes, EUCM (and Mei without "
                      "distortion) and full panoramas. Keep it in usf-graph's YAML (cam.save, "
                      "usf-graph camera --save)")
 

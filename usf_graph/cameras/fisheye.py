@@ -1,4 +1,5 @@
-"""Fisheye lenses: the four classic projections and Kannala-Brandt (``cv2.fisheye``)."""
+"""Fisheye lenses: the four classic projections, Kannala-Brandt (``cv2.fisheye``) and the
+field-of-view model."""
 
 from __future__ import annotations
 
@@ -132,4 +133,47 @@ class KannalaBrandt(Camera):
         mx = (uv[..., 0] - self.cx) / self.fx
         my = (uv[..., 1] - self.cy) / self.fy
         theta, ok = solve_monotone(self._theta_d, self._dtheta_d, np.hypot(mx, my), self.theta_max)
+        return from_incidence(theta, mx, my), ok
+
+
+class FOV(Camera):
+    """Devernay and Faugeras' field-of-view model (COLMAP's FOV; PTAM's and DSO's ATAN):
+    the pinhole's normalized radius r_u = tan(theta) is distorted to
+    r_d = atan(2 r_u tan(omega / 2)) / omega, then u = fx r_d x / |(x, y)| + cx and
+    likewise v. Closed form both ways; rays in front of the camera (theta < 90 degrees).
+    ``omega`` in (0, pi) radians; omega -> 0 is the undistorted pinhole.
+    """
+
+    model = "fov"
+
+    def __init__(self, fx, fy, cx, cy, width, height, omega, rotation=None):
+        super().__init__(width, height, rotation)
+        fix = "Focal lengths are in pixels and must be > 0."
+        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
+        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        self.omega = check_positive("omega", omega, "It is the lens's field of view parameter "
+                                    "in radians; a pinhole without distortion has none.")
+        if self.omega >= math.pi:
+            raise ValueError(f"FOV omega must lie in (0, pi) radians, got {self.omega}")
+        self._t = 2 * math.tan(self.omega / 2)
+
+    def params(self) -> dict:
+        return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, omega=self.omega)
+
+    def _project(self, rays):
+        theta = incidence(rays)
+        ok = theta < math.pi / 2
+        rd = np.arctan(self._t * np.tan(np.where(ok, theta, 0.0))) / self.omega
+        n = np.hypot(rays[..., 0], rays[..., 1])
+        n = np.where(n > 0, n, 1.0)
+        return np.stack([self.fx * rd * rays[..., 0] / n + self.cx,
+                         self.fy * rd * rays[..., 1] / n + self.cy], -1), ok
+
+    def _unproject(self, uv):
+        mx = (uv[..., 0] - self.cx) / self.fx
+        my = (uv[..., 1] - self.cy) / self.fy
+        a = np.hypot(mx, my) * self.omega
+        ok = a < math.pi / 2
+        theta = np.arctan(np.tan(np.where(ok, a, 0.0)) / self._t)
         return from_incidence(theta, mx, my), ok

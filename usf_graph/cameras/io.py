@@ -41,7 +41,7 @@ from . import colmap
 from .basalt import basalt_names, basalt_rotation, is_basalt, load_basalt
 from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
 from .files import FORMATS, Src, plain_list, read_document, read_mask
-from .fisheye import Fisheye, KannalaBrandt
+from .fisheye import FOV, Fisheye, KannalaBrandt
 from .kalibr import is_kalibr, kalibr_names, kalibr_rotation, load_kalibr
 from .omni import EUCM, DoubleSphere, Mei
 from .orbslam import is_orbslam, load_orbslam, orbslam_names, orbslam_rotation
@@ -49,7 +49,7 @@ from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Pinhole
 from .scaramuzza import Scaramuzza
 
-MODELS = {c.__name__: c for c in (Pinhole, Fisheye, KannalaBrandt, Mei, DoubleSphere, EUCM,
+MODELS = {c.__name__: c for c in (Pinhole, Fisheye, KannalaBrandt, FOV, Mei, DoubleSphere, EUCM,
                                   Scaramuzza, Equirectangular)}
 _PINHOLE_DIST = ("plumb_bob", "rational_polynomial", "pinhole", "radtan")
 _FISHEYE_DIST = ("equidistant", "fisheye", "kannala-brandt", "kb4")
