@@ -154,6 +154,25 @@ def test_eucm_round_trip(i, alpha, beta, seed):
 
 
 @settings(**SETTINGS)
+@given(intr, st.floats(-1.0, 1.0), st.integers(0, 2**31))
+def test_division_round_trip_and_its_formula(i, k, seed):
+    f, aspect, dx, dy = i
+    cam = C.Division(f, f * aspect, 640 + dx, 480 + dy, 1280, 960, k=k)
+    # barrel (k < 0) reaches past 90 degrees; k > 0 folds where tan(theta) = 1 / (2 sqrt(k))
+    top = math.radians(150) if k < 0 else math.atan(1 / (2 * math.sqrt(k))) - 1e-3 if k > 0 else math.radians(80)
+    rays = random_rays(np.random.default_rng(seed), 600, top)
+    near = np.all(np.abs(cam.project(rays)[0] - [640, 480]) < 5000, -1)  # a sensor's reach
+    uv = check_round_trips(cam, rays[near])
+    # Fitzgibbon: the pixel's normalized coordinates, over 1 + k r_d^2, are the ray's x/z, y/z
+    rays, _ = cam.unproject(uv)
+    xd, yd = (uv[:, 0] - 640 - dx) / f, (uv[:, 1] - 480 - dy) / (f * aspect)
+    w = 1 + k * (xd * xd + yd * yd)
+    np.testing.assert_allclose(rays[:, :2] * w[:, None], rays[:, 2:] * np.stack([xd, yd], -1), atol=1e-12)
+    if k > 1e-3:  # past the fold: invalid, not a second answer
+        assert not cam.unproject(np.array([640 + dx + 1.01 * f / math.sqrt(k), 480 + dy]))[1]
+
+
+@settings(**SETTINGS)
 @given(intr, st.floats(0.05, 2.5), st.integers(0, 2**31))
 def test_fov_round_trip_and_its_formula(i, omega, seed):
     f, aspect, dx, dy = i
@@ -236,6 +255,7 @@ def test_double_sphere_220_degree_lens():
     C.DoubleSphere(300, 300, 320.2, 240.7, 640, 480, xi=-0.2, alpha=0.6),
     C.EUCM(300, 300, 320.2, 240.7, 640, 480, alpha=0.6, beta=1.3),
     C.FOV(300, 300, 320.2, 240.7, 640, 480, omega=0.9),
+    C.Division(300, 300, 320.2, 240.7, 640, 480, k=-0.3),
 ])
 def test_principal_point_is_the_optical_axis(cam):
     # the iterative inverses must stay at an exact root instead of bisecting away from it

@@ -17,7 +17,8 @@ from usf_graph.cli import main
 
 FOLDERS = {"text": FIXTURES / "colmap", "binary": FIXTURES / "colmap_bin"}
 IDS = {model: i for i, model in enumerate(CAMERAS, 1)}
-TYPES = {"EUCM": C.EUCM, "EQUIRECTANGULAR": C.Equirectangular, "FOV": C.FOV}
+TYPES = {"EUCM": C.EUCM, "EQUIRECTANGULAR": C.Equirectangular, "FOV": C.FOV,
+         "DIVISION": C.Division, "SIMPLE_DIVISION": C.Division}
 
 
 def reference(model: str):
@@ -54,7 +55,7 @@ def test_closed_form_models_match_pycolmap(form, model):
     assert err.max() < 1e-7
 
 
-@pytest.mark.parametrize("model", ["THIN_PRISM_FISHEYE", "DIVISION"])
+@pytest.mark.parametrize("model", ["THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE"])
 def test_other_models_become_pycolmaps_ray_table(model):
     cam = C.load(FOLDERS["binary"], key=IDS[model])
     assert isinstance(cam, C.LensNormalMap) and f"COLMAP {model}" in cam.source
@@ -69,7 +70,7 @@ def test_other_models_become_pycolmaps_ray_table(model):
     want = np.asarray(ref.cam_ray_from_img(grid), np.float64).reshape(H, W, 3)
     want = want / np.linalg.norm(want, axis=-1, keepdims=True) @ C.DEFAULT_ROTATION.T
     np.testing.assert_allclose(lnm[valid], want[valid], atol=1e-12)
-    if model == "THIN_PRISM_FISHEYE":  # past 90 degrees COLMAP's ray is mirrored: dropped
+    if "THIN_PRISM" in model:  # past 90 degrees COLMAP's ray is mirrored: dropped
         assert 0.5 < valid.mean() < 0.98 and cam.fov_deg <= 180.0 + 1e-6
 
 
@@ -77,7 +78,7 @@ def test_text_and_binary_lists_read_alike_and_the_principal_point_moves_half_a_p
     for model, i in IDS.items():
         a, b = (C.load(FOLDERS[f], key=i) for f in ("text", "binary"))
         strip = (lambda k: {**k, "params": {**k["params"], "source": None}}) \
-            if model in ("THIN_PRISM_FISHEYE", "DIVISION") else (lambda k: k)
+            if "THIN_PRISM" in model else (lambda k: k)
         assert type(a) is type(b) and strip(a.key()) == strip(b.key()), model
     cam = C.load(FOLDERS["text"], key="2")  # PINHOLE 40 41 32.3 24.7; a string id works too
     assert (cam.fx, cam.fy, cam.cx, cam.cy) == (40.0, 41.0, 32.3 - 0.5, 24.7 - 0.5)
@@ -86,7 +87,7 @@ def test_text_and_binary_lists_read_alike_and_the_principal_point_moves_half_a_p
 
 
 def test_keys_and_bad_files_get_clear_errors(tmp_path):
-    with pytest.raises(ValueError, match=r"16 COLMAP cameras \(ids 1, 2, .*--key"):
+    with pytest.raises(ValueError, match=r"18 COLMAP cameras \(ids 1, 2, .*--key"):
         C.load(FOLDERS["text"])
     with pytest.raises(ValueError, match=r"no COLMAP camera '99'"):
         C.load(FOLDERS["text"], key="99")
@@ -124,8 +125,8 @@ def test_keys_and_bad_files_get_clear_errors(tmp_path):
 
 def test_ray_table_models_without_pycolmap_say_how_to_read_them(monkeypatch):
     monkeypatch.setitem(sys.modules, "pycolmap", None)
-    with pytest.raises(ValueError, match=r"COLMAP's DIVISION has no closed form.*pip install pycolmap"):
-        C.load(FOLDERS["text"], key=IDS["DIVISION"])
+    with pytest.raises(ValueError, match=r"COLMAP's THIN_PRISM_FISHEYE has no closed form.*pip install pycolmap"):
+        C.load(FOLDERS["text"], key=IDS["THIN_PRISM_FISHEYE"])
     assert isinstance(C.load(FOLDERS["text"], key=IDS["OPENCV_FISHEYE"]), C.KannalaBrandt)
 
 
@@ -138,7 +139,7 @@ def test_cli_reads_a_sparse_model(capsys):
 
 def test_load_all_lists_every_camera_by_the_key_that_picks_it(capsys):
     everything = C.load_all(FOLDERS["text"])
-    assert list(everything) == list(range(1, 17))
+    assert list(everything) == list(range(1, 19))
     assert everything[7].key() == C.load(FOLDERS["text"], key=7).key()
     rig = C.load_all(FIXTURES / "kalibr_rig.yaml")
     assert list(rig) == ["cam0", "cam1"] and rig["cam1"].key() == C.load_rig(FIXTURES / "kalibr_rig.yaml")["cam1"].key()
@@ -146,7 +147,7 @@ def test_load_all_lists_every_camera_by_the_key_that_picks_it(capsys):
     assert list(one) == [None] and one[None].key() == C.load(FIXTURES / "opencv_pinhole.yaml").key()
     assert main(["camera", str(FOLDERS["binary"]), "--all"]) == 0
     rows = capsys.readouterr().out.splitlines()
-    assert len(rows) == 17 and rows[7].split()[:3] == ["7", "kannala-brandt", "64x48"]
+    assert len(rows) == 19 and rows[7].split()[:3] == ["7", "kannala-brandt", "64x48"]
     assert main(["camera", str(FOLDERS["binary"]), "--all", "--key", "2"]) == 2
     assert "leave out --key" in capsys.readouterr().err
 
@@ -161,6 +162,8 @@ WRITABLE = {
     7: C.Mei(500, 505, 320.2, 240.7, 640, 480, xi=1.2),  # undistorted Mei: COLMAP's EUCM
     8: C.Equirectangular(640, 320),
     9: C.FOV(300, 305, 320.2, 240.7, 640, 480, omega=0.9),
+    10: C.Division(300, 305, 320.2, 240.7, 640, 480, k=-0.3),
+    11: C.Division(300, 305, 320.2, 240.7, 640, 480, k=0.2),
 }
 
 

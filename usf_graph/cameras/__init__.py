@@ -5,8 +5,8 @@ from .fisheye import FOV, Fisheye, KannalaBrandt
 from .io import from_doc, load, load_all, load_rig, read_mask, save, with_fov_and_mask
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
-from .pinhole import Pinhole
+from .pinhole import Division, Pinhole
 from .scaramuzza import Scaramuzza
 
-__all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Fisheye", "KannalaBrandt", "FOV", "Mei",
+__all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Division", "Fisheye", "KannalaBrandt", "FOV", "Mei",
            "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "load", "load_all", "load_rig", "read_mask", "save", "with_fov_and_mask"]

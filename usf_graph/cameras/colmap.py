@@ -5,15 +5,14 @@ COLMAP puts the centre of the top-left pixel at (0.5, 0.5); OpenCV and usf-graph
 (0, 0). The principal point is shifted by half a pixel on reading, so that a COLMAP
 camera and its usf-graph model map every ray to the same pixel of the image.
 
-Models with a closed form here (the rest of COLMAP's list, THIN_PRISM_FISHEYE,
-RAD_TAN_THIN_PRISM_FISHEYE and the division models, are read through ``pycolmap`` as a
-measured ray table):
+Models with a closed form here (the rest of COLMAP's list, THIN_PRISM_FISHEYE and
+RAD_TAN_THIN_PRISM_FISHEYE, are read through ``pycolmap`` as a measured ray table):
 
 - SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV: :class:`Pinhole`
   with OpenCV's distortion;
 - SIMPLE_FISHEYE, FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, OPENCV_FISHEYE:
   :class:`KannalaBrandt`, theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8);
-- FOV: :class:`FOV`; EUCM: :class:`EUCM`; EQUIRECTANGULAR: :class:`Equirectangular`
+- SIMPLE_DIVISION, DIVISION: :class:`Division`; FOV: :class:`FOV`; EUCM: :class:`EUCM`; EQUIRECTANGULAR: :class:`Equirectangular`
   (forward at the image's centre, as in COLMAP).
 """
 
@@ -29,7 +28,7 @@ from .files import Src, plain_list
 from .fisheye import FOV, KannalaBrandt
 from .omni import EUCM
 from .panorama import Equirectangular, LensNormalMap
-from .pinhole import Pinhole
+from .pinhole import Division, Pinhole
 
 # COLMAP's model ids, names and parameter counts (src/colmap/sensor/models.h).
 MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4),
@@ -43,7 +42,8 @@ _PINHOLES = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2,
              "FULL_OPENCV": 8}  # -> how many of OpenCV's coefficients follow the intrinsics
 _FISHEYES = {"SIMPLE_FISHEYE": 0, "FISHEYE": 0, "SIMPLE_RADIAL_FISHEYE": 1,
              "RADIAL_FISHEYE": 2, "OPENCV_FISHEYE": 4}
-CLOSED_FORM = tuple(_PINHOLES) + tuple(_FISHEYES) + ("FOV", "EUCM", "EQUIRECTANGULAR")
+CLOSED_FORM = tuple(_PINHOLES) + tuple(_FISHEYES) + ("SIMPLE_DIVISION", "DIVISION", "FOV", "EUCM",
+                                                       "EQUIRECTANGULAR")
 HALF_PIXEL = 0.5  # COLMAP's pixel centres sit half a pixel right of and below OpenCV's
 
 
@@ -150,13 +150,15 @@ def colmap_camera(src: Src, model: str, w: int, h: int, p: np.ndarray) -> Camera
             raise src.error(f"EQUIRECTANGULAR's parameters {plain_list(p)} must equal its "
                             f"image size [{w}, {h}]")
         return src.build(Equirectangular, width=w, height=h)
-    if model in _PINHOLES or model in _FISHEYES or model in ("EUCM", "FOV"):
+    if model in CLOSED_FORM:
         one_f = model.startswith("SIMPLE") or model in ("RADIAL", "RADIAL_FISHEYE")
         f = (p[0], p[0]) if one_f else (p[0], p[1])
         c, rest = (p[1:3], p[3:]) if one_f else (p[2:4], p[4:])
         K = dict(fx=f[0], fy=f[1], cx=c[0] - HALF_PIXEL, cy=c[1] - HALF_PIXEL, width=w, height=h)
         if model == "EUCM":
             return src.build(EUCM, **K, alpha=rest[0], beta=rest[1])
+        if model.endswith("DIVISION"):
+            return src.build(Division, **K, k=rest[0])
         if model == "FOV":  # omega 0 is COLMAP's undistorted limit
             return src.build(FOV, **K, omega=rest[0]) if rest[0] else src.build(Pinhole, **K)
         if model in _FISHEYES:
@@ -234,6 +236,8 @@ def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
         return "EUCM", k + [cam.alpha, cam.beta]
     if isinstance(cam, FOV):
         return "FOV", k + [cam.omega]
+    if isinstance(cam, Division):
+        return "DIVISION", k + [cam.k]
     from .omni import Mei
 
     if isinstance(cam, Mei) and not np.any(cam.dist) and cam.skew == 0:
@@ -241,7 +245,7 @@ def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
         return "EUCM", [cam.fx / s, cam.fy / s] + k[2:] + [cam.xi / s, 1.0]
     raise ValueError(f"COLMAP has no model for this {type(cam).__name__} ({cam.model}); it "
                      "takes pinholes with OpenCV's radial and tangential distortion, "
-                     "Kannala-Brandt, equidistant and FOV fisheyes, EUCM (and Mei without "
+                     "Kannala-Brandt, equidistant and FOV fisheyes, the division model, EUCM (and Mei without "
                      "distortion) and full panoramas. Keep it in usf-graph's YAML (cam.save, "
                      "usf-graph camera --save)")
 

@@ -46,10 +46,10 @@ from .kalibr import is_kalibr, kalibr_names, kalibr_rotation, load_kalibr
 from .omni import EUCM, DoubleSphere, Mei
 from .orbslam import is_orbslam, load_orbslam, orbslam_names, orbslam_rotation
 from .panorama import Equirectangular, LensNormalMap
-from .pinhole import Pinhole
+from .pinhole import Division, Pinhole
 from .scaramuzza import Scaramuzza
 
-MODELS = {c.__name__: c for c in (Pinhole, Fisheye, KannalaBrandt, FOV, Mei, DoubleSphere, EUCM,
+MODELS = {c.__name__: c for c in (Pinhole, Division, Fisheye, KannalaBrandt, FOV, Mei, DoubleSphere, EUCM,
                                   Scaramuzza, Equirectangular)}
 _PINHOLE_DIST = ("plumb_bob", "rational_polynomial", "pinhole", "radtan")
 _FISHEYE_DIST = ("equidistant", "fisheye", "kannala-brandt", "kb4")

@@ -1,4 +1,4 @@
-"""Pinhole camera with OpenCV's full distortion model."""
+"""Pinhole cameras: OpenCV's full distortion model, and the one-parameter division model."""
 
 from __future__ import annotations
 
@@ -52,4 +52,46 @@ class Pinhole(Camera):
         yd = (uv[..., 1] - self.cy) / self.fy
         x, y, ok = undistort(self.dist, xd, yd, self.r_max)
         rays = np.stack([x, y, np.ones_like(x)], -1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True), ok
+
+
+class Division(Camera):
+    """Fitzgibbon's one-parameter division model (COLMAP's DIVISION and SIMPLE_DIVISION):
+    a pixel's normalized coordinates (x_d, y_d) = ((u - cx) / fx, (v - cy) / fy) undistort
+    to (x_d, y_d) / (1 + k r_d^2), so its ray is (x_d, y_d, 1 + k r_d^2). Closed form both
+    ways: a ray (x, y, z) lands at s (x, y) with s = 2 / (z + sqrt(z^2 - 4 k (x^2 + y^2))).
+
+    With k < 0 (barrel) the model reaches past 90 degrees, where 1 + k r_d^2 turns
+    negative; with k > 0 it folds at r_d = 1 / sqrt(k), where its domain ends.
+    """
+
+    model = "division"
+
+    def __init__(self, fx, fy, cx, cy, width, height, k, rotation=None):
+        super().__init__(width, height, rotation)
+        fix = "Focal lengths are in pixels and must be > 0."
+        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
+        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        self.k = check_finite("k", k).item()
+
+    def params(self) -> dict:
+        return dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, k=self.k)
+
+    def _project(self, rays):
+        x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]
+        disc = z * z - 4 * self.k * (x * x + y * y)
+        den = z + np.sqrt(np.maximum(disc, 0.0))
+        ok = (disc >= 0) & (den > 0)
+        s = 2 / np.where(ok, den, 1.0)
+        if self.k > 0:  # the smaller root, before the fold
+            ok &= self.k * (s * s) * (x * x + y * y) < 1
+        return np.stack([self.fx * s * x + self.cx, self.fy * s * y + self.cy], -1), ok
+
+    def _unproject(self, uv):
+        xd = (uv[..., 0] - self.cx) / self.fx
+        yd = (uv[..., 1] - self.cy) / self.fy
+        r2 = xd * xd + yd * yd
+        ok = self.k * r2 < 1  # k > 0: before the fold; k <= 0: everywhere
+        rays = np.stack([xd, yd, 1 + self.k * r2], -1)
         return rays / np.linalg.norm(rays, axis=-1, keepdims=True), ok
