@@ -239,3 +239,67 @@ def test_colmap_parameters_survive_a_write_and_a_read_to_the_bit(tmp_path_factor
     for name in ("cx", "cy"):  # moved half a pixel and back: a rounding of the sum at most
         assert got.pop(name) == pytest.approx(want.pop(name), rel=0, abs=1e-12)
     assert got == want
+
+
+@pytest.mark.parametrize("where", ["colmap_rig", "colmap_rig_bin", "colmap_rig/rigs.txt"])
+def test_a_colmap_rig_mounts_its_cameras_by_their_poses(where):
+    rig = C.load_rig(FIXTURES / where)
+    assert list(rig) == ["1", "2", "3"]  # the IMU of the rig is left out
+    assert all(isinstance(c, C.KannalaBrandt) and c.cx == 31.5 for c in rig.values())
+    axis = {n: c.rotation @ [0.0, 0.0, 1.0] for n, c in rig.items()}
+    np.testing.assert_allclose(axis["1"], [1, 0, 0], atol=1e-12)  # the reference: forward
+    np.testing.assert_allclose(axis["2"], [-1, 0, 0], atol=1e-12)  # turned around
+    np.testing.assert_allclose(axis["3"], [0, 1, 0], atol=1e-12)  # to the left
+    np.testing.assert_allclose(rig["2"].rotation @ [0.0, 1.0, 0.0], [0, 0, -1], atol=1e-12)
+
+
+def test_colmap_rigs_refuse_what_they_cannot_mount(tmp_path):
+    text = (FIXTURES / "colmap_rig" / "rigs.txt").read_text()
+    (tmp_path / "cameras.txt").write_text((FIXTURES / "colmap_rig" / "cameras.txt").read_text())
+    line = next(ln for ln in text.splitlines() if ln.startswith("4 "))
+    second = "5 2 CAMERA 1 CAMERA 3 1 1 0 0 0 0 0 0"
+    (tmp_path / "rigs.txt").write_text(line + "\n" + second + "\n")
+    with pytest.raises(ValueError, match=r"2 COLMAP rigs \(ids 4, 5\); choose one with key="):
+        C.load_rig(tmp_path)
+    assert list(C.load_rig(tmp_path, key=5)) == ["1", "3"]
+    with pytest.raises(ValueError, match=r"no COLMAP rig 7"):
+        C.load_rig(tmp_path, key=7)
+    (tmp_path / "rigs.txt").write_text("5 2 CAMERA 1 CAMERA 3 0\n")  # no pose for camera 3
+    with pytest.raises(ValueError, match=r"\[rig 5, camera 3\]: no pose in the rig"):
+        C.load_rig(tmp_path)
+    (tmp_path / "rigs.txt").write_text("5 2 CAMERA 1 CAMERA 3 1 1 0 0\n")  # cut short
+    with pytest.raises(ValueError, match="not COLMAP's rig list"):
+        C.load_rig(tmp_path)
+    cut = tmp_path / "bin"
+    cut.mkdir()
+    data = (FIXTURES / "colmap_rig_bin" / "rigs.bin").read_bytes()
+    (cut / "rigs.bin").write_bytes(data[:-3])
+    with pytest.raises(ValueError, match="not COLMAP's rig list"):
+        C.load_rig(cut)
+    with pytest.raises(ValueError, match="picks a rig in a COLMAP model"):
+        C.load_rig(FIXTURES / "kalibr_rig.yaml", key=1)
+
+
+def test_the_cli_lifts_a_colmap_rigs_images_onto_one_sphere(tmp_path):
+    import cv2
+
+    from usf_graph.frontend import load_lifted
+
+    names = []
+    for i in range(3):
+        names.append(str(tmp_path / f"cam{i}.png"))
+        cv2.imwrite(names[-1], np.full((H, W, 3), 60 * (i + 1), np.uint8))
+    assert main(["lift", *names, "--camera", str(FIXTURES / "colmap_rig_bin"), "--grid",
+                 "icosahedral:3", "--out", str(tmp_path / "rig.pt")]) == 0
+    lifted = load_lifted(tmp_path / "rig.pt")
+    rig = C.load_rig(FIXTURES / "colmap_rig_bin")
+    pos = lifted.pos.double().numpy()
+    seen = np.stack([cam.sees(pos)[1] for cam in rig.values()])  # [3, N]
+    mask = lifted.mask.numpy()
+    assert mask.mean() > 0.8 and not (mask & ~seen.any(0)).any()
+    # blend="best": each point takes the grey of the camera that sees it looking closest
+    axes = np.stack([cam.rotation @ [0.0, 0.0, 1.0] for cam in rig.values()])
+    best = np.argmax(np.where(seen, axes @ pos.T, -np.inf), 0)
+    assert set(best[mask]) == {0, 1, 2}
+    want = np.broadcast_to(60 * (best[mask, None] + 1.0), (int(mask.sum()), 3))
+    np.testing.assert_allclose(lifted.x[mask].numpy(), want, atol=1e-4)

@@ -267,3 +267,102 @@ def save_text(cams: dict, path) -> None:
             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
             f"# Number of cameras: {len(rows)}\n" + "\n".join(rows) + "\n")
     atomic_write(path, lambda f: f.write(text), mode="w")
+
+
+# -- rigs (COLMAP 3.12 and later: rigs.txt / rigs.bin next to the camera list) -------------
+
+_SENSORS = {0: "CAMERA", 1: "IMU"}
+
+
+def rig_file(path: Path) -> Path | None:
+    """The rig list of a sparse model's folder, or ``path`` itself when it is one."""
+    if path.is_dir():
+        return next((path / n for n in ("rigs.bin", "rigs.txt") if (path / n).is_file()), None)
+    return path if path.name.startswith("rigs.") else None
+
+
+def read_rigs(path: Path) -> dict:
+    """``{rig id: [(camera id, sensor_from_rig quaternion (w, x, y, z) or None), ...]}``,
+    the reference camera first (its pose the identity); sensors that are not cameras left
+    out."""
+    raw = path.read_bytes()
+    rigs = _rigs_binary(raw) if b"\0" in raw[:64] else _rigs_text(raw.decode(errors="replace"))
+    if rigs is None:
+        raise ValueError(f"{path}: not COLMAP's rig list (rigs.txt / rigs.bin); write it with "
+                         "COLMAP 3.12 or later, or pass the cameras one by one")
+    return rigs
+
+
+def _rigs_text(text: str) -> dict | None:
+    rigs = {}
+    for line in text.splitlines():
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        tok = line.split()
+        try:
+            rid, n, at = int(tok[0]), int(tok[1]), 4
+            members = [(tok[2], int(tok[3]), (1.0, 0.0, 0.0, 0.0))]
+            for _ in range(n - 1):
+                kind, sid, has = tok[at], int(tok[at + 1]), tok[at + 2] == "1"
+                q = tuple(float(v) for v in tok[at + 3:at + 7]) if has else None
+                members.append((kind, sid, q))
+                at += 10 if has else 3
+        except (ValueError, IndexError):
+            return None
+        if at != len(tok):
+            return None
+        rigs[rid] = [(sid, q) for kind, sid, q in members if kind == "CAMERA"]
+    return rigs
+
+
+def _rigs_binary(raw: bytes) -> dict | None:
+    try:
+        (count,), at, rigs = struct.unpack_from("<Q", raw), 8, {}
+        for _ in range(count):
+            rid, n, kind, sid = struct.unpack_from("<IIiI", raw, at)
+            at += 16
+            members = [(kind, sid, (1.0, 0.0, 0.0, 0.0))]
+            for _ in range(n - 1):
+                kind, sid, has = struct.unpack_from("<iIB", raw, at)
+                at += 9
+                q = None
+                if has:
+                    q = struct.unpack_from("<4d", raw, at)
+                    at += 56
+                members.append((kind, sid, q))
+            rigs[rid] = [(sid, q) for kind, sid, q in members if _SENSORS.get(kind) == "CAMERA"]
+    except struct.error:
+        return None
+    return rigs if at == len(raw) else None
+
+
+def colmap_rig(path: Path, key=None) -> dict[str, Camera]:
+    """The cameras of one COLMAP rig (``key``: its id; None: the only one), each mounted by
+    its ``sensor_from_rig`` rotation, the reference camera's frame first, named by their
+    camera ids."""
+    from scipy.spatial.transform import Rotation
+
+    from .base import DEFAULT_ROTATION
+
+    rigs_path = rig_file(path)
+    folder = path if path.is_dir() else path.parent
+    if rigs_path is None:
+        raise ValueError(f"{path}: no rigs.bin or rigs.txt; a COLMAP model holds a rig from "
+                         "COLMAP 3.12 on")
+    rigs = read_rigs(rigs_path)
+    if key is None and len(rigs) != 1:
+        raise ValueError(f"{rigs_path}: {len(rigs)} COLMAP rigs (ids {_ids(sorted(rigs))}); "
+                         "choose one with key=")
+    rid = next(iter(rigs)) if key is None else int(key) if str(key).isdigit() else key
+    if rid not in rigs:
+        raise ValueError(f"{rigs_path}: no COLMAP rig {key!r} (ids {_ids(sorted(rigs))})")
+    cams = read_file(in_folder(folder))
+    rig = {}
+    for cid, q in rigs[rid]:
+        if q is None:
+            raise ValueError(f"{rigs_path} [rig {rid}, camera {cid}]: no pose in the rig, so "
+                             "its place in the rig is unknown; calibrate the rig in COLMAP")
+        w, x, y, z = q
+        sensor_from_rig = Rotation.from_quat([x, y, z, w]).as_matrix()
+        rig[str(cid)] = cams.pick(cid).with_rotation(DEFAULT_ROTATION @ sensor_from_rig.T)
+    return rig

@@ -121,21 +121,30 @@ def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None
     return cam
 
 
-def load_rig(path) -> dict[str, Camera]:
+def load_rig(path, key=None) -> dict[str, Camera]:
     """All cameras of a Kalibr camchain, a Basalt calibration or ORB-SLAM3 settings, each
     mounted in the rig (the first camera's frame, looking along +x), in the file's order.
     Every camera after the first needs its extrinsics (Kalibr: ``T_cn_cnm1``, or each a
     ``T_cam_imu``; Basalt: ``T_imu_cam``; ORB-SLAM3: ``Stereo.T_c1_c2``). Translations are
     ignored: the rig is treated as one centre of projection, which holds for scenes far
-    away compared to the baseline."""
+    away compared to the baseline.
+
+    A COLMAP model's folder with ``rigs.txt``/``rigs.bin`` (COLMAP 3.12 on), or that file:
+    the rig ``key`` (its id; needed when there are several), its cameras named by their
+    ids and mounted by their ``sensor_from_rig`` poses."""
     path = Path(path)
+    if colmap.rig_file(path) is not None:
+        return colmap.colmap_rig(path, key)
+    if key is not None:
+        raise ValueError(f"{path}: key={key!r} picks a rig in a COLMAP model; this file holds "
+                         "one rig, leave the key out")
     data = _document(path)
     chain = _chain(data)
     if chain is None:
         raise ValueError(f"{path}: a rig is read from a Kalibr camchain (cam0, cam1, ... with "
-                         "T_cn_cnm1), a Basalt calibration (T_imu_cam) or ORB-SLAM3 settings "
-                         "(Stereo.T_c1_c2); this file is none, so read its cameras one by one "
-                         "with cameras.load")
+                         "T_cn_cnm1), a Basalt calibration (T_imu_cam), ORB-SLAM3 settings "
+                         "(Stereo.T_c1_c2) or a COLMAP model with rigs.txt; this file is none, "
+                         "so read its cameras one by one with cameras.load")
     rig = {}
     for name in chain.names(data):
         rot = chain.rotation(path, data, name)
