@@ -43,6 +43,13 @@ def check_finite(name: str, values) -> np.ndarray:
     return arr
 
 
+def set_intrinsics(cam, fx, fy, cx, cy) -> None:
+    """``cam.fx, fy`` (positive) and ``cam.cx, cy`` (finite), checked, in pixels."""
+    fix = "Focal lengths are in pixels and must be > 0."
+    cam.fx, cam.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
+    cam.cx, cam.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+
+
 def check_rotation(R) -> np.ndarray:
     R = as_rotation_matrix(check_finite("rotation", R if R is not None else DEFAULT_ROTATION),
                            "rotation")

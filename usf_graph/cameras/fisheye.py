@@ -14,6 +14,7 @@ from .base import (
     from_incidence,
     incidence,
     monotone_limit,
+    set_intrinsics,
     solve_monotone,
 )
 
@@ -90,9 +91,7 @@ class KannalaBrandt(Camera):
     def __init__(self, fx, fy, cx, cy, width, height, k=(0.0, 0.0, 0.0, 0.0), fov_deg=None,
                  rotation=None):
         super().__init__(width, height, rotation)
-        fix = "Focal lengths are in pixels and must be > 0."
-        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
-        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        set_intrinsics(self, fx, fy, cx, cy)
         self.k = check_finite("k", k)
         if self.k.shape != (4,):
             raise ValueError(f"k must hold the 4 coefficients k1..k4, got {self.k.tolist()}")
@@ -148,9 +147,7 @@ class FOV(Camera):
 
     def __init__(self, fx, fy, cx, cy, width, height, omega, rotation=None):
         super().__init__(width, height, rotation)
-        fix = "Focal lengths are in pixels and must be > 0."
-        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
-        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        set_intrinsics(self, fx, fy, cx, cy)
         self.omega = check_positive("omega", omega, "It is the lens's field of view parameter "
                                     "in radians; a pinhole without distortion has none.")
         if self.omega >= math.pi:

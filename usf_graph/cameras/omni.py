@@ -10,14 +10,9 @@ from .base import (
     check_positive,
     incidence,
     monotone_limit,
+    set_intrinsics,
 )
 from .distortion import _split_dist, distort, distortion_radius_limit, undistort
-
-
-def _intrinsics(cam, fx, fy, cx, cy):
-    fix = "Focal lengths are in pixels and must be > 0."
-    cam.fx, cam.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
-    cam.cx, cam.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
 
 
 def _fold_limit(cam: Camera, w: float) -> float:
@@ -44,7 +39,7 @@ class Mei(Camera):
     def __init__(self, fx, fy, cx, cy, width, height, xi, dist=(0.0, 0.0, 0.0, 0.0), skew=0.0,
                  rotation=None):
         super().__init__(width, height, rotation)
-        _intrinsics(self, fx, fy, cx, cy)
+        set_intrinsics(self, fx, fy, cx, cy)
         self.xi = check_finite("xi", xi).item()
         if self.xi < 0:
             raise ValueError(f"Mei xi must be >= 0 (the mirror parameter), got {self.xi}")
@@ -93,7 +88,7 @@ class DoubleSphere(Camera):
 
     def __init__(self, fx, fy, cx, cy, width, height, xi, alpha, rotation=None):
         super().__init__(width, height, rotation)
-        _intrinsics(self, fx, fy, cx, cy)
+        set_intrinsics(self, fx, fy, cx, cy)
         self.xi, self.alpha = check_finite("xi", xi).item(), check_finite("alpha", alpha).item()
         if not -1 < self.xi <= 1:
             raise ValueError(f"DoubleSphere xi must lie in (-1, 1], got {self.xi}")
@@ -152,7 +147,7 @@ class EUCM(Camera):
 
     def __init__(self, fx, fy, cx, cy, width, height, alpha, beta, rotation=None):
         super().__init__(width, height, rotation)
-        _intrinsics(self, fx, fy, cx, cy)
+        set_intrinsics(self, fx, fy, cx, cy)
         self.alpha = check_finite("alpha", alpha).item()
         self.beta = check_positive("beta", beta, "EUCM's beta shapes the projection ellipsoid.")
         if not 0 <= self.alpha <= 1:

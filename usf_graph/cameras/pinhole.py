@@ -7,7 +7,7 @@ import numpy as np
 from .base import (
     Camera,
     check_finite,
-    check_positive,
+    set_intrinsics,
 )
 from .distortion import _split_dist, distort, distortion_radius_limit, undistort
 
@@ -27,9 +27,7 @@ class Pinhole(Camera):
 
     def __init__(self, fx, fy, cx, cy, width, height, dist=None, rotation=None):
         super().__init__(width, height, rotation)
-        fix = "Focal lengths are in pixels and must be > 0."
-        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
-        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        set_intrinsics(self, fx, fy, cx, cy)
         self.dist = _split_dist(check_finite("dist", dist if dist is not None else []))
         self._ncoef = 0 if dist is None else int(np.asarray(dist).size)
         self.r_max = distortion_radius_limit(self.dist)
@@ -69,9 +67,7 @@ class Division(Camera):
 
     def __init__(self, fx, fy, cx, cy, width, height, k, rotation=None):
         super().__init__(width, height, rotation)
-        fix = "Focal lengths are in pixels and must be > 0."
-        self.fx, self.fy = check_positive("fx", fx, fix), check_positive("fy", fy, fix)
-        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        set_intrinsics(self, fx, fy, cx, cy)
         self.k = check_finite("k", k).item()
 
     def params(self) -> dict:
