@@ -49,8 +49,8 @@ from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
 from .scaramuzza import Scaramuzza
 
-MODELS = {c.__name__: c for c in (Pinhole, Division, Fisheye, KannalaBrandt, FOV, Mei, DoubleSphere, EUCM,
-                                  Scaramuzza, Equirectangular)}
+MODELS = {c.__name__: c for c in (Pinhole, Division, Fisheye, KannalaBrandt, FOV, Mei,
+                                  DoubleSphere, EUCM, Scaramuzza, Equirectangular)}
 _PINHOLE_DIST = ("plumb_bob", "rational_polynomial", "pinhole", "radtan")
 _FISHEYE_DIST = ("equidistant", "fisheye", "kannala-brandt", "kb4")
 
@@ -61,15 +61,16 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
     Args:
         path: the file.
         key: the camera in a Kalibr camchain or a Basalt calibration (``cam0`` by
-            default) or a COLMAP camera
-            list (its id; needed when the list holds several); ``--key`` on the command
-            line. An error for files that hold one camera.
+            default), in ORB-SLAM3 stereo settings (``Camera1`` by default) or in a COLMAP
+            camera list (its id; needed when the list holds several); ``--key`` on the
+            command line. An error for files that hold one camera.
         fov_deg: optional usable field of view (:meth:`Camera.with_fov`), over the file's.
         image_mask: optional ``[H, W]`` mask or image file, over the file's.
 
-    A camera of a Kalibr chain or a Basalt calibration comes back mounted in the rig: its
-    ``rotation`` is the rotation from its optical frame to the rig's sphere frame, which is
-    cam0's (cam0 looks along +x). See :func:`load_rig` for all of them at once.
+    A camera of a Kalibr chain, a Basalt calibration or ORB-SLAM3 stereo settings comes
+    back mounted in the rig: its ``rotation`` is the rotation from its optical frame to the
+    rig's sphere frame, which is the first camera's (it looks along +x). See
+    :func:`load_rig` for all of them at once.
     """
     path = Path(path)
     data = _document(path)
@@ -90,9 +91,9 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
         fmt, cam = _load_single(path, data)
     if key is not None and fmt is not None:
         raise ValueError(f"{path}: key={key!r} (--key) picks a camera in a Kalibr camchain, a "
-                         "Basalt calibration or a COLMAP camera list, but "
-                         f"this is {'an' if fmt[0] in 'AEIOU' else 'a'} {fmt} file with one camera; leave "
-                         "the key out")
+                         "Basalt calibration, ORB-SLAM3 stereo settings or a COLMAP camera "
+                         f"list, but this is {'an' if fmt[0] in 'AEIOU' else 'a'} {fmt} file "
+                         "with one camera; leave the key out")
     return with_fov_and_mask(cam, fov_deg, image_mask)
 
 
