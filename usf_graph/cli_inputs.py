@@ -1,5 +1,5 @@
 """What the commands that read a user's camera and images share: the camera from a
-calibration file or a panorama spec (and a Kalibr or Basalt rig), its options, and the image."""
+calibration file or a panorama spec (and a rig of cameras), its options, and the image."""
 
 from __future__ import annotations
 
