@@ -37,9 +37,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import colmap
 from .basalt import basalt_names, basalt_rotation, is_basalt, load_basalt
 from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
+from .colmap import CameraList, colmap_rig, in_folder, read_file, rig_file
 from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt
 from .kalibr import is_kalibr, kalibr_names, kalibr_rotation, load_kalibr
@@ -74,7 +74,7 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
     """
     path = Path(path)
     data = _document(path)
-    if isinstance(data, colmap.CameraList):
+    if isinstance(data, CameraList):
         cam, fmt = data.pick(key), None
     elif isinstance(data, Camera):
         fmt, cam = ("OCamCalib" if isinstance(data, Scaramuzza) else "lens normal map"), data
@@ -104,7 +104,7 @@ def load_all(path) -> dict:
     holds one camera."""
     path = Path(path)
     data = _document(path)
-    if isinstance(data, colmap.CameraList):
+    if isinstance(data, CameraList):
         return {i: data.pick(i) for i in sorted(data)}
     if (chain := _chain(data)) is not None:
         return {name: load(path, key=name) for name in chain.names(data)}
@@ -134,8 +134,8 @@ def load_rig(path, key=None) -> dict[str, Camera]:
     the rig ``key`` (its id; needed when there are several), its cameras named by their
     ids and mounted by their ``sensor_from_rig`` poses."""
     path = Path(path)
-    if colmap.rig_file(path) is not None:
-        return colmap.colmap_rig(path, key)
+    if rig_file(path) is not None:
+        return colmap_rig(path, key)
     if key is not None:
         raise ValueError(f"{path}: key={key!r} picks a rig in a COLMAP model; this file holds "
                          "one rig, leave the key out")
@@ -176,7 +176,7 @@ _CHAINS = (
 
 
 def _chain(data) -> _Chain | None:
-    if not isinstance(data, dict) or isinstance(data, colmap.CameraList):
+    if not isinstance(data, dict) or isinstance(data, CameraList):
         return None
     return next((c for c in _CHAINS if c.test(data)), None)
 
@@ -184,11 +184,11 @@ def _chain(data) -> _Chain | None:
 def _document(path: Path):
     """A calibration file's content: a camera, a COLMAP camera list or a dict of the file."""
     if path.is_dir():
-        path = colmap.in_folder(path)
+        path = in_folder(path)
     if not path.is_file():
         raise FileNotFoundError(f"calibration file {path} does not exist")
     if path.suffix not in (".npy", ".npz"):
-        cams = colmap.read_file(path)
+        cams = read_file(path)
         if cams is not None:
             return cams
     return read_document(path, _load_ocamcalib)
