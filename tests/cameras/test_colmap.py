@@ -276,6 +276,12 @@ def test_colmap_rigs_refuse_what_they_cannot_mount(tmp_path):
     (cut / "rigs.bin").write_bytes(data[:-3])
     with pytest.raises(ValueError, match="not COLMAP's rig list"):
         C.load_rig(cut)
+    junk = tmp_path / "junk"
+    junk.mkdir()
+    (junk / "rigs.txt").write_text(line + "\n")
+    (junk / "cameras.txt").write_text("not a camera list\n")
+    with pytest.raises(ValueError, match=r"cameras.txt: not COLMAP's camera list, which the rig"):
+        C.load_rig(junk)
     with pytest.raises(ValueError, match="picks a rig in a COLMAP model"):
         C.load_rig(FIXTURES / "kalibr_rig.yaml", key=1)
 

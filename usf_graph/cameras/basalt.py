@@ -10,8 +10,8 @@ integers, so the intrinsics are used as written.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from ..geometry import rotation_from_quaternion
 from .base import Camera, check_rotation
 from .files import Src, plain_list
 from .fisheye import KannalaBrandt
@@ -68,7 +68,7 @@ def _imu_from_cam(src: Src, T) -> np.ndarray:
     if not 0.9 < np.linalg.norm(q) < 1.1:
         raise src.error(f"'T_imu_cam' has a quaternion of norm {np.linalg.norm(q):.4g}, not a "
                         "rotation")
-    return check_rotation(Rotation.from_quat(q).as_matrix())  # scalar last, as Basalt writes
+    return check_rotation(rotation_from_quaternion(np.array([q[3], *q[:3]])))  # Basalt: w last
 
 
 def basalt_rotation(path, data: dict, name: str) -> np.ndarray | None:

@@ -23,10 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import Camera
+from ..geometry import rotation_from_quaternion
+from .base import DEFAULT_ROTATION, Camera
 from .files import Src, plain_list
-from .fisheye import FOV, KannalaBrandt
-from .omni import EUCM
+from .fisheye import FOV, Fisheye, KannalaBrandt
+from .omni import EUCM, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
 
@@ -38,12 +39,11 @@ MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4),
           12: ("SIMPLE_DIVISION", 4), 13: ("DIVISION", 5), 14: ("SIMPLE_FISHEYE", 3),
           15: ("FISHEYE", 4), 16: ("EUCM", 6), 17: ("EQUIRECTANGULAR", 2)}
 _COUNTS = {name: n for name, n in MODELS.values()}
-_PINHOLES = {"SIMPLE_PINHOLE": 0, "PINHOLE": 0, "SIMPLE_RADIAL": 1, "RADIAL": 2, "OPENCV": 4,
-             "FULL_OPENCV": 8}  # -> how many of OpenCV's coefficients follow the intrinsics
-_FISHEYES = {"SIMPLE_FISHEYE": 0, "FISHEYE": 0, "SIMPLE_RADIAL_FISHEYE": 1,
-             "RADIAL_FISHEYE": 2, "OPENCV_FISHEYE": 4}
-CLOSED_FORM = tuple(_PINHOLES) + tuple(_FISHEYES) + ("SIMPLE_DIVISION", "DIVISION", "FOV", "EUCM",
-                                                       "EQUIRECTANGULAR")
+_PINHOLES = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+_FISHEYES = ("SIMPLE_FISHEYE", "FISHEYE", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE",
+             "OPENCV_FISHEYE")
+CLOSED_FORM = _PINHOLES + _FISHEYES + ("SIMPLE_DIVISION", "DIVISION", "FOV", "EUCM",
+                                       "EQUIRECTANGULAR")
 HALF_PIXEL = 0.5  # COLMAP's pixel centres sit half a pixel right of and below OpenCV's
 
 
@@ -80,31 +80,35 @@ def _ids(ids: list) -> str:
     return ", ".join(map(str, ids[:8])) + (f", ... ({len(ids)} in all)" if len(ids) > 8 else "")
 
 
+def _rows(text: str):
+    """``(line number, tokens)`` of the lines of a COLMAP text file that hold data."""
+    for n, line in enumerate(text.splitlines(), 1):
+        if line.strip() and not line.lstrip().startswith("#"):
+            yield n, line.split()
+
+
 def is_colmap_text(text: str) -> bool:
     """True for COLMAP's ``cameras.txt``: its header, or a first row ``ID MODEL W H ...``
     with a model COLMAP knows."""
     if "# Camera list" in text[:200]:
         return True
-    rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    return bool(rows) and len(rows[0]) >= 4 and rows[0][1] in _COUNTS and rows[0][0].isdigit()
+    first = next(_rows(text), (0, []))[1]
+    return len(first) >= 4 and first[1] in _COUNTS and first[0].isdigit()
 
 
 def read_text(path: Path, text: str) -> CameraList:
     cams = {}
-    for n, line in enumerate(text.splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        tok = line.split()
-        where = f"{path}, line {n}"
+    for n, tok in _rows(text):
+        where, line = f"{path}, line {n}", " ".join(tok)
         if len(tok) < 4:
             raise ValueError(f"{where}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', "
-                             f"got {line.strip()!r}")
+                             f"got {line!r}")
         try:
             cid, w, h = int(tok[0]), int(tok[2]), int(tok[3])
             params = [float(t) for t in tok[4:]]
         except ValueError:
             raise ValueError(f"{where}: the id, size and parameters must be numbers, got "
-                             f"{line.strip()!r}") from None
+                             f"{line!r}") from None
         if tok[1] not in _COUNTS:
             raise ValueError(f"{where}: unknown COLMAP camera model {tok[1]!r}; COLMAP's "
                              f"models: {', '.join(_COUNTS)}")
@@ -217,8 +221,6 @@ def in_folder(path: Path) -> Path:
 def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
     """``cam`` as COLMAP's (model name, parameters), its principal point moved to COLMAP's
     pixel centres; a ValueError for a model COLMAP has no closed form of."""
-    from .fisheye import Fisheye
-
     k = [cam.fx + 0.0, cam.fy + 0.0, cam.cx + HALF_PIXEL, cam.cy + HALF_PIXEL] \
         if hasattr(cam, "fy") else None
     if isinstance(cam, Equirectangular) and cam.wraps_u and cam.lat_range == (-np.pi / 2, np.pi / 2):
@@ -238,8 +240,6 @@ def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
         return "FOV", k + [cam.omega]
     if isinstance(cam, Division):
         return "DIVISION", k + [cam.k]
-    from .omni import Mei
-
     if isinstance(cam, Mei) and not np.any(cam.dist) and cam.skew == 0:
         s = 1 + cam.xi  # Mei's gamma (z + xi d) is EUCM's f (alpha d + (1 - alpha) z), beta 1
         return "EUCM", [cam.fx / s, cam.fy / s] + k[2:] + [cam.xi / s, 1.0]
@@ -295,10 +295,7 @@ def read_rigs(path: Path) -> dict:
 
 def _rigs_text(text: str) -> dict | None:
     rigs = {}
-    for line in text.splitlines():
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        tok = line.split()
+    for _, tok in _rows(text):
         try:
             rid, n, at = int(tok[0]), int(tok[1]), 4
             members = [(tok[2], int(tok[3]), (1.0, 0.0, 0.0, 0.0))]
@@ -340,10 +337,6 @@ def colmap_rig(path: Path, key=None) -> dict[str, Camera]:
     """The cameras of one COLMAP rig (``key``: its id; None: the only one), each mounted by
     its ``sensor_from_rig`` rotation, the reference camera's frame first, named by their
     camera ids."""
-    from scipy.spatial.transform import Rotation
-
-    from .base import DEFAULT_ROTATION
-
     rigs_path = rig_file(path)
     folder = path if path.is_dir() else path.parent
     if rigs_path is None:
@@ -357,12 +350,14 @@ def colmap_rig(path: Path, key=None) -> dict[str, Camera]:
     if rid not in rigs:
         raise ValueError(f"{rigs_path}: no COLMAP rig {key!r} (ids {_ids(sorted(rigs))})")
     cams = read_file(in_folder(folder))
+    if cams is None:
+        raise ValueError(f"{in_folder(folder)}: not COLMAP's camera list, which the rig in "
+                         f"{rigs_path} needs")
     rig = {}
     for cid, q in rigs[rid]:
         if q is None:
             raise ValueError(f"{rigs_path} [rig {rid}, camera {cid}]: no pose in the rig, so "
                              "its place in the rig is unknown; calibrate the rig in COLMAP")
-        w, x, y, z = q
-        sensor_from_rig = Rotation.from_quat([x, y, z, w]).as_matrix()
+        sensor_from_rig = rotation_from_quaternion(np.array(q))  # COLMAP's (w, x, y, z)
         rig[str(cid)] = cams.pick(cid).with_rotation(DEFAULT_ROTATION @ sensor_from_rig.T)
     return rig
