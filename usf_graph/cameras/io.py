@@ -76,19 +76,15 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
     data = _document(path)
     if isinstance(data, CameraList):
         cam, fmt = data.pick(key), None
-    elif isinstance(data, Camera):
-        fmt, cam = ("OCamCalib" if isinstance(data, Scaramuzza) else "lens normal map"), data
     elif (chain := _chain(data)) is not None:
         names = chain.names(data)
         key = key or names[0]
         if key not in names:
             raise ValueError(f"{path}: no camera '{key}' in the {chain.kind} (it has {names}); "
                              "choose one with key= (--key on the command line)")
-        rot = chain.rotation(path, data, key)
-        cam = chain.camera(Src(path, key), data, key)
-        cam, fmt = cam.with_rotation(DEFAULT_ROTATION @ rot if rot is not None else None), None
+        cam, fmt = _mounted(path, data, chain, key), None
     else:
-        fmt, cam = _load_single(path, data)
+        fmt, cam = _one(path, data)
     if key is not None and fmt is not None:
         raise ValueError(f"{path}: key={key!r} (--key) picks a camera in a Kalibr camchain, a "
                          "Basalt calibration, ORB-SLAM3 stereo settings or a COLMAP camera "
@@ -107,8 +103,26 @@ def load_all(path) -> dict:
     if isinstance(data, CameraList):
         return {i: data.pick(i) for i in sorted(data)}
     if (chain := _chain(data)) is not None:
-        return {name: load(path, key=name) for name in chain.names(data)}
-    return {None: load(path)}
+        return {name: _mounted(path, data, chain, name) for name in chain.names(data)}
+    return {None: _one(path, data)[1]}
+
+
+def _one(path: Path, data) -> tuple:
+    """(format name, camera) of a file that holds one camera."""
+    if isinstance(data, Camera):
+        return ("OCamCalib" if isinstance(data, Scaramuzza) else "lens normal map"), data
+    return _load_single(path, data)
+
+
+def _mounted(path: Path, data: dict, chain, name: str, required: bool = False) -> Camera:
+    """Camera ``name`` of a rig's file, mounted in the rig where the file says how (and
+    where it does not, an error if ``required``)."""
+    rot = chain.rotation(path, data, name)
+    if rot is None and required:
+        raise ValueError(f"{path} [{name}]: no {chain.extrinsics}, so its place in the rig "
+                         "is unknown; add the extrinsics")
+    cam = chain.camera(Src(path, name), data, name)
+    return cam.with_rotation(DEFAULT_ROTATION @ rot if rot is not None else None)
 
 
 def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None) -> Camera:
@@ -146,14 +160,7 @@ def load_rig(path, key=None) -> dict[str, Camera]:
                          "T_cn_cnm1), a Basalt calibration (T_imu_cam), ORB-SLAM3 settings "
                          "(Stereo.T_c1_c2) or a COLMAP model with rigs.txt; this file is none, "
                          "so read its cameras one by one with cameras.load")
-    rig = {}
-    for name in chain.names(data):
-        rot = chain.rotation(path, data, name)
-        if rot is None:
-            raise ValueError(f"{path} [{name}]: no {chain.extrinsics}, so its place in the rig "
-                             "is unknown; add the extrinsics")
-        rig[name] = chain.camera(Src(path, name), data, name).with_rotation(DEFAULT_ROTATION @ rot)
-    return rig
+    return {name: _mounted(path, data, chain, name, required=True) for name in chain.names(data)}
 
 
 class _Chain(NamedTuple):
