@@ -11,7 +11,7 @@ import torch
 from tests.helpers import FIXTURES
 from usf_graph import SphericalFrontend, SphericalImage, cameras, grids
 from usf_graph.cli import build_parser, main
-from usf_graph.frontend import load_lifted, read_lifted
+from usf_graph.frontend import RigFrontend, load_lifted, read_lifted
 
 
 def test_lift_cli_writes_sample_and_preview(tmp_path, capsys):
@@ -98,6 +98,26 @@ def test_lift_cli_lifts_a_rig_onto_one_sphere(tmp_path, capsys):
     assert main(["lift", *(str(tmp_path / f"cam{i}.png") for i in (0, 1, 0)), "--camera",
                  str(rig), "--grid", "icosahedral:2"]) == 2
     assert "2 cameras" in capsys.readouterr().err
+    # stitched at 1 m: the cameras 0.1 m apart look from their own centres
+    ramp = [np.tile(np.arange(0, 400, dtype=np.uint8)[None] // 2, (400, 1)) + 40 * i for i in (0, 1)]
+    for i in (0, 1):
+        cv2.imwrite(str(tmp_path / f"ramp{i}.png"), ramp[i])
+    assert main(["lift", str(tmp_path / "ramp0.png"), str(tmp_path / "ramp1.png"), "--camera",
+                 str(rig), "--grid", "icosahedral:3", "--fov", "190", "--distance", "1",
+                 "--out", str(tmp_path / "d.pt")]) == 0
+    cams = {n: c.with_fov(190) for n, c in cameras.load_rig(rig).items()}
+    want = RigFrontend(cams, grids.icosahedral(3), distance=1.0).lift([r[..., None] for r in ramp])
+    got = load_lifted(tmp_path / "d.pt")
+    torch.testing.assert_close(got.x, want.to(got.x.dtype))
+    at_infinity = RigFrontend(cams, grids.icosahedral(3)).lift([r[..., None] for r in ramp])
+    assert (got.x - at_infinity.to(got.x.dtype)).abs().max() > 2.5  # 6 px of parallax, 3 grey levels
+    docs = read_lifted(tmp_path / "d.pt")["cameras"]
+    assert docs["cam1"]["distance"] == 1.0 and docs["cam1"]["position"] == [-0.05, 0.0, 0.0]
+    assert main(["lift", str(tmp_path / "cam0.png"), "--camera", str(rig), "--distance", "1"]) == 2
+    assert "--distance stitches a rig's cameras" in capsys.readouterr().err
+    assert main(["lift", str(tmp_path / "cam0.png"), str(tmp_path / "cam1.png"), "--camera",
+                 str(rig), "--distance", "0.03"]) == 2
+    assert "does not reach past the rig: a camera is 0.05" in capsys.readouterr().err
 
 
 def test_render_and_camera_save_commands(tmp_path, capsys):
@@ -562,7 +582,16 @@ def test_predict_cli_on_a_rig(tmp_path, capsys):
     assert main(argv[:3] + paths[:1] + argv[5:]) == 2
     assert "2 cameras (cam0, cam1) but 1 images" in capsys.readouterr().err
     assert main(argv + ["--key", "cam0"]) == 2
-    assert "--key picks one camera" in capsys.readouterr().err
+    assert "picks a rig in a COLMAP model; this file holds one rig" in capsys.readouterr().err
+    # stitched at 2 m, as the library does it
+    assert main(argv + ["--distance", "2"]) == 0
+    want = segment_image(seg.eval(), rgb, cameras.stitch_at(rig, 2.0))["labels"]
+    for name, lab in zip(rig, want):
+        assert np.array_equal(cv2.imread(str(tmp_path / "out" / f"{name}_labels.png"),
+                                         cv2.IMREAD_UNCHANGED), lab)
+    assert main(argv[:3] + paths[:1] + ["--camera", str(FIXTURES / "kalibr_rig.yaml"),
+                                        "--distance", "2"]) == 2
+    assert "--distance stitches the cameras of a --rig" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("task, module", [("mnist", "mnist"), ("seg", "seg"), ("det", "det"),
@@ -711,7 +740,7 @@ def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys
            "--rig", "--fov", "190", "--up", "0", "0", "1", "--out", str(tmp_path / "rig.onnx")]
     assert main(rig) == 0  # two back-to-back fisheyes: an image and a label image each
     assert "outputs: labels_cam0, labels_cam1 uint8" in capsys.readouterr().out
-    assert main([*rig, "--key", "cam1"]) == 2 and "--key picks one camera" in capsys.readouterr().err
+    assert main([*rig, "--key", "cam1"]) == 2 and "picks a rig in a COLMAP model; this file holds one rig" in capsys.readouterr().err
     from usf_graph.models import SignCheck
 
     check = SignCheck(level=3, channels=(4, 4))

@@ -9,7 +9,14 @@ import sys
 from pathlib import Path
 
 from .cli_info import cmd_cache, cmd_info
-from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_image, rig_from_spec
+from .cli_inputs import (
+    CAMERA_HELP,
+    camera_from_spec,
+    camera_options,
+    read_image,
+    rig_from_spec,
+    rig_options,
+)
 
 
 def _axis(cam) -> str:
@@ -76,15 +83,14 @@ def cmd_lift(args) -> int:
     images = [read_image(p) for p in args.image]
     grid = grids.from_spec(args.grid)
     if len(images) > 1:
-        if args.key is not None:
-            raise ValueError("--key picks one camera; several images are lifted with the whole "
-                             "rig of a Kalibr camchain or Basalt calibration, one image per camera in "
-                             "file order")
-        rig = rig_from_spec(args.camera, args.fov, args.image_mask)
+        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance)
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
                          radius=args.radius)
         x = fe.lift(images)
     else:
+        if args.distance is not None:
+            raise ValueError("--distance stitches a rig's cameras; one image is lifted from its "
+                             "own camera's centre, give the rig's images to use it")
         cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
         fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
         x = fe.lift(images[0])
@@ -295,9 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
     li = sub.add_parser("lift", help="lift an image (or a rig's images) onto a spherical grid",
                         formatter_class=fmt,
                         description="Lift one image through its camera onto a grid on the "
-                                    "sphere, or one image per camera of a Kalibr camchain or a "
-                                    "Basalt calibration onto "
-                                    "one grid (a rig).")
+                                    "sphere, or one image per camera of a rig (a Kalibr "
+                                    "camchain, Basalt calibration, ORB-SLAM3 stereo pair or "
+                                    "COLMAP rig) onto one grid.")
     li.add_argument("image", nargs="+",
                     help="image file(s) (any format OpenCV reads, or .npy); several: one per "
                          "camera of the --camera camchain, in its order")
@@ -312,6 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     li.add_argument("--blend", default="best", choices=BLENDS,
                     help="rigs: where cameras overlap, the one looking closest (best) or a "
                          "weighted average (feather)")
+    rig_options(li)
     li.add_argument("--out", default=None, metavar="PT",
                     help="write the lifted signal, mask and geometry spec (not the graph); "
                          "usf_graph.frontend.load_lifted(PT) rebuilds the SphericalImage")

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 
-from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, rig_from_spec
+from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, rig_from_spec, rig_options
 
 #: ``export det``'s decoding by default: predict's and eval's (``detect_image``)
 DECODING = {"max_boxes": 100, "threshold": 0.05, "nms": 0.5}
@@ -33,11 +33,12 @@ def add_export_parser(sub, fmt) -> None:
     p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
     p.add_argument("--rig", action="store_true",
-                   help="every camera of a Kalibr camchain or Basalt calibration (--camera), "
-                        "lifted onto one sphere: "
-                        "the program takes one image per camera, in the file's order, and "
-                        "gives one label image per camera (seg) or one set of boxes in the "
+                   help="every camera of a rig (--camera: a Kalibr camchain, Basalt "
+                        "calibration, ORB-SLAM3 stereo pair or COLMAP rig), lifted onto one "
+                        "sphere: the program takes one image per camera, in the file's order, "
+                        "and gives one label image per camera (seg) or one set of boxes in the "
                         "rig's sphere frame (det)")
+    rig_options(p)
     up = p.add_mutually_exclusive_group()
     up.add_argument("--up-input", action="store_true",
                     help="the program takes gravity's up in the camera's sphere frame (x "
@@ -81,10 +82,12 @@ def cmd_export(args) -> int:
                           ("--sign-check corrects", args.sign_check)):
         if value and up is not None:
             raise ValueError(f"{option} the model's up estimate, which --up and --up-input replace")
-    if args.rig and args.key is not None:
-        raise ValueError("--key picks one camera; --rig binds every camera of the camchain")
-    camera = rig_from_spec(args.camera, args.fov, args.image_mask) if args.rig else \
-        camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
+    if args.distance is not None and not args.rig:
+        raise ValueError("--distance stitches the cameras of a --rig; one camera needs none")
+    if args.rig:
+        camera = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance)
+    else:
+        camera = camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
     model = ready_model(ckpt, args)
     decoding = {} if args.task == "seg" else \

@@ -18,7 +18,9 @@ def camera_options(p, mask: bool = True) -> None:
     p.add_argument("--key", default=None, metavar="CAM",
                    help="camera of a Kalibr camchain, Basalt calibration or ORB-SLAM3 stereo "
                         "pair (default: the first: cam0, Camera1) or the id "
-                        "of a COLMAP camera (needed when the list has several)")
+                        "of a COLMAP camera (needed when the list has several); with a rig "
+                        "(--rig, or several images to lift) the id of a COLMAP rig, needed "
+                        "when the model holds several")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="usable field of view in degrees, about the optical axis (default: "
                         "all the calibration models: a 190-degree fisheye calibrated as "
@@ -52,13 +54,24 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
     return cameras.load(spec, key=key, fov_deg=fov, image_mask=image_mask)
 
 
-def rig_from_spec(spec: str, fov=None, image_mask=None) -> dict:
-    """Every camera of a Kalibr camchain or Basalt calibration, mounted in the rig, each with the usable field of
-    view and image mask given."""
+def rig_options(p) -> None:
+    """``--distance``, for the commands that read a rig."""
+    p.add_argument("--distance", type=float, default=None, metavar="M",
+                   help="with a rig: stitch its cameras at this distance from the rig's centre, "
+                        "in the calibration's unit (metres; COLMAP: the model's), so that "
+                        "near scenes line up across cameras that are apart (default: at "
+                        "infinity, the baseline ignored)")
+
+
+def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None) -> dict:
+    """Every camera of a rig's file (:func:`usf_graph.cameras.load_rig`; ``key``: a COLMAP
+    rig's id), mounted in the rig, each with the usable field of view and image mask given,
+    stitched at ``distance`` (:func:`usf_graph.cameras.stitch_at`) where given."""
     from . import cameras
 
-    return {n: cameras.with_fov_and_mask(c, fov, image_mask)
-            for n, c in cameras.load_rig(spec).items()}
+    rig = {n: cameras.with_fov_and_mask(c, fov, image_mask)
+           for n, c in cameras.load_rig(spec, key=key).items()}
+    return cameras.stitch_at(rig, distance) if distance is not None else rig
 
 
 def read_image(path):

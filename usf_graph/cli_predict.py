@@ -8,7 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, read_image, rig_from_spec
+from .cli_inputs import (
+    CAMERA_HELP,
+    camera_from_spec,
+    camera_options,
+    read_image,
+    rig_from_spec,
+    rig_options,
+)
 
 #: Files ``predict`` reads as videos, frame by frame.
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
@@ -37,9 +44,10 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("--camera", required=True, help=CAMERA_HELP)
     camera_options(p)
     p.add_argument("--rig", action="store_true",
-                   help="the images are one frame of a Kalibr camchain's or Basalt calibration's "
-                        "cameras (--camera), "
+                   help="the images are one frame of a rig's cameras (--camera: a Kalibr "
+                        "camchain, Basalt calibration, ORB-SLAM3 stereo pair or COLMAP rig), "
                         "one per camera in its order, lifted onto one sphere")
+    rig_options(p)
     p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="gravity's up in the camera's sphere frame (x forward, y left, z up; "
                         "with --rig the rig's, cam0's), e.g. from an IMU; default: the model's "
@@ -97,8 +105,8 @@ def cmd_predict(args) -> int:
         twice = sorted({s for s in stems if stems.count(s) > 1})
         raise ValueError(f"several images are named {twice}: their outputs would overwrite "
                          "each other in --out; predict them in separate runs")
-    if args.rig and args.key is not None:
-        raise ValueError("--key picks one camera; --rig lifts every camera of the camchain")
+    if args.distance is not None and not args.rig:
+        raise ValueError("--distance stitches the cameras of a --rig; one camera needs none")
     if args.rig and any(_is_video(p) for p in args.image):
         raise ValueError("--rig reads one image per camera, not videos; give one frame of each")
     if args.every != 1 and not any(_is_video(p) for p in args.image):
@@ -169,7 +177,7 @@ def _inputs(paths, every: int = 1):
 def _rig_cameras(images, sources, args):
     """The rig of ``--rig``'s images (one per camera), each camera masked by its image's
     alpha channel (:func:`_alpha_masked`)."""
-    rig = rig_from_spec(args.camera, args.fov, args.image_mask)
+    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance)
     if len(images) != len(rig):
         raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
                          f"{len(images)} images were given, one per camera in that order")

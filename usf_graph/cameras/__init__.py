@@ -6,7 +6,8 @@ from .io import from_doc, load, load_all, load_rig, read_mask, save, with_fov_an
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
+from .rig import stitch_at
 from .scaramuzza import Scaramuzza
 
 __all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Division", "Fisheye", "KannalaBrandt", "FOV", "Mei",
-           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "load", "load_all", "load_rig", "read_mask", "save", "with_fov_and_mask"]
+           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "load", "load_all", "load_rig", "read_mask", "save", "stitch_at", "with_fov_and_mask"]

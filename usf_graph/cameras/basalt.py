@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import rotation_from_quaternion
-from .base import Camera, check_rotation
+from .base import Camera
 from .files import Src, plain_list
 from .fisheye import KannalaBrandt
 from .omni import EUCM, DoubleSphere
@@ -64,20 +64,23 @@ def load_basalt(src: Src, data: dict, name: str) -> Camera:
 
 
 def _imu_from_cam(src: Src, T) -> np.ndarray:
+    """``T_imu_cam`` (px, py, pz, qx, qy, qz, qw) as ``[4, 4]``."""
     q = [src.number(src.need(T, k, "T_imu_cam"), k) for k in ("qx", "qy", "qz", "qw")]
     if not 0.9 < np.linalg.norm(q) < 1.1:
         raise src.error(f"'T_imu_cam' has a quaternion of norm {np.linalg.norm(q):.4g}, not a "
                         "rotation")
-    return check_rotation(rotation_from_quaternion(np.array([q[3], *q[:3]])))  # Basalt: w last
+    t = [src.number(src.need(T, k, "T_imu_cam"), k) for k in ("px", "py", "pz")]
+    return src.pose(rotation_from_quaternion(np.array([q[3], *q[:3]])), t, "T_imu_cam")  # w last
 
 
-def basalt_rotation(path, data: dict, name: str) -> np.ndarray | None:
-    """Rotation from ``name``'s optical frame to cam0's, from both cameras' ``T_imu_cam``;
-    None when the file has none."""
+def basalt_pose(path, data: dict, name: str) -> np.ndarray | None:
+    """Pose ``[4, 4]`` of ``name``'s optical frame in cam0's, from both cameras'
+    ``T_imu_cam``; None when the file has none."""
     T = data["value0"].get("T_imu_cam") or []
     i = int(name[3:])
     if i == 0:
-        return np.eye(3)
+        return np.eye(4)
     if len(T) <= i:
         return None
-    return _imu_from_cam(Src(path, "cam0"), T[0]).T @ _imu_from_cam(Src(path, name), T[i])
+    return np.linalg.inv(_imu_from_cam(Src(path, "cam0"), T[0])) @ \
+        _imu_from_cam(Src(path, name), T[i])

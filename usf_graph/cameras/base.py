@@ -149,6 +149,8 @@ class Camera:
         self.rotation = check_rotation(rotation)
         self.fov_limit: float | None = None  # usable half-angle (rad) about the optical axis
         self.image_mask: np.ndarray | None = None  # [H, W] bool, False on pixels to ignore
+        self.position: np.ndarray | None = None  # optical centre in the sphere frame
+        self.distance: float | None = None  # radius of the scene sphere (None: at infinity)
 
     # -- to implement ------------------------------------------------------------
     def _project(self, rays: np.ndarray):
@@ -212,12 +214,36 @@ class Camera:
         if self.image_mask is not None:
             valid = valid & self.image_mask
             rays = np.where(valid[..., None], rays, np.nan)
-        return rays @ self.rotation.T, valid
+        rays = rays @ self.rotation.T
+        if self.has_parallax:
+            # where the ray from the optical centre t meets the scene sphere |p| = r:
+            # |t + s w|^2 = r^2 with s > 0 (one root, since |t| < r)
+            t, r = self.position, self.distance
+            b = rays @ t
+            s = -b + np.sqrt(b * b - t @ t + r * r)
+            rays = (t + s[..., None] * rays) / r
+        return rays, valid
+
+    @property
+    def has_parallax(self) -> bool:
+        """True when the camera sits off the sphere's centre (:attr:`position`) and sees a
+        scene at a finite :attr:`distance`, so that its rays are not the sphere's directions."""
+        return self.distance is not None and self.position is not None and bool(self.position.any())
+
+    def to_optical(self, points) -> np.ndarray:
+        """Sphere-frame directions ``[..., 3]`` -> the rays ``[..., 3]`` (optical frame) along
+        which this camera sees them: turned by :attr:`rotation`, and with parallax the ray
+        to the scene point ``distance * p / |p|`` from the camera's :attr:`position`."""
+        points = np.asarray(points, np.float64)
+        if self.has_parallax:
+            norm = np.linalg.norm(points, axis=-1, keepdims=True)
+            points = self.distance * points / np.where(norm > 0, norm, np.nan) - self.position
+        return points @ self.rotation
 
     def sees(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Sphere-frame points ``[..., 3]`` -> (pixels, seen): the camera's field-of-view test,
         with the :attr:`image_mask` (nearest pixel) when there is one."""
-        uv, valid = self.project(np.asarray(points, np.float64) @ self.rotation)
+        uv, valid = self.project(self.to_optical(points))
         seen = valid & self.in_image(np.where(valid[..., None], uv, -1e9))
         if self.image_mask is not None:
             j = np.clip(np.rint(np.nan_to_num(uv[..., 0])), 0, self.width - 1).astype(np.int64)
@@ -264,15 +290,49 @@ class Camera:
     def _rebuild(self, rotation) -> Camera:
         return type(self)(**self.params(), rotation=rotation)
 
-    def _copy(self, rotation=None, fov_limit=..., image_mask=...) -> Camera:
+    def _copy(self, rotation=None, fov_limit=..., image_mask=..., position=...,
+              distance=...) -> Camera:
         new = self._rebuild(self.rotation if rotation is None else rotation)
         new.fov_limit = self.fov_limit if fov_limit is ... else fov_limit
         new.image_mask = self.image_mask if image_mask is ... else image_mask
+        new.position = self.position if position is ... else position
+        new.distance = self.distance if distance is ... else distance
+        if new.distance is not None and new.position is not None:
+            far = float(np.linalg.norm(new.position))
+            if far >= new.distance:
+                raise ValueError(
+                    f"the camera's optical centre is {plain(round(far, 9))} from the sphere's "
+                    f"centre, outside the scene sphere of radius {plain(new.distance)}; give a "
+                    "distance beyond every camera of the rig, in the unit of its positions")
         return new
 
     def with_rotation(self, rotation) -> Camera:
-        """A copy of this camera mounted with another ``rotation`` (sphere <- camera)."""
+        """A copy of this camera mounted with another ``rotation`` (sphere <- camera); its
+        :attr:`position` stays."""
         return self._copy(rotation=rotation)
+
+    def with_position(self, position) -> Camera:
+        """A copy whose optical centre sits at ``position [3]`` in the sphere frame (a rig's
+        cameras, in the unit of its calibration, e.g. metres); ``None``: at the centre. The
+        position matters only with a :attr:`distance` (:meth:`with_distance`)."""
+        if position is None:
+            return self._copy(position=None)
+        t = check_finite("position", np.asarray(position, np.float64))
+        if t.shape != (3,):
+            raise ValueError(f"position must be 3 numbers (x, y, z in the sphere frame), got "
+                             f"shape {t.shape}")
+        return self._copy(position=t)
+
+    def with_distance(self, distance: float | None) -> Camera:
+        """A copy that sees the scene as a sphere of radius ``distance`` about the sphere
+        frame's centre (in the unit of :attr:`position`), so that a camera off the centre
+        looks at each direction with parallax: the stitching distance of a rig whose
+        cameras are apart. ``None``: the scene is at infinity and positions do not matter."""
+        if distance is None:
+            return self._copy(distance=None)
+        return self._copy(distance=check_positive(
+            "distance", distance, "It is the radius of the scene sphere, in the unit of the "
+            "cameras' positions."))
 
     def with_fov(self, fov_deg: float | None) -> Camera:
         """A copy that sees only rays within ``fov_deg / 2`` of the optical axis (``None``:
@@ -308,6 +368,10 @@ class Camera:
              "rotation": np.round(self.rotation, 15).tolist()}
         if self.fov_limit is not None:
             k["fov_deg"] = round(math.degrees(2 * self.fov_limit), 12)
+        if self.position is not None:
+            k["position"] = np.round(self.position, 12).tolist()
+        if self.distance is not None:
+            k["distance"] = self.distance
         if self.image_mask is not None:
             import hashlib
 
@@ -320,8 +384,9 @@ class Camera:
         key = self.key()
         doc = {FORMAT_TAG: 1, "model": type(self).__name__, "rotation": key["rotation"],
                "params": key["params"]}
-        if "fov_deg" in key:
-            doc["fov_deg"] = key["fov_deg"]
+        for name in ("fov_deg", "position", "distance"):
+            if name in key:
+                doc[name] = key[name]
         return doc
 
     def save(self, path) -> None:
@@ -347,7 +412,9 @@ class Camera:
         p = ", ".join(f"{k}={_short(v)}" for k, v in self.params().items())
         fov = "" if self.fov_limit is None else f".with_fov({plain(round(math.degrees(2 * self.fov_limit), 9))})"
         mask = "" if self.image_mask is None else f".with_image_mask(<{self.height}x{self.width} mask>)"
-        return f"{type(self).__name__}({p}){fov}{mask}"
+        pos = "" if self.position is None else f".with_position({_short(self.position)})"
+        dist = "" if self.distance is None else f".with_distance({plain(self.distance)})"
+        return f"{type(self).__name__}({p}){fov}{mask}{pos}{dist}"
 
 
 def _triangle_solid_angle(a, b, c):

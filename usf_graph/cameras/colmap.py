@@ -24,12 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import rotation_from_quaternion
-from .base import DEFAULT_ROTATION, Camera
+from .base import Camera
 from .files import Src, plain_list
 from .fisheye import FOV, Fisheye, KannalaBrandt
 from .omni import EUCM, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
+from .rig import mount
 
 # COLMAP's model ids, names and parameter counts (src/colmap/sensor/models.h).
 MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4),
@@ -281,8 +282,11 @@ def rig_file(path: Path) -> Path | None:
     return path if path.name.startswith("rigs.") else None
 
 
+_IDENTITY = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 def read_rigs(path: Path) -> dict:
-    """``{rig id: [(camera id, sensor_from_rig quaternion (w, x, y, z) or None), ...]}``,
+    """``{rig id: [(camera id, sensor_from_rig (qw, qx, qy, qz, tx, ty, tz) or None), ...]}``,
     the reference camera first (its pose the identity); sensors that are not cameras left
     out."""
     raw = path.read_bytes()
@@ -298,10 +302,10 @@ def _rigs_text(text: str) -> dict | None:
     for _, tok in _rows(text):
         try:
             rid, n, at = int(tok[0]), int(tok[1]), 4
-            members = [(tok[2], int(tok[3]), (1.0, 0.0, 0.0, 0.0))]
+            members = [(tok[2], int(tok[3]), _IDENTITY)]
             for _ in range(n - 1):
                 kind, sid, has = tok[at], int(tok[at + 1]), tok[at + 2] == "1"
-                q = tuple(float(v) for v in tok[at + 3:at + 7]) if has else None
+                q = tuple(float(v) for v in tok[at + 3:at + 10]) if has else None
                 members.append((kind, sid, q))
                 at += 10 if has else 3
         except (ValueError, IndexError):
@@ -318,13 +322,13 @@ def _rigs_binary(raw: bytes) -> dict | None:
         for _ in range(count):
             rid, n, kind, sid = struct.unpack_from("<IIiI", raw, at)
             at += 16
-            members = [(kind, sid, (1.0, 0.0, 0.0, 0.0))]
+            members = [(kind, sid, _IDENTITY)]
             for _ in range(n - 1):
                 kind, sid, has = struct.unpack_from("<iIB", raw, at)
                 at += 9
                 q = None
                 if has:
-                    q = struct.unpack_from("<4d", raw, at)
+                    q = struct.unpack_from("<7d", raw, at)
                     at += 56
                 members.append((kind, sid, q))
             rigs[rid] = [(sid, q) for kind, sid, q in members if _SENSORS.get(kind) == "CAMERA"]
@@ -335,7 +339,7 @@ def _rigs_binary(raw: bytes) -> dict | None:
 
 def colmap_rig(path: Path, key=None) -> dict[str, Camera]:
     """The cameras of one COLMAP rig (``key``: its id; None: the only one), each mounted by
-    its ``sensor_from_rig`` rotation, the reference camera's frame first, named by their
+    its ``sensor_from_rig`` pose, the reference camera's frame first, named by their
     camera ids."""
     rigs_path = rig_file(path)
     folder = path if path.is_dir() else path.parent
@@ -358,6 +362,8 @@ def colmap_rig(path: Path, key=None) -> dict[str, Camera]:
         if q is None:
             raise ValueError(f"{rigs_path} [rig {rid}, camera {cid}]: no pose in the rig, so "
                              "its place in the rig is unknown; calibrate the rig in COLMAP")
-        sensor_from_rig = rotation_from_quaternion(np.array(q))  # COLMAP's (w, x, y, z)
-        rig[str(cid)] = cams.pick(cid).with_rotation(DEFAULT_ROTATION @ sensor_from_rig.T)
+        R = rotation_from_quaternion(np.array(q[:4]))  # sensor_from_rig, COLMAP's (w, x, y, z)
+        pose = np.eye(4)  # rig <- sensor
+        pose[:3, :3], pose[:3, 3] = R.T, -R.T @ np.array(q[4:])
+        rig[str(cid)] = mount(cams.pick(cid), pose)
     return rig

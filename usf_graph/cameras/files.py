@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .base import Camera, mask_from_image, plain
+from .base import Camera, check_finite, check_rotation, mask_from_image, plain
 from .panorama import LensNormalMap
 
 FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.omnidir xi)",
@@ -60,6 +60,23 @@ class Src:
             raise self.error(f"'{name}' must have {want} elements, got {a.size}: "
                              f"{plain_list(a)}")
         return a
+
+    def rigid(self, v, name: str) -> np.ndarray:
+        """A rigid transform ``[4, 4]`` given as 12 or 16 numbers, row by row (its last row,
+        if given, is ignored)."""
+        T = self.array(v, name, (12, 16)).reshape(-1, 4)
+        return self.pose(T[:3, :3], T[:3, 3], name)
+
+    def pose(self, R, t, name: str) -> np.ndarray:
+        """``[4, 4]`` from a rotation and a translation, both checked."""
+        try:
+            R = check_rotation(R)
+            t = check_finite(name, np.asarray(t, np.float64))
+        except ValueError as e:
+            raise self.error(f"'{name}' is not a rigid transform ({e})") from None
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        return T
 
     def build(self, cls, **kw) -> Camera:
         try:

@@ -37,16 +37,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .basalt import basalt_names, basalt_rotation, is_basalt, load_basalt
-from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
+from .basalt import basalt_names, basalt_pose, is_basalt, load_basalt
+from .base import FORMAT_TAG, Camera
 from .colmap import CameraList, colmap_rig, in_folder, read_file, rig_file
 from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt
-from .kalibr import is_kalibr, kalibr_names, kalibr_rotation, load_kalibr
+from .kalibr import is_kalibr, kalibr_names, kalibr_pose, load_kalibr
 from .omni import EUCM, DoubleSphere, Mei
-from .orbslam import is_orbslam, load_orbslam, orbslam_names, orbslam_rotation
+from .orbslam import is_orbslam, load_orbslam, orbslam_names, orbslam_pose
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
+from .rig import mount
 from .scaramuzza import Scaramuzza
 
 MODELS = {c.__name__: c for c in (Pinhole, Division, Fisheye, KannalaBrandt, FOV, Mei,
@@ -117,12 +118,13 @@ def _one(path: Path, data) -> tuple:
 def _mounted(path: Path, data: dict, chain, name: str, required: bool = False) -> Camera:
     """Camera ``name`` of a rig's file, mounted in the rig where the file says how (and
     where it does not, an error if ``required``)."""
-    rot = chain.rotation(path, data, name)
-    if rot is None and required:
+    pose = chain.pose(path, data, name)
+    if pose is None and required:
         raise ValueError(f"{path} [{name}]: no {chain.extrinsics}, so its place in the rig "
                          "is unknown; add the extrinsics")
     cam = chain.camera(Src(path, name), data, name)
-    return cam.with_rotation(DEFAULT_ROTATION @ rot if rot is not None else None)
+    return cam if pose is None else mount(cam, pose)
+
 
 
 def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None) -> Camera:
@@ -140,9 +142,11 @@ def load_rig(path, key=None) -> dict[str, Camera]:
     """All cameras of a Kalibr camchain, a Basalt calibration or ORB-SLAM3 settings, each
     mounted in the rig (the first camera's frame, looking along +x), in the file's order.
     Every camera after the first needs its extrinsics (Kalibr: ``T_cn_cnm1``, or each a
-    ``T_cam_imu``; Basalt: ``T_imu_cam``; ORB-SLAM3: ``Stereo.T_c1_c2``). Translations are
-    ignored: the rig is treated as one centre of projection, which holds for scenes far
-    away compared to the baseline.
+    ``T_cam_imu``; Basalt: ``T_imu_cam``; ORB-SLAM3: ``Stereo.T_c1_c2``). Each camera's
+    ``position`` is its optical centre in that frame, in the file's unit (metres); it
+    matters once a :class:`~usf_graph.frontend.RigFrontend` stitches at a finite
+    ``distance`` (:func:`stitch_at`). Without one the rig is treated as one centre of
+    projection, which holds for scenes far away compared to the baseline.
 
     A COLMAP model's folder with ``rigs.txt``/``rigs.bin`` (COLMAP 3.12 on), or that file:
     the rig ``key`` (its id; needed when there are several), its cameras named by their
@@ -151,8 +155,8 @@ def load_rig(path, key=None) -> dict[str, Camera]:
     if rig_file(path) is not None:
         return colmap_rig(path, key)
     if key is not None:
-        raise ValueError(f"{path}: key={key!r} picks a rig in a COLMAP model; this file holds "
-                         "one rig, leave the key out")
+        raise ValueError(f"{path}: key={key!r} (--key) picks a rig in a COLMAP model; this "
+                         "file holds one rig, whose every camera is used: leave the key out")
     data = _document(path)
     chain = _chain(data)
     if chain is None:
@@ -169,16 +173,16 @@ class _Chain(NamedTuple):
     test: Callable
     names: Callable  # data -> camera names
     camera: Callable  # (Src, data, name) -> Camera in its optical frame
-    rotation: Callable  # (path, data, name) -> rotation to cam0's optical frame, or None
+    pose: Callable  # (path, data, name) -> [4, 4] cam0's optical frame <- its, or None
     extrinsics: str  # what an error asks for
 
 
 _CHAINS = (
     _Chain("camchain", is_kalibr, kalibr_names, lambda src, data, name: load_kalibr(src, data[name]),
-           kalibr_rotation, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)"),
-    _Chain("Basalt calibration", is_basalt, basalt_names, load_basalt, basalt_rotation,
+           kalibr_pose, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)"),
+    _Chain("Basalt calibration", is_basalt, basalt_names, load_basalt, basalt_pose,
            "'T_imu_cam' for it"),
-    _Chain("ORB-SLAM3 settings", is_orbslam, orbslam_names, load_orbslam, orbslam_rotation,
+    _Chain("ORB-SLAM3 settings", is_orbslam, orbslam_names, load_orbslam, orbslam_pose,
            "'Stereo.T_c1_c2' (or 'Tlr')"))
 
 
@@ -246,7 +250,13 @@ def _load_own(src: Src, data: dict) -> Camera:
         cam = MODELS[name](**src.need(data, "params"), rotation=data.get("rotation"))
     except (TypeError, ValueError) as e:
         raise src.error(f"bad parameters for {name} ({e})") from None
-    return _extras(src, cam, data.get("fov_deg"), data.get("image_mask"))
+    cam = _extras(src, cam, data.get("fov_deg"), data.get("image_mask"))
+    try:
+        if data.get("position") is not None:
+            cam = cam.with_position(data["position"])
+        return cam.with_distance(data.get("distance"))
+    except ValueError as e:
+        raise src.error(str(e)) from None
 
 
 def _extras(src: Src, cam: Camera, fov, mask) -> Camera:

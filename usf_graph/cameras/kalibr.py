@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Camera, check_rotation
+from .base import Camera
 from .files import Src, plain_list
 from .fisheye import KannalaBrandt
 from .omni import EUCM, DoubleSphere, Mei
@@ -57,33 +57,24 @@ def load_kalibr(src: Src, c: dict) -> Camera:
     return src.build(EUCM, **K, alpha=p["alpha"], beta=p["beta"])
 
 
-def _transform_rotation(path, name: str, key: str, T) -> np.ndarray:
-    src = Src(path, name)
-    T = src.array(T, key, (12, 16))
-    try:
-        return check_rotation(T.reshape(-1, 4)[:3, :3])
-    except ValueError as e:
-        raise src.error(f"'{key}' is not a rigid transform ({e})") from None
-
-
-def kalibr_rotation(path, data: dict, key: str) -> np.ndarray | None:
-    """Rotation from ``key``'s optical frame to cam0's, from the T_cn_cnm1 chain (or both
-    cameras' T_cam_imu); None when the file does not say."""
+def kalibr_pose(path, data: dict, key: str) -> np.ndarray | None:
+    """Pose ``[4, 4]`` of ``key``'s optical frame in cam0's (cam0 <- key, metres), from the
+    T_cn_cnm1 chain (or both cameras' T_cam_imu); None when the file does not say."""
     names = kalibr_names(data)
     idx = names.index(key)
-    R = np.eye(3)
+    T = np.eye(4)
     for name in names[1:idx + 1]:
-        T = data[name].get("T_cn_cnm1")
-        if T is None:
+        step = data[name].get("T_cn_cnm1")
+        if step is None:
             break
-        R = R @ _transform_rotation(path, name, "T_cn_cnm1", T).T  # R_c0<-cn
+        T = T @ np.linalg.inv(Src(path, name).rigid(step, "T_cn_cnm1"))  # c0 <- cn
     else:
-        return R
+        return T
     t0, tk = data[names[0]].get("T_cam_imu"), data[key].get("T_cam_imu")
     if t0 is None or tk is None:
         return None
-    return _transform_rotation(path, names[0], "T_cam_imu", t0) @ \
-        _transform_rotation(path, key, "T_cam_imu", tk).T
+    return Src(path, names[0]).rigid(t0, "T_cam_imu") @ \
+        np.linalg.inv(Src(path, key).rigid(tk, "T_cam_imu"))
 
 
 # -- OCamCalib -----------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Camera, check_rotation
+from .base import Camera
 from .files import Src
 from .fisheye import KannalaBrandt
 from .pinhole import Pinhole
@@ -50,17 +50,12 @@ def load_orbslam(src: Src, data: dict, name: str) -> Camera:
     return src.build(Pinhole, **K, dist=dist)
 
 
-def orbslam_rotation(path, data: dict, name: str) -> np.ndarray | None:
-    """Rotation from ``name``'s optical frame to the first camera's; None when the file
+def orbslam_pose(path, data: dict, name: str) -> np.ndarray | None:
+    """Pose ``[4, 4]`` of ``name``'s optical frame in the first camera's; None when the file
     does not give the pair's extrinsics."""
     if name != "Camera2":
-        return np.eye(3)
+        return np.eye(4)
     key = "Stereo.T_c1_c2" if "Stereo.T_c1_c2" in data else "Tlr"
     if key not in data:
         return None
-    src = Src(path, name)
-    T = src.array(data[key], key, (12, 16))
-    try:
-        return check_rotation(T.reshape(-1, 4)[:3, :3])  # c1 <- c2
-    except ValueError as e:
-        raise src.error(f"'{key}' is not a rigid transform ({e})") from None
+    return Src(path, name).rigid(data[key], key)  # c1 <- c2

@@ -7,7 +7,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from ..cameras import Camera
+from ..cameras import Camera, stitch_at
 from ..cameras.base import angle_to
 from ..grids import Grid
 from .cache import GeometryCache
@@ -21,8 +21,11 @@ class RigFrontend:
     r"""Lifts the images of several cameras onto one grid, as one :class:`SphericalImage`.
 
     The cameras are mounted by their ``rotation`` (camera -> rig, e.g. from
-    :func:`usf_graph.cameras.load_rig`) and share one centre of projection: the baseline
-    between them is ignored, which holds for scenes far away compared to it.
+    :func:`usf_graph.cameras.load_rig`). Without a ``distance`` they share one centre of
+    projection: the baseline between them is ignored, which holds for scenes far away
+    compared to it. With one, each camera looks from its ``position`` at a scene sphere of
+    that radius about ``centre`` (:func:`usf_graph.cameras.stitch_at`), so that points at
+    that distance line up across the seams.
 
     Args:
         cameras: the cameras, a sequence or a ``{name: camera}`` mapping.
@@ -33,6 +36,10 @@ class RigFrontend:
             ``feather`` averages them with weights
             :math:`w_c \propto \theta^{\max}_c - \theta_c`, the angle left to the edge of
             camera :math:`c`'s field (seams are smooth).
+        distance: the stitching distance, in the unit of the cameras' positions (metres
+            for the calibration files); ``None``: at infinity.
+        centre: the scene sphere's centre, ``"mean"`` (of the cameras' positions) or 3
+            numbers in the rig's sphere frame; used with a ``distance``.
 
     Attributes:
         mask: ``[N]`` bool, points some camera sees (the joint field of view).
@@ -42,7 +49,8 @@ class RigFrontend:
 
     def __init__(self, cameras: Sequence[Camera] | Mapping[str, Camera], grid: Grid,
                  interpolation: str = "bilinear", blend: str = "best",
-                 radius: float | None = None, cache: GeometryCache | None = None):
+                 radius: float | None = None, cache: GeometryCache | None = None,
+                 distance: float | None = None, centre="mean"):
         if blend not in BLENDS:
             raise ValueError(f"blend must be one of {BLENDS}, got {blend!r}")
         if isinstance(cameras, Mapping):
@@ -52,12 +60,14 @@ class RigFrontend:
             self.names = [f"cam{i}" for i in range(len(cams))]
         if not cams:
             raise ValueError("a rig needs at least one camera")
+        if distance is not None:
+            cams = list(stitch_at(dict(zip(self.names, cams)), distance, centre).values())
         self.grid, self.blend = grid, blend
         self.frontends = [SphericalFrontend(c, grid, interpolation, radius, cache=cache)
                           for c in cams]
         seen = torch.stack([fe.mask for fe in self.frontends]).numpy()  # [K, N]
         pos = grid.pos.numpy()
-        ang = np.stack([angle_to(pos, c.rotation @ c.optical_axis) for c in cams])
+        ang = np.stack([angle_to(c.to_optical(pos), c.optical_axis) for c in cams])
         ang = np.where(seen, ang, np.inf)
         best = ang.argmin(0)
         self.mask = torch.from_numpy(seen.any(0))
@@ -76,8 +86,8 @@ class RigFrontend:
 
     @classmethod
     def from_file(cls, path, grid: Grid, **kw) -> RigFrontend:
-        """A rig from a Kalibr camchain or a Basalt calibration
-        (:func:`usf_graph.cameras.load_rig`)."""
+        """A rig from a Kalibr camchain, a Basalt calibration, ORB-SLAM3 settings or a
+        COLMAP model (:func:`usf_graph.cameras.load_rig`)."""
         from ..cameras import load_rig
 
         return cls(load_rig(path), grid, **kw)
@@ -96,7 +106,9 @@ class RigFrontend:
 
     def __repr__(self) -> str:
         cams = ", ".join(f"{n}={c.model}" for n, c in zip(self.names, self.cameras))
-        return (f"RigFrontend({cams}; {self.grid!r}, blend='{self.blend}', "
+        dist = self.cameras[0].distance
+        at = "" if dist is None else f", distance={dist:g}"
+        return (f"RigFrontend({cams}; {self.grid!r}, blend='{self.blend}'{at}, "
                 f"visible={int(self.mask.sum())}/{len(self.grid)})")
 
     def _ordered(self, images) -> list:
