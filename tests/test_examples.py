@@ -383,3 +383,17 @@ def test_deploy_onnx_example_writes_an_exported_detectors_boxes(tmp_path, capsys
     assert names[0] in printed and len(set(names)) > 1
     np.testing.assert_allclose([d["box_rad"] for d in found], want["boxes"], atol=1e-6)
     np.testing.assert_allclose([d["pandora_deg"] for d in found], to_pandora(want["boxes"]), atol=2e-3)
+
+
+def test_rig_parallax_example_small_run(tmp_path):
+    """One room: the centred rig is the floor, and stitching near the room's depth beats
+    ignoring a 0.15 m baseline."""
+    res = load("rig_parallax").main(["--out", str(tmp_path), "--rooms", "1", "--level", "4",
+                                     "--size", "96", "--no-progress"])
+    s = res["settings"]
+    assert json.loads((tmp_path / "results.json").read_text()) == res
+    assert (tmp_path / "seams.png").stat().st_size > 10_000
+    assert list(s)[:2] == ["no baseline (the floor)", "at infinity"] and len(s) == 6
+    floor, inf, two = s["no baseline (the floor)"], s["at infinity"], s["stitched at 2 m"]
+    assert floor["labels_wrong"] < two["labels_wrong"] < inf["labels_wrong"]
+    assert floor["colour_err_seams"] < two["colour_err_seams"] < inf["colour_err_seams"]

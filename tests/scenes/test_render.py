@@ -170,3 +170,21 @@ def test_colourize_marks_ignored_pixels_black():
     assert (rgb[0, 2] == 0).all() and np.array_equal(rgb[0, 0], scenes.PALETTE[0])
     assert len(scenes.PALETTE) == len(SEMANTIC_CLASSES) == 13
     assert normalize(np.ones(3)).shape == (3,)
+
+
+def test_a_rig_camera_renders_from_its_own_centre(scene):
+    """A camera 0.3 m off the view's centre sees what it sees from there, whatever its
+    stitching distance; the boxes stay the view centre's."""
+    p, R = scene.viewpoint(0)
+    off = np.array([0.3, -0.1, 0.05])  # sphere frame: forward, right, up
+    moved = FISHEYE.with_position(off)
+    a = scenes.render(scene, moved, position=p, rotation=R)
+    b = scenes.render(scene, FISHEYE, position=p + R @ off, rotation=R)
+    for f in ("rgb", "label", "depth", "valid"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    np.testing.assert_allclose(a.position, p + R @ off)
+    c = scenes.render(scene, moved.with_distance(2.0), position=p, rotation=R)
+    np.testing.assert_array_equal(c.rgb, a.rgb)
+    d = scenes.render(scene, FISHEYE, position=p, rotation=R)
+    np.testing.assert_allclose(a.boxes, d.boxes, atol=1e-12)
+    assert (a.label != d.label).mean() > 0.01  # 0.3 m shows

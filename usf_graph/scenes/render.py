@@ -46,7 +46,7 @@ class View:
     boxes: np.ndarray      # [K, 5] float64
     box_class: np.ndarray  # [K] int64, index into DETECTION_CLASSES
     box_instance: np.ndarray  # [K] int64
-    position: np.ndarray   # [3] world
+    position: np.ndarray   # [3] world, the camera's optical centre (depth is from it)
     rotation: np.ndarray   # [3, 3] world <- view
 
 
@@ -181,8 +181,11 @@ def render(scene: Scene, camera: Camera, position=None, rotation=None, view: int
     Args:
         scene: a room from :func:`make_room`.
         camera: any :mod:`usf_graph.cameras` model; its own ``rotation`` mounts it in the
-            view's sphere frame as usual.
-        position: camera centre in metres (world frame); ``scene.viewpoint(view)`` when None.
+            view's sphere frame as usual, and its ``position`` (a rig's camera, metres)
+            places its optical centre off the view's centre; a stitching ``distance`` is
+            not used, the rays are cast into the room.
+        position: the view's centre in metres (world frame); ``scene.viewpoint(view)`` when
+            None.
         rotation: ``[3, 3]`` world <- view, any SO(3) rotation; the gravity-aligned random
             yaw of ``scene.viewpoint(view)`` when None.
         view: index of the seeded viewpoint used for whatever is None.
@@ -192,8 +195,10 @@ def render(scene: Scene, camera: Camera, position=None, rotation=None, view: int
         p0, r0 = scene.viewpoint(view)
         position = p0 if position is None else position
         rotation = r0 if rotation is None else rotation
-    position = scene.check_viewpoint(position)
+    centre = scene.check_viewpoint(position)
     rotation = check_rotation(rotation)
+    camera = camera.with_distance(None)  # its rays, not a stitching sphere's directions
+    position = centre if camera.position is None else centre + rotation @ camera.position
     lnm, valid, pix = _camera_rays(camera)
     H, W = valid.shape
     dirs = lnm[valid] @ rotation.T
@@ -226,7 +231,7 @@ def render(scene: Scene, camera: Camera, position=None, rotation=None, view: int
     label = np.full((H, W), IGNORE, np.uint8)
     label[valid] = scene.semantic[inst_v]
     if boxes:
-        wb, wc, wi, rays = world_boxes(scene, position)
+        wb, wc, wi, rays = world_boxes(scene, centre)
         keep = np.array([camera.sees(r @ rotation)[1].mean() >= MIN_VISIBLE_FRACTION for r in rays], bool)
         vb = rotate_boxes(wb[keep], rotation.T) if keep.any() else np.zeros((0, 5))
         bc, bi = wc[keep] if len(wc) else wc, wi[keep] if len(wi) else wi
