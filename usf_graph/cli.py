@@ -19,9 +19,16 @@ from .cli_inputs import (
 )
 
 
-def _axis(cam) -> str:
-    a = cam.rotation @ cam.optical_axis
+def _vec(a) -> str:
     return f"({a[0]:+.4f}, {a[1]:+.4f}, {a[2]:+.4f})"
+
+
+def _axis(cam) -> str:
+    return _vec(cam.rotation @ cam.optical_axis)
+
+
+def _centre(cam) -> str:
+    return "-" if cam.position is None else _vec(cam.position)
 
 
 def cmd_camera(args) -> int:
@@ -37,6 +44,8 @@ def cmd_camera(args) -> int:
     print(f"solid angle    {om:.4f} sr = {om / (4 * math.pi):.2%} of the sphere")
     print(f"parameters     {json.dumps(cam.key()['params'])}")
     print(f"optical axis   {_axis(cam)} in the sphere frame (x forward, y left, z up)")
+    if cam.position is not None:
+        print(f"optical centre {_centre(cam)} in the rig's sphere frame (the file's unit)")
     if args.plot:
         from .viz import plot_lens_normal_map
 
@@ -55,13 +64,14 @@ def _list_cameras(args) -> int:
     if args.key is not None or args.plot or args.save:
         raise ValueError("--all lists every camera of the file; leave out --key, --plot and "
                          "--save (then pick one with --key)")
-    print(f"{'key':<10} {'model':<16} {'image':>11} {'fov (deg)':>10}  optical axis (sphere frame)")
+    print(f"{'key':<10} {'model':<16} {'image':>11} {'fov (deg)':>10}  {'optical axis (sphere frame)':<29} "
+          "optical centre")
     found = cameras.load_all(args.calib)
     for key, cam in found.items():
         cam = cameras.with_fov_and_mask(cam, args.fov, args.image_mask)
         size = f"{cam.width}x{cam.height}"
         print(f"{'-' if key is None else key!s:<10} {cam.model:<16} {size:>11} "
-              f"{cam.fov_deg:>10.2f}  {_axis(cam)}")
+              f"{cam.fov_deg:>10.2f}  {_axis(cam):<29} {_centre(cam)}")
     if args.save_colmap:  # COLMAP's ids where the file had them, else 1, 2, ... in its order
         ids = list(found) if all(isinstance(k, int) for k in found) else range(1, len(found) + 1)
         _save_colmap(dict(zip(ids, found.values())), args.save_colmap)

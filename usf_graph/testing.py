@@ -170,7 +170,7 @@ def grid_equivariance_error(net: Callable[[torch.Tensor], torch.Tensor], grid,
     R = torch.as_tensor(R, dtype=torch.float64)
     cache = GeometryCache(None)
     x = SphericalFrontend(cam, grid, cache=cache).lift(img.astype(np.float64))
-    rot_cam = cam.with_rotation(R.numpy() @ cam.rotation)
+    rot_cam = cam.turned(R.numpy())
     x_r = SphericalFrontend(rot_cam, grid, cache=cache).lift(img.astype(np.float64))
     area = grid.area.double()
     with torch.no_grad():
@@ -193,7 +193,7 @@ def equirect_equivariance_error(net: Callable[[torch.Tensor], torch.Tensor],
     cam = Equirectangular(width, width // 2)
     rays, _ = cam.lens_normal_map()
     R = torch.as_tensor(R, dtype=torch.float64)
-    rot_cam = cam.with_rotation(R.numpy() @ cam.rotation)
+    rot_cam = cam.turned(R.numpy())
     img = np.atleast_3d(signal(rays)).astype(np.float64)
     img_r = np.atleast_3d(signal(rays @ R.numpy()))  # f(R^T p)
 

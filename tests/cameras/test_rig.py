@@ -208,3 +208,20 @@ def test_stitch_at_centres_the_rig_and_says_what_is_missing():
         C.stitch_at({"a": rig["cam0"], "b": rig["cam1"].with_position(None)}, 2.0)
     with pytest.raises(ValueError, match="centre must be 'mean' or 3 numbers"):
         C.stitch_at(rig, 2.0, centre="middle")
+
+
+def test_turning_a_camera_apart_turns_what_it_sees():
+    """``turned(R)`` turns the position with the rotation: the camera then sees direction
+    R p where it saw p, parallax included; turning the rotation alone does not."""
+    rng = np.random.default_rng(3)
+    R = Rotation.random(random_state=4).as_matrix()
+    cam = C.KannalaBrandt(60, 60, 63.5, 63.5, 128, 128, k=[0.01, 0, 0, 0]).with_fov(200)
+    cam = cam.with_position([0.3, -0.2, 0.1]).with_distance(1.5)
+    p = rng.normal(size=(500, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    uv, seen = cam.sees(p)
+    uv_t, seen_t = cam.turned(R).sees(p @ R.T)
+    assert seen.sum() > 100 and (seen == seen_t).all()
+    np.testing.assert_allclose(uv_t[seen], uv[seen], atol=1e-9)
+    uv_r, _ = cam.with_rotation(R @ cam.rotation).sees(p @ R.T)
+    assert np.nanmax(np.abs(uv_r[seen] - uv[seen])) > 1  # pixels

@@ -311,6 +311,14 @@ class Camera:
         :attr:`position` stays."""
         return self._copy(rotation=rotation)
 
+    def turned(self, R) -> Camera:
+        """A copy whose whole mounting is turned by ``R [3, 3]`` (the sphere frame's): its
+        rotation becomes ``R @ rotation`` and its position ``R @ position``, so that it
+        sees the scene turned by ``R`` exactly, with parallax too."""
+        R = np.asarray(R, np.float64)  # the new rotation is checked where it is built
+        new = self._copy(rotation=R @ self.rotation)
+        return new if self.position is None else new.with_position(R @ self.position)
+
     def with_position(self, position) -> Camera:
         """A copy whose optical centre sits at ``position [3]`` in the sphere frame (a rig's
         cameras, in the unit of its calibration, e.g. metres); ``None``: at the centre. The

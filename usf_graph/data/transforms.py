@@ -20,7 +20,7 @@ class RandomRotation(BaseTransform):
 
     * With ``frontend`` given and the source picture stored on the sample as
       ``data.image``, the picture is re-lifted through the camera mounted with
-      :math:`R` (``camera.with_rotation(R @ camera.rotation)``). This is exact: the
+      :math:`R` (``camera.turned(R)``, its position turned too). This is exact: the
       grid samples the rotated continuous signal directly.
     * Otherwise the signal is resampled grid to grid with barycentric weights on the
       grid's triangulation; a point stays visible only if its whole triangle is.
@@ -58,7 +58,7 @@ def rotate_sample(data: Data, R: torch.Tensor, frontend=None) -> Data:
     image = getattr(data, "image", None)
     if frontend is not None and image is not None:
         cam = frontend.camera
-        fe = SphericalFrontend(cam.with_rotation(R64.numpy() @ cam.rotation), frontend.grid,
+        fe = SphericalFrontend(cam.turned(R64.numpy()), frontend.grid,
                                frontend.interpolation, frontend.radius,
                                cache=GeometryCache(None, max_items=1))
         x = fe.lift(image.numpy() if isinstance(image, torch.Tensor) else image)
