@@ -459,7 +459,7 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     assert not (tmp_path / "out" / "drive_000001_labels.png").exists()
     (tmp_path / "broken.mp4").write_bytes(b"not a video")
     for argv, said in (([str(tmp_path / "broken.mp4")], "cannot read video"),
-                       ([frames[0], "--every", "2"], "--every picks a video's frames"),
+                       ([frames[0], "--every", "2"], "--every picks a video's or a bag's frames"),
                        ([str(tmp_path / "drive.avi"), "--rig"], "not videos")):
         assert main(["predict", "seg", str(tmp_path / "seg.pt"), *argv, *common]) == 2
         assert said in capsys.readouterr().err, said

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bags import is_bag
 from .cli_inputs import (
     CAMERA_HELP,
     camera_from_spec,
@@ -35,13 +36,19 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
     p.add_argument("image", nargs="+",
-                   help="RGB image(s) of the one camera (any format OpenCV reads, or .npy), or "
+                   help="RGB image(s) of the one camera (any format OpenCV reads, or .npy), "
                         "videos (" + ", ".join(VIDEO_SUFFIXES) + ": each frame an image, "
-                        "<video>_<frame>_* outputs); several: frames, the model loaded once "
-                        "(with --rig: one image per camera)")
+                        "<video>_<frame>_* outputs) or ROS bags (.bag, a ROS 2 bag's folder, "
+                        ".db3, .mcap: the images of --topic); several: frames, the model "
+                        "loaded once (with --rig: one image per camera)")
     p.add_argument("--every", type=positive_int, default=1, metavar="N",
-                   help="videos: every N-th frame (1: all)")
-    p.add_argument("--camera", required=True, help=CAMERA_HELP)
+                   help="videos and bags: every N-th frame (1: all)")
+    p.add_argument("--topic", default=None,
+                   help="ROS bags: the image topic (sensor_msgs/Image or CompressedImage); "
+                        "default: the bag's only one")
+    p.add_argument("--camera", default=None,
+                   help=CAMERA_HELP + "; for a ROS bag, default: its camera_info beside the "
+                        "image topic")
     camera_options(p)
     p.add_argument("--rig", action="store_true",
                    help="the images are one frame of a rig's cameras (--camera: a Kalibr "
@@ -107,11 +114,20 @@ def cmd_predict(args) -> int:
                          "each other in --out; predict them in separate runs")
     if args.distance is not None and not args.rig:
         raise ValueError("--distance stitches the cameras of a --rig; one camera needs none")
-    if args.rig and any(_is_video(p) for p in args.image):
-        raise ValueError("--rig reads one image per camera, not videos; give one frame of each")
-    if args.every != 1 and not any(_is_video(p) for p in args.image):
-        raise ValueError("--every picks a video's frames; no video (" + ", ".join(VIDEO_SUFFIXES)
-                         + ") was given")
+    streams = [p for p in args.image if _is_video(p) or is_bag(p)]
+    if args.rig and streams:
+        raise ValueError("--rig reads one image per camera, not videos or bags; give one frame "
+                         "of each")
+    if args.every != 1 and not streams:
+        raise ValueError("--every picks a video's or a bag's frames; no video (" +
+                         ", ".join(VIDEO_SUFFIXES) + ") or ROS bag was given")
+    if args.topic is not None and not any(is_bag(p) for p in args.image):
+        raise ValueError("--topic picks a ROS bag's image topic; no bag was given")
+    if args.camera is None and not all(is_bag(p) for p in args.image):
+        raise ValueError("give the camera's calibration with --camera (only a ROS bag can "
+                         "bring its own, as camera_info)")
+    if args.camera is None and args.key is not None:
+        raise ValueError("--key picks a camera in --camera's file; a bag's camera_info holds one")
     _up_arg(args)  # its errors before anything loads
     if args.render and args.task != "seg":
         raise ValueError("--render is segmentation's: a detector's answer is boxes")
@@ -126,15 +142,16 @@ def cmd_predict(args) -> int:
         run(model, [Path(p).stem for p in args.image], args.image, images,
             _rig_cameras(images, args.image, args), names, out, args)
         return 0
-    several = len(args.image) > 1 or any(_is_video(p) for p in args.image)
-    calibrated = {}  # the calibration file, read once per image size (frames share it)
-    for stem, source, image in _inputs(args.image, args.every):
+    several = len(args.image) > 1 or bool(streams)
+    calibrated = {}  # the calibration, read once per image size or bag (frames share it)
+    for stem, source, image, bag in _inputs(args.image, args.every, args.topic):
         if several:
             print(f"== {source}")
-        if image.shape not in calibrated:
-            calibrated[image.shape] = camera_from_spec(args.camera, args.key, args.fov,
-                                                       args.image_mask, image.shape)
-        cam = _alpha_masked(calibrated[image.shape], image, source)
+        key = image.shape if args.camera is not None else bag
+        if key not in calibrated:
+            calibrated[key] = _bag_camera(bag, args) if args.camera is None else \
+                camera_from_spec(args.camera, args.key, args.fov, args.image_mask, image.shape)
+        cam = _alpha_masked(calibrated[key], image, source)
         run(model, [stem], [source], [image], cam, names, out, args)
     return 0
 
@@ -143,15 +160,32 @@ def _is_video(path) -> bool:
     return Path(path).suffix.lower() in VIDEO_SUFFIXES
 
 
-def _inputs(paths, every: int = 1):
-    """``(stem, source, RGB image)`` of every image, and of every ``every``-th frame of
-    every video (stem ``<video>_<frame index>``, source ``<video>#<frame index>``), read
-    one at a time so that a long video never sits in memory."""
+def _bag_camera(bag, args):
+    from .bags import camera
+    from .cameras import with_fov_and_mask
+
+    cam = with_fov_and_mask(camera(bag, args.topic), args.fov, args.image_mask)
+    print(f"camera from {bag}'s camera_info: {cam}")
+    return cam
+
+
+def _inputs(paths, every: int = 1, topic: str | None = None):
+    """``(stem, source, RGB image, bag or None)`` of every image, and of every ``every``-th
+    frame of every video (stem ``<video>_<frame index>``, source ``<video>#<frame index>``)
+    and ROS bag (source ``<bag>#<topic>@<stamp in ns>``), read one at a time so that a long
+    recording never sits in memory."""
     import cv2
 
+    from .bags import frames
+
     for path in paths:
+        if is_bag(path):
+            name = Path(path).stem
+            for f in frames(path, topic, every):
+                yield f"{name}_{f.index:06d}", f"{path}#{f.topic}@{f.stamp_ns}", f.image, path
+            continue
         if not _is_video(path):
-            yield Path(path).stem, str(path), read_image(path)
+            yield Path(path).stem, str(path), read_image(path), None
             continue
         cap = cv2.VideoCapture(str(path))
         if not cap.isOpened():
@@ -166,7 +200,7 @@ def _inputs(paths, every: int = 1):
                 if i % every == 0:
                     taken += 1
                     yield f"{Path(path).stem}_{i:06d}", f"{path}#{i}", \
-                        cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                        cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None
                 i += 1
         finally:
             cap.release()
@@ -227,7 +261,8 @@ def _predict_det(model, stems, sources, images, cam, names, out: Path, args) -> 
                      interpolation=args.interpolation)
     print(_report_up(r))
     stem = stems[0]
-    _write_boxes(r, names, out / f"{stem}_boxes.json", sources, args.camera)
+    _write_boxes(r, names, out / f"{stem}_boxes.json", sources,
+                 args.camera or "the bag's camera_info")
     keep = r["scores"] >= args.min_score
     if keep.any():
         print(f"{'class':>14} score  [lon, lat, fov_x, fov_y, gamma] in degrees, as in the JSON")

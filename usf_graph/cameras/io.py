@@ -237,6 +237,17 @@ def _k(src: Src, K, name: str):
     return dict(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
 
 
+def camera_info_to_camera(data: dict, path, key: str) -> Camera:
+    """A camera from a ROS ``camera_info`` as a dict (``image_width``, ``image_height``,
+    ``camera_matrix``, ``distortion_model``, ``distortion_coefficients``), e.g. a bag's
+    message; errors name ``path [key]``."""
+    src = Src(Path(str(path)), key)
+    if not np.any(src.array(src.need(data, "camera_matrix"), "camera_matrix")):
+        raise src.error("the camera_info is uncalibrated (K is all zeros); calibrate the camera "
+                        "or give its calibration file with --camera")
+    return _load_opencv(src, data, ros=True)
+
+
 def from_doc(doc: dict) -> Camera:
     """A camera from :meth:`Camera.to_doc`'s plain data."""
     return _load_own(Src(Path("<camera document>")), doc)

@@ -1,0 +1,186 @@
+"""ROS bags: frames and camera_info read from bags that rosbags' own writers make, ROS 1 and
+ROS 2, and the errors for what cannot be read."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from tests.helpers import FIXTURES
+from usf_graph import bags, cameras
+
+pytest.importorskip("rosbags")
+pytest.importorskip("rosbags.image")
+from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
+from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+ROS2, ROS1 = get_typestore(Stores.ROS2_HUMBLE), get_typestore(Stores.ROS1_NOETIC)
+
+
+def frame(i, h=48, w=64):
+    """An RGB frame that differs per i and in every channel."""
+    y, x = np.mgrid[:h, :w]
+    return np.stack([(x * 4 + i) % 256, (y * 5 + 3 * i) % 256, (x + y + 7 * i) % 256], -1).astype(np.uint8)
+
+
+def info_fields(calib: Path) -> dict:
+    """A ROS camera_info YAML file's values, as a CameraInfo message has them."""
+    c = yaml.safe_load(calib.read_text())
+    return dict(width=c["image_width"], height=c["image_height"], model=c["distortion_model"],
+                k=np.array(c["camera_matrix"]["data"], float),
+                d=np.array(c["distortion_coefficients"]["data"], float))
+
+
+def messages(ts, ros1: bool, n, calib=None, encoding="rgb8", k_zero=False, binning=0):
+    """(topic, msgtype, message, time) of n raw frames, n PNG frames and a camera_info."""
+    T = ts.types
+    stamp = lambda i: T["builtin_interfaces/msg/Time"](sec=100 + i, nanosec=5)  # noqa: E731
+    header = (lambda i: T["std_msgs/msg/Header"](seq=i, stamp=stamp(i), frame_id="cam")) if ros1 \
+        else (lambda i: T["std_msgs/msg/Header"](stamp=stamp(i), frame_id="cam"))
+    out = []
+    for i in range(n):
+        rgb = frame(i)
+        data = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "mono8": rgb[..., 0]}[encoding]
+        img = T["sensor_msgs/msg/Image"](header=header(i), height=48, width=64, encoding=encoding,
+                                         is_bigendian=0, step=data[0].size,
+                                         data=np.ascontiguousarray(data).reshape(-1))
+        png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))[1].reshape(-1)
+        comp = T["sensor_msgs/msg/CompressedImage"](header=header(i), format="png", data=png)
+        out += [("/cam/image_raw", img, i), ("/cam/image_raw/compressed", comp, i)]
+    if calib is not None:
+        f = info_fields(calib)
+        K, D, R, P = (("K", "D", "R", "P") if ros1 else ("k", "d", "r", "p"))
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                    do_rectify=False)
+        info = T["sensor_msgs/msg/CameraInfo"](**{
+            "header": header(0), "height": f["height"], "width": f["width"],
+            "distortion_model": f["model"], D: f["d"], K: 0 * f["k"] if k_zero else f["k"],
+            R: np.eye(3).ravel(), P: np.zeros(12), "binning_x": binning, "binning_y": binning,
+            "roi": roi})
+        out.append(("/cam/camera_info", info, 0))
+    return out
+
+
+def write_bag(path: Path, ros1: bool, msgs) -> Path:
+    ts = ROS1 if ros1 else ROS2
+    with (Writer1(path) if ros1 else Writer2(path, version=9)) as w:
+        conns = {}
+        for topic, msg, i in msgs:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msg.__msgtype__, typestore=ts)
+            raw = ts.serialize_ros1(msg, msg.__msgtype__) if ros1 else ts.serialize_cdr(msg, msg.__msgtype__)
+            w.write(conns[topic], 10**9 * (200 + i), raw)
+    return path
+
+
+@pytest.mark.parametrize("ros1", [False, True], ids=["ros2", "ros1"])
+def test_frames_and_the_camera_come_back_as_written(tmp_path, ros1):
+    calib = FIXTURES / "ros_equidistant.yaml"
+    ts = ROS1 if ros1 else ROS2
+    bag = write_bag(tmp_path / ("run.bag" if ros1 else "run"), ros1, messages(ts, ros1, 5, calib))
+    assert bags.is_bag(bag) and not bags.is_bag(calib)
+    assert bags.topics(bag)["/cam/image_raw"] == ("sensor_msgs/msg/Image", 5)
+    got = list(bags.frames(bag, "/cam/image_raw"))
+    assert [f.index for f in got] == list(range(5))
+    assert [f.stamp_ns for f in got] == [(100 + i) * 10**9 + 5 for i in range(5)]  # the header's
+    for f in got:
+        np.testing.assert_array_equal(f.image, frame(f.index))
+    png = list(bags.frames(bag, "/cam/image_raw/compressed", every=2))
+    assert [f.index for f in png] == [0, 2, 4] and all(f.topic == "/cam/image_raw/compressed" for f in png)
+    for f in png:
+        np.testing.assert_array_equal(f.image, frame(f.index))
+    # the camera_info beside either topic is the one the ROS YAML file holds
+    for topic in ("/cam/image_raw", "/cam/image_raw/compressed"):
+        assert bags.camera(bag, topic).key() == cameras.load(calib).key()
+
+
+@pytest.mark.parametrize("ros1", [False, True], ids=["ros2", "ros1"])
+def test_encodings_read_as_rgb_or_mono_and_pinholes_as_pinholes(tmp_path, ros1):
+    ts = ROS1 if ros1 else ROS2
+    calib = FIXTURES / "ros_plumb_bob.yaml"
+    for enc in ("bgr8", "mono8"):
+        msgs = [m for m in messages(ts, ros1, 2, calib, encoding=enc) if "compressed" not in m[0]]
+        bag = write_bag(tmp_path / f"{enc}{'.bag' if ros1 else ''}", ros1, msgs)
+        f = next(bags.frames(bag))  # the only image topic
+        want = frame(0)[..., 0] if enc == "mono8" else frame(0)  # bgr8 turned to RGB
+        np.testing.assert_array_equal(f.image, want)
+        cam = bags.camera(bag)
+        assert isinstance(cam, cameras.Pinhole) and cam.key() == cameras.load(calib).key()
+
+
+def test_what_cannot_be_read_says_why(tmp_path):
+    calib = FIXTURES / "ros_equidistant.yaml"
+    bag = write_bag(tmp_path / "two", False, messages(ROS2, False, 1))
+    with pytest.raises(ValueError, match=r"has 2 image topics \(/cam/image_raw, "
+                                         r"/cam/image_raw/compressed\); choose one with --topic"):
+        next(bags.frames(bag))
+    with pytest.raises(ValueError, match=r"no image topic '/cam/left'; its image topics: /cam/image_raw"):
+        next(bags.frames(bag, "/cam/left"))
+    with pytest.raises(ValueError, match=r"no camera_info for /cam/image_raw \(looked for "
+                                         r"/cam/camera_info; the bag's: none\); give the calibration"):
+        bags.camera(bag, "/cam/image_raw")
+    zero = write_bag(tmp_path / "zero", False, messages(ROS2, False, 1, calib, k_zero=True))
+    with pytest.raises(ValueError, match=r"\[/cam/camera_info\]: the camera_info is uncalibrated"):
+        bags.camera(zero, "/cam/image_raw")
+    binned = write_bag(tmp_path / "binned", False, messages(ROS2, False, 1, calib, binning=2))
+    with pytest.raises(ValueError, match=r"binned or cropped camera_info \(binning 2x2"):
+        bags.camera(binned, "/cam/image_raw")
+    (tmp_path / "junk.bag").write_bytes(b"#ROSBAG V2.0\n" + bytes(100))
+    with pytest.raises(ValueError, match=r"cannot read ROS bag .*junk.bag"):
+        bags.topics(tmp_path / "junk.bag")
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        bags.topics(tmp_path / "missing.bag")
+
+
+def test_predict_reads_a_bag_and_its_camera_info(tmp_path, capsys):
+    """``predict seg CKPT run/ --topic ...`` gives every frame the labels that predicting
+    its PNG with the calibration file gives."""
+    import torch
+
+    from usf_graph.cli import main
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train import save_checkpoint
+
+    calib = FIXTURES / "ros_equidistant.yaml"
+    f = info_fields(calib)
+    cam = cameras.load(calib)
+    # frames at the calibration's size: a scaled version of the test frame
+    msgs = []
+    for topic, msg, i in messages(ROS2, False, 3, calib):
+        if topic == "/cam/image_raw":
+            big = cv2.resize(frame(i), (f["width"], f["height"]), interpolation=cv2.INTER_NEAREST)
+            msg = type(msg)(header=msg.header, height=f["height"], width=f["width"], encoding="rgb8",
+                            is_bigendian=0, step=3 * f["width"], data=big.reshape(-1))
+            cv2.imwrite(str(tmp_path / f"frame{i}.png"), cv2.cvtColor(big, cv2.COLOR_RGB2BGR))
+        if "compressed" not in topic:
+            msgs.append((topic, msg, i))
+    bag = write_bag(tmp_path / "run", False, msgs)
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
+    with torch.no_grad():
+        seg.head.weight.mul_(30)
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    ckpt = str(tmp_path / "seg.pt")
+    assert main(["predict", "seg", ckpt, str(bag), "--every", "2", "--out", str(tmp_path / "b")]) == 0
+    out = capsys.readouterr().out
+    assert f"camera from {bag}'s camera_info: {cam}" in out and "run#/cam/image_raw@101000000005" not in out
+    assert f"== {bag}#/cam/image_raw@100000000005" in out and f"== {bag}#/cam/image_raw@102000000005" in out
+    assert main(["predict", "seg", ckpt, str(tmp_path / "frame0.png"), str(tmp_path / "frame2.png"),
+                 "--camera", str(calib), "--out", str(tmp_path / "p")]) == 0
+    for i in (0, 2):
+        a = cv2.imread(str(tmp_path / "b" / f"run_{i:06d}_labels.png"), cv2.IMREAD_UNCHANGED)
+        b = cv2.imread(str(tmp_path / "p" / f"frame{i}_labels.png"), cv2.IMREAD_UNCHANGED)
+        assert a is not None and np.array_equal(a, b)
+    assert not (tmp_path / "b" / "run_000001_labels.png").exists()
+    capsys.readouterr()
+    for argv, msg in (([str(tmp_path / "frame0.png")], "give the camera's calibration with --camera"),
+                      ([str(tmp_path / "frame0.png"), "--camera", str(calib), "--topic", "/x"],
+                       "--topic picks a ROS bag's image topic; no bag"),
+                      ([str(bag), "--key", "cam1"], "--key picks a camera in --camera's file"),
+                      ([str(bag), "--rig", "--camera", str(calib)], "not videos or bags"),
+                      ([str(bag), "--topic", "/cam/left"], "no image topic '/cam/left'")):
+        assert main(["predict", "seg", ckpt, *argv]) == 2, argv
+        assert msg in capsys.readouterr().err

@@ -1,0 +1,159 @@
+"""ROS bags: a camera's images and its calibration, read from a recording.
+
+ROS 1 (``.bag``) and ROS 2 (a folder with ``metadata.yaml``, or its ``.db3`` / ``.mcap``)
+through the ``rosbags`` library (``pip install usf-graph[ros]``). Images are
+``sensor_msgs/Image`` (any encoding ``rosbags-image`` converts: colour as RGB, mono as one
+channel) or ``sensor_msgs/CompressedImage``; the calibration is the first
+``sensor_msgs/CameraInfo`` next to the image topic (``/ns/image_raw`` ->
+``/ns/camera_info``), read as ROS writes it: plumb_bob, rational_polynomial or equidistant.
+Frames are read one at a time, so a long recording never sits in memory.
+
+    from usf_graph import bags
+    cam = bags.camera("run.bag", "/cam0/image_raw")
+    for f in bags.frames("run.bag", "/cam0/image_raw", every=10):
+        f.index, f.stamp_ns, f.image  # [H, W, 3] RGB or [H, W]
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from .cameras import Camera
+from .cameras.io import camera_info_to_camera
+
+#: Files read as ROS bags (besides a ROS 2 bag's folder).
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+_MONO = ("mono8", "mono16", "8uc1", "16uc1")
+
+
+class Frame(NamedTuple):
+    topic: str
+    index: int  # the message's place on its topic, from 0
+    stamp_ns: int  # the header's stamp (the recording time where the stamp is 0)
+    image: np.ndarray  # [H, W, 3] RGB or [H, W] mono
+
+
+def is_bag(path) -> bool:
+    """True for a ROS 1 ``.bag``, a ROS 2 ``.db3``/``.mcap`` or a ROS 2 bag's folder."""
+    p = Path(path)
+    return p.suffix.lower() in BAG_SUFFIXES or (p.is_dir() and (p / "metadata.yaml").is_file())
+
+
+def _open(path):
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise ImportError("reading ROS bags needs rosbags: pip install 'usf-graph[ros]' "
+                          "(rosbags and rosbags-image)") from None
+    p = Path(path)
+    if p.suffix.lower() in (".db3", ".mcap") and (p.parent / "metadata.yaml").is_file():
+        p = p.parent  # rosbags opens a ROS 2 bag by its folder
+    if not p.exists():
+        raise FileNotFoundError(f"ROS bag {path} does not exist")
+    try:
+        reader = AnyReader([p], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as e:  # noqa: BLE001 - rosbags raises its own errors for bad files
+        raise ValueError(f"cannot read ROS bag {path} ({type(e).__name__}: {e}); a ROS 2 bag "
+                         "is opened by its folder (with metadata.yaml)") from e
+    return reader
+
+
+def topics(path) -> dict[str, tuple[str, int]]:
+    """``{topic: (message type, count)}`` of every topic in the bag."""
+    reader = _open(path)
+    try:
+        return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+    finally:
+        reader.close()
+
+
+def image_topic(path, topic: str | None = None) -> str:
+    """``topic`` checked to be an image topic of the bag, or the bag's only image topic."""
+    found = {t: m for t, (m, _) in topics(path).items() if m in IMAGE_TYPES}
+    if topic is None:
+        if len(found) != 1:
+            raise ValueError(f"{path} has {len(found)} image topics ({', '.join(sorted(found)) or 'none'}); "
+                             "choose one with --topic" if found else
+                             f"{path} has no sensor_msgs/Image or CompressedImage topic")
+        return next(iter(found))
+    if topic not in found:
+        raise ValueError(f"{path}: no image topic {topic!r}; its image topics: "
+                         f"{', '.join(sorted(found)) or 'none'}")
+    return topic
+
+
+def frames(path, topic: str | None = None, every: int = 1) -> Iterator[Frame]:
+    """Every ``every``-th image of ``topic`` (the bag's only image topic when None), in
+    recording order."""
+    topic = image_topic(path, topic)
+    reader = _open(path)
+    try:
+        conns = [c for c in reader.connections if c.topic == topic]
+        for i, (conn, t, raw) in enumerate(reader.messages(connections=conns)):
+            if i % every:
+                continue
+            msg = reader.deserialize(raw, conn.msgtype)
+            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            yield Frame(topic, i, stamp or t, _image(msg, f"{path} [{topic} #{i}]"))
+    finally:
+        reader.close()
+
+
+def _image(msg, where: str) -> np.ndarray:
+    import cv2
+
+    if hasattr(msg, "format"):  # CompressedImage: PNG or JPEG bytes
+        img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"{where}: the compressed image ({msg.format!r}) does not decode")
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+        return img
+    from rosbags.image import message_to_cvimage
+
+    try:
+        if msg.encoding.lower() in _MONO:
+            return message_to_cvimage(msg)
+        return message_to_cvimage(msg, "rgb8")
+    except Exception as e:  # noqa: BLE001 - an encoding rosbags-image does not convert
+        raise ValueError(f"{where}: cannot convert the image (encoding {msg.encoding!r}: "
+                         f"{e})") from e
+
+
+def camera(path, topic: str | None = None) -> Camera:
+    """The camera of ``topic``'s images from the bag's ``sensor_msgs/CameraInfo``: the one
+    beside it (``/ns/image_raw[/compressed]`` -> ``/ns/camera_info``), else the bag's only
+    one. Its first message is used."""
+    topic = image_topic(path, topic)
+    infos = [t for t, (m, _) in topics(path).items() if m == INFO_TYPE]
+    base = topic.rsplit("/compressed", 1)[0] if topic.endswith("/compressed") else topic
+    beside = base.rsplit("/", 1)[0] + "/camera_info"
+    name = beside if beside in infos else infos[0] if len(infos) == 1 else None
+    if name is None:
+        raise ValueError(f"{path}: no camera_info for {topic} (looked for {beside}; the bag's: "
+                         f"{', '.join(infos) or 'none'}); give the calibration with --camera")
+    reader = _open(path)
+    try:
+        conn = next(c for c in reader.connections if c.topic == name)
+        _, _, raw = next(iter(reader.messages(connections=[conn])))
+        msg = reader.deserialize(raw, conn.msgtype)
+    finally:
+        reader.close()
+    if getattr(msg, "binning_x", 0) > 1 or getattr(msg, "binning_y", 0) > 1 or msg.roi.width:
+        raise ValueError(f"{path} [{name}]: binned or cropped camera_info (binning "
+                         f"{msg.binning_x}x{msg.binning_y}, roi {msg.roi.width}x{msg.roi.height}) "
+                         "is not read; give the calibration of the images with --camera")
+    return camera_info_to_camera(
+        {"image_width": msg.width, "image_height": msg.height,
+         "camera_matrix": {"data": np.asarray(msg.K if hasattr(msg, "K") else msg.k).tolist()},
+         "distortion_model": msg.distortion_model,
+         "distortion_coefficients": {"data": np.asarray(msg.D if hasattr(msg, "D") else msg.d).tolist()}},
+        path, name)
