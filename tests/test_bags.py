@@ -180,7 +180,92 @@ def test_predict_reads_a_bag_and_its_camera_info(tmp_path, capsys):
                       ([str(tmp_path / "frame0.png"), "--camera", str(calib), "--topic", "/x"],
                        "--topic picks a ROS bag's image topic; no bag"),
                       ([str(bag), "--key", "cam1"], "--key picks a camera in --camera's file"),
-                      ([str(bag), "--rig", "--camera", str(calib)], "not videos or bags"),
+                      ([str(bag), str(tmp_path / "frame0.png"), "--rig", "--camera", str(calib)],
+                       "nor bags among images"),
+                      ([str(bag), "--rig", "--camera", str(calib)], "a rig is read from"),
                       ([str(bag), "--topic", "/cam/left"], "no image topic '/cam/left'")):
         assert main(["predict", "seg", ckpt, *argv]) == 2, argv
         assert msg in capsys.readouterr().err
+
+
+def image_msg(ts, rgb, sec, nanosec):
+    T = ts.types
+    h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+                                 frame_id="cam")
+    return T["sensor_msgs/msg/Image"](header=h, height=rgb.shape[0], width=rgb.shape[1],
+                                      encoding="rgb8", is_bigendian=0, step=3 * rgb.shape[1],
+                                      data=np.ascontiguousarray(rgb).reshape(-1))
+
+
+def test_a_rig_bag_gives_frames_matched_by_stamp(tmp_path):
+    # front at 0, 0.1, 0.2, 0.3 s; back 3 ms late, but 50 ms late for frame 2 and none for 3
+    msgs = []
+    for i in range(4):
+        msgs.append(("/front", image_msg(ROS2, frame(i), 10, i * 10**8), 2 * i))
+        if i < 3:
+            late = 50 if i == 2 else 3
+            msgs.append(("/back", image_msg(ROS2, frame(10 + i), 10, i * 10**8 + late * 10**6), 2 * i + 1))
+    bag = write_bag(tmp_path / "rig", False, msgs)
+    with pytest.warns(UserWarning, match=r"2 of the 4 frames of /front have no image of every other camera within 10 ms"):
+        got = list(bags.rig_frames(bag, ["/front", "/back"]))
+    assert [f.index for f in got] == [0, 1]
+    assert got[1].stamps_ns == (10 * 10**9 + 10**8, 10 * 10**9 + 10**8 + 3 * 10**6)
+    for f in got:
+        np.testing.assert_array_equal(f.images[0], frame(f.index))
+        np.testing.assert_array_equal(f.images[1], frame(10 + f.index))
+    wide = list(bags.rig_frames(bag, ["/front", "/back"], every=2, max_skew_ns=60 * 10**6))
+    assert [f.index for f in wide] == [0, 2]
+    np.testing.assert_array_equal(wide[1].images[1], frame(12))
+    with pytest.raises(ValueError, match="one topic each"):
+        next(bags.rig_frames(bag, ["/front", "/front"]))
+    with pytest.raises(ValueError, match=r"no frame of /back has an image of every other camera \(/front\) within 0.001 ms"):
+        next(bags.rig_frames(bag, ["/back", "/front"], max_skew_ns=1000))
+
+
+def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys):
+    """``predict seg CKPT rig_bag --rig --camera camchain``: the camchain's rostopics, one
+    sphere per frame, the labels that the frames' PNGs give with ``--rig``."""
+    import torch
+
+    from usf_graph.cli import main
+    from usf_graph.frontend import render
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train import save_checkpoint
+    from usf_graph.viz import labelled_panorama
+
+    chain = FIXTURES / "kalibr_rig.yaml"
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(chain).items()}
+    msgs = []
+    for i, shift in enumerate((0, 40)):
+        pano = np.roll(labelled_panorama(256, 128), shift, axis=1)
+        for k, (name, cam) in enumerate(rig.items()):
+            im = (255 * render(pano, cameras.Equirectangular(256, 128), cam)).round().astype(np.uint8)
+            cv2.imwrite(str(tmp_path / f"f{i}_{name}.png"), cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
+            topic = cameras.rig_topics(chain)[k]
+            msgs.append((topic, image_msg(ROS2, im, 5 + i, k * 10**6), 2 * i + k))
+    bag = write_bag(tmp_path / "drive", False, msgs)
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
+    with torch.no_grad():
+        seg.head.weight.mul_(30)
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    ckpt = str(tmp_path / "seg.pt")
+    common = ["--camera", str(chain), "--fov", "190", "--rig"]
+    assert main(["predict", "seg", ckpt, str(bag), *common, "--out", str(tmp_path / "b")]) == 0
+    out = capsys.readouterr().out
+    assert "rig cam0 <- /front/image_raw, cam1 <- /back/image_raw" in out
+    for i in (0, 1):
+        assert main(["predict", "seg", ckpt, str(tmp_path / f"f{i}_cam0.png"),
+                     str(tmp_path / f"f{i}_cam1.png"), *common, "--out", str(tmp_path / "p")]) == 0
+        for name in rig:
+            a = cv2.imread(str(tmp_path / "b" / f"drive_{name}_{i:06d}_labels.png"), cv2.IMREAD_UNCHANGED)
+            b = cv2.imread(str(tmp_path / "p" / f"f{i}_{name}_labels.png"), cv2.IMREAD_UNCHANGED)
+            assert a is not None and np.array_equal(a, b)
+    capsys.readouterr()
+    assert main(["predict", "seg", ckpt, str(bag), *common, "--topic", "/front/image_raw"]) == 2
+    assert "has 2 cameras (cam0, cam1) but 1 topics" in capsys.readouterr().err
+    assert main(["predict", "seg", ckpt, str(bag), "--camera", str(FIXTURES / "basalt_calib.json"),
+                 "--rig"]) == 2
+    assert "give each camera's image topic with --topic" in capsys.readouterr().err
+    assert main(["predict", "seg", ckpt, str(bag), "--topic", "/a", "--topic", "/b"]) == 2
+    assert "several --topic are a rig's cameras (--rig)" in capsys.readouterr().err

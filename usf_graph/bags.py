@@ -101,10 +101,90 @@ def frames(path, topic: str | None = None, every: int = 1) -> Iterator[Frame]:
             if i % every:
                 continue
             msg = reader.deserialize(raw, conn.msgtype)
-            stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-            yield Frame(topic, i, stamp or t, _image(msg, f"{path} [{topic} #{i}]"))
+            yield Frame(topic, i, _stamp(msg, t), _image(msg, f"{path} [{topic} #{i}]"))
     finally:
         reader.close()
+
+
+class RigFrame(NamedTuple):
+    index: int  # the first topic's message index
+    stamps_ns: tuple  # each camera's stamp
+    images: list  # one image per topic, in the topics' order
+
+
+def rig_frames(path, rig_topics, every: int = 1, max_skew_ns: int = 10**7) -> Iterator[RigFrame]:
+    """A rig's frames: for every ``every``-th image of the first topic, the image of every
+    other topic whose stamp is nearest to it, when all are within ``max_skew_ns``; sets
+    where a camera has none that near are skipped (and counted in a warning)."""
+    rig_topics = [image_topic(path, t) for t in rig_topics]
+    if len(set(rig_topics)) < len(rig_topics):
+        raise ValueError(f"a rig's cameras need one topic each, got {rig_topics}")
+    stamps = _stamps(path, rig_topics)
+    want, skipped = {}, 0  # (topic index, message index) -> set index
+    sets = []
+    for i in range(0, len(stamps[0]), every):
+        t0, pick = stamps[0][i], [i]
+        for st in stamps[1:]:
+            j = int(np.argmin(np.abs(st - t0))) if len(st) else -1
+            pick.append(j if j >= 0 and abs(int(st[j]) - int(t0)) <= max_skew_ns else None)
+        if None in pick:
+            skipped += 1
+            continue
+        sets.append(pick)
+        for k, j in enumerate(pick):
+            want.setdefault((k, j), []).append(len(sets) - 1)
+    if not sets:
+        raise ValueError(f"{path}: no frame of {rig_topics[0]} has an image of every other "
+                         f"camera ({', '.join(rig_topics[1:])}) within {max_skew_ns / 1e6:g} ms; "
+                         "raise the tolerance (--max-skew) or check the topics")
+    if skipped:
+        import warnings
+
+        warnings.warn(f"{path}: {skipped} of the {skipped + len(sets)} frames of {rig_topics[0]} "
+                      f"have no image of every other camera within {max_skew_ns / 1e6:g} ms; "
+                      "they are left out", stacklevel=2)
+    got: dict = {}  # set index -> {camera: image}; sets are given out as they complete
+    reader = _open(path)
+    try:
+        conns = [c for c in reader.connections if c.topic in rig_topics]
+        seen = dict.fromkeys(rig_topics, -1)
+        for conn, _, raw in reader.messages(connections=conns):
+            k = rig_topics.index(conn.topic)
+            seen[conn.topic] += 1
+            users = want.get((k, seen[conn.topic]))
+            if not users:
+                continue
+            img = _image(reader.deserialize(raw, conn.msgtype),
+                         f"{path} [{conn.topic} #{seen[conn.topic]}]")
+            for u in users:
+                got.setdefault(u, {})[k] = img
+                if len(got[u]) == len(rig_topics):
+                    done = got.pop(u)
+                    pick = sets[u]
+                    yield RigFrame(pick[0], tuple(int(stamps[c][j]) for c, j in enumerate(pick)),
+                                   [done[c] for c in range(len(rig_topics))])
+    finally:
+        reader.close()
+
+
+def _stamps(path, topics_: list) -> list[np.ndarray]:
+    """Each topic's message stamps (ns), in its order (the header's; the recording time
+    where the stamp is 0)."""
+    out = {t: [] for t in topics_}
+    reader = _open(path)
+    try:
+        conns = [c for c in reader.connections if c.topic in out]
+        for conn, t, raw in reader.messages(connections=conns):
+            out[conn.topic].append(_stamp(reader.deserialize(raw, conn.msgtype), t))
+    finally:
+        reader.close()
+    return [np.array(out[t], np.int64) for t in topics_]
+
+
+def _stamp(msg, t: int) -> int:
+    """The header's stamp in ns; the recording time ``t`` where the stamp is 0."""
+    s = msg.header.stamp
+    return s.sec * 10**9 + s.nanosec or t
 
 
 def _image(msg, where: str) -> np.ndarray:

@@ -43,9 +43,12 @@ def add_predict_parser(sub, fmt) -> None:
                         "loaded once (with --rig: one image per camera)")
     p.add_argument("--every", type=positive_int, default=1, metavar="N",
                    help="videos and bags: every N-th frame (1: all)")
-    p.add_argument("--topic", default=None,
+    p.add_argument("--topic", default=None, action="append",
                    help="ROS bags: the image topic (sensor_msgs/Image or CompressedImage); "
-                        "default: the bag's only one")
+                        "default: the bag's only one. With --rig, once per camera in the rig's "
+                        "order (default: a Kalibr camchain's rostopics)")
+    p.add_argument("--max-skew", type=float, default=10.0, metavar="MS",
+                   help="a rig's ROS bag: the most the cameras' stamps of one frame may differ")
     p.add_argument("--camera", default=None,
                    help=CAMERA_HELP + "; for a ROS bag, default: its camera_info beside the "
                         "image topic")
@@ -115,14 +118,17 @@ def cmd_predict(args) -> int:
     if args.distance is not None and not args.rig:
         raise ValueError("--distance stitches the cameras of a --rig; one camera needs none")
     streams = [p for p in args.image if _is_video(p) or is_bag(p)]
-    if args.rig and streams:
-        raise ValueError("--rig reads one image per camera, not videos or bags; give one frame "
-                         "of each")
+    rig_bag = args.rig and len(args.image) == 1 and is_bag(args.image[0])
+    if args.rig and streams and not rig_bag:
+        raise ValueError("--rig reads one image per camera, or one ROS bag with a topic per "
+                         "camera; not videos, nor bags among images")
     if args.every != 1 and not streams:
         raise ValueError("--every picks a video's or a bag's frames; no video (" +
                          ", ".join(VIDEO_SUFFIXES) + ") or ROS bag was given")
     if args.topic is not None and not any(is_bag(p) for p in args.image):
         raise ValueError("--topic picks a ROS bag's image topic; no bag was given")
+    if args.topic and len(args.topic) > 1 and not args.rig:
+        raise ValueError("several --topic are a rig's cameras (--rig); one camera reads one")
     if args.camera is None and not all(is_bag(p) for p in args.image):
         raise ValueError("give the camera's calibration with --camera (only a ROS bag can "
                          "bring its own, as camera_info)")
@@ -137,6 +143,9 @@ def cmd_predict(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     run = _predict_seg if args.task == "seg" else _predict_det
+    if rig_bag:  # a rig's recording: one image per camera and frame, one sphere each
+        _predict_rig_bag(run, model, names, out, args)
+        return 0
     if args.rig:  # one frame of the rig: an image per camera, one sphere
         images = [read_image(p) for p in args.image]
         run(model, [Path(p).stem for p in args.image], args.image, images,
@@ -144,7 +153,8 @@ def cmd_predict(args) -> int:
         return 0
     several = len(args.image) > 1 or bool(streams)
     calibrated = {}  # the calibration, read once per image size or bag (frames share it)
-    for stem, source, image, bag in _inputs(args.image, args.every, args.topic):
+    topic = args.topic[0] if args.topic else None
+    for stem, source, image, bag in _inputs(args.image, args.every, topic):
         if several:
             print(f"== {source}")
         key = image.shape if args.camera is not None else bag
@@ -206,6 +216,30 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
             cap.release()
         if not taken:
             raise ValueError(f"video {path} has no frames OpenCV can decode")
+
+
+def _predict_rig_bag(run, model, names, out: Path, args) -> None:
+    """``predict --rig`` on a ROS bag: each camera's topic, frames matched by stamp."""
+    from .bags import rig_frames
+    from .cameras import rig_topics
+
+    bag = args.image[0]
+    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance)
+    topics = args.topic or rig_topics(args.camera)
+    if topics is None:
+        raise ValueError(f"--rig on a bag: give each camera's image topic with --topic, in the "
+                         f"rig's order ({', '.join(rig)}); {args.camera} names none")
+    if len(topics) != len(rig):
+        raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
+                         f"{len(topics)} topics were given ({', '.join(topics)})")
+    print(f"rig {', '.join(f'{n} <- {t}' for n, t in zip(rig, topics))}")
+    name = Path(bag).stem
+    for f in rig_frames(bag, topics, args.every, round(args.max_skew * 1e6)):
+        sources = [f"{bag}#{t}@{s}" for t, s in zip(topics, f.stamps_ns)]
+        print(f"== {bag}#{f.index} ({', '.join(str(s) for s in f.stamps_ns)})")
+        cams = {n: _alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), f.images, sources)}
+        run(model, [f"{name}_{n}_{f.index:06d}" for n in rig], sources, f.images, cams, names,
+            out, args)
 
 
 def _rig_cameras(images, sources, args):

@@ -127,6 +127,20 @@ def _mounted(path: Path, data: dict, chain, name: str, required: bool = False) -
 
 
 
+def rig_topics(path) -> list[str] | None:
+    """The ROS image topic of each camera of a Kalibr camchain (its ``rostopic``s, in the
+    rig's order), or None where the file does not name them all."""
+    path = Path(path)
+    if rig_file(path) is not None:
+        return None
+    data = _document(path)
+    chain = _chain(data)
+    if chain is None or chain.kind != "camchain":
+        return None
+    found = [data[n].get("rostopic") for n in chain.names(data)]
+    return found if all(isinstance(t, str) and t for t in found) else None
+
+
 def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None) -> Camera:
     """``cam`` with a usable field of view (:meth:`Camera.with_fov`) and an image mask
     (``[H, W]`` array, or an image file: :func:`read_mask`), each where given."""
