@@ -1,6 +1,7 @@
 """ROS bags: frames and camera_info read from bags that rosbags' own writers make, ROS 1 and
 ROS 2, and the errors for what cannot be read."""
 
+import json
 from pathlib import Path
 
 import cv2
@@ -269,3 +270,122 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
     assert "give each camera's image topic with --topic" in capsys.readouterr().err
     assert main(["predict", "seg", ckpt, str(bag), "--topic", "/a", "--topic", "/b"]) == 2
     assert "several --topic are a rig's cameras (--rig)" in capsys.readouterr().err
+
+
+def imu_msg(ts, acc, sec, nanosec):
+    T = ts.types
+    v3 = T["geometry_msgs/msg/Vector3"]
+    h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+                                 frame_id="imu")
+    return T["sensor_msgs/msg/Imu"](
+        header=h, orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.zeros(9), angular_velocity=v3(x=0.0, y=0.0, z=0.0),
+        angular_velocity_covariance=np.zeros(9), linear_acceleration=v3(x=acc[0], y=acc[1], z=acc[2]),
+        linear_acceleration_covariance=np.zeros(9))
+
+
+def test_the_accelerometer_gives_up_about_each_stamp(tmp_path):
+    rng = np.random.default_rng(0)
+    up = np.array([0.3, -0.2, 0.93])
+    up /= np.linalg.norm(up)
+    msgs = [("/imu", imu_msg(ROS2, 9.81 * up + rng.normal(0, 0.05, 3), 7, i * 5 * 10**6), i)
+            for i in range(100)]  # 200 Hz for 0.5 s
+    msgs.append(("/imu", imu_msg(ROS2, (0.0, 0.0, 0.2), 9, 0), 100))  # falling at 9 s
+    bag = write_bag(tmp_path / "imu", False, msgs)
+    acc = bags.Accelerometer(bag, "/imu")
+    assert len(acc.stamps) == 101
+    u = acc.up(7 * 10**9 + 2 * 10**8)
+    assert np.degrees(np.arccos(np.clip(u @ up, -1, 1))) < 0.5 and abs(np.linalg.norm(u) - 1) < 1e-12
+    # the mean over the window: readings 30..50 (150 to 250 ms, at 5 ms each)
+    want = np.mean([m[1].linear_acceleration.x for m in msgs[30:51]])
+    assert u[0] == pytest.approx(want / np.linalg.norm(acc.acc[30:51].mean(0)), rel=1e-12)
+    # past the last reading but within the window: the nearest
+    np.testing.assert_allclose(acc.up(7 * 10**9 + 495 * 10**6 + 9 * 10**7),
+                               acc.acc[99] / np.linalg.norm(acc.acc[99]))
+    with pytest.raises(ValueError, match=r"no IMU reading within 100 ms of the frame at 8000000000 ns"):
+        acc.up(8 * 10**9)
+    with pytest.raises(ValueError, match=r"reads 0.2 m/s\^2 about 9000000000 ns, too little to tell up"):
+        acc.up(9 * 10**9)
+    with pytest.raises(ValueError, match=r"no sensor_msgs/Imu topic '/imu0'; its IMU topics: /imu"):
+        bags.Accelerometer(bag, "/imu0")
+
+
+def test_imu_extrinsics_of_every_format_turn_the_reading_to_up(tmp_path):
+    """A level camera (its sphere frame the world's) with an IMU turned by Q: at rest the
+    IMU reads Q^T (0, 0, g) in its frame; each file's extrinsics, written as the format
+    defines them, must turn that back to +z."""
+    from scipy.spatial.transform import Rotation
+
+    D = cameras.DEFAULT_ROTATION
+    R_imu_cam = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()  # IMU <- camera
+    reading = R_imu_cam @ D.T @ [0, 0, 9.81]  # world (= sphere) -> camera -> IMU
+    T_cam_imu = np.eye(4)
+    T_cam_imu[:3, :3], T_cam_imu[:3, 3] = R_imu_cam.T, [0.01, 0.02, 0.03]
+    T_imu_cam = np.linalg.inv(T_cam_imu)
+    cam = dict(camera_model="pinhole", distortion_model="none", distortion_coeffs=[],
+               intrinsics=[100.0, 100.0, 63.5, 47.5], resolution=[128, 96])
+    kalibr = tmp_path / "camchain-imucam.yaml"
+    kalibr.write_text(yaml.safe_dump({"cam0": {**cam, "T_cam_imu": T_cam_imu.tolist()}}))
+    q = Rotation.from_matrix(T_imu_cam[:3, :3]).as_quat()  # x, y, z, w
+    calib = yaml.safe_load((FIXTURES / "basalt_calib.json").read_text())
+    calib["value0"]["T_imu_cam"][0] = dict(zip(("px", "py", "pz"), T_imu_cam[:3, 3])) | dict(
+        zip(("qx", "qy", "qz", "qw"), q))
+    basalt = tmp_path / "calibration.json"
+    basalt.write_text(json.dumps(calib))
+    text = (FIXTURES / "orbslam3_stereo_kb8.yaml").read_text()
+    block = ("IMU.T_b_c1: !!opencv-matrix\n  rows: 4\n  cols: 4\n  dt: f\n  data: ["
+             + ", ".join(repr(float(v)) for v in T_imu_cam.ravel()) + "]\n")
+    orb = tmp_path / "orbslam.yaml"
+    orb.write_text(text + "\n" + block)
+    for path in (kalibr, basalt, orb):
+        up = cameras.imu_rotation(path) @ reading
+        np.testing.assert_allclose(up / 9.81, [0, 0, 1], atol=1e-6, err_msg=str(path))
+    # EuRoC's camchain-imucam: its IMU's x axis points up, cam0 looks level and upright
+    up = cameras.imu_rotation(FIXTURES / "kalibr_camchain.yaml") @ [1.0, 0, 0]
+    assert up[2] > 0.999
+    with pytest.raises(ValueError, match="no camera-IMU extrinsics"):
+        cameras.imu_rotation(FIXTURES / "kalibr_rig.yaml")
+
+
+def test_predict_with_imu_up_matches_the_same_up_given(tmp_path, capsys):
+    import torch
+
+    from usf_graph.cli import main
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train import save_checkpoint
+
+    chain = tmp_path / "camchain-imucam.yaml"
+    T = np.eye(4)
+    T[:3, :3] = [[0, 1, 0], [0, 0, 1], [1, 0, 0]]  # cam <- IMU: IMU x is the camera's z, ...
+    chain.write_text(yaml.safe_dump({"cam0": dict(
+        camera_model="pinhole", distortion_model="none", distortion_coeffs=[],
+        intrinsics=[30.0, 30.0, 31.5, 23.5], resolution=[64, 48], rostopic="/cam0/image_raw",
+        T_cam_imu=T.tolist())}))
+    tilt = np.array([0.2, 0.0, -0.98])  # IMU frame: mostly -z, i.e. the camera's -y: up
+    msgs = [("/cam0/image_raw", image_msg(ROS2, frame(i), 3, i * 10**8), 2 * i) for i in range(2)]
+    msgs += [("/imu0", imu_msg(ROS2, 9.81 * tilt, 3, k * 10**7), 2 * (k // 10) + 1) for k in range(20)]
+    bag = write_bag(tmp_path / "run", False, msgs)
+    cv2.imwrite(str(tmp_path / "f0.png"), cv2.cvtColor(frame(0), cv2.COLOR_RGB2BGR))
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
+    with torch.no_grad():
+        seg.head.weight.mul_(30)
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    ckpt = str(tmp_path / "seg.pt")
+    assert main(["predict", "seg", ckpt, str(bag), "--camera", str(chain), "--imu", "/imu0",
+                 "--out", str(tmp_path / "b")]) == 0
+    up = cameras.imu_rotation(chain) @ tilt / np.linalg.norm(tilt)
+    assert up[2] > 0.97  # the camera is nearly level
+    out = capsys.readouterr().out
+    assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in out
+    assert main(["predict", "seg", ckpt, str(tmp_path / "f0.png"), "--camera", str(chain),
+                 "--up", *map(str, up), "--out", str(tmp_path / "p")]) == 0
+    a = cv2.imread(str(tmp_path / "b" / "run_000000_labels.png"), cv2.IMREAD_UNCHANGED)
+    b = cv2.imread(str(tmp_path / "p" / "f0_labels.png"), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(a, b)
+    capsys.readouterr()
+    assert main(["predict", "seg", ckpt, str(tmp_path / "f0.png"), "--camera", str(chain),
+                 "--imu", "/imu0"]) == 2
+    assert "--imu reads up from a ROS bag's accelerometer" in capsys.readouterr().err
+    assert main(["predict", "seg", ckpt, str(bag), "--imu", "/imu0"]) == 2
+    assert "--imu needs the camera-IMU extrinsics" in capsys.readouterr().err

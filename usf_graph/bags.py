@@ -181,6 +181,57 @@ def _stamps(path, topics_: list) -> list[np.ndarray]:
     return [np.array(out[t], np.int64) for t in topics_]
 
 
+IMU_TYPE = "sensor_msgs/msg/Imu"
+
+
+class Accelerometer:
+    """A bag's ``sensor_msgs/Imu`` readings, for the direction of up at any stamp.
+
+    At rest an accelerometer reads the specific force, ``+g`` away from the earth: the mean
+    of its readings about a frame's stamp is up in the IMU's frame, to the platform's own
+    acceleration over that window (a robot that brakes hard tilts it)."""
+
+    def __init__(self, path, topic: str):
+        found = {t: m for t, (m, _) in topics(path).items() if m == IMU_TYPE}
+        if topic not in found:
+            raise ValueError(f"{path}: no sensor_msgs/Imu topic {topic!r}; its IMU topics: "
+                             f"{', '.join(sorted(found)) or 'none'}")
+        self.path, self.topic = path, topic
+        stamps, acc = [], []
+        reader = _open(path)
+        try:
+            conns = [c for c in reader.connections if c.topic == topic]
+            for conn, t, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                a = msg.linear_acceleration
+                stamps.append(_stamp(msg, t))
+                acc.append((a.x, a.y, a.z))
+        finally:
+            reader.close()
+        order = np.argsort(stamps, kind="stable")
+        self.stamps = np.asarray(stamps, np.int64)[order]
+        self.acc = np.asarray(acc, np.float64).reshape(-1, 3)[order]
+
+    def up(self, stamp_ns: int, window_ns: int = 10**8) -> np.ndarray:
+        """Unit up ``[3]`` in the IMU's frame: the mean reading within ``window_ns / 2`` of
+        ``stamp_ns`` (the nearest reading where none is that near, if within the window)."""
+        lo = int(np.searchsorted(self.stamps, stamp_ns - window_ns // 2, side="left"))
+        hi = int(np.searchsorted(self.stamps, stamp_ns + window_ns // 2, side="right"))
+        if hi > lo:
+            a = self.acc[lo:hi].mean(0)
+        else:
+            j = int(np.argmin(np.abs(self.stamps - stamp_ns))) if len(self.stamps) else -1
+            if j < 0 or abs(int(self.stamps[j]) - stamp_ns) > window_ns:
+                raise ValueError(f"{self.path} [{self.topic}]: no IMU reading within "
+                                 f"{window_ns / 1e6:g} ms of the frame at {stamp_ns} ns")
+            a = self.acc[j]
+        n = float(np.linalg.norm(a))
+        if not np.isfinite(n) or n < 1.0:  # m/s^2: a free fall, or no accelerometer data
+            raise ValueError(f"{self.path} [{self.topic}]: the accelerometer reads {n:.3g} m/s^2 "
+                             f"about {stamp_ns} ns, too little to tell up")
+        return a / n
+
+
 def _stamp(msg, t: int) -> int:
     """The header's stamp in ns; the recording time ``t`` where the stamp is 0."""
     s = msg.header.stamp

@@ -49,6 +49,12 @@ def add_predict_parser(sub, fmt) -> None:
                         "order (default: a Kalibr camchain's rostopics)")
     p.add_argument("--max-skew", type=float, default=10.0, metavar="MS",
                    help="a rig's ROS bag: the most the cameras' stamps of one frame may differ")
+    p.add_argument("--imu", default=None, metavar="TOPIC",
+                   help="ROS bags: each frame's up from this sensor_msgs/Imu topic's "
+                        "accelerometer, turned by --camera's camera-IMU extrinsics (Kalibr "
+                        "T_cam_imu, Basalt T_imu_cam, ORB-SLAM3 IMU.T_b_c1)")
+    p.add_argument("--imu-window", type=float, default=100.0, metavar="MS",
+                   help="--imu: the readings averaged about each frame's stamp")
     p.add_argument("--camera", default=None,
                    help=CAMERA_HELP + "; for a ROS bag, default: its camera_info beside the "
                         "image topic")
@@ -132,6 +138,10 @@ def cmd_predict(args) -> int:
     if args.camera is None and not all(is_bag(p) for p in args.image):
         raise ValueError("give the camera's calibration with --camera (only a ROS bag can "
                          "bring its own, as camera_info)")
+    if args.imu is not None and (not all(is_bag(p) for p in args.image) or args.up is not None
+                                 or args.up_lines):
+        raise ValueError("--imu reads up from a ROS bag's accelerometer: every input a bag, and "
+                         "not with --up or --up-lines")
     if args.camera is None and args.key is not None:
         raise ValueError("--key picks a camera in --camera's file; a bag's camera_info holds one")
     _up_arg(args)  # its errors before anything loads
@@ -154,15 +164,17 @@ def cmd_predict(args) -> int:
     several = len(args.image) > 1 or bool(streams)
     calibrated = {}  # the calibration, read once per image size or bag (frames share it)
     topic = args.topic[0] if args.topic else None
-    for stem, source, image, bag in _inputs(args.image, args.every, topic):
+    imu = _imu(args)
+    for stem, source, image, bag, stamp in _inputs(args.image, args.every, topic):
         if several:
             print(f"== {source}")
+        up = None if imu is None else imu(bag, stamp)
         key = image.shape if args.camera is not None else bag
         if key not in calibrated:
             calibrated[key] = _bag_camera(bag, args) if args.camera is None else \
                 camera_from_spec(args.camera, args.key, args.fov, args.image_mask, image.shape)
         cam = _alpha_masked(calibrated[key], image, source)
-        run(model, [stem], [source], [image], cam, names, out, args)
+        run(model, [stem], [source], [image], cam, names, out, args, up=up)
     return 0
 
 
@@ -180,7 +192,7 @@ def _bag_camera(bag, args):
 
 
 def _inputs(paths, every: int = 1, topic: str | None = None):
-    """``(stem, source, RGB image, bag or None)`` of every image, and of every ``every``-th
+    """``(stem, source, RGB image, bag or None, stamp in ns or None)`` of every image, and of every ``every``-th
     frame of every video (stem ``<video>_<frame index>``, source ``<video>#<frame index>``)
     and ROS bag (source ``<bag>#<topic>@<stamp in ns>``), read one at a time so that a long
     recording never sits in memory."""
@@ -192,10 +204,11 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
         if is_bag(path):
             name = Path(path).stem
             for f in frames(path, topic, every):
-                yield f"{name}_{f.index:06d}", f"{path}#{f.topic}@{f.stamp_ns}", f.image, path
+                yield (f"{name}_{f.index:06d}", f"{path}#{f.topic}@{f.stamp_ns}", f.image, path,
+                       f.stamp_ns)
             continue
         if not _is_video(path):
-            yield Path(path).stem, str(path), read_image(path), None
+            yield Path(path).stem, str(path), read_image(path), None, None
             continue
         cap = cv2.VideoCapture(str(path))
         if not cap.isOpened():
@@ -210,12 +223,32 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
                 if i % every == 0:
                     taken += 1
                     yield f"{Path(path).stem}_{i:06d}", f"{path}#{i}", \
-                        cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None
+                        cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None, None
                 i += 1
         finally:
             cap.release()
         if not taken:
             raise ValueError(f"video {path} has no frames OpenCV can decode")
+
+
+def _imu(args):
+    """``--imu``: (bag, stamp) -> up in the cameras' sphere frame, or None."""
+    if args.imu is None:
+        return None
+    from .bags import Accelerometer
+    from .cameras import imu_rotation
+
+    if args.camera is None:
+        raise ValueError("--imu needs the camera-IMU extrinsics: give --camera (a Kalibr "
+                         "camchain-imucam, Basalt calibration or ORB-SLAM3 settings)")
+    R = imu_rotation(args.camera)
+    readings = {}
+
+    def up(bag, stamp):
+        if bag not in readings:
+            readings[bag] = Accelerometer(bag, args.imu)
+        return R @ readings[bag].up(stamp, round(args.imu_window * 1e6))
+    return up
 
 
 def _predict_rig_bag(run, model, names, out: Path, args) -> None:
@@ -234,12 +267,13 @@ def _predict_rig_bag(run, model, names, out: Path, args) -> None:
                          f"{len(topics)} topics were given ({', '.join(topics)})")
     print(f"rig {', '.join(f'{n} <- {t}' for n, t in zip(rig, topics))}")
     name = Path(bag).stem
+    imu = _imu(args)
     for f in rig_frames(bag, topics, args.every, round(args.max_skew * 1e6)):
         sources = [f"{bag}#{t}@{s}" for t, s in zip(topics, f.stamps_ns)]
         print(f"== {bag}#{f.index} ({', '.join(str(s) for s in f.stamps_ns)})")
         cams = {n: _alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), f.images, sources)}
         run(model, [f"{name}_{n}_{f.index:06d}" for n in rig], sources, f.images, cams, names,
-            out, args)
+            out, args, up=None if imu is None else imu(bag, f.stamps_ns[0]))
 
 
 def _rig_cameras(images, sources, args):
@@ -265,12 +299,13 @@ def _alpha_masked(camera, image, path):
     return camera.with_image_mask(opaque, combine=True)
 
 
-def _predict_seg(model, stems, sources, images, cam, names, out: Path, args) -> None:
+def _predict_seg(model, stems, sources, images, cam, names, out: Path, args, up=None) -> None:
     import cv2
 
     from .train.apply import UNSEEN, segment_image
 
-    r = segment_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
+    r = segment_image(model, images if args.rig else images[0], cam,
+                      up=_up_arg(args) if up is None else up,
                       interpolation=args.interpolation, render=args.render or "nearest")
     print(_report_up(r))
     for stem, image, lab in zip(stems, images, r["labels"] if args.rig else [r["labels"]]):
@@ -285,13 +320,14 @@ def _predict_seg(model, stems, sources, images, cam, names, out: Path, args) -> 
               f"and {out / f'{stem}_seg.png'}")
 
 
-def _predict_det(model, stems, sources, images, cam, names, out: Path, args) -> None:
+def _predict_det(model, stems, sources, images, cam, names, out: Path, args, up=None) -> None:
     import cv2
 
     from .train.apply import detect_image
     from .viz import draw_boxes
 
-    r = detect_image(model, images if args.rig else images[0], cam, up=_up_arg(args),
+    r = detect_image(model, images if args.rig else images[0], cam,
+                     up=_up_arg(args) if up is None else up,
                      interpolation=args.interpolation)
     print(_report_up(r))
     stem = stems[0]

@@ -2,7 +2,17 @@
 
 from .base import DEFAULT_ROTATION, Camera
 from .fisheye import FOV, Fisheye, KannalaBrandt
-from .io import from_doc, load, load_all, load_rig, read_mask, rig_topics, save, with_fov_and_mask
+from .io import (
+                 from_doc,
+                 imu_rotation,
+                 load,
+                 load_all,
+                 load_rig,
+                 read_mask,
+                 rig_topics,
+                 save,
+                 with_fov_and_mask,
+)
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
@@ -10,4 +20,4 @@ from .rig import stitch_at
 from .scaramuzza import Scaramuzza
 
 __all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Division", "Fisheye", "KannalaBrandt", "FOV", "Mei",
-           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "load", "load_all", "load_rig", "read_mask", "rig_topics", "save", "stitch_at", "with_fov_and_mask"]
+           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "imu_rotation", "load", "load_all", "load_rig", "read_mask", "rig_topics", "save", "stitch_at", "with_fov_and_mask"]

@@ -84,3 +84,9 @@ def basalt_pose(path, data: dict, name: str) -> np.ndarray | None:
         return None
     return np.linalg.inv(_imu_from_cam(Src(path, "cam0"), T[0])) @ \
         _imu_from_cam(Src(path, name), T[i])
+
+
+def basalt_imu(path, data: dict) -> np.ndarray | None:
+    """cam0 <- IMU, from cam0's ``T_imu_cam``; None when the file has none."""
+    T = data["value0"].get("T_imu_cam") or []
+    return np.linalg.inv(_imu_from_cam(Src(path, "cam0"), T[0])) if T else None

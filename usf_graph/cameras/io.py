@@ -37,14 +37,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .basalt import basalt_names, basalt_pose, is_basalt, load_basalt
-from .base import FORMAT_TAG, Camera
+from .basalt import basalt_imu, basalt_names, basalt_pose, is_basalt, load_basalt
+from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
 from .colmap import CameraList, colmap_rig, in_folder, read_file, rig_file
 from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt
-from .kalibr import is_kalibr, kalibr_names, kalibr_pose, load_kalibr
+from .kalibr import is_kalibr, kalibr_imu, kalibr_names, kalibr_pose, load_kalibr
 from .omni import EUCM, DoubleSphere, Mei
-from .orbslam import is_orbslam, load_orbslam, orbslam_names, orbslam_pose
+from .orbslam import is_orbslam, load_orbslam, orbslam_imu, orbslam_names, orbslam_pose
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
 from .rig import mount
@@ -141,6 +141,23 @@ def rig_topics(path) -> list[str] | None:
     return found if all(isinstance(t, str) and t for t in found) else None
 
 
+def imu_rotation(path) -> np.ndarray:
+    """``[3, 3]``: the IMU's frame -> the sphere frame of the file's cameras (the rig's, as
+    :func:`load` and :func:`load_rig` mount them), from a Kalibr camchain's ``T_cam_imu``
+    (camchain-imucam), a Basalt calibration's ``T_imu_cam`` or ORB-SLAM3's ``IMU.T_b_c1``.
+    Turns an accelerometer's reading into the cameras' ``up``."""
+    path = Path(path)
+    data = _document(path)
+    chain = _chain(data)
+    T = None if chain is None else chain.imu(path, data)
+    if T is None:
+        raise ValueError(f"{path}: no camera-IMU extrinsics, so the IMU's readings cannot be "
+                         "turned into the camera's frame; give a Kalibr camchain-imucam "
+                         "(T_cam_imu), a Basalt calibration (T_imu_cam) or ORB-SLAM3 settings "
+                         "(IMU.T_b_c1)")
+    return DEFAULT_ROTATION @ T[:3, :3]
+
+
 def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None) -> Camera:
     """``cam`` with a usable field of view (:meth:`Camera.with_fov`) and an image mask
     (``[H, W]`` array, or an image file: :func:`read_mask`), each where given."""
@@ -189,15 +206,16 @@ class _Chain(NamedTuple):
     camera: Callable  # (Src, data, name) -> Camera in its optical frame
     pose: Callable  # (path, data, name) -> [4, 4] cam0's optical frame <- its, or None
     extrinsics: str  # what an error asks for
+    imu: Callable  # (path, data) -> [4, 4] cam0's optical frame <- the IMU's, or None
 
 
 _CHAINS = (
     _Chain("camchain", is_kalibr, kalibr_names, lambda src, data, name: load_kalibr(src, data[name]),
-           kalibr_pose, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)"),
+           kalibr_pose, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)", kalibr_imu),
     _Chain("Basalt calibration", is_basalt, basalt_names, load_basalt, basalt_pose,
-           "'T_imu_cam' for it"),
+           "'T_imu_cam' for it", basalt_imu),
     _Chain("ORB-SLAM3 settings", is_orbslam, orbslam_names, load_orbslam, orbslam_pose,
-           "'Stereo.T_c1_c2' (or 'Tlr')"))
+           "'Stereo.T_c1_c2' (or 'Tlr')", orbslam_imu))
 
 
 def _chain(data) -> _Chain | None:

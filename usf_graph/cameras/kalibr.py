@@ -77,4 +77,11 @@ def kalibr_pose(path, data: dict, key: str) -> np.ndarray | None:
         np.linalg.inv(Src(path, key).rigid(tk, "T_cam_imu"))
 
 
+def kalibr_imu(path, data: dict) -> np.ndarray | None:
+    """cam0's pose in the IMU's frame inverted: ``T_cam_imu`` of cam0 (cam0 <- IMU), or None."""
+    name = kalibr_names(data)[0]
+    T = data[name].get("T_cam_imu")
+    return None if T is None else Src(path, name).rigid(T, "T_cam_imu")
+
+
 # -- OCamCalib -----------------------------------------------------------------------------

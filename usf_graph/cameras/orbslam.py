@@ -59,3 +59,10 @@ def orbslam_pose(path, data: dict, name: str) -> np.ndarray | None:
     if key not in data:
         return None
     return Src(path, name).rigid(data[key], key)  # c1 <- c2
+
+
+def orbslam_imu(path, data: dict) -> np.ndarray | None:
+    """Camera1 <- IMU (body), from ``IMU.T_b_c1``; None when the file has none."""
+    if "IMU.T_b_c1" not in data:
+        return None
+    return np.linalg.inv(Src(path, "IMU").rigid(data["IMU.T_b_c1"], "IMU.T_b_c1"))
