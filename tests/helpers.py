@@ -48,3 +48,20 @@ def moved(pos, seed):
     R = random_rotation(seed=seed)
     t = torch.randn(3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 3
     return pos @ R.T + t
+
+
+def tiny_seg_checkpoint(path, **config):
+    """A seeded untrained spherical U-Net (icosahedral:3, gravity) saved as a segmentation
+    checkpoint at ``path``, its head scaled so that its labels are confident; ``config``
+    adds to the saved config (e.g. ``size``). Returns the model."""
+    import torch
+
+    from usf_graph.models import SphericalUNet
+    from usf_graph.train import save_checkpoint
+
+    torch.manual_seed(0)
+    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
+    with torch.no_grad():
+        seg.head.weight.mul_(30)
+    save_checkpoint(path, seg, {"model": "spherical_unet", **config, **seg.config}, {})
+    return seg

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.helpers import FIXTURES
+from tests.helpers import FIXTURES, tiny_seg_checkpoint
 from usf_graph import bags, cameras
 
 pytest.importorskip("rosbags")
@@ -139,11 +139,7 @@ def test_what_cannot_be_read_says_why(tmp_path):
 def test_predict_reads_a_bag_and_its_camera_info(tmp_path, capsys):
     """``predict seg CKPT run/ --topic ...`` gives every frame the labels that predicting
     its PNG with the calibration file gives."""
-    import torch
-
     from usf_graph.cli import main
-    from usf_graph.models import SphericalUNet
-    from usf_graph.train import save_checkpoint
 
     calib = FIXTURES / "ros_equidistant.yaml"
     f = info_fields(calib)
@@ -159,11 +155,7 @@ def test_predict_reads_a_bag_and_its_camera_info(tmp_path, capsys):
         if "compressed" not in topic:
             msgs.append((topic, msg, i))
     bag = write_bag(tmp_path / "run", False, msgs)
-    torch.manual_seed(0)
-    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
-    with torch.no_grad():
-        seg.head.weight.mul_(30)
-    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    tiny_seg_checkpoint(tmp_path / "seg.pt")
     ckpt = str(tmp_path / "seg.pt")
     assert main(["predict", "seg", ckpt, str(bag), "--every", "2", "--out", str(tmp_path / "b")]) == 0
     out = capsys.readouterr().out
@@ -226,12 +218,8 @@ def test_a_rig_bag_gives_frames_matched_by_stamp(tmp_path):
 def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys):
     """``predict seg CKPT rig_bag --rig --camera camchain``: the camchain's rostopics, one
     sphere per frame, the labels that the frames' PNGs give with ``--rig``."""
-    import torch
-
     from usf_graph.cli import main
     from usf_graph.frontend import render
-    from usf_graph.models import SphericalUNet
-    from usf_graph.train import save_checkpoint
     from usf_graph.viz import labelled_panorama
 
     chain = FIXTURES / "kalibr_rig.yaml"
@@ -245,11 +233,7 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
             topic = cameras.rig_topics(chain)[k]
             msgs.append((topic, image_msg(ROS2, im, 5 + i, k * 10**6), 2 * i + k))
     bag = write_bag(tmp_path / "drive", False, msgs)
-    torch.manual_seed(0)
-    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
-    with torch.no_grad():
-        seg.head.weight.mul_(30)
-    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    tiny_seg_checkpoint(tmp_path / "seg.pt")
     ckpt = str(tmp_path / "seg.pt")
     common = ["--camera", str(chain), "--fov", "190", "--rig"]
     assert main(["predict", "seg", ckpt, str(bag), *common, "--out", str(tmp_path / "b")]) == 0
@@ -348,11 +332,7 @@ def test_imu_extrinsics_of_every_format_turn_the_reading_to_up(tmp_path):
 
 
 def test_predict_with_imu_up_matches_the_same_up_given(tmp_path, capsys):
-    import torch
-
     from usf_graph.cli import main
-    from usf_graph.models import SphericalUNet
-    from usf_graph.train import save_checkpoint
 
     chain = tmp_path / "camchain-imucam.yaml"
     T = np.eye(4)
@@ -366,11 +346,7 @@ def test_predict_with_imu_up_matches_the_same_up_given(tmp_path, capsys):
     msgs += [("/imu0", imu_msg(ROS2, 9.81 * tilt, 3, k * 10**7), 2 * (k // 10) + 1) for k in range(20)]
     bag = write_bag(tmp_path / "run", False, msgs)
     cv2.imwrite(str(tmp_path / "f0.png"), cv2.cvtColor(frame(0), cv2.COLOR_RGB2BGR))
-    torch.manual_seed(0)
-    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
-    with torch.no_grad():
-        seg.head.weight.mul_(30)
-    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    tiny_seg_checkpoint(tmp_path / "seg.pt")
     ckpt = str(tmp_path / "seg.pt")
     assert main(["predict", "seg", ckpt, str(bag), "--camera", str(chain), "--imu", "/imu0",
                  "--out", str(tmp_path / "b")]) == 0

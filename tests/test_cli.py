@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import FIXTURES
+from tests.helpers import FIXTURES, tiny_seg_checkpoint
 from usf_graph import SphericalFrontend, SphericalImage, cameras, grids
 from usf_graph.cli import build_parser, main
 from usf_graph.frontend import RigFrontend, load_lifted, read_lifted
@@ -395,7 +395,7 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     ``train.apply`` returns for the RGB array: a label image, and boxes in PANDORA's form."""
     import json
 
-    from usf_graph.models import PlanarUNet, SphericalDetector, SphericalUNet
+    from usf_graph.models import PlanarUNet, SphericalDetector
     from usf_graph.ops import canonical_boxes, to_pandora
     from usf_graph.scenes import DETECTION_CLASSES
     from usf_graph.train import save_checkpoint
@@ -407,11 +407,7 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     rgb = ds.image[0].numpy()
     cv2.imwrite(str(tmp_path / "view.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     ds.camera.save(tmp_path / "fish.yaml")
-    torch.manual_seed(0)
-    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
-    with torch.no_grad():
-        seg.head.weight.mul_(30)  # confident labels
-    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", "size": 32, **seg.config}, {})
+    seg = tiny_seg_checkpoint(tmp_path / "seg.pt", size=32)
     common = ["--camera", str(tmp_path / "fish.yaml"), "--out", str(tmp_path / "out"),
               "--interpolation", "bilinear"]
     assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common]) == 0
@@ -496,8 +492,6 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
 def test_predict_reads_an_alpha_channel_as_an_image_mask(tmp_path, capsys):
     """An RGBA image's fully transparent pixels are left out, as ``--image-mask`` leaves them:
     the labels equal those of the RGB image with that mask, whatever the hidden pixels hold."""
-    from usf_graph.models import SphericalUNet
-    from usf_graph.train import save_checkpoint
 
     ds = _fisheye_views(tmp_path)
     rgb = ds.image[0].numpy()
@@ -508,11 +502,7 @@ def test_predict_reads_an_alpha_channel_as_an_image_mask(tmp_path, capsys):
     cv2.imwrite(str(tmp_path / "rgba.png"), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
     cv2.imwrite(str(tmp_path / "rgb.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     cv2.imwrite(str(tmp_path / "mask.png"), np.where(hidden, 0, 255).astype(np.uint8))
-    torch.manual_seed(0)
-    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
-    with torch.no_grad():
-        seg.head.weight.mul_(30)
-    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", "size": 32, **seg.config}, {})
+    tiny_seg_checkpoint(tmp_path / "seg.pt", size=32)
     common = ["--camera", str(tmp_path / "fish.yaml"), "--interpolation", "bilinear"]
     assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "rgba.png"), *common,
                  "--out", str(tmp_path / "a")]) == 0
@@ -535,7 +525,6 @@ def test_predict_cli_on_a_rig(tmp_path, capsys):
     """``predict --rig``: one frame of a Kalibr camchain's cameras, one sphere, an answer
     per camera, as ``train.apply`` gives it for the rig."""
     from usf_graph.frontend import render
-    from usf_graph.models import SphericalUNet
     from usf_graph.train import save_checkpoint
     from usf_graph.train.apply import segment_image
     from usf_graph.viz import labelled_panorama
@@ -547,11 +536,7 @@ def test_predict_cli_on_a_rig(tmp_path, capsys):
         im = (255 * render(pano, cameras.Equirectangular(256, 128), cam)).round().astype(np.uint8)
         paths.append(str(tmp_path / f"{name}.png"))
         cv2.imwrite(paths[-1], cv2.cvtColor(im, cv2.COLOR_RGB2BGR))
-    torch.manual_seed(0)
-    seg = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True)
-    with torch.no_grad():
-        seg.head.weight.mul_(30)
-    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config}, {})
+    seg = tiny_seg_checkpoint(tmp_path / "seg.pt")
     argv = ["predict", "seg", str(tmp_path / "seg.pt"), *paths, "--rig", "--camera",
             str(FIXTURES / "kalibr_rig.yaml"), "--fov", "190", "--out", str(tmp_path / "out")]
     assert main(argv) == 0
