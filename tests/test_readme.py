@@ -128,7 +128,7 @@ def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
     section = text.split("## Your own images: `usf-graph predict`", 1)[1].split("\n## ", 1)[0]
     lines = [ln for block in re.findall(r"```bash\n(.*?)```", section, re.S)
              for ln in block.splitlines() if ln.startswith("usf-graph ")]
-    assert [ln.split()[2] for ln in lines] == ["seg", "det", "seg"]
+    assert [ln.split()[2] for ln in lines] == ["seg", "det", "seg", "seg"]
     (tmp_path / "tests").symlink_to(ROOT / "tests")
     monkeypatch.chdir(tmp_path)
     for ln in setup:  # fisheye.yaml, and pano.png re-imaged as fisheye.png
@@ -149,8 +149,22 @@ def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
     save_checkpoint("runs/seg_15min/spherical_deeplab.pt", seg,
                     {"model": "spherical_deeplab", "size": 96, **seg.config}, {})
     save_checkpoint("runs/det_15min/spherical.pt", det, det.config, {})
+    # the robot's recording: front.png and back.png as a bag with an IMU (up: cam0's -y)
+    import numpy as np
+    import yaml
+
+    from tests.test_bags import ROS2, image_msg, imu_msg, write_bag
+
+    chain = yaml.safe_load(Path("tests/fixtures/kalibr_rig.yaml").read_text())
+    chain["cam0"]["T_cam_imu"] = np.eye(4).tolist()
+    Path("camchain-imucam.yaml").write_text(yaml.safe_dump(chain))
+    msgs = [(chain[c]["rostopic"], image_msg(ROS2, cv2.imread(f"{n}.png")[..., ::-1], 1, 0), k)
+            for k, (c, n) in enumerate((("cam0", "front"), ("cam1", "back")))]
+    msgs += [("/imu0", imu_msg(ROS2, (0.0, -9.81, 0.0), 1, k * 10**7), 2 + k) for k in range(3)]
+    write_bag(Path("drive"), False, msgs)
     for ln in lines:
         assert main(shlex.split(ln)[1:]) == 0, ln
+    assert Path("predictions/drive_cam1_000000_labels.png").stat().st_size > 0
     assert Path("predictions/fisheye_labels.png").stat().st_size > 0
     assert Path("predictions/front_labels.png").stat().st_size > 0
     assert Path("predictions/back_seg.png").stat().st_size > 0
