@@ -112,6 +112,28 @@ def test_encodings_read_as_rgb_or_mono_and_pinholes_as_pinholes(tmp_path, ros1):
         assert isinstance(cam, cameras.Pinhole) and cam.key() == cameras.load(calib).key()
 
 
+def test_the_bag_command_lists_what_predict_reads(tmp_path, capsys):
+    from usf_graph.cli import main
+
+    msgs = messages(ROS2, False, 2, FIXTURES / "ros_equidistant.yaml")
+    msgs += [("/imu0", imu_msg(ROS2, (0.0, 0.0, 9.81), 100, 0), 3),
+             ("/left/image_raw", image_msg(ROS2, frame(0), 100, 0), 4)]
+    bag = write_bag(tmp_path / "run", False, msgs)
+    assert main(["bag", str(bag)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split() == ["/cam/image_raw", "Image", "2", "/cam/camera_info"]
+    assert lines[2].split() == ["/cam/image_raw/compressed", "CompressedImage", "2", "/cam/camera_info"]
+    assert lines[3].split()[:4] == ["/left/image_raw", "Image", "1", "-"]  # no /left/camera_info
+    assert lines[4] == "IMU /imu0 (1 messages): predict --imu /imu0"
+    assert main(["bag", str(tmp_path / "none")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    # one camera's images and a camera_info not beside them: that camera_info
+    info = [m for m in msgs if m[0] == "/cam/camera_info"][0][1]
+    odd = write_bag(tmp_path / "odd", False, [("/front/image_raw", image_msg(ROS2, frame(0), 100, 0), 0),
+                                              ("/calib/info", info, 1)])
+    assert bags.camera(odd).key() == cameras.load(FIXTURES / "ros_equidistant.yaml").key()
+
+
 def test_what_cannot_be_read_says_why(tmp_path):
     calib = FIXTURES / "ros_equidistant.yaml"
     bag = write_bag(tmp_path / "two", False, messages(ROS2, False, 1))

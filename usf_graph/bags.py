@@ -259,18 +259,49 @@ def _image(msg, where: str) -> np.ndarray:
                          f"{e})") from e
 
 
+def _beside(topic: str) -> str:
+    base = topic.rsplit("/compressed", 1)[0] if topic.endswith("/compressed") else topic
+    return base.rsplit("/", 1)[0] + "/camera_info"
+
+
+def _info_topic(topic: str, infos: list, images: list) -> str | None:
+    """The camera_info topic of an image topic: the one beside it, else the bag's only one
+    when all its image topics are one camera's (raw and compressed)."""
+    if _beside(topic) in infos:
+        return _beside(topic)
+    one_camera = len({_beside(t) for t in images}) == 1
+    return infos[0] if len(infos) == 1 and one_camera else None
+
+
+def summary(path) -> dict:
+    """What a bag holds for usf-graph: ``images`` (``{topic: (type, count, camera_info
+    topic or None)}``), ``imu`` (``{topic: count}``) and ``other`` (``{topic: (type,
+    count)}``)."""
+    found = topics(path)
+    infos = [t for t, (m, _) in found.items() if m == INFO_TYPE]
+    images = [t for t, (m, _) in found.items() if m in IMAGE_TYPES]
+    out = {"images": {}, "imu": {}, "other": {}}
+    for t, (m, n) in sorted(found.items()):
+        if m in IMAGE_TYPES:
+            out["images"][t] = (m.rsplit("/", 1)[1], n, _info_topic(t, infos, images))
+        elif m == IMU_TYPE:
+            out["imu"][t] = n
+        else:
+            out["other"][t] = (m, n)
+    return out
+
+
 def camera(path, topic: str | None = None) -> Camera:
     """The camera of ``topic``'s images from the bag's ``sensor_msgs/CameraInfo``: the one
     beside it (``/ns/image_raw[/compressed]`` -> ``/ns/camera_info``), else the bag's only
-    one. Its first message is used."""
+    one when the bag holds one camera's images. Its first message is used."""
     topic = image_topic(path, topic)
-    infos = [t for t, (m, _) in topics(path).items() if m == INFO_TYPE]
-    base = topic.rsplit("/compressed", 1)[0] if topic.endswith("/compressed") else topic
-    beside = base.rsplit("/", 1)[0] + "/camera_info"
-    name = beside if beside in infos else infos[0] if len(infos) == 1 else None
+    found = topics(path)
+    infos = [t for t, (m, _) in found.items() if m == INFO_TYPE]
+    name = _info_topic(topic, infos, [t for t, (m, _) in found.items() if m in IMAGE_TYPES])
     if name is None:
-        raise ValueError(f"{path}: no camera_info for {topic} (looked for {beside}; the bag's: "
-                         f"{', '.join(infos) or 'none'}); give the calibration with --camera")
+        raise ValueError(f"{path}: no camera_info for {topic} (looked for {_beside(topic)}; the "
+                         f"bag's: {', '.join(infos) or 'none'}); give the calibration with --camera")
     reader = _open(path)
     try:
         conn = next(c for c in reader.connections if c.topic == name)

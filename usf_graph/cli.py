@@ -8,7 +8,7 @@ import math
 import sys
 from pathlib import Path
 
-from .cli_info import cmd_cache, cmd_info
+from .cli_info import cmd_bag, cmd_cache, cmd_info
 from .cli_inputs import (
     CAMERA_HELP,
     camera_from_spec,
@@ -308,6 +308,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the camera in usf-graph's YAML (e.g. a panorama: "
                         "usf-graph camera equirectangular:2048x1024 --save pano.yaml)")
 
+    b = sub.add_parser("bag", help="list a ROS bag's image, camera_info and IMU topics",
+                       formatter_class=fmt,
+                       description="List the topics of a ROS 1 or ROS 2 bag that 'usf-graph "
+                                   "predict' reads: images (with the camera_info found beside "
+                                   "each) and IMUs (for --imu).")
+    b.add_argument("bag", help="a ROS 1 .bag, or a ROS 2 bag's folder (.db3, .mcap)")
+
     li = sub.add_parser("lift", help="lift an image (or a rig's images) onto a spherical grid",
                         formatter_class=fmt,
                         description="Lift one image through its camera onto a grid on the "
@@ -435,10 +442,11 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         run = getattr(args, "func", None) or {  # a command's own module may name it
-            "info": cmd_info, "camera": cmd_camera, "lift": cmd_lift, "render": cmd_render,
+            "info": cmd_info, "camera": cmd_camera, "bag": cmd_bag, "lift": cmd_lift,
+            "render": cmd_render,
             "scenes": cmd_scenes, "cache": cmd_cache, "train": cmd_train, "eval": cmd_eval}[args.cmd]
         return run(args)
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError, ImportError) as e:  # ImportError: a missing extra
         print(f"usf-graph: error: {e}", file=sys.stderr)
         return 2
 
