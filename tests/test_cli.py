@@ -797,3 +797,31 @@ def test_export_cli_writes_a_detector_with_its_decoding(tmp_path, capsys):
     args[2] = str(tmp_path / "seg.pt")
     assert main([*args, "--out", str(out)]) == 2
     assert "not a spherical det model" in capsys.readouterr().err
+
+
+def test_lift_and_predict_choose_the_stitching_distance(tmp_path, capsys):
+    """``--distance auto``: the rig's images of a sphere 1.5 m away (trimesh-cast from each
+    camera) are stitched at 1.5 m, the candidate where the seams agree."""
+    from tests.frontend.test_rig import ball_shots
+
+    chain = FIXTURES / "kalibr_rig.yaml"
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(chain).items()}
+    _, shots = ball_shots(rig, 1.5)
+    paths = []
+    for name, im in zip(rig, shots):
+        paths.append(str(tmp_path / f"{name}.png"))
+        cv2.imwrite(paths[-1], (255 * im[..., ::-1]).round().astype(np.uint8))
+    assert main(["lift", *paths, "--camera", str(chain), "--fov", "190", "--grid", "icosahedral:4",
+                 "--distance", "auto", "--out", str(tmp_path / "r.pt")]) == 0
+    assert "chosen where the cameras agree best: 1.41 (" in capsys.readouterr().out
+    assert read_lifted(tmp_path / "r.pt")["cameras"]["cam0"]["distance"] == pytest.approx(1.414, abs=1e-3)
+    tiny_seg_checkpoint(tmp_path / "seg.pt")
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), *paths, "--rig", "--camera", str(chain),
+                 "--fov", "190", "--distance", "auto", "--out", str(tmp_path / "out")]) == 0
+    assert "chosen where the cameras agree best: 1.41 (" in capsys.readouterr().out
+    assert main(["export", "seg", str(tmp_path / "seg.pt"), "--rig", "--camera", str(chain),
+                 "--distance", "auto", "--out", str(tmp_path / "x.pt2")]) == 2
+    assert "--distance auto chooses from the rig's images" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["lift", *paths, "--camera", str(chain), "--distance", "far"])
+    assert "a distance in the calibration's unit, or 'auto'" in capsys.readouterr().err

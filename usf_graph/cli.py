@@ -93,7 +93,8 @@ def cmd_lift(args) -> int:
     images = [read_image(p) for p in args.image]
     grid = grids.from_spec(args.grid)
     if len(images) > 1:
-        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance)
+        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
+                            images, grid)
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
                          radius=args.radius)
         x = fe.lift(images)

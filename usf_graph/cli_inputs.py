@@ -56,21 +56,50 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
 
 def rig_options(p) -> None:
     """``--distance``, for the commands that read a rig."""
-    p.add_argument("--distance", type=float, default=None, metavar="M",
-                   help="with a rig: stitch its cameras at this distance from the rig's centre, "
+    p.add_argument("--distance", type=_distance, default=None, metavar="M",
+                   help="with a rig: stitch its cameras at this distance from the rig's centre "
+                        "('auto': where the cameras agree best on their overlaps, from the "
+                        "images; a rig's bag, from its first frame), "
                         "in the calibration's unit (metres; COLMAP: the model's), so that "
                         "near scenes line up across cameras that are apart (default: at "
                         "infinity, the baseline ignored)")
 
 
-def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None) -> dict:
+def _distance(text: str):
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"a distance in the calibration's unit, or 'auto'; "
+                                         f"got {text!r}") from None
+
+
+def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None, images=None,
+                  grid=None) -> dict:
     """Every camera of a rig's file (:func:`usf_graph.cameras.load_rig`; ``key``: a COLMAP
     rig's id), mounted in the rig, each with the usable field of view and image mask given,
-    stitched at ``distance`` (:func:`usf_graph.cameras.stitch_at`) where given."""
+    stitched at ``distance`` (:func:`usf_graph.cameras.stitch_at`) where given; ``"auto"``:
+    where ``images`` agree best on ``grid`` (icosahedral:5 by default;
+    :func:`usf_graph.frontend.choose_distance`)."""
     from . import cameras
 
     rig = {n: cameras.with_fov_and_mask(c, fov, image_mask)
            for n, c in cameras.load_rig(spec, key=key).items()}
+    if distance == "auto":
+        from .frontend import choose_distance
+        from .grids import icosahedral
+
+        if images is None:
+            raise ValueError("--distance auto chooses from the rig's images, and there are "
+                             "none here: give the distance, in the calibration's unit")
+        distance, errors = choose_distance(rig, grid or icosahedral(5), images)
+        print("stitching distance chosen where the cameras agree best: " +
+              ("infinity" if distance is None else f"{distance:.3g}") + " (seam error " +
+              ", ".join(f"{'inf' if d is None else f'{d:.3g}'}: {e:.3g}" for d, e in errors.items())
+              + ")")
     return cameras.stitch_at(rig, distance) if distance is not None else rig
 
 

@@ -257,7 +257,9 @@ def _predict_rig_bag(run, model, names, out: Path, args) -> None:
     from .cameras import rig_topics
 
     bag = args.image[0]
-    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance)
+    auto = args.distance == "auto"  # chosen on the first frame, kept for the others
+    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key,
+                        None if auto else args.distance)
     topics = args.topic or rig_topics(args.camera)
     if topics is None:
         raise ValueError(f"--rig on a bag: give each camera's image topic with --topic, in the "
@@ -271,6 +273,9 @@ def _predict_rig_bag(run, model, names, out: Path, args) -> None:
     for f in rig_frames(bag, topics, args.every, round(args.max_skew * 1e6)):
         sources = [f"{bag}#{t}@{s}" for t, s in zip(topics, f.stamps_ns)]
         print(f"== {bag}#{f.index} ({', '.join(str(s) for s in f.stamps_ns)})")
+        if auto:
+            rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, "auto", f.images)
+            auto = False
         cams = {n: _alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), f.images, sources)}
         run(model, [f"{name}_{n}_{f.index:06d}" for n in rig], sources, f.images, cams, names,
             out, args, up=None if imu is None else imu(bag, f.stamps_ns[0]))
@@ -279,7 +284,7 @@ def _predict_rig_bag(run, model, names, out: Path, args) -> None:
 def _rig_cameras(images, sources, args):
     """The rig of ``--rig``'s images (one per camera), each camera masked by its image's
     alpha channel (:func:`_alpha_masked`)."""
-    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance)
+    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images)
     if len(images) != len(rig):
         raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
                          f"{len(images)} images were given, one per camera in that order")

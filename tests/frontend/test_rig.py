@@ -75,15 +75,13 @@ def test_rig_inputs_batches_and_errors(rig):
     assert img.mask.all() and img.edge_attr.shape[1] == 1
 
 
-def test_cameras_apart_line_up_on_a_scene_at_the_stitching_distance():
-    """A textured sphere of radius 1 m around the back-to-back fisheyes, 0.1 m apart, ray
-    cast by trimesh from each camera's centre: stitched at 1 m the seams close."""
+def ball_shots(rig, radius):
+    """Each camera's image of :func:`scene` painted on a sphere of ``radius`` about the
+    rig's centre, ray cast by trimesh from the camera's own centre; and the cameras
+    stitched there."""
     import trimesh
 
-    radius = 1.0
-    g = grids.icosahedral(4)
-    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
-    at = cameras.stitch_at(rig, radius)  # centred between the two cameras
+    at = cameras.stitch_at(rig, radius)  # centred between the cameras
     ball = trimesh.creation.icosphere(subdivisions=7, radius=radius)
     shots = []
     for cam in at.values():
@@ -99,6 +97,16 @@ def test_cameras_apart_line_up_on_a_scene_at_the_stitching_distance():
         img = np.zeros((cam.height, cam.width, 3))
         img[valid] = scene(p)
         shots.append(img)
+    return at, shots
+
+
+def test_cameras_apart_line_up_on_a_scene_at_the_stitching_distance():
+    """A textured sphere of radius 1 m around the back-to-back fisheyes, 0.1 m apart, ray
+    cast by trimesh from each camera's centre: stitched at 1 m the seams close."""
+    radius = 1.0
+    g = grids.icosahedral(4)
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    at, shots = ball_shots(rig, radius)
     truth = torch.from_numpy(scene(g.pos.numpy()))
     stitched = RigFrontend(rig, g, distance=radius, blend="feather")
     assert "distance=1" in repr(stitched)
@@ -112,3 +120,28 @@ def test_cameras_apart_line_up_on_a_scene_at_the_stitching_distance():
     err_inf = (infinity(shots).x - truth)[img.mask].abs().max()
     assert img.mask.all() and int(both.sum()) > 20  # at 1 m the two fields overlap
     assert err < 3e-4 and seam < 3e-4 and err_inf > 0.03  # ignored, the baseline shifts up to 2.9 deg
+
+
+
+def test_choose_distance_finds_the_scene_sphere():
+    """The seams agree best at the radius of the sphere the cameras see, among candidates."""
+    from usf_graph.frontend import choose_distance
+
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    g = grids.icosahedral(4)
+    for radius in (0.6, 1.5):
+        _, shots = ball_shots(rig, radius)
+        best, err = choose_distance(rig, g, shots, candidates=(0.6, 0.9, 1.5, 3.0, None))
+        assert best == radius and set(err) == {0.6, 0.9, 1.5, 3.0, None}
+        assert err[best] < 0.2 * min(e for d, e in err.items() if d != best)
+    # candidates within the rig are left out; a lone camera has no seam
+    _, err = choose_distance(rig, g, shots, candidates=(0.01, 1.5))
+    assert set(err) == {1.5}
+    with pytest.raises(ValueError, match="no two cameras of the rig see one grid point at any"):
+        choose_distance(rig, g, shots, candidates=(0.52,))  # the fields leave a gap that near
+    with pytest.raises(ValueError, match="every candidate distance lies within the rig"):
+        choose_distance(rig, g, shots, candidates=(0.01, 0.05))
+    with pytest.raises(ValueError, match="the rig needs two"):
+        choose_distance({"cam0": rig["cam0"]}, g, shots[:1])
+    with pytest.raises(ValueError, match="2 cameras .* but 1 images"):
+        choose_distance(rig, g, shots[:1])

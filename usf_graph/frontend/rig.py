@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from ..cameras import Camera, stitch_at
 from ..cameras.base import angle_to
@@ -143,3 +145,68 @@ class RigFrontend:
     def __call__(self, images) -> SphericalImage:
         x = self.lift(images)
         return self.frontends[0].image(x, self.mask)
+
+
+#: Distances :func:`choose_distance` tries by default (in the calibration's unit; None: infinity).
+DISTANCES = tuple(float(d) for d in np.geomspace(0.5, 32.0, 13)) + (None,)
+
+
+def choose_distance(cameras: Mapping[str, Camera], grid: Grid, images,
+                    candidates=DISTANCES, centre="mean", interpolation: str = "bilinear",
+                    progress: bool = False) -> tuple[float | None, dict]:
+    r"""The stitching distance at which the rig's cameras agree best where they overlap.
+
+    For each candidate :math:`r` every camera is lifted alone (stitched at :math:`r`), and
+    the seam error is the area-weighted mean over the points several cameras see of
+    :math:`|x_i - x_j|` over the pairs of cameras that see them (and the channels). A
+    scene at one depth gives its least error at that depth; a room, a compromise.
+
+    Args:
+        cameras: the rig (``{name: camera}`` with positions, :func:`cameras.load_rig`).
+        grid: the grid to compare on (a coarse one is enough, e.g. ``icosahedral:4``).
+        images: one image per camera, in the rig's order.
+        candidates: the distances to try; ``None`` is infinity. Those the rig's cameras
+            reach past are left out.
+
+    Returns:
+        ``(best distance, {distance: seam error})``; the errors are in the images' unit,
+        infinite where no two cameras overlap.
+    """
+    names, cams = list(cameras), list(cameras.values())
+    if len(cams) < 2:
+        raise ValueError("choosing a stitching distance compares cameras: the rig needs two")
+    images = list(images)
+    if len(images) != len(cams):
+        raise ValueError(f"the rig has {len(cams)} cameras ({names}) but {len(images)} images "
+                         "were given, one per camera in that order")
+    far = max(float(np.linalg.norm(c.position)) if c.position is not None else 0.0 for c in
+              stitch_at(cameras, 1e12, centre).values())
+    tries = [d for d in candidates if d is None or d > far * (1 + 1e-9)]
+    if not tries:
+        raise ValueError(f"every candidate distance lies within the rig (its cameras are up "
+                         f"to {far:.4g} from its centre); try farther ones")
+    area = grid.area.double()
+    cache = GeometryCache(None, max_items=len(cams))
+    errors = {}
+    for d in tqdm(tries, desc="stitching distances", disable=not progress):
+        fes = [SphericalFrontend(c, grid, interpolation, cache=cache)
+               for c in stitch_at(dict(zip(names, cams)), d, centre).values()]
+        xs = [fe.lift(im).double() for fe, im in zip(fes, images)]
+        num = torch.zeros(len(grid), dtype=torch.float64)
+        pairs = torch.zeros(len(grid), dtype=torch.float64)
+        for i in range(len(xs)):
+            for j in range(i + 1, len(xs)):
+                both = (fes[i].mask & fes[j].mask).double()
+                num += both * (xs[i] - xs[j]).abs().mean(-1)
+                pairs += both
+        seam = pairs > 0
+        if not seam.any():  # near, cameras apart may leave a gap between their fields
+            errors[d] = math.inf
+            continue
+        w = area * seam
+        errors[d] = float((w * num / pairs.clamp(min=1)).sum() / w.sum())
+    best = min(errors, key=errors.get)
+    if math.isinf(errors[best]):
+        raise ValueError("no two cameras of the rig see one grid point at any candidate "
+                         "distance: there is no seam to choose a distance from")
+    return best, errors
