@@ -151,7 +151,7 @@ def test_cache_command_shows_and_clears(tmp_path, monkeypatch, capsys):
 def test_every_command_and_option_has_help(capsys):
     parser = build_parser()
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    assert set(subs.choices) == {"info", "camera", "lift", "render", "scenes", "cache", "train", "eval",
+    assert set(subs.choices) == {"info", "camera", "bag", "lift", "render", "scenes", "cache", "train", "eval",
                                  "predict", "targets", "export"}
     for name, sub in subs.choices.items():
         assert sub.description, name

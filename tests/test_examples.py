@@ -393,7 +393,8 @@ def test_rig_parallax_example_small_run(tmp_path):
     s = res["settings"]
     assert json.loads((tmp_path / "results.json").read_text()) == res
     assert (tmp_path / "seams.png").stat().st_size > 10_000
-    assert list(s)[:2] == ["no baseline (the floor)", "at infinity"] and len(s) == 6
+    assert list(s)[:2] == ["no baseline (the floor)", "at infinity"] and len(s) == 7
+    assert len(res["chosen_m"]) == 1 and "stitched where the seams agree" in s
     floor, inf, two = s["no baseline (the floor)"], s["at infinity"], s["stitched at 2 m"]
     assert floor["labels_wrong"] < two["labels_wrong"] < inf["labels_wrong"]
     assert floor["colour_err_seams"] < two["colour_err_seams"] < inf["colour_err_seams"]
