@@ -179,8 +179,15 @@ def test_predict_reads_a_bag_and_its_camera_info(tmp_path, capsys):
     bag = write_bag(tmp_path / "run", False, msgs)
     tiny_seg_checkpoint(tmp_path / "seg.pt")
     ckpt = str(tmp_path / "seg.pt")
-    assert main(["predict", "seg", ckpt, str(bag), "--every", "2", "--out", str(tmp_path / "b")]) == 0
+    assert main(["predict", "seg", ckpt, str(bag), "--every", "2", "--out", str(tmp_path / "b"),
+                 "--video", str(tmp_path / "b" / "run.avi")]) == 0
     out = capsys.readouterr().out
+    assert f"wrote {tmp_path / 'b' / 'run.avi'} (2 frames at 10 fps)" in out
+    cap = cv2.VideoCapture(str(tmp_path / "b" / "run.avi"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 2
+    ok, first = cap.read()
+    cap.release()
+    assert ok and first.shape == (f["height"], 2 * f["width"], 3)  # the image beside its labels
     assert f"camera from {bag}'s camera_info: {cam}" in out and "run#/cam/image_raw@101000000005" not in out
     assert f"== {bag}#/cam/image_raw@100000000005" in out and f"== {bag}#/cam/image_raw@102000000005" in out
     assert main(["predict", "seg", ckpt, str(tmp_path / "frame0.png"), str(tmp_path / "frame2.png"),
@@ -258,9 +265,15 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
     tiny_seg_checkpoint(tmp_path / "seg.pt")
     ckpt = str(tmp_path / "seg.pt")
     common = ["--camera", str(chain), "--fov", "190", "--rig"]
-    assert main(["predict", "seg", ckpt, str(bag), *common, "--out", str(tmp_path / "b")]) == 0
+    assert main(["predict", "seg", ckpt, str(bag), *common, "--out", str(tmp_path / "b"),
+                 "--video", str(tmp_path / "drive.mp4"), "--video-fps", "5"]) == 0
     out = capsys.readouterr().out
     assert "rig cam0 <- /front/image_raw, cam1 <- /back/image_raw" in out
+    assert "(2 frames at 5 fps)" in out
+    cap = cv2.VideoCapture(str(tmp_path / "drive.mp4"))
+    ok, first = cap.read()
+    assert ok and first.shape == (800, 800, 3) and cap.get(cv2.CAP_PROP_FPS) == 5  # cameras stacked
+    cap.release()
     for i in (0, 1):
         assert main(["predict", "seg", ckpt, str(tmp_path / f"f{i}_cam0.png"),
                      str(tmp_path / f"f{i}_cam1.png"), *common, "--out", str(tmp_path / "p")]) == 0

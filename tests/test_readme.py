@@ -165,6 +165,7 @@ def test_predict_section_runs_on_the_your_camera_files(tmp_path, monkeypatch):
     for ln in lines:
         assert main(shlex.split(ln)[1:]) == 0, ln
     assert Path("predictions/drive_cam1_000000_labels.png").stat().st_size > 0
+    assert Path("drive.mp4").stat().st_size > 1000
     assert Path("predictions/fisheye_labels.png").stat().st_size > 0
     assert Path("predictions/front_labels.png").stat().st_size > 0
     assert Path("predictions/back_seg.png").stat().st_size > 0

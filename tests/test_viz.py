@@ -2,6 +2,7 @@
 
 import matplotlib.pyplot as plt
 import numpy as np
+import pytest
 import torch
 
 from usf_graph import grids
@@ -69,3 +70,31 @@ def test_a_lifted_image_is_not_mirrored_in_its_preview():
     assert len(bright) > 20 and len(dark) > 20
     assert (bright[:, 0] > 0).all() and (dark[:, 0] < 0).all()  # right stays right
     plt.close(fig)
+
+
+def test_frame_video_writes_what_it_is_given(tmp_path):
+    import cv2
+
+    from usf_graph.viz import FrameVideo
+
+    v = FrameVideo(tmp_path / "a.avi", fps=4)
+    frames = [np.full((31, 40, 3), (40 * k, 255 - 40 * k, 100), np.uint8) for k in range(3)]
+    for f in frames:
+        v.add(f)
+    v.add(np.zeros((62, 80, 3), np.uint8))  # another size: resized to the first's
+    v.close()
+    cap = cv2.VideoCapture(str(tmp_path / "a.avi"))
+    got = []
+    while True:
+        ok, bgr = cap.read()
+        if not ok:
+            break
+        got.append(bgr[..., ::-1])
+    assert len(got) == 4 and got[0].shape == (32, 40, 3)  # even sizes for the codec
+    for g, f in zip(got, frames):  # Motion JPEG: colours to a few levels
+        assert np.abs(g[4:-4, 4:-4].astype(int) - f[0, 0]).max() < 12
+    assert got[3].max() < 12
+    with pytest.raises(ValueError, match="write .avi or .mp4"):
+        FrameVideo(tmp_path / "a.gif")
+    with pytest.raises(ValueError, match="frame rate must be positive"):
+        FrameVideo(tmp_path / "a.avi", fps=0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +85,11 @@ def add_predict_parser(sub, fmt) -> None:
     p.add_argument("--min-score", type=share, default=0.3,
                    help="det: boxes drawn and listed from this score (the JSON keeps every box "
                         "from 0.05)")
+    p.add_argument("--video", default=None, metavar="AVI|MP4",
+                   help="also write every frame's picture (seg: the image beside its labels; "
+                        "det: the boxes drawn) into this video, e.g. for a bag or a video")
+    p.add_argument("--video-fps", type=float, default=10.0, metavar="FPS",
+                   help="--video's frame rate")
     p.add_argument("--out", default="predictions", metavar="DIR",
                    help="folder for <image name>_labels.png and _seg.png (seg), or "
                         "_boxes.json and _boxes.png (det)")
@@ -153,14 +159,31 @@ def cmd_predict(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     run = _predict_seg if args.task == "seg" else _predict_det
+    if args.video is not None:
+        from .viz import FrameVideo
+
+        video = FrameVideo(args.video, args.video_fps)
+        run = partial(run, video=video)
+        try:
+            _predict_all(run, model, names, out, args, rig_bag, streams)
+        finally:
+            video.close()
+        print(f"wrote {args.video} ({video.frames} frames at {video.fps:g} fps)")
+        return 0
+    _predict_all(run, model, names, out, args, rig_bag, streams)
+    return 0
+
+
+def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> None:
+    """Every image, frame or rig frame of ``args.image`` through ``run``."""
     if rig_bag:  # a rig's recording: one image per camera and frame, one sphere each
         _predict_rig_bag(run, model, names, out, args)
-        return 0
+        return
     if args.rig:  # one frame of the rig: an image per camera, one sphere
         images = [read_image(p) for p in args.image]
         run(model, [Path(p).stem for p in args.image], args.image, images,
             _rig_cameras(images, args.image, args), names, out, args)
-        return 0
+        return
     several = len(args.image) > 1 or bool(streams)
     calibrated = {}  # the calibration, read once per image size or bag (frames share it)
     topic = args.topic[0] if args.topic else None
@@ -175,7 +198,6 @@ def cmd_predict(args) -> int:
                 camera_from_spec(args.camera, args.key, args.fov, args.image_mask, image.shape)
         cam = _alpha_masked(calibrated[key], image, source)
         run(model, [stem], [source], [image], cam, names, out, args, up=up)
-    return 0
 
 
 def _is_video(path) -> bool:
@@ -304,16 +326,20 @@ def _alpha_masked(camera, image, path):
     return camera.with_image_mask(opaque, combine=True)
 
 
-def _predict_seg(model, stems, sources, images, cam, names, out: Path, args, up=None) -> None:
+def _predict_seg(model, stems, sources, images, cam, names, out: Path, args, up=None,
+                 video=None) -> None:
     import cv2
 
+    from .scenes import colourize
     from .train.apply import UNSEEN, segment_image
 
     r = segment_image(model, images if args.rig else images[0], cam,
                       up=_up_arg(args) if up is None else up,
                       interpolation=args.interpolation, render=args.render or "nearest")
     print(_report_up(r))
+    pictures = []
     for stem, image, lab in zip(stems, images, r["labels"] if args.rig else [r["labels"]]):
+        pictures.append(np.hstack([_as_uint8(image), colourize(lab)]))
         seen = lab != UNSEEN
         shares = np.bincount(lab[seen], minlength=len(names)) / max(int(seen.sum()), 1)
         top = np.argsort(-shares)[:5]
@@ -323,9 +349,12 @@ def _predict_seg(model, stems, sources, images, cam, names, out: Path, args, up=
         _seg_figure(_as_uint8(image), lab, out / f"{stem}_seg.png", names)
         print(f"wrote {out / f'{stem}_labels.png'} (class index per pixel, {UNSEEN}: unseen) "
               f"and {out / f'{stem}_seg.png'}")
+    if video is not None:  # a rig's cameras one above the other
+        video.add(_stacked(pictures, axis=0))
 
 
-def _predict_det(model, stems, sources, images, cam, names, out: Path, args, up=None) -> None:
+def _predict_det(model, stems, sources, images, cam, names, out: Path, args, up=None,
+                 video=None) -> None:
     import cv2
 
     from .train.apply import detect_image
@@ -345,13 +374,33 @@ def _predict_det(model, stems, sources, images, cam, names, out: Path, args, up=
         print(f"{names[c]:>14} {s:.2f}   [" + ", ".join(f"{v:.1f}" for v in b) + "]")
     print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
     cams = list(cam.values()) if args.rig else [cam]
+    pictures = []
     for s, image, c in zip(stems, images, cams):  # each camera draws what it sees
         scale = max(1, round(512 / max(c.width, c.height)))  # small images enlarged to about 512
         drawn = draw_boxes(_as_uint8(image), c, r["boxes"][keep],
                            [names[k] for k in r["classes"][keep]], scale=scale)
         cv2.imwrite(str(out / f"{s}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
+        pictures.append(drawn)
+    if video is not None:  # a rig's cameras side by side
+        video.add(_stacked(pictures, axis=1))
     print(f"wrote {out / f'{stem}_boxes.json'} and " +
           ", ".join(str(out / f"{s}_boxes.png") for s in stems))
+
+
+def _stacked(pictures: list, axis: int) -> np.ndarray:
+    """RGB pictures one above the other (``axis`` 0) or side by side (1), each scaled to the
+    first's width (or height)."""
+    import cv2
+
+    ref = pictures[0].shape[1 - axis]
+    fit = []
+    for p in pictures:
+        n = p.shape[1 - axis]
+        if n != ref:
+            size = (ref, round(p.shape[0] * ref / n)) if axis == 0 else (round(p.shape[1] * ref / n), ref)
+            p = cv2.resize(p, size, interpolation=cv2.INTER_AREA)
+        fit.append(p)
+    return np.concatenate(fit, axis)
 
 
 def _as_uint8(image: np.ndarray) -> np.ndarray:

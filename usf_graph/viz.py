@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import matplotlib
 
@@ -285,3 +286,41 @@ def plot_segmentation(sets: dict, preds: dict, path=None, sample: int = 0):
             row.append((f"({k}) {name}", colourize(np.where(seen, p[k][sample], 255))))
         rows.append(row)
     return contact_sheet(rows, path, legend=dict(zip(SEMANTIC_CLASSES, PALETTE)))
+
+
+class FrameVideo:
+    """Pictures (RGB uint8 ``[H, W, 3]``) written to a video as they come, each resized to
+    the first one's size: ``.avi`` as Motion JPEG, ``.mp4`` as MPEG-4 part 2 (what OpenCV's
+    wheels write without extra codecs)."""
+
+    CODECS = {".avi": "MJPG", ".mp4": "mp4v"}
+
+    def __init__(self, path, fps: float = 10.0):
+        self.path = Path(path)
+        if self.path.suffix.lower() not in self.CODECS:
+            raise ValueError(f"video {self.path}: write .avi or .mp4")
+        if not fps > 0:
+            raise ValueError(f"video frame rate must be positive, got {fps}")
+        self.fps, self.size, self.frames, self._writer = float(fps), None, 0, None
+
+    def add(self, rgb: np.ndarray) -> None:
+        import cv2
+
+        rgb = np.ascontiguousarray(rgb)
+        if self._writer is None:
+            h, w = rgb.shape[:2]
+            self.size = (w + w % 2, h + h % 2)  # codecs want even sizes
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(
+                *self.CODECS[self.path.suffix.lower()]), self.fps, self.size)
+            if not self._writer.isOpened():
+                raise ValueError(f"OpenCV cannot write {self.path} here; try .avi")
+        if rgb.shape[1::-1] != self.size:
+            rgb = cv2.resize(rgb, self.size, interpolation=cv2.INTER_AREA)
+        self._writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
