@@ -65,9 +65,13 @@ def messages(ts, ros1: bool, n, calib=None, encoding="rgb8", k_zero=False, binni
     return out
 
 
-def write_bag(path: Path, ros1: bool, msgs) -> Path:
+def write_bag(path: Path, ros1: bool, msgs, mcap: bool = False) -> Path:
+    """A bag of ``msgs`` written by rosbags: ROS 1, or ROS 2 in SQLite (or ``mcap``)."""
+    from rosbags.rosbag2 import StoragePlugin
+
     ts = ROS1 if ros1 else ROS2
-    with (Writer1(path) if ros1 else Writer2(path, version=9)) as w:
+    store = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
+    with (Writer1(path) if ros1 else Writer2(path, version=9, storage_plugin=store)) as w:
         conns = {}
         for topic, msg, i in msgs:
             if topic not in conns:
@@ -77,12 +81,16 @@ def write_bag(path: Path, ros1: bool, msgs) -> Path:
     return path
 
 
-@pytest.mark.parametrize("ros1", [False, True], ids=["ros2", "ros1"])
-def test_frames_and_the_camera_come_back_as_written(tmp_path, ros1):
+@pytest.mark.parametrize("ros1, mcap", [(False, False), (False, True), (True, False)],
+                         ids=["ros2-sqlite", "ros2-mcap", "ros1"])
+def test_frames_and_the_camera_come_back_as_written(tmp_path, ros1, mcap):
     calib = FIXTURES / "ros_equidistant.yaml"
     ts = ROS1 if ros1 else ROS2
-    bag = write_bag(tmp_path / ("run.bag" if ros1 else "run"), ros1, messages(ts, ros1, 5, calib))
+    bag = write_bag(tmp_path / ("run.bag" if ros1 else "run"), ros1, messages(ts, ros1, 5, calib), mcap)
     assert bags.is_bag(bag) and not bags.is_bag(calib)
+    if not ros1:  # a ROS 2 bag by its storage file too
+        store = next(bag.glob("*.mcap" if mcap else "*.db3"))
+        assert bags.is_bag(store) and bags.topics(store) == bags.topics(bag)
     assert bags.topics(bag)["/cam/image_raw"] == ("sensor_msgs/msg/Image", 5)
     got = list(bags.frames(bag, "/cam/image_raw"))
     assert [f.index for f in got] == list(range(5))
