@@ -135,6 +135,8 @@ def test_the_bag_command_lists_what_predict_reads(tmp_path, capsys):
     assert lines[4] == "IMU /imu0 (1 messages): predict --imu /imu0"
     assert main(["bag", str(tmp_path / "none")]) == 2
     assert "does not exist" in capsys.readouterr().err
+    assert main(["lift", str(bag), "--camera", str(FIXTURES / "ros_equidistant.yaml")]) == 2
+    assert "is a ROS bag, not an image: 'usf-graph predict' reads bags" in capsys.readouterr().err
     # one camera's images and a camera_info not beside them: that camera_info
     info = [m for m in msgs if m[0] == "/cam/camera_info"][0][1]
     odd = write_bag(tmp_path / "odd", False, [("/front/image_raw", image_msg(ROS2, frame(0), 100, 0), 0),

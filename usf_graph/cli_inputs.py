@@ -116,6 +116,11 @@ def read_image(path):
             raise ValueError(f"cannot read image {p}: {e}") from e
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None:
+        from .bags import is_bag
+
+        if is_bag(p):
+            raise ValueError(f"{p} is a ROS bag, not an image: 'usf-graph predict' reads bags "
+                             "(in Python: usf_graph.bags.frames)")
         raise ValueError(f"cannot read image {p}: missing, or not an image format OpenCV reads")
     if img.ndim == 3 and img.shape[2] in (3, 4):  # OpenCV's BGR(A) -> RGB(A)
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
