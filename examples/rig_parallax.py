@@ -14,9 +14,13 @@ seams (points next to one another camera fills), and the mean absolute colour er
 (0-255) on the seams.
 
     .venv/bin/python examples/rig_parallax.py --out runs/rig_parallax [--baseline 0.15]
+    .venv/bin/python examples/rig_parallax.py --checkpoint runs/seg/spherical_deeplab.pt
 
 About a minute on 2 cores. Writes ``results.json`` and ``seams.png`` (the label errors on
-the sphere, at infinity and stitched at 2 m).
+the sphere, at infinity and stitched at 2 m). With ``--checkpoint`` (a ``usf-graph train
+seg`` model) it also scores that segmenter through the rig on the protocol's test rooms
+(``--rooms`` of them, its materials, given the true up): mIoU on the cameras' pixels at
+infinity, stitched at 2 m, at the chosen distance, and with the cameras at the centre.
 """
 
 from __future__ import annotations
@@ -63,6 +67,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--rooms", type=int, default=6)
     ap.add_argument("--level", type=int, default=5, help="icosahedral grid level")
     ap.add_argument("--size", type=int, default=256, help="fisheye image size")
+    ap.add_argument("--checkpoint", default=None, help="also score this segmenter through the rig")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -124,10 +129,51 @@ def main(argv=None) -> dict:
     res["chosen_m"] = chosen
     print("distances chosen from the seams: " + ", ".join("infinity" if d is None else f"{d:.2f} m"
                                                          for d in chosen))
+    if args.checkpoint:
+        res["model"] = score_model(args.checkpoint, rig, args.rooms, args.no_progress)
     (out / "results.json").write_text(json.dumps(res, indent=1))
     _plot(g, maps, out / "seams.png")
     print(f"wrote {out / 'results.json'} and {out / 'seams.png'}")
     return res
+
+
+def score_model(path, rig: dict, rooms: int, quiet: bool) -> dict:
+    """A segmenter's mIoU on the rig cameras' pixels over the protocol's first ``rooms`` test
+    rooms (seed 1, the test rooms of seed 0; the model's materials), given the true up."""
+    from usf_graph.datasets.rooms import view_pose
+    from usf_graph.train.apply import segment_image
+    from usf_graph.train.checkpoints import load_protocol_model
+    from usf_graph.train.seg_metrics import confusion_matrix, scores
+
+    ckpt = load_protocol_model(path).require("seg", spherical=True)
+    model, materials = ckpt.model.eval(), ckpt.config.get("materials")
+    run = Path(path).with_name("results.json")  # the protocol's record of its rooms
+    if materials is None and run.is_file():
+        materials = json.loads(run.read_text()).get("materials")
+    materials = materials or "random"
+    centred = {n: c.with_position(None) for n, c in rig.items()}
+    names = ("cameras at the centre", "at infinity", "stitched at 2 m", "stitched where the seams agree")
+    conf = {n: 0 for n in names}
+    g4 = grids.icosahedral(4)
+    for k in tqdm(range(rooms), desc="rooms (model)", disable=quiet):
+        scene = scenes.make_room(1, k, materials=materials)
+        p, R = view_pose(scene, "none", k, 1)
+        views = {id(r): [scenes.render(scene, c, position=p, rotation=R, boxes=False)
+                         for c in r.values()] for r in (rig, centred)}
+        apart = views[id(rig)]
+        d, _ = choose_distance(rig, g4, [v.rgb for v in apart])
+        for name, r, vs in ((names[0], centred, views[id(centred)]), (names[1], rig, apart),
+                            (names[2], cameras.stitch_at(rig, 2.0), apart),
+                            (names[3], cameras.stitch_at(rig, d) if d else rig, apart)):
+            labels = segment_image(model, [v.rgb for v in vs], r, up=[0.0, 0.0, 1.0])["labels"]
+            for lab, v in zip(labels, vs):
+                conf[name] = conf[name] + confusion_matrix(lab, v.label, 13)
+    out = {n: scores(c)["mIoU"] for n, c in conf.items()}
+    print(f"{path} through the rig, {rooms} test rooms ({materials} materials), given the true "
+          "up: mIoU on the cameras' pixels")
+    for n, v in out.items():
+        print(f"{n:>30s} {100 * v:6.2f}")
+    return out
 
 
 def _plot(g, maps, path) -> None:

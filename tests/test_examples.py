@@ -388,8 +388,15 @@ def test_deploy_onnx_example_writes_an_exported_detectors_boxes(tmp_path, capsys
 def test_rig_parallax_example_small_run(tmp_path):
     """One room: the centred rig is the floor, and stitching near the room's depth beats
     ignoring a 0.15 m baseline."""
+    from tests.helpers import tiny_seg_checkpoint
+
+    tiny_seg_checkpoint(tmp_path / "seg.pt")
     res = load("rig_parallax").main(["--out", str(tmp_path), "--rooms", "1", "--level", "4",
-                                     "--size", "96", "--no-progress"])
+                                     "--size", "96", "--no-progress", "--checkpoint",
+                                     str(tmp_path / "seg.pt")])
+    assert set(res["model"]) == {"cameras at the centre", "at infinity", "stitched at 2 m",
+                                 "stitched where the seams agree"}
+    assert all(0 <= v <= 1 for v in res["model"].values())
     s = res["settings"]
     assert json.loads((tmp_path / "results.json").read_text()) == res
     assert (tmp_path / "seams.png").stat().st_size > 10_000
