@@ -226,7 +226,7 @@ class Accelerometer:
                                  f"{window_ns / 1e6:g} ms of the frame at {stamp_ns} ns")
             a = self.acc[j]
         n = float(np.linalg.norm(a))
-        if not np.isfinite(n) or n < 1.0:  # m/s^2: a free fall, or no accelerometer data
+        if not np.isfinite(n) or n < 0.1:  # a free fall, or no data (0.1: g units pass too)
             raise ValueError(f"{self.path} [{self.topic}]: the accelerometer reads {n:.3g} m/s^2 "
                              f"about {stamp_ns} ns, too little to tell up")
         return a / n
