@@ -376,10 +376,10 @@ class Camera:
              "rotation": np.round(self.rotation, 15).tolist()}
         if self.fov_limit is not None:
             k["fov_deg"] = round(math.degrees(2 * self.fov_limit), 12)
-        if self.position is not None:
-            k["position"] = np.round(self.position, 12).tolist()
-        if self.distance is not None:
+        if self.distance is not None:  # without one the position changes no ray
             k["distance"] = self.distance
+            if self.position is not None:
+                k["position"] = np.round(self.position, 12).tolist()
         if self.image_mask is not None:
             import hashlib
 
@@ -392,9 +392,11 @@ class Camera:
         key = self.key()
         doc = {FORMAT_TAG: 1, "model": type(self).__name__, "rotation": key["rotation"],
                "params": key["params"]}
-        for name in ("fov_deg", "position", "distance"):
+        for name in ("fov_deg", "distance"):
             if name in key:
                 doc[name] = key[name]
+        if self.position is not None:
+            doc["position"] = np.round(self.position, 12).tolist()
         return doc
 
     def save(self, path) -> None:
