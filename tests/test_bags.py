@@ -292,6 +292,11 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
             b = cv2.imread(str(tmp_path / "p" / f"f{i}_{name}_labels.png"), cv2.IMREAD_UNCHANGED)
             assert a is not None and np.array_equal(a, b)
     capsys.readouterr()
+    # --distance auto: chosen once, on the first frame (the views are of a panorama: far away)
+    assert main(["predict", "seg", ckpt, str(bag), *common, "--distance", "auto",
+                 "--out", str(tmp_path / "auto")]) == 0
+    assert capsys.readouterr().out.count("stitching distance chosen where the cameras agree best: ") == 1
+    assert (tmp_path / "auto" / "drive_cam1_000001_labels.png").is_file()
     assert main(["predict", "seg", ckpt, str(bag), *common, "--topic", "/front/image_raw"]) == 2
     assert "has 2 cameras (cam0, cam1) but 1 topics" in capsys.readouterr().err
     assert main(["predict", "seg", ckpt, str(bag), "--camera", str(FIXTURES / "basalt_calib.json"),
