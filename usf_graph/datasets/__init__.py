@@ -4,7 +4,8 @@ from .mnist import SphericalMNIST, download_mnist, load_digits, read_idx, read_m
 from .pandora import Pandora, read_annotations
 from .pointcloud import SHAPES, ModelNet, ProceduralShapes, make_shape, read_off, sample_surface
 from .rooms import RoomsDetection, RoomsGravity, RoomsSegmentation
+from .rosbag import RosBagFrames
 from .stanford import Stanford2D3DS
 
 __all__ = ["SphericalMNIST", "download_mnist", "load_digits", "read_idx", "read_mnist_csv", "ModelNet",
-           "ProceduralShapes", "Pandora", "read_annotations", "RoomsDetection", "RoomsGravity", "RoomsSegmentation", "Stanford2D3DS", "SHAPES", "make_shape", "read_off", "sample_surface"]
+           "ProceduralShapes", "Pandora", "read_annotations", "RoomsDetection", "RoomsGravity", "RoomsSegmentation", "RosBagFrames", "Stanford2D3DS", "SHAPES", "make_shape", "read_off", "sample_surface"]

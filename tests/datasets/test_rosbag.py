@@ -1,0 +1,76 @@
+"""RosBagFrames: a bag's frames lifted once, their stamps and IMU up, the processed file."""
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from tests.helpers import FIXTURES
+from usf_graph import cameras
+from usf_graph.datasets import RosBagFrames
+from usf_graph.frontend import SphericalFrontend
+
+pytest.importorskip("rosbags")
+from tests.test_bags import ROS2, frame, image_msg, imu_msg, messages, write_bag  # noqa: E402
+
+
+@pytest.fixture
+def bag(tmp_path):
+    calib = FIXTURES / "ros_equidistant.yaml"
+    msgs = [m for m in messages(ROS2, False, 1, calib) if m[0] == "/cam/camera_info"]
+    cam = cameras.load(calib)
+    for i in range(4):  # frames at the calibration's size
+        big = np.resize(frame(i), (cam.height, cam.width, 3)).astype(np.uint8)
+        msgs.append(("/cam/image_raw", image_msg(ROS2, big, 50 + i, 0), 1 + i))
+    tilt = np.array([0.1, -0.99, 0.05])  # the camera's optical frame: up is -y, tilted
+    msgs += [("/imu", imu_msg(ROS2, 9.81 * tilt, 50 + k // 10, (k % 10) * 10**8), 10 + k)
+             for k in range(40)]
+    return write_bag(tmp_path / "run", False, msgs), cam, tilt
+
+
+def test_frames_are_lifted_once_with_their_stamps(tmp_path, bag):
+    path, cam, _ = bag
+    ds = RosBagFrames(tmp_path / "data", path, grid="icosahedral:3", progress=False)
+    assert len(ds) == 4 and ds.topic == "/cam/image_raw" and ds.camera.key() == cam.key()
+    fe = SphericalFrontend(cam, ds.grid)
+    for i in range(4):
+        d = ds[i]
+        img = np.resize(frame(i), (cam.height, cam.width, 3)).astype(np.float32) / 255
+        torch.testing.assert_close(d.x, fe.lift(img).to(torch.float16).float())
+        assert torch.equal(d.mask, fe.mask) and d.stamp_ns.item() == (50 + i) * 10**9
+    assert "up" not in ds[0]
+    with pytest.raises(ValueError, match="made without an IMU topic"):
+        _ = ds.gravity
+    files = sorted((tmp_path / "data" / "processed").glob("rosbag_*.pt"))
+    assert len(files) == 1
+    before = files[0].stat().st_mtime_ns
+    again = RosBagFrames(tmp_path / "data", path, grid="icosahedral:3", progress=False)
+    assert files[0].stat().st_mtime_ns == before and torch.equal(again.x, ds.x)  # not lifted again
+    half = RosBagFrames(tmp_path / "data", path, grid="icosahedral:3", every=2, progress=False)
+    assert len(half) == 2 and torch.equal(half.x[1], ds.x[2])
+    assert len(list((tmp_path / "data" / "processed").glob("rosbag_*.pt"))) == 2
+    files[0].write_bytes(b"not a tensor file")  # a corrupt processed file is made again
+    with pytest.warns(UserWarning, match="unreadable"):
+        fixed = RosBagFrames(tmp_path / "data", path, grid="icosahedral:3", progress=False)
+    assert torch.equal(fixed.x, ds.x)
+
+
+def test_each_frame_gets_the_imus_up(tmp_path, bag):
+    path, cam, tilt = bag
+    chain = tmp_path / "camchain-imucam.yaml"  # the IMU in the camera's optical frame
+    c = yaml.safe_load((FIXTURES / "kalibr_rig.yaml").read_text())["cam0"]
+    c.update(intrinsics=[float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)], resolution=[cam.width, cam.height],
+             distortion_coeffs=[float(v) for v in cam.k], T_cam_imu=np.eye(4).tolist())
+    chain.write_text(yaml.safe_dump({"cam0": c}))
+    ds = RosBagFrames(tmp_path / "d", path, camera=chain, grid="icosahedral:3", imu="/imu",
+                      progress=False)
+    up = cameras.DEFAULT_ROTATION @ tilt / np.linalg.norm(tilt)
+    assert up[2] > 0.99  # nearly level: up is the sphere frame's +z
+    np.testing.assert_allclose(ds.gravity.numpy(), np.tile(up, (4, 1)), atol=1e-12)
+    torch.testing.assert_close(ds[3].up, torch.as_tensor(up, dtype=torch.float32)[None])
+    with pytest.raises(ValueError, match="imu needs the IMU's rotation"):
+        RosBagFrames(tmp_path / "d", path, grid="icosahedral:3", imu="/imu", progress=False)
+    with pytest.raises(FileNotFoundError, match="is not a ROS bag"):
+        RosBagFrames(tmp_path / "d", chain, progress=False)
+    with pytest.raises(ValueError, match="every must be a positive whole number"):
+        RosBagFrames(tmp_path / "d", path, every=0, progress=False)

@@ -1,0 +1,152 @@
+r"""A ROS bag's camera frames lifted onto a spherical grid, as a PyG dataset.
+
+The frames of one image topic (:mod:`usf_graph.bags`) go through their camera (a
+calibration file, a :class:`~usf_graph.cameras.Camera`, or the bag's ``CameraInfo``) onto the
+grid once; the processed file holds only their signal, so a sample carries its ``x`` and
+the grid is shared. With an IMU topic every frame also gets its up from the accelerometer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch_geometric.data import Dataset
+from tqdm.auto import tqdm
+
+from .. import bags
+from ..cameras import Camera, imu_rotation, load
+from ..fileio import atomic_torch_save
+from ..frontend import SphericalFrontend
+from ..frontend.image import SphericalImage
+from ..grids import Grid, from_spec
+from .stacked import load_or_rebuild, pre_transform_stacked
+
+
+class RosBagFrames(Dataset):
+    r"""The frames of a ROS 1 or ROS 2 bag's image topic, lifted onto a grid.
+
+    Args:
+        root: where the processed tensors go (``root/processed``).
+        bag: a ROS 1 ``.bag``, or a ROS 2 bag's folder (``.db3``, ``.mcap``).
+        topic: the image topic; None: the bag's only one.
+        camera: a calibration file, a :class:`~usf_graph.cameras.Camera`, or None for the
+            bag's ``CameraInfo`` beside the topic.
+        grid: grid spec or :class:`~usf_graph.grids.Grid`.
+        every: keep every ``every``-th frame.
+        interpolation: how the frames are lifted (see :class:`SphericalFrontend`).
+        imu: an IMU topic: each frame's up from its accelerometer (the mean over
+            ``imu_window_ns`` about the frame's stamp), turned into the camera's sphere frame
+            by ``imu_to_sphere`` (``[3, 3]``), or by the camera-IMU extrinsics of the
+            calibration file ``camera`` (:func:`usf_graph.cameras.imu_rotation`).
+
+    A sample has ``x [N, C]`` (the image's channels in [0, 1]: RGB, or one for a mono
+    camera), ``pos``, ``area``, ``mask [N]`` (the points the camera sees), ``stamp_ns [1]``
+    and, with an IMU, ``up [1, 3]``; :attr:`gravity` holds every frame's up. The processed
+    file's name hashes the bag's size and time, the camera, the grid and the options, so a
+    change rebuilds it.
+    """
+
+    def __init__(self, root, bag, topic: str | None = None, camera=None, grid="icosahedral:5",
+                 every: int = 1, interpolation: str = "bilinear", imu: str | None = None,
+                 imu_to_sphere=None, imu_window_ns: int = 10**8, transform=None,
+                 pre_transform=None, progress: bool = True):
+        if int(every) != every or every < 1:
+            raise ValueError(f"every must be a positive whole number, got {every}")
+        self.bag, self.every, self.interpolation, self.progress = Path(bag), int(every), interpolation, progress
+        if not bags.is_bag(self.bag) or not self.bag.exists():
+            raise FileNotFoundError(f"{bag} is not a ROS bag (.bag, a ROS 2 bag's folder, .db3 "
+                                    "or .mcap)" + ("" if self.bag.exists() else ": it does not exist"))
+        self.topic = bags.image_topic(self.bag, topic)
+        self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
+        self.camera: Camera = (bags.camera(self.bag, self.topic) if camera is None else
+                               camera if isinstance(camera, Camera) else load(camera))
+        self.imu, self.imu_window_ns = imu, int(imu_window_ns)
+        self.imu_to_sphere = None
+        if imu is not None:
+            if imu_to_sphere is None and isinstance(camera, (str, Path)):
+                imu_to_sphere = imu_rotation(camera)
+            if imu_to_sphere is None:
+                raise ValueError("imu needs the IMU's rotation to the camera's sphere frame: "
+                                 "give imu_to_sphere, or camera as a calibration file with "
+                                 "camera-IMU extrinsics")
+            self.imu_to_sphere = np.asarray(imu_to_sphere, np.float64).reshape(3, 3)
+        self.frontend = SphericalFrontend(self.camera, self.grid, interpolation=interpolation)
+        super().__init__(str(root), transform, pre_transform, log=False)
+        blob = load_or_rebuild(self.processed_paths[0], self.process, ("x", "stamp_ns", "gravity"))
+        self.x, self.stamp_ns, self._gravity = blob["x"], blob["stamp_ns"], blob["gravity"]
+
+    @property
+    def raw_dir(self) -> str:
+        return str(self.bag.parent)  # the bag is read where it is
+
+    @property
+    def raw_file_names(self):
+        return [self.bag.name]
+
+    @property
+    def processed_file_names(self):
+        storage = sorted(self.bag.glob("*")) if self.bag.is_dir() else [self.bag]
+        key = {"bag": str(self.bag.resolve()), "files": [(p.name, p.stat().st_size, p.stat().st_mtime_ns)
+                                                         for p in storage if p.is_file()],
+               "topic": self.topic, "camera": self.camera.key(), "grid": self.grid.spec,
+               "every": self.every, "interpolation": self.interpolation, "imu": self.imu,
+               "imu_to_sphere": None if self.imu_to_sphere is None else self.imu_to_sphere.round(12).tolist(),
+               "window": self.imu_window_ns}
+        digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        return [f"rosbag_{self.bag.stem}_{digest}.pt"]
+
+    def download(self):
+        raise FileNotFoundError(f"{self.bag} does not exist")
+
+    def process(self):
+        acc = None if self.imu is None else bags.Accelerometer(self.bag, self.imu)
+        xs, stamps, ups = [], [], []
+        for f in tqdm(bags.frames(self.bag, self.topic, self.every), desc=f"lifting {self.topic}",
+                      disable=not self.progress, leave=False):
+            img = f.image
+            scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
+            if img.ndim == 3 and img.shape[2] == 4:
+                img = img[..., :3]  # alpha: the frontend's mask covers what a camera sees
+            xs.append(self.frontend.lift(img.astype(np.float32) / scale))
+            stamps.append(f.stamp_ns)
+            if acc is not None:
+                ups.append(self.imu_to_sphere @ acc.up(f.stamp_ns, self.imu_window_ns))
+        if not xs:
+            raise ValueError(f"{self.bag} [{self.topic}] has no frames")
+        x = torch.stack(xs)
+        if self.pre_transform is not None:
+            x = pre_transform_stacked(self.pre_transform, (self._sample(xi) for xi in x), "x",
+                                      fixed=("pos",))
+        gravity = torch.as_tensor(np.stack(ups)) if ups else torch.zeros(0, 3, dtype=torch.float64)
+        atomic_torch_save({"x": x.to(torch.float16), "stamp_ns": torch.as_tensor(stamps),
+                           "gravity": gravity}, self.processed_paths[0])
+
+    @property
+    def gravity(self) -> torch.Tensor:
+        """``[S, 3]`` float64: each frame's up from the IMU (the camera's sphere frame)."""
+        if self.imu is None:
+            raise ValueError("this dataset was made without an IMU topic: give imu= for each "
+                             "frame's up")
+        return self._gravity
+
+    def len(self) -> int:
+        return len(self.x)
+
+    def _sample(self, x) -> SphericalImage:
+        return SphericalImage(x=x, pos=self.grid.pos.float(), area=self.grid.area.float())
+
+    def get(self, idx: int) -> SphericalImage:
+        d = self._sample(self.x[idx].float())
+        d.mask = self.frontend.mask.clone()
+        d.stamp_ns = self.stamp_ns[idx].reshape(1)
+        if self.imu is not None:
+            d.up = self._gravity[idx].float()[None]
+        return d
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}({len(self)}, bag={self.bag.name}, topic={self.topic}, "
+                f"camera={self.camera!r}, grid={self.grid.spec})")
