@@ -200,12 +200,16 @@ def test_predict_reads_a_bag_and_its_camera_info(tmp_path, capsys):
     assert ok and first.shape == (f["height"], 2 * f["width"], 3)  # the image beside its labels
     assert f"camera from {bag}'s camera_info: {cam}" in out and "run#/cam/image_raw@101000000005" not in out
     assert f"== {bag}#/cam/image_raw@100000000005" in out and f"== {bag}#/cam/image_raw@102000000005" in out
+    assert main(["predict", "seg", ckpt, str(bag), "--topic", "/cam/image_raw", "--every", "2",
+                 "--out", str(tmp_path / "t")]) == 0  # the topic named, its camera_info found
     assert main(["predict", "seg", ckpt, str(tmp_path / "frame0.png"), str(tmp_path / "frame2.png"),
                  "--camera", str(calib), "--out", str(tmp_path / "p")]) == 0
     for i in (0, 2):
         a = cv2.imread(str(tmp_path / "b" / f"run_{i:06d}_labels.png"), cv2.IMREAD_UNCHANGED)
         b = cv2.imread(str(tmp_path / "p" / f"frame{i}_labels.png"), cv2.IMREAD_UNCHANGED)
         assert a is not None and np.array_equal(a, b)
+        t = cv2.imread(str(tmp_path / "t" / f"run_{i:06d}_labels.png"), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(t, b)
     assert not (tmp_path / "b" / "run_000001_labels.png").exists()
     capsys.readouterr()
     for argv, msg in (([str(tmp_path / "frame0.png")], "give the camera's calibration with --camera"),

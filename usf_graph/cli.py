@@ -8,7 +8,8 @@ import math
 import sys
 from pathlib import Path
 
-from .cli_info import cmd_bag, cmd_cache, cmd_info
+from .cli_bags import cmd_bag
+from .cli_info import cmd_cache, cmd_info
 from .cli_inputs import (
     CAMERA_HELP,
     camera_from_spec,

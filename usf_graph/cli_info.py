@@ -72,20 +72,3 @@ def cmd_cache(args) -> int:
             f.unlink(missing_ok=True)
         print(f"removed {len(files)} files; geometry is rebuilt on next use")
     return 0
-
-
-def cmd_bag(args) -> int:
-    """``usf-graph bag PATH``: the topics ``predict`` can read, and where the camera_info is."""
-    from .bags import summary
-
-    s = summary(args.bag)
-    print(f"{'image topic':<40} {'type':<16} {'messages':>8}  camera_info")
-    for t, (kind, n, info) in s["images"].items():
-        print(f"{t:<40} {kind:<16} {n:>8}  {info or '- (give --camera)'}")
-    if not s["images"]:
-        print("(no sensor_msgs/Image or CompressedImage topic)")
-    for t, n in s["imu"].items():
-        print(f"IMU {t} ({n} messages): predict --imu {t}")
-    if s["other"]:
-        print("other topics: " + ", ".join(f"{t} ({m.rsplit('/', 1)[1]})" for t, (m, _) in s["other"].items()))
-    return 0

@@ -125,3 +125,16 @@ def read_image(path):
     if img.ndim == 3 and img.shape[2] in (3, 4):  # OpenCV's BGR(A) -> RGB(A)
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
     return img
+
+
+def alpha_masked(camera, image, path):
+    """``camera`` with the pixels that ``image``'s alpha channel makes fully transparent
+    masked too (as ``--image-mask`` would); unchanged without alpha or where all is opaque."""
+    if image.ndim != 3 or image.shape[2] != 4 or image.shape[:2] != (camera.height, camera.width):
+        return camera  # no alpha; a wrong size is the lift's error to report
+    opaque = image[..., 3] > 0
+    if opaque.all():
+        return camera
+    print(f"{Path(path).name}: its alpha channel hides {int((~opaque).sum())} pixels; they are "
+          "left out")
+    return camera.with_image_mask(opaque, combine=True)

@@ -10,8 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from .bags import is_bag
+from .cli_bags import bag_camera, imu_up, predict_rig_bag
 from .cli_inputs import (
     CAMERA_HELP,
+    alpha_masked,
     camera_from_spec,
     camera_options,
     read_image,
@@ -177,7 +179,7 @@ def cmd_predict(args) -> int:
 def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> None:
     """Every image, frame or rig frame of ``args.image`` through ``run``."""
     if rig_bag:  # a rig's recording: one image per camera and frame, one sphere each
-        _predict_rig_bag(run, model, names, out, args)
+        predict_rig_bag(run, model, names, out, args)
         return
     if args.rig:  # one frame of the rig: an image per camera, one sphere
         images = [read_image(p) for p in args.image]
@@ -187,30 +189,21 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
     several = len(args.image) > 1 or bool(streams)
     calibrated = {}  # the calibration, read once per image size or bag (frames share it)
     topic = args.topic[0] if args.topic else None
-    imu = _imu(args)
+    imu = imu_up(args)
     for stem, source, image, bag, stamp in _inputs(args.image, args.every, topic):
         if several:
             print(f"== {source}")
         up = None if imu is None else imu(bag, stamp)
         key = image.shape if args.camera is not None else bag
         if key not in calibrated:
-            calibrated[key] = _bag_camera(bag, args) if args.camera is None else \
+            calibrated[key] = bag_camera(bag, topic, args) if args.camera is None else \
                 camera_from_spec(args.camera, args.key, args.fov, args.image_mask, image.shape)
-        cam = _alpha_masked(calibrated[key], image, source)
+        cam = alpha_masked(calibrated[key], image, source)
         run(model, [stem], [source], [image], cam, names, out, args, up=up)
 
 
 def _is_video(path) -> bool:
     return Path(path).suffix.lower() in VIDEO_SUFFIXES
-
-
-def _bag_camera(bag, args):
-    from .bags import camera
-    from .cameras import with_fov_and_mask
-
-    cam = with_fov_and_mask(camera(bag, args.topic), args.fov, args.image_mask)
-    print(f"camera from {bag}'s camera_info: {cam}")
-    return cam
 
 
 def _inputs(paths, every: int = 1, topic: str | None = None):
@@ -253,56 +246,6 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
             raise ValueError(f"video {path} has no frames OpenCV can decode")
 
 
-def _imu(args):
-    """``--imu``: (bag, stamp) -> up in the cameras' sphere frame, or None."""
-    if args.imu is None:
-        return None
-    from .bags import Accelerometer
-    from .cameras import imu_rotation
-
-    if args.camera is None:
-        raise ValueError("--imu needs the camera-IMU extrinsics: give --camera (a Kalibr "
-                         "camchain-imucam, Basalt calibration or ORB-SLAM3 settings)")
-    R = imu_rotation(args.camera)
-    readings = {}
-
-    def up(bag, stamp):
-        if bag not in readings:
-            readings[bag] = Accelerometer(bag, args.imu)
-        return R @ readings[bag].up(stamp, round(args.imu_window * 1e6))
-    return up
-
-
-def _predict_rig_bag(run, model, names, out: Path, args) -> None:
-    """``predict --rig`` on a ROS bag: each camera's topic, frames matched by stamp."""
-    from .bags import rig_frames
-    from .cameras import rig_topics
-
-    bag = args.image[0]
-    auto = args.distance == "auto"  # chosen on the first frame, kept for the others
-    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key,
-                        None if auto else args.distance)
-    topics = args.topic or rig_topics(args.camera)
-    if topics is None:
-        raise ValueError(f"--rig on a bag: give each camera's image topic with --topic, in the "
-                         f"rig's order ({', '.join(rig)}); {args.camera} names none")
-    if len(topics) != len(rig):
-        raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
-                         f"{len(topics)} topics were given ({', '.join(topics)})")
-    print(f"rig {', '.join(f'{n} <- {t}' for n, t in zip(rig, topics))}")
-    name = Path(bag).stem
-    imu = _imu(args)
-    for f in rig_frames(bag, topics, args.every, round(args.max_skew * 1e6)):
-        sources = [f"{bag}#{t}@{s}" for t, s in zip(topics, f.stamps_ns)]
-        print(f"== {bag}#{f.index} ({', '.join(str(s) for s in f.stamps_ns)})")
-        if auto:
-            rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, "auto", f.images)
-            auto = False
-        cams = {n: _alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), f.images, sources)}
-        run(model, [f"{name}_{n}_{f.index:06d}" for n in rig], sources, f.images, cams, names,
-            out, args, up=None if imu is None else imu(bag, f.stamps_ns[0]))
-
-
 def _rig_cameras(images, sources, args):
     """The rig of ``--rig``'s images (one per camera), each camera masked by its image's
     alpha channel (:func:`_alpha_masked`)."""
@@ -310,20 +253,7 @@ def _rig_cameras(images, sources, args):
     if len(images) != len(rig):
         raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
                          f"{len(images)} images were given, one per camera in that order")
-    return {n: _alpha_masked(c, im, p) for (n, c), im, p in zip(rig.items(), images, sources)}
-
-
-def _alpha_masked(camera, image, path):
-    """``camera`` with the pixels that ``image``'s alpha channel makes fully transparent
-    masked too (as ``--image-mask`` would); unchanged without alpha or where all is opaque."""
-    if image.ndim != 3 or image.shape[2] != 4 or image.shape[:2] != (camera.height, camera.width):
-        return camera  # no alpha; a wrong size is the lift's error to report
-    opaque = image[..., 3] > 0
-    if opaque.all():
-        return camera
-    print(f"{Path(path).name}: its alpha channel hides {int((~opaque).sum())} pixels; they are "
-          "left out")
-    return camera.with_image_mask(opaque, combine=True)
+    return {n: alpha_masked(c, im, p) for (n, c), im, p in zip(rig.items(), images, sources)}
 
 
 def _predict_seg(model, stems, sources, images, cam, names, out: Path, args, up=None,

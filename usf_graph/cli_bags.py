@@ -1,0 +1,86 @@
+"""The commands' ROS bag parts: ``usf-graph bag``, a bag's camera and IMU for ``predict``,
+and ``predict --rig`` on a rig's recording."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .cli_inputs import alpha_masked, rig_from_spec
+
+
+def cmd_bag(args) -> int:
+    """``usf-graph bag PATH``: the topics ``predict`` can read, and where the camera_info is."""
+    from .bags import summary
+
+    s = summary(args.bag)
+    print(f"{'image topic':<40} {'type':<16} {'messages':>8}  camera_info")
+    for t, (kind, n, info) in s["images"].items():
+        print(f"{t:<40} {kind:<16} {n:>8}  {info or '- (give --camera)'}")
+    if not s["images"]:
+        print("(no sensor_msgs/Image or CompressedImage topic)")
+    for t, n in s["imu"].items():
+        print(f"IMU {t} ({n} messages): predict --imu {t}")
+    if s["other"]:
+        print("other topics: " + ", ".join(f"{t} ({m.rsplit('/', 1)[1]})" for t, (m, _) in s["other"].items()))
+    return 0
+
+
+def bag_camera(bag, topic, args):
+    """The camera of ``topic``'s images from the bag's camera_info, with ``--fov`` and
+    ``--image-mask``."""
+    from .bags import camera
+    from .cameras import with_fov_and_mask
+
+    cam = with_fov_and_mask(camera(bag, topic), args.fov, args.image_mask)
+    print(f"camera from {bag}'s camera_info: {cam}")
+    return cam
+
+
+def imu_up(args):
+    """``--imu``: (bag, stamp) -> up in the cameras' sphere frame, or None."""
+    if args.imu is None:
+        return None
+    from .bags import Accelerometer
+    from .cameras import imu_rotation
+
+    if args.camera is None:
+        raise ValueError("--imu needs the camera-IMU extrinsics: give --camera (a Kalibr "
+                         "camchain-imucam, Basalt calibration or ORB-SLAM3 settings)")
+    R = imu_rotation(args.camera)
+    readings = {}
+
+    def up(bag, stamp):
+        if bag not in readings:
+            readings[bag] = Accelerometer(bag, args.imu)
+        return R @ readings[bag].up(stamp, round(args.imu_window * 1e6))
+    return up
+
+
+def predict_rig_bag(run, model, names, out: Path, args) -> None:
+    """``predict --rig`` on a ROS bag: each camera's topic, frames matched by stamp."""
+    from .bags import rig_frames
+    from .cameras import rig_topics
+
+    bag = args.image[0]
+    auto = args.distance == "auto"  # chosen on the first frame, kept for the others
+    rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key,
+                        None if auto else args.distance)
+    topics = args.topic or rig_topics(args.camera)
+    if topics is None:
+        raise ValueError(f"--rig on a bag: give each camera's image topic with --topic, in the "
+                         f"rig's order ({', '.join(rig)}); {args.camera} names none")
+    if len(topics) != len(rig):
+        raise ValueError(f"--rig: {args.camera} has {len(rig)} cameras ({', '.join(rig)}) but "
+                         f"{len(topics)} topics were given ({', '.join(topics)})")
+    print(f"rig {', '.join(f'{n} <- {t}' for n, t in zip(rig, topics))}")
+    name = Path(bag).stem
+    imu = imu_up(args)
+    for f in rig_frames(bag, topics, args.every, round(args.max_skew * 1e6)):
+        sources = [f"{bag}#{t}@{s}" for t, s in zip(topics, f.stamps_ns)]
+        print(f"== {bag}#{f.index} ({', '.join(str(s) for s in f.stamps_ns)})")
+        if auto:
+            rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, "auto", f.images)
+            auto = False
+        cams = {n: alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), f.images, sources)}
+        run(model, [f"{name}_{n}_{f.index:06d}" for n in rig], sources, f.images, cams, names,
+            out, args, up=None if imu is None else imu(bag, f.stamps_ns[0]))
