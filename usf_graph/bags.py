@@ -75,18 +75,36 @@ def topics(path) -> dict[str, tuple[str, int]]:
         reader.close()
 
 
-def image_topic(path, topic: str | None = None) -> str:
-    """``topic`` checked to be an image topic of the bag, or the bag's only image topic."""
-    found = {t: m for t, (m, _) in topics(path).items() if m in IMAGE_TYPES}
+def _messages(path, wanted) -> Iterator[tuple]:
+    """``(topic, recording time, load)`` of every message on the ``wanted`` topics, in
+    recording order; ``load()`` deserializes it (so messages nobody needs are not)."""
+    reader = _open(path)
+    try:
+        conns = [c for c in reader.connections if c.topic in wanted]
+        for conn, t, raw in reader.messages(connections=conns):
+            yield conn.topic, t, lambda conn=conn, raw=raw: reader.deserialize(raw, conn.msgtype)
+    finally:
+        reader.close()
+
+
+def _of(found: dict, types) -> list[str]:
+    """The topics of ``found`` (:func:`topics`) whose message type is one of ``types``."""
+    return [t for t, (m, _) in found.items() if m in types]
+
+
+def image_topic(path, topic: str | None = None, found: dict | None = None) -> str:
+    """``topic`` checked to be an image topic of the bag, or the bag's only image topic;
+    ``found``: the bag's :func:`topics`, where the caller has them."""
+    images = _of(topics(path) if found is None else found, IMAGE_TYPES)
     if topic is None:
-        if len(found) != 1:
-            raise ValueError(f"{path} has {len(found)} image topics ({', '.join(sorted(found)) or 'none'}); "
-                             "choose one with --topic" if found else
+        if len(images) != 1:
+            raise ValueError(f"{path} has {len(images)} image topics ({', '.join(sorted(images)) or 'none'}); "
+                             "choose one with --topic" if images else
                              f"{path} has no sensor_msgs/Image or CompressedImage topic")
-        return next(iter(found))
-    if topic not in found:
+        return images[0]
+    if topic not in images:
         raise ValueError(f"{path}: no image topic {topic!r}; its image topics: "
-                         f"{', '.join(sorted(found)) or 'none'}")
+                         f"{', '.join(sorted(images)) or 'none'}")
     return topic
 
 
@@ -94,16 +112,10 @@ def frames(path, topic: str | None = None, every: int = 1) -> Iterator[Frame]:
     """Every ``every``-th image of ``topic`` (the bag's only image topic when None), in
     recording order."""
     topic = image_topic(path, topic)
-    reader = _open(path)
-    try:
-        conns = [c for c in reader.connections if c.topic == topic]
-        for i, (conn, t, raw) in enumerate(reader.messages(connections=conns)):
-            if i % every:
-                continue
-            msg = reader.deserialize(raw, conn.msgtype)
+    for i, (_, t, load) in enumerate(_messages(path, {topic})):
+        if i % every == 0:
+            msg = load()
             yield Frame(topic, i, _stamp(msg, t), _image(msg, f"{path} [{topic} #{i}]"))
-    finally:
-        reader.close()
 
 
 class RigFrame(NamedTuple):
@@ -116,7 +128,8 @@ def rig_frames(path, rig_topics, every: int = 1, max_skew_ns: int = 10**7) -> It
     """A rig's frames: for every ``every``-th image of the first topic, the image of every
     other topic whose stamp is nearest to it, when all are within ``max_skew_ns``; sets
     where a camera has none that near are skipped (and counted in a warning)."""
-    rig_topics = [image_topic(path, t) for t in rig_topics]
+    found = topics(path)
+    rig_topics = [image_topic(path, t, found) for t in rig_topics]
     if len(set(rig_topics)) < len(rig_topics):
         raise ValueError(f"a rig's cameras need one topic each, got {rig_topics}")
     stamps = _stamps(path, rig_topics)
@@ -144,40 +157,29 @@ def rig_frames(path, rig_topics, every: int = 1, max_skew_ns: int = 10**7) -> It
                       f"have no image of every other camera within {max_skew_ns / 1e6:g} ms; "
                       "they are left out", stacklevel=2)
     got: dict = {}  # set index -> {camera: image}; sets are given out as they complete
-    reader = _open(path)
-    try:
-        conns = [c for c in reader.connections if c.topic in rig_topics]
-        seen = dict.fromkeys(rig_topics, -1)
-        for conn, _, raw in reader.messages(connections=conns):
-            k = rig_topics.index(conn.topic)
-            seen[conn.topic] += 1
-            users = want.get((k, seen[conn.topic]))
-            if not users:
-                continue
-            img = _image(reader.deserialize(raw, conn.msgtype),
-                         f"{path} [{conn.topic} #{seen[conn.topic]}]")
-            for u in users:
-                got.setdefault(u, {})[k] = img
-                if len(got[u]) == len(rig_topics):
-                    done = got.pop(u)
-                    pick = sets[u]
-                    yield RigFrame(pick[0], tuple(int(stamps[c][j]) for c, j in enumerate(pick)),
-                                   [done[c] for c in range(len(rig_topics))])
-    finally:
-        reader.close()
+    seen = dict.fromkeys(rig_topics, -1)
+    for topic, _, load in _messages(path, set(rig_topics)):
+        k = rig_topics.index(topic)
+        seen[topic] += 1
+        users = want.get((k, seen[topic]))
+        if not users:
+            continue
+        img = _image(load(), f"{path} [{topic} #{seen[topic]}]")
+        for u in users:
+            got.setdefault(u, {})[k] = img
+            if len(got[u]) == len(rig_topics):
+                done = got.pop(u)
+                pick = sets[u]
+                yield RigFrame(pick[0], tuple(int(stamps[c][j]) for c, j in enumerate(pick)),
+                               [done[c] for c in range(len(rig_topics))])
 
 
 def _stamps(path, topics_: list) -> list[np.ndarray]:
     """Each topic's message stamps (ns), in its order (the header's; the recording time
     where the stamp is 0)."""
     out = {t: [] for t in topics_}
-    reader = _open(path)
-    try:
-        conns = [c for c in reader.connections if c.topic in out]
-        for conn, t, raw in reader.messages(connections=conns):
-            out[conn.topic].append(_stamp(reader.deserialize(raw, conn.msgtype), t))
-    finally:
-        reader.close()
+    for topic, t, load in _messages(path, out):
+        out[topic].append(_stamp(load(), t))
     return [np.array(out[t], np.int64) for t in topics_]
 
 
@@ -192,22 +194,17 @@ class Accelerometer:
     acceleration over that window (a robot that brakes hard tilts it)."""
 
     def __init__(self, path, topic: str):
-        found = {t: m for t, (m, _) in topics(path).items() if m == IMU_TYPE}
+        found = _of(topics(path), (IMU_TYPE,))
         if topic not in found:
             raise ValueError(f"{path}: no sensor_msgs/Imu topic {topic!r}; its IMU topics: "
                              f"{', '.join(sorted(found)) or 'none'}")
         self.path, self.topic = path, topic
         stamps, acc = [], []
-        reader = _open(path)
-        try:
-            conns = [c for c in reader.connections if c.topic == topic]
-            for conn, t, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
-                a = msg.linear_acceleration
-                stamps.append(_stamp(msg, t))
-                acc.append((a.x, a.y, a.z))
-        finally:
-            reader.close()
+        for _, t, load in _messages(path, {topic}):
+            msg = load()
+            a = msg.linear_acceleration
+            stamps.append(_stamp(msg, t))
+            acc.append((a.x, a.y, a.z))
         order = np.argsort(stamps, kind="stable")
         self.stamps = np.asarray(stamps, np.int64)[order]
         self.acc = np.asarray(acc, np.float64).reshape(-1, 3)[order]
@@ -278,8 +275,7 @@ def summary(path) -> dict:
     topic or None)}``), ``imu`` (``{topic: count}``) and ``other`` (``{topic: (type,
     count)}``)."""
     found = topics(path)
-    infos = [t for t, (m, _) in found.items() if m == INFO_TYPE]
-    images = [t for t, (m, _) in found.items() if m in IMAGE_TYPES]
+    infos, images = _of(found, (INFO_TYPE,)), _of(found, IMAGE_TYPES)
     out = {"images": {}, "imu": {}, "other": {}}
     for t, (m, n) in sorted(found.items()):
         if m in IMAGE_TYPES:
@@ -295,20 +291,18 @@ def camera(path, topic: str | None = None) -> Camera:
     """The camera of ``topic``'s images from the bag's ``sensor_msgs/CameraInfo``: the one
     beside it (``/ns/image_raw[/compressed]`` -> ``/ns/camera_info``), else the bag's only
     one when the bag holds one camera's images. Its first message is used."""
-    topic = image_topic(path, topic)
     found = topics(path)
-    infos = [t for t, (m, _) in found.items() if m == INFO_TYPE]
-    name = _info_topic(topic, infos, [t for t, (m, _) in found.items() if m in IMAGE_TYPES])
+    topic = image_topic(path, topic, found)
+    infos = _of(found, (INFO_TYPE,))
+    name = _info_topic(topic, infos, _of(found, IMAGE_TYPES))
     if name is None:
         raise ValueError(f"{path}: no camera_info for {topic} (looked for {_beside(topic)}; the "
                          f"bag's: {', '.join(infos) or 'none'}); give the calibration with --camera")
-    reader = _open(path)
+    messages = _messages(path, {name})
     try:
-        conn = next(c for c in reader.connections if c.topic == name)
-        _, _, raw = next(iter(reader.messages(connections=[conn])))
-        msg = reader.deserialize(raw, conn.msgtype)
+        msg = next(messages)[2]()  # the first message
     finally:
-        reader.close()
+        messages.close()
     if getattr(msg, "binning_x", 0) > 1 or getattr(msg, "binning_y", 0) > 1 or msg.roi.width:
         raise ValueError(f"{path} [{name}]: binned or cropped camera_info (binning "
                          f"{msg.binning_x}x{msg.binning_y}, roi {msg.roi.width}x{msg.roi.height}) "
