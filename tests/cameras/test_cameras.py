@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from tests.helpers import FIXTURES
 from usf_graph import cameras as C
-from usf_graph.cameras.base import incidence
+from usf_graph.cameras.radial import incidence
 
 CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 # derandomized: CI must not flip on a fresh draw (a Mei fold with strong tangential

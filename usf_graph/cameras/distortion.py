@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from .base import _converged, monotone_limit, solve_monotone
+from .radial import _converged, monotone_limit, solve_monotone
 
 
 def _split_dist(dist) -> np.ndarray:

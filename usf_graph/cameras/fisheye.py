@@ -11,12 +11,9 @@ from .base import (
     Camera,
     check_finite,
     check_positive,
-    from_incidence,
-    incidence,
-    monotone_limit,
     set_intrinsics,
-    solve_monotone,
 )
+from .radial import from_incidence, incidence, monotone_limit, solve_monotone
 
 # r / f as a function of the incidence angle theta, its inverse, and the largest theta.
 _PROJECTIONS = {

@@ -8,11 +8,10 @@ from .base import (
     Camera,
     check_finite,
     check_positive,
-    incidence,
-    monotone_limit,
     set_intrinsics,
 )
 from .distortion import _split_dist, distort, distortion_radius_limit, undistort
+from .radial import incidence, monotone_limit
 
 
 def _fold_limit(cam: Camera, w: float) -> float:

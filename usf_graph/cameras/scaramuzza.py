@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Camera, check_finite, incidence, monotone_limit, solve_monotone
+from .base import Camera, check_finite
+from .radial import incidence, monotone_limit, solve_monotone
 
 
 class Scaramuzza(Camera):
