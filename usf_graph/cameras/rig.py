@@ -17,6 +17,27 @@ def mount(cam: Camera, pose) -> Camera:
         DEFAULT_ROTATION @ pose[:3, 3])
 
 
+def rig_centre(rig: Mapping[str, Camera], centre="mean") -> tuple[np.ndarray, float]:
+    """``(centre [3], reach)``: the centre a rig is stitched about (``"mean"``: the cameras'
+    mean position, or 3 numbers in the rig's sphere frame) and the farthest camera's
+    distance from it, which a stitching distance must exceed."""
+    missing = [n for n, c in rig.items() if c.position is None]
+    if missing:
+        raise ValueError(f"camera(s) {missing} have no position, so the distance cannot place "
+                         "them; read the rig with cameras.load_rig, or set positions with "
+                         "camera.with_position")
+    pos = np.stack([c.position for c in rig.values()])
+    if isinstance(centre, str):
+        if centre != "mean":
+            raise ValueError(f"centre must be 'mean' or 3 numbers, got {centre!r}")
+        c0 = pos.mean(0)
+    else:
+        c0 = np.asarray(centre, np.float64)
+        if c0.shape != (3,) or not np.isfinite(c0).all():
+            raise ValueError(f"centre must be 3 finite numbers, got {centre!r}")
+    return c0, float(np.linalg.norm(pos - c0, axis=1).max())
+
+
 def stitch_at(rig: Mapping[str, Camera], distance: float | None, centre="mean") -> dict[str, Camera]:
     r"""A rig's cameras that see the scene as a sphere of radius ``distance`` about
     ``centre``: each camera then looks at the sphere's direction :math:`p` along
@@ -34,21 +55,7 @@ def stitch_at(rig: Mapping[str, Camera], distance: float | None, centre="mean") 
     """
     if distance is None:
         return {n: c.with_distance(None) for n, c in rig.items()}
-    missing = [n for n, c in rig.items() if c.position is None]
-    if missing:
-        raise ValueError(f"camera(s) {missing} have no position, so the distance cannot place "
-                         "them; read the rig with cameras.load_rig, or set positions with "
-                         "camera.with_position")
-    pos = np.stack([c.position for c in rig.values()])
-    if isinstance(centre, str):
-        if centre != "mean":
-            raise ValueError(f"centre must be 'mean' or 3 numbers, got {centre!r}")
-        c0 = pos.mean(0)
-    else:
-        c0 = np.asarray(centre, np.float64)
-        if c0.shape != (3,) or not np.isfinite(c0).all():
-            raise ValueError(f"centre must be 3 finite numbers, got {centre!r}")
-    far = np.linalg.norm(pos - c0, axis=1).max()
+    c0, far = rig_centre(rig, centre)
     if not far < distance:
         raise ValueError(f"the distance {distance:g} does not reach past the rig: a camera is "
                          f"{far:.4g} from the centre; give a distance beyond {far:.4g}, in the "

@@ -11,6 +11,7 @@ from tqdm.auto import tqdm
 
 from ..cameras import Camera, stitch_at
 from ..cameras.base import angle_to
+from ..cameras.rig import rig_centre
 from ..grids import Grid
 from .cache import GeometryCache
 from .frontend import SphericalFrontend
@@ -179,8 +180,7 @@ def choose_distance(cameras: Mapping[str, Camera], grid: Grid, images,
     if len(images) != len(cams):
         raise ValueError(f"the rig has {len(cams)} cameras ({names}) but {len(images)} images "
                          "were given, one per camera in that order")
-    far = max(float(np.linalg.norm(c.position)) if c.position is not None else 0.0 for c in
-              stitch_at(cameras, 1e12, centre).values())
+    far = rig_centre(cameras, centre)[1]
     tries = [d for d in candidates if d is None or d > far * (1 + 1e-9)]
     if not tries:
         raise ValueError(f"every candidate distance lies within the rig (its cameras are up "
