@@ -160,19 +160,19 @@ def cmd_predict(args) -> int:
     names = class_names(args.task, model.config["num_classes"])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    run = _predict_seg if args.task == "seg" else _predict_det
+    video = None
     if args.video is not None:
         from .viz import FrameVideo
 
         video = FrameVideo(args.video, args.video_fps)
-        run = partial(run, video=video)
-        try:
-            _predict_all(run, model, names, out, args, rig_bag, streams)
-        finally:
+    run = partial(_predict_seg if args.task == "seg" else _predict_det, video=video)
+    try:
+        _predict_all(run, model, names, out, args, rig_bag, streams)
+    finally:
+        if video is not None:
             video.close()
+    if video is not None:
         print(f"wrote {args.video} ({video.frames} frames at {video.fps:g} fps)")
-        return 0
-    _predict_all(run, model, names, out, args, rig_bag, streams)
     return 0
 
 
