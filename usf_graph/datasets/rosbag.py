@@ -21,7 +21,7 @@ from .. import bags
 from ..cameras import Camera, imu_rotation, load
 from ..fileio import atomic_torch_save
 from ..frontend import SphericalFrontend
-from ..frontend.image import SphericalImage
+from ..frontend.image import SphericalImage, unit_range
 from ..grids import Grid, from_spec
 from .stacked import load_or_rebuild, pre_transform_stacked
 
@@ -108,10 +108,9 @@ class RosBagFrames(Dataset):
         for f in tqdm(bags.frames(self.bag, self.topic, self.every), desc=f"lifting {self.topic}",
                       disable=not self.progress, leave=False):
             img = f.image
-            scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
             if img.ndim == 3 and img.shape[2] == 4:
                 img = img[..., :3]  # alpha: the frontend's mask covers what a camera sees
-            xs.append(self.frontend.lift(img.astype(np.float32) / scale))
+            xs.append(self.frontend.lift(unit_range(img)))
             stamps.append(f.stamp_ns)
             if acc is not None:
                 ups.append(self.imu_to_sphere @ acc.up(f.stamp_ns, self.imu_window_ns))

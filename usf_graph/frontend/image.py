@@ -1,7 +1,8 @@
-"""SphericalImage: a spherical signal as a PyG graph."""
+"""SphericalImage: a spherical signal as a PyG graph; and images' pixel values in [0, 1]."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch_geometric.data import Data
 
@@ -53,3 +54,20 @@ class SphericalImage(Data):
     def lon(self) -> torch.Tensor:
         """Longitude of each point in radians, [-pi, pi)."""
         return to_latlon(self.pos)[1]
+
+
+def unit_range(image) -> np.ndarray:
+    """Pixel values as float32 in [0, 1]: uint8 / 255, uint16 / 65535, float as it is
+    (checked to lie in [0, 1]); other dtypes are refused."""
+    a = np.asarray(image)
+    if a.dtype == np.uint8 or a.dtype == np.uint16:
+        return a.astype(np.float32) / np.iinfo(a.dtype).max
+    if a.dtype.kind != "f":
+        raise ValueError(f"image dtype {a.dtype} is not supported: give uint8, uint16 or "
+                         "float in [0, 1]")
+    a = a.astype(np.float32)
+    seen = np.isfinite(a)
+    if seen.any() and (a[seen].min() < 0 or a[seen].max() > 1):
+        raise ValueError(f"a float image must hold values in [0, 1], got [{a[seen].min():g}, "
+                         f"{a[seen].max():g}]; divide by 255 (or the sensor's maximum) first")
+    return a

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from ..frontend import SphericalFrontend
+from ..frontend.image import unit_range
 from ..frontend.interpolation import valid_pixels
 from ..grids import from_spec
 from .engine import model_device
@@ -112,18 +113,7 @@ def rgb_channels(image, colour_model: bool = True) -> np.ndarray:
 def rgb01(image, colour_model: bool = True) -> np.ndarray:
     """An RGB image as float32 in [0, 1], ``[H, W, 3]`` (:func:`rgb_channels`): uint8 /
     255, uint16 / 65535, float as it is (checked to lie in [0, 1])."""
-    a = rgb_channels(image, colour_model)
-    if a.dtype == np.uint8 or a.dtype == np.uint16:
-        return a.astype(np.float32) / np.iinfo(a.dtype).max
-    if a.dtype.kind != "f":
-        raise ValueError(f"image dtype {a.dtype} is not supported: give uint8, uint16 or "
-                         "float in [0, 1]")
-    a = a.astype(np.float32)
-    seen = np.isfinite(a)
-    if seen.any() and (a[seen].min() < 0 or a[seen].max() > 1):
-        raise ValueError(f"a float image must hold values in [0, 1], got [{a[seen].min():g}, "
-                         f"{a[seen].max():g}]; divide by 255 (or the sensor's maximum) first")
-    return a
+    return unit_range(rgb_channels(image, colour_model))
 
 
 def lift_for(model, image, camera, interpolation: str = "auto", image_mask=None):
