@@ -82,8 +82,7 @@ def basalt_pose(path, data: dict, name: str) -> np.ndarray | None:
         return np.eye(4)
     if len(T) <= i:
         return None
-    return np.linalg.inv(_imu_from_cam(Src(path, "cam0"), T[0])) @ \
-        _imu_from_cam(Src(path, name), T[i])
+    return basalt_imu(path, data) @ _imu_from_cam(Src(path, name), T[i])  # c0 <- IMU <- ci
 
 
 def basalt_imu(path, data: dict) -> np.ndarray | None:

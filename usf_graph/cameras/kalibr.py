@@ -70,11 +70,10 @@ def kalibr_pose(path, data: dict, key: str) -> np.ndarray | None:
         T = T @ np.linalg.inv(Src(path, name).rigid(step, "T_cn_cnm1"))  # c0 <- cn
     else:
         return T
-    t0, tk = data[names[0]].get("T_cam_imu"), data[key].get("T_cam_imu")
-    if t0 is None or tk is None:
+    c0_imu, tk = kalibr_imu(path, data), data[key].get("T_cam_imu")
+    if c0_imu is None or tk is None:
         return None
-    return Src(path, names[0]).rigid(t0, "T_cam_imu") @ \
-        np.linalg.inv(Src(path, key).rigid(tk, "T_cam_imu"))
+    return c0_imu @ np.linalg.inv(Src(path, key).rigid(tk, "T_cam_imu"))
 
 
 def kalibr_imu(path, data: dict) -> np.ndarray | None:
