@@ -2,7 +2,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo demo-det demo-det-full demo-seg demo-seg-full protocols info test test-slow lint bench clean
+.PHONY: setup demo demo-det demo-det-full demo-seg demo-seg-full protocols info test test-slow docs lint bench clean
 # the 15-minute recipes (README, "Results in 15 minutes")
 DET15 := --channel-scale 0.5 --epochs 16 --fov-epochs 3 --up-epochs 4 --up-extra 400
 SEG15 := --channel-scale 0.5 --epochs 6 --fov-epochs 2 --up-epochs 4 --up-extra 400
@@ -49,8 +49,12 @@ protocols: setup
 
 # two worker processes (pytest-xdist), one torch thread each: 5 minutes where one took 8
 test: setup
-	@$(VENV)/bin/ruff check usf_graph tests examples benchmarks
+	@$(VENV)/bin/ruff check usf_graph tests examples benchmarks scripts
 	@$(PY) -m pytest -n 2
+
+# the API reference from the docstrings: docs/api/index.html (pdoc, about 10 s)
+docs: setup
+	@$(PY) scripts/api_docs.py --out docs/api
 
 test-slow: setup
 	@$(PY) -m pytest -m slow

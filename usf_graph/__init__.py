@@ -17,11 +17,10 @@ def __getattr__(name: str):
     if name in _SUBPACKAGES:
         return importlib.import_module(f"{__name__}.{name}")
     if name == "SphericalFrontend":
-        from .frontend import SphericalFrontend
-
-        return SphericalFrontend
-    if name == "SphericalImage":
-        from .frontend.image import SphericalImage
-
-        return SphericalImage
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+        from .frontend import SphericalFrontend as value
+    elif name == "SphericalImage":
+        from .frontend.image import SphericalImage as value
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value  # loaded once; tools that read the module's dict (pdoc) see it
+    return value

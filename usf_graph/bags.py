@@ -14,8 +14,6 @@ Frames are read one at a time, so a long recording never sits in memory.
         f.index, f.stamp_ns, f.image  # [H, W, 3] RGB or [H, W]
 """
 
-from __future__ import annotations
-
 from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
@@ -33,6 +31,8 @@ _MONO = ("mono8", "mono16", "8uc1", "16uc1")
 
 
 class Frame(NamedTuple):
+    """One image message of a bag, decoded (what :func:`frames` and :func:`rig_frames` yield)."""
+
     topic: str
     index: int  # the message's place on its topic, from 0
     stamp_ns: int  # the header's stamp (the recording time where the stamp is 0)

@@ -304,6 +304,7 @@ class FrameVideo:
         self.fps, self.size, self.frames, self._writer = float(fps), None, 0, None
 
     def add(self, rgb: np.ndarray) -> None:
+        """Appends one RGB picture ``[H, W, 3]`` uint8 (the first sets the video's size)."""
         import cv2
 
         rgb = np.ascontiguousarray(rgb)
@@ -321,6 +322,7 @@ class FrameVideo:
         self.frames += 1
 
     def close(self) -> None:
+        """Finishes the file; call it when the last picture is added."""
         if self._writer is not None:
             self._writer.release()
             self._writer = None

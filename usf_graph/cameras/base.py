@@ -98,6 +98,9 @@ class Camera:
         raise NotImplementedError
 
     def params(self) -> dict:
+        """The model's parameters as keyword arguments of its constructor (the rotation and
+        position apart): what :func:`~usf_graph.cameras.save` writes and the cache key hashes.
+        """
         raise NotImplementedError
 
     optical_axis = np.array([0.0, 0.0, 1.0])

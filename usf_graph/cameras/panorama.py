@@ -116,6 +116,7 @@ class LensNormalMap(Camera):
         return dict(width=self.width, height=self.height, digest=h, source=self.source)
 
     def save(self, path) -> None:
+        """Refuses: a ray table has no calibration file format; save its arrays with numpy."""
         raise ValueError("a LensNormalMap is its table: save it with "
                          "numpy.savez(path, rays=cam.rays, valid=cam.valid_table)")
 

@@ -42,6 +42,7 @@ class RandomRotation(BaseTransform):
         self.generator, self.frontend = generator, frontend
 
     def forward(self, data: Data) -> Data:
+        """Rotates ``data`` by a new random rotation, kept in ``data.rotation`` [3, 3]."""
         R = random_rotation(generator=self.generator)
         data = rotate_sample(data, R, self.frontend)
         data.rotation = R.to(data.pos.dtype)
@@ -92,6 +93,7 @@ class GeodesicRadiusGraph(BaseTransform):
         self.r, self.loop = float(r), loop
 
     def forward(self, data: Data) -> Data:
+        """Sets ``edge_index`` and ``edge_attr`` [E, 1] (geodesic distances) from ``data.pos``."""
         ei, ew = geodesic_radius_graph(data.pos.double(), self.r, getattr(data, "batch", None), self.loop)
         data.edge_index, data.edge_attr = ei, ew.to(data.pos.dtype)[:, None]
         return data
@@ -115,6 +117,8 @@ class GaussianEdgeWeight(BaseTransform):
         self.sigma = sigma
 
     def forward(self, data: Data) -> Data:
+        """Sets ``edge_weight`` [E] = exp(-d^2 / (2 sigma^2)) from the distances in ``edge_attr``.
+        """
         d = getattr(data, "edge_attr", None)
         if d is None or d.dim() != 2 or d.shape[1] != 1:
             raise ValueError("GaussianEdgeWeight reads the distances from edge_attr [E, 1] (a "
@@ -137,6 +141,7 @@ class VisibleSubgraph(BaseTransform):
     """
 
     def forward(self, data: Data) -> Data:
+        """The subgraph of the points ``data.mask`` marks visible."""
         mask = getattr(data, "mask", None)
         if mask is None:
             raise ValueError("VisibleSubgraph needs data.mask (the points the camera sees)")

@@ -102,6 +102,7 @@ class Pandora(UprightAsReleased, Dataset):
 
     @property
     def raw_dir(self) -> str:
+        """The release is read where it is: ``root`` itself."""
         return self.root
 
     @property

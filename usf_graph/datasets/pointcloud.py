@@ -118,6 +118,7 @@ class ModelNet(_CloudSet):
 
     @property
     def raw_dir(self) -> str:
+        """The release is read where it is: ``root`` itself."""
         return self.root
 
     @property

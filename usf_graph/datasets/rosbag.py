@@ -81,6 +81,7 @@ class RosBagFrames(Dataset):
 
     @property
     def raw_dir(self) -> str:
+        """The folder that holds the bag."""
         return str(self.bag.parent)  # the bag is read where it is
 
     @property

@@ -145,6 +145,7 @@ class Stanford2D3DS(UprightAsReleased, Dataset):
 
     @property
     def raw_dir(self) -> str:
+        """The release is read where it is: ``root`` itself."""
         return self.root
 
     @property

@@ -49,17 +49,23 @@ class GeometryCache:
 
     @staticmethod
     def digest(kind: str, key: dict) -> str:
+        """SHA-256 of the kind, the key, the package version and :data:`GEOMETRY_VERSION`."""
         blob = json.dumps({"kind": kind, "key": key, "version": __version__,
                            "geometry": GEOMETRY_VERSION}, sort_keys=True,
                           default=str)
         return hashlib.sha256(blob.encode()).hexdigest()
 
     def path(self, kind: str, key: dict) -> Path | None:
+        """The file that holds ``(kind, key)`` on disk, or None without a disk cache."""
         if self.directory is None:
             return None
         return self.directory / f"{kind}-{self.digest(kind, key)[:32]}.npz"
 
     def get(self, kind: str, key: dict, build: Callable[[], dict]) -> dict:
+        """The tensors for ``(kind, key)``: from memory, else from disk (checked; a corrupt or
+        mismatched file is rebuilt with a warning), else ``build()``'s, stored in both (the
+        file written atomically).
+        """
         h = self.digest(kind, key)
         if h in self._mem:
             self._mem.move_to_end(h)
@@ -81,6 +87,7 @@ class GeometryCache:
         return value
 
     def clear(self, disk: bool = False) -> None:
+        """Empties the memory cache, and with ``disk=True`` deletes the cache's files too."""
         self._mem.clear()
         if disk and self.directory is not None and self.directory.exists():
             for p in self.directory.glob("*.npz"):

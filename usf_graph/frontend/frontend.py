@@ -166,6 +166,7 @@ class SphericalFrontend:
 
     @property
     def num_points(self) -> int:
+        """N: the grid's number of points (visible or not)."""
         return len(self.grid)
 
     def __repr__(self) -> str:

@@ -97,14 +97,17 @@ class RigFrontend:
 
     @property
     def cameras(self) -> list[Camera]:
+        """The rig's cameras, in the order of the images :meth:`lift` takes."""
         return [fe.camera for fe in self.frontends]
 
     @property
     def edge_index(self) -> torch.Tensor:
+        """The grid's radius graph ``[2, E]`` (shared by every camera's frontend)."""
         return self.frontends[0].edge_index
 
     @property
     def edge_weight(self) -> torch.Tensor:
+        """Its geodesic distances ``[E]`` in radians."""
         return self.frontends[0].edge_weight
 
     def __repr__(self) -> str:

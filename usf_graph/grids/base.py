@@ -50,6 +50,7 @@ class Grid:
 
     @property
     def num_points(self) -> int:
+        """N, the number of points (``len(grid)``)."""
         return len(self)
 
     @property
@@ -58,16 +59,21 @@ class Grid:
         return f"{self.name}:" + ",".join(str(v) for v in self.params.values())
 
     def key(self) -> dict:
+        """What identifies the grid in cache keys: its name and parameters."""
         return {"grid": self.name, **self.params}
 
     @property
     def area(self) -> torch.Tensor:
+        """Each point's area ``[N]`` (float64, steradians, summing to 4 pi): the given areas,
+        else the spherical Voronoi cells' (computed on first use).
+        """
         if self._area is None:
             self._area = torch.as_tensor(voronoi_areas(self.pos.numpy()))
         return self._area
 
     @property
     def spacing(self) -> float:
+        """The mean geodesic distance from a point to its nearest neighbour, in radians."""
         if self._spacing is None:
             d, _ = cKDTree(self.pos.numpy()).query(self.pos.numpy(), k=2)
             self._spacing = float(chord_to_geodesic(d[:, 1]).mean())

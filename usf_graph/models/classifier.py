@@ -133,6 +133,9 @@ class SphericalClassifier(GeometryModule):
         return cls(**{"pairs": 0, **config})
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
+        """The pooled, rotation-invariant feature vector ``[B, F]`` that the head reads (the
+        readout of the last stage), for ``x [B, N, C_in]``.
+        """
         n, c = self.num_points, self.config["in_channels"]
         if x.dim() not in (2, 3) or tuple(x.shape[-2:]) != (n, c):
             raise ValueError(f"expected x [B, {n}, {c}] (a signal on icosahedral:{self.input_level} "
@@ -161,6 +164,7 @@ class SphericalClassifier(GeometryModule):
         return torch.cat([mean, (global_mean_pool_area(x ** POWER, a) + 1e-6) ** (1 / POWER)], -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Class logits ``[B, classes]`` for ``x [B, N, C_in]`` on ``icosahedral(input_level)``."""
         return self.head(self.features(x))
 
 
@@ -180,4 +184,5 @@ class PlanarCNN(nn.Module):
         self.head = nn.Sequential(nn.Linear(c_in, 64), nn.ReLU(), nn.Linear(64, num_classes))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Class logits ``[B, classes]`` for images ``x [B, C, H, W]`` (global max pooling)."""
         return self.head(self.body(x).amax((-2, -1)))

@@ -94,6 +94,9 @@ class SphericalDeepLabV3(_Segmenter):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
+        """Per-point logits ``[B, N, num_classes]``; arguments as
+        :meth:`SphericalUNet.forward <usf_graph.models.SphericalUNet.forward>`.
+        """
         x, grav, up = self._with_height(x, mask, up, return_gravity)
         feats = self.backbone.encode(x, mask, up)
         (low, m_low), (f, m) = feats[0], feats[-1]

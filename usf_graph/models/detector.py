@@ -145,6 +145,7 @@ class SphericalDetector(Detector, WithUp):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
+        """Re-initializes every layer; the heatmap biases start at -4.6 (CenterNet's 0.01 prior)."""
         for m in self.modules():
             if m is not self and hasattr(m, "reset_parameters"):
                 m.reset_parameters()
@@ -158,6 +159,10 @@ class SphericalDetector(Detector, WithUp):
     # -- network ------------------------------------------------------------------------
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None) -> dict:
+        """The head's fields (class docstring) for ``x [B, N, in_channels]``, ``mask [N]``
+        (optional) and a known ``up [B, 3]`` (optional, else the model's estimate when built
+        with ``gravity``, returned under ``"gravity"``).
+        """
         x, grav, up = self._with_height(x, mask, up)
         x, m = self.backbone(x, mask, up)
         f = self.head(self.head_stage(x, m, up))

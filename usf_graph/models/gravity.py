@@ -126,6 +126,7 @@ class GravityHead(GeometryModule):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
+        """Re-initializes the convolutions and the score; the candidates' bias starts at 0."""
         self.field.reset_parameters()
         self.height.reset_parameters()
         self.score.reset_parameters()
@@ -222,11 +223,15 @@ class EdgeVotes(GeometryModule):
         self.scale = nn.Parameter(torch.tensor(10.0))
 
     def reset_parameters(self) -> None:
+        """Re-initializes the edge weights; the votes' scale starts at 10."""
         self.weight.reset_parameters()
         nn.init.constant_(self.scale, 10.0)
 
     def forward(self, x: torch.Tensor, f: torch.Tensor, mask: torch.Tensor | None = None
                 ) -> torch.Tensor:
+        """Votes ``[B, Nc]`` for every candidate direction, from ``x [B, N, C]``, ``f [B, N, F]``
+        and ``mask [N]``.
+        """
         idx, T, tr, vis = strongest_edges(self.jet, x, mask, self.topk)
         om = nn.functional.softplus(self.weight(f.gather(1, idx[..., None].expand(
             -1, -1, f.shape[-1]))))[..., 0] * vis  # hidden points never vote
@@ -284,6 +289,9 @@ class UpPolish(GeometryModule):
 
     @torch.no_grad()
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
+        """The polished estimate ``[B, 3]`` from the image ``x [B, N, C]``, ``mask`` and the
+        estimate ``up [B, 3]``.
+        """
         idx, T, tr, vis = strongest_edges(self.jet, self.fill(x, mask), mask, self.topk,
                                           self.min_strength)
         T = T.double() / tr.double().clamp_min(1e-300)[..., None, None]

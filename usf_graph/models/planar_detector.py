@@ -85,6 +85,7 @@ class PlanarDetector(Detector):
         self.body.gray = bool(value)
 
     def reset_parameters(self) -> None:
+        """Re-initializes every layer; the heatmap biases start at -4.6 (CenterNet's 0.01 prior)."""
         self.body.reset_parameters()
         with torch.no_grad():
             self.body.head[-1].bias[: self.num_classes].fill_(-4.6)
@@ -94,6 +95,9 @@ class PlanarDetector(Detector):
         return cls(**config)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        """Heatmaps and boxes per output pixel (class docstring) for ``x [B, C, H, W]``, optional
+        ``mask [H, W]``.
+        """
         H, W = self.config["height"], self.config["width"]
         if x.dim() != 4 or tuple(x.shape[1:]) != (self.config["in_channels"], H, W):
             raise ValueError(f"expected x [B, {self.config['in_channels']}, {H}, {W}], got "

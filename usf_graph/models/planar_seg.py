@@ -79,11 +79,15 @@ class PlanarUNet(nn.Module):
         return cls(**config)
 
     def reset_parameters(self) -> None:
+        """Re-initializes every convolution and normalization."""
         for m in self.modules():
             if isinstance(m, (nn.Conv2d, nn.BatchNorm2d)):
                 m.reset_parameters()
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits ``[B, num_classes, H / out_stride, W / out_stride]`` for ``x [B, C, H, W]``
+        (``mask`` is accepted for a uniform call and not read: the image is its own support).
+        """
         skips = _encode(self.down, _checked_image(x, self.in_channels, self.multiple, self.gray))
         x = skips.pop()
         for block in self.up:
@@ -140,6 +144,8 @@ class PlanarDeepLab(nn.Module):
         return cls(**config)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits ``[B, num_classes, H, W]`` for ``x [B, C, H, W]`` (``mask`` accepted, not read).
+        """
         feats = _encode(self.down, _checked_image(x, self.in_channels, self.multiple, self.gray))
         low, x = feats[0], feats[-1]
         x = F.interpolate(self.aspp(x), size=low.shape[-2:], mode="bilinear", align_corners=False)

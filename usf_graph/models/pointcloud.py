@@ -74,6 +74,9 @@ class PointCloudNet(nn.Module):
             self.head = _mlp(2 * channels[-1], 128, num_classes)
 
     def forward(self, pos: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits for clouds ``pos [B, N, 3]``, or ``pos [N, 3]`` with ``batch [N]``: ``[B,
+        num_classes]``, per point with ``segmentation=True``.
+        """
         from torch_scatter import scatter_max, scatter_mean  # compiled: imported where used
 
         shape = pos.shape
@@ -129,6 +132,8 @@ class PointNet(nn.Module):
         self.head = _mlp(channels[-1], 128, num_classes)
 
     def forward(self, pos: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits ``[B, num_classes]`` for ``pos [B, N, 3]``, or ``pos [N, 3]`` with ``batch [N]``.
+        """
         from torch_scatter import scatter_max
 
         pos, batch, B = _flatten(pos, batch)

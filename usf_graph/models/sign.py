@@ -75,6 +75,7 @@ class SignCheck(nn.Module):
         return cls(**config)
 
     def reset_parameters(self) -> None:
+        """Re-initializes the network."""
         self.net.reset_parameters()
 
     def score(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
@@ -97,6 +98,9 @@ class SignCheck(nn.Module):
         return torch.where(flip[:, None], -up, up)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None, up: torch.Tensor) -> torch.Tensor:
+        """``up`` with each row's sign corrected where the field of view is wide enough, else ``up``
+        as given.
+        """
         return self.correct(x, mask, up) if self.asked(mask) else up
 
     def refined(self, levels: int = 1) -> SignCheck:

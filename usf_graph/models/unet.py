@@ -159,6 +159,9 @@ class SphericalBackbone(GeometryModule):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None):
+        """Encoder then decoder: ``([B, M, out_channels], mask [M] or None)`` on ``out_level``,
+        for ``x [B, N, C]``, optional ``mask [N]`` and ``up [B, 3]`` (needed when ``upright``).
+        """
         return self.decode(self.encode(x, mask, up), up)
 
 
@@ -224,6 +227,9 @@ class UpNet(GeometryModule):
         self.register_buffer("view_area", grids[level].area.double(), persistent=False)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> dict:
+        """The gravity estimate ``{"up": [B, 3], "logits": [B, Nc], "margin": [B], ...}`` for
+        ``x [B, N, in_channels]`` and an optional ``mask [N]`` (polished in evaluation mode).
+        """
         x = grayscale(x) if self.gray else x
         m, x_in = mask, x
         if self.pre is not None:
@@ -433,6 +439,10 @@ class SphericalUNet(_Segmenter):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 up: torch.Tensor | None = None, return_gravity: bool = False):
+        """Per-point logits ``[B, N, num_classes]`` for ``x [B, N, in_channels]``; ``mask [N]``
+        the camera's field of view, ``up [B, 3]`` a known gravity (else the estimate),
+        ``return_gravity``: also return the estimate's dict (None without ``gravity``).
+        """
         x, grav, up = self._with_height(x, mask, up, return_gravity)
         f, m = self.backbone(x, mask, up)
         logits = self.head(f if self.head_stage is None else self.head_stage(f, m, up))

@@ -254,6 +254,13 @@ class DistanceConv(GeometryModule, MessagePassing):
                 edge_weight: torch.Tensor | None = None,
                 node_weight: torch.Tensor | None = None, mask: torch.Tensor | None = None,
                 fast: bool = True) -> torch.Tensor:
+        """``y`` ``[N, C_out]`` or ``[B, N, C_out]`` (class docstring's equation).
+
+        ``edge_index``/``edge_weight`` (and optionally ``node_weight``, ``mask``) give the graph for
+        this call; without them the bound graph is used (``mask`` may still replace the bound
+        one). ``fast=False`` runs the per-edge message-passing reference instead of the sparse
+        products (the same result, for tests).
+        """
         if x.dim() not in (2, 3) or x.shape[-1] != self.in_channels:
             raise ValueError(f"x must be [N, {self.in_channels}] or [B, N, {self.in_channels}],"
                              f" got {tuple(x.shape)}")

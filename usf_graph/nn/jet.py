@@ -173,6 +173,9 @@ class LocalJet(_Derivatives):
         super().__init__(pos, edge_index, edge_weight, spacing, sigma, rows=5)
 
     def forward(self, x: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        """The input and its invariants ``[f, |grad f|, lap f, det Hess f]``, 4 C channels in the
+        input's form.
+        """
         h = self.spacing
         d, xs, form = self._derivatives(x, batch)
         g1, g2, h11, h12, h22 = d.unbind(1)
@@ -201,6 +204,9 @@ class SurfaceJet(_Derivatives):
         self.register_buffer("frame", torch.stack([e1, e2], 1), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Gradient and Hessian ``[B, N, C, 5]`` (``g1, g2, h11, h12, h22``) in each point's tangent
+        frame.
+        """
         d, xs, _ = self._derivatives(x)  # [N, 5, B*C]
         n, c = self.num_nodes, xs.shape[-1]
         return d.view(n, 5, -1, c).permute(2, 0, 3, 1)
@@ -239,9 +245,11 @@ class GradientPairs(_Derivatives):
         self.lin = nn.Linear(in_channels, 2 * pairs, bias=False)  # a constant has no gradient
 
     def reset_parameters(self) -> None:
+        """Re-initializes the projection onto the pairs."""
         self.lin.reset_parameters()
 
     def forward(self, x: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        """The ``2 m`` invariants of the ``m`` learned gradient pairs, in the input's form."""
         if x.shape[-1] != self.in_channels:
             raise ValueError(f"x has {x.shape[-1]} channels, the layer expects "
                              f"{self.in_channels}")
@@ -295,10 +303,14 @@ class UpJet(SurfaceJet):
         self.lin = None if fields is None else nn.Linear(in_channels, fields, bias=False)
 
     def reset_parameters(self) -> None:
+        """Re-initializes the learned fields' projection (when ``fields`` is set)."""
         if self.lin is not None:
             self.lin.reset_parameters()
 
     def forward(self, x: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+        """Gradient and Hessian in up's frame, ``[B, N, 5 F]``, for ``x [B, N, C]`` and unit ``up
+        [B, 3]``.
+        """
         if x.dim() != 3 or x.shape[-1] != self.in_channels or up.shape != (x.shape[0], 3):
             raise ValueError(f"expected x [B, N, {self.in_channels}] and up [B, 3], got "
                              f"{tuple(x.shape)} and {tuple(up.shape)}")
@@ -341,6 +353,9 @@ class FillHidden(nn.Module):
                 torch.as_tensor(w / w.sum(1, keepdims=True)))
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """``x [B, N, C]`` with every point ``mask [N]`` hides set to its nearest visible value
+        (``x`` itself without a mask).
+        """
         if mask is None:
             return x
         m = field_of(mask)

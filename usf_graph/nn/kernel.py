@@ -53,6 +53,7 @@ class DistanceKernel(nn.Module):
 
     @property
     def learnable(self) -> bool:
+        """True for the ``mlp`` basis, whose values depend on parameters (no caching)."""
         return self.mlp is not None
 
     @property
@@ -61,12 +62,14 @@ class DistanceKernel(nn.Module):
         return self.basis in ("hat", "gaussian")
 
     def reset_parameters(self) -> None:
+        """Re-initializes the MLP basis (the fixed bases have no parameters)."""
         if self.mlp is not None:
             for m in self.mlp:
                 if isinstance(m, nn.Linear):
                     m.reset_parameters()
 
     def forward(self, d: torch.Tensor) -> torch.Tensor:
+        """The K basis values ``[E, K]`` at distances ``d [E]`` (0 at and past the cutoff)."""
         r, K = self.cutoff, self.num_basis
         x = (d / r)[:, None]
         inside = (x < 1).to(d.dtype)

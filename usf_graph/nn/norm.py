@@ -35,6 +35,7 @@ class MaskedBatchNorm(nn.Module):
         self.register_buffer("running_var", torch.ones(channels))
 
     def reset_parameters(self) -> None:
+        """Scale 1, shift 0, running mean 0 and variance 1."""
         nn.init.ones_(self.weight)
         nn.init.zeros_(self.bias)
         self.running_mean.zero_()
@@ -43,6 +44,9 @@ class MaskedBatchNorm(nn.Module):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 node_weight: torch.Tensor | None = None,
                 batch: torch.Tensor | None = None) -> torch.Tensor:
+        """``x`` normalized with statistics over its visible points (weighted by
+        ``node_weight``) in training, with the running statistics in evaluation.
+        """
         if x.dim() not in (2, 3) or x.shape[-1] != self.channels:
             raise ValueError(f"x must be [N, {self.channels}], [B, N, {self.channels}] or a "
                              f"PyG batch [sum N_i, {self.channels}], got {tuple(x.shape)}")

@@ -57,6 +57,9 @@ class GridPool(GeometryModule):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 batch: torch.Tensor | None = None):
+        """``(y, coarse mask)`` on the coarse grid (and the coarse ``batch`` for a PyG batch); see
+        Shapes.
+        """
         from torch_scatter import segment_csr
 
         xs, form = to_static(x, len(self.cluster), batch, type(self).__name__)
@@ -126,6 +129,9 @@ class GaussianPool(GeometryModule):
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None,
                 batch: torch.Tensor | None = None):
+        """``(y, coarse mask)`` on the coarse grid (and the coarse ``batch`` for a PyG batch); see
+        Shapes.
+        """
         xs, form = to_static(x, self.num_fine, batch, type(self).__name__)
         ms = mask_static(mask, xs, form)
         B, N, C = xs.shape
@@ -184,6 +190,7 @@ class GridUnpool(GeometryModule):
         self.register_buffer("w", w, persistent=False)
 
     def forward(self, x: torch.Tensor, batch: torch.Tensor | None = None):
+        """``x`` on the fine grid (with the fine ``batch`` for a PyG batch); see Shapes."""
         xs, form = to_static(x, self.num_coarse, batch, type(self).__name__)
         g = xs[:, self.idx, :]  # [B, N, P, C]
         y, _ = from_static((g * self.w.to(xs.dtype)[..., None]).sum(-2), form)
@@ -285,6 +292,7 @@ class FPSPool(nn.Module):
         self.ratio, self.radius = float(ratio), float(radius)
 
     def forward(self, x, pos, batch=None):
+        """``(x [M, C], pos [M, 3], batch [M], idx [M])`` at the sampled centres."""
         from torch_scatter import scatter_max
 
         batch = torch.zeros(len(pos), dtype=torch.long, device=pos.device) if batch is None else batch
