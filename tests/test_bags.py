@@ -419,3 +419,56 @@ def test_predict_with_imu_up_matches_the_same_up_given(tmp_path, capsys):
     assert "--imu reads up from a ROS bag's accelerometer" in capsys.readouterr().err
     assert main(["predict", "seg", ckpt, str(bag), "--imu", "/imu0"]) == 2
     assert "--imu needs the camera-IMU extrinsics" in capsys.readouterr().err
+
+
+def test_imu_time_shift_of_every_format(tmp_path):
+    """Kalibr's ``timeshift_cam_imu`` (seconds, per camera) and Basalt's
+    ``cam_time_offset_ns``, both t_imu = t_cam + shift, in ns; 0 where there is none."""
+    chain = yaml.safe_load((FIXTURES / "kalibr_camchain.yaml").read_text())
+    chain["cam0"]["timeshift_cam_imu"] = 0.0123
+    chain["cam1"]["timeshift_cam_imu"] = -0.0021
+    kalibr = tmp_path / "camchain-imucam.yaml"
+    kalibr.write_text(yaml.safe_dump(chain))
+    assert cameras.imu_time_shift(kalibr) == 12_300_000
+    assert cameras.imu_time_shift(kalibr, "cam1") == -2_100_000
+    assert cameras.imu_time_shift(FIXTURES / "kalibr_rig.yaml") == 0  # none given
+    calib = json.loads((FIXTURES / "basalt_calib.json").read_text())
+    calib["value0"]["cam_time_offset_ns"] = -4567
+    basalt = tmp_path / "calibration.json"
+    basalt.write_text(json.dumps(calib))
+    assert cameras.imu_time_shift(basalt, "cam1") == -4567
+    assert cameras.imu_time_shift(FIXTURES / "orbslam3_stereo_kb8.yaml") == 0
+    with pytest.raises(ValueError, match="no camera 'cam9'"):
+        cameras.imu_time_shift(kalibr, "cam9")
+    with pytest.raises(ValueError, match="no camera-IMU time shift"):
+        cameras.imu_time_shift(FIXTURES / "ros_plumb_bob.yaml")
+    chain["cam0"]["timeshift_cam_imu"] = float("nan")
+    kalibr.write_text(yaml.safe_dump(chain))
+    with pytest.raises(ValueError, match="'timeshift_cam_imu' must be finite"):
+        cameras.imu_time_shift(kalibr)
+
+
+def test_predict_reads_the_imu_at_the_shifted_stamp(tmp_path, capsys):
+    """The IMU tilts at 0.15 s; a frame stamped 0.1 s by a camera whose clock runs 0.1 s
+    behind the IMU's (``timeshift_cam_imu: 0.1``) must read the tilted up."""
+    from usf_graph.cli import main
+
+    T = np.eye(4)
+    T[:3, :3] = [[0, 1, 0], [0, 0, 1], [1, 0, 0]]
+    cam0 = dict(camera_model="pinhole", distortion_model="none", distortion_coeffs=[],
+                intrinsics=[30.0, 30.0, 31.5, 23.5], resolution=[64, 48],
+                rostopic="/cam0/image_raw", T_cam_imu=T.tolist())
+    level, tilted = np.array([0.0, 0.0, -1.0]), np.array([0.3, 0.0, -0.95])
+    msgs = [("/cam0/image_raw", image_msg(ROS2, frame(0), 0, 10**8), 10**8)]
+    msgs += [("/imu0", imu_msg(ROS2, 9.81 * (level if k < 15 else tilted), 0, k * 10**7),
+              k * 10**7) for k in range(30)]
+    bag = write_bag(tmp_path / "run", False, msgs)
+    tiny_seg_checkpoint(tmp_path / "seg.pt")
+    for shift, acc in ((0.0, level), (0.1, tilted)):
+        chain = tmp_path / f"chain_{shift}.yaml"
+        chain.write_text(yaml.safe_dump({"cam0": {**cam0, "timeshift_cam_imu": shift}}))
+        assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(bag), "--camera",
+                     str(chain), "--imu", "/imu0", "--imu-window", "30",
+                     "--out", str(tmp_path / f"out_{shift}")]) == 0
+        up = cameras.imu_rotation(chain) @ (acc / np.linalg.norm(acc))
+        assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in capsys.readouterr().out

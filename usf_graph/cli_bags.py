@@ -41,18 +41,20 @@ def imu_up(args):
     if args.imu is None:
         return None
     from .bags import Accelerometer
-    from .cameras import imu_rotation
+    from .cameras import imu_rotation, imu_time_shift
 
     if args.camera is None:
         raise ValueError("--imu needs the camera-IMU extrinsics: give --camera (a Kalibr "
                          "camchain-imucam, Basalt calibration or ORB-SLAM3 settings)")
     R = imu_rotation(args.camera)
+    # a rig's frames are stamped by its first camera; one camera's by --key's
+    shift = imu_time_shift(args.camera, None if args.rig else args.key)
     readings = {}
 
     def up(bag, stamp):
         if bag not in readings:
             readings[bag] = Accelerometer(bag, args.imu)
-        return R @ readings[bag].up(stamp, round(args.imu_window * 1e6))
+        return R @ readings[bag].up(stamp + shift, round(args.imu_window * 1e6))
     return up
 
 

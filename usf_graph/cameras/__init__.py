@@ -5,6 +5,7 @@ from .fisheye import FOV, Fisheye, KannalaBrandt
 from .io import (
                  from_doc,
                  imu_rotation,
+                 imu_time_shift,
                  load,
                  load_all,
                  load_rig,
@@ -20,4 +21,4 @@ from .rig import stitch_at
 from .scaramuzza import Scaramuzza
 
 __all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Division", "Fisheye", "KannalaBrandt", "FOV", "Mei",
-           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "imu_rotation", "load", "load_all", "load_rig", "read_mask", "rig_topics", "save", "stitch_at", "with_fov_and_mask"]
+           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "LensNormalMap", "from_doc", "imu_rotation", "imu_time_shift", "load", "load_all", "load_rig", "read_mask", "rig_topics", "save", "stitch_at", "with_fov_and_mask"]

@@ -89,3 +89,9 @@ def basalt_imu(path, data: dict) -> np.ndarray | None:
     """cam0 <- IMU, from cam0's ``T_imu_cam``; None when the file has none."""
     T = data["value0"].get("T_imu_cam") or []
     return np.linalg.inv(_imu_from_cam(Src(path, "cam0"), T[0])) if T else None
+
+
+def basalt_clock(path, data: dict, name: str) -> int:
+    """``cam_time_offset_ns`` (t_imu = t_cam + offset; one for every camera)."""
+    return round(Src(path, "value0").finite(data["value0"].get("cam_time_offset_ns", 0),
+                                            "cam_time_offset_ns"))

@@ -46,6 +46,13 @@ class Src:
         except (TypeError, ValueError):
             raise self.error(f"'{name}' must be a number, got {v!r}") from None
 
+    def finite(self, v, name: str) -> float:
+        """:meth:`number`, refusing NaN and infinities."""
+        x = self.number(v, name)
+        if not np.isfinite(x):
+            raise self.error(f"'{name}' must be finite, got {x}")
+        return x
+
     def array(self, v, name: str, sizes: tuple = ()) -> np.ndarray:
         """A matrix or vector given as an OpenCV matrix, a ROS ``{rows, cols, data}`` map or
         a (nested) list; ``sizes``: the accepted numbers of elements."""

@@ -37,12 +37,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .basalt import basalt_imu, basalt_names, basalt_pose, is_basalt, load_basalt
+from .basalt import basalt_clock, basalt_imu, basalt_names, basalt_pose, is_basalt, load_basalt
 from .base import DEFAULT_ROTATION, FORMAT_TAG, Camera
 from .colmap import CameraList, colmap_rig, in_folder, read_file, rig_file
 from .files import FORMATS, Src, plain_list, read_document, read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt
-from .kalibr import is_kalibr, kalibr_imu, kalibr_names, kalibr_pose, load_kalibr
+from .kalibr import is_kalibr, kalibr_clock, kalibr_imu, kalibr_names, kalibr_pose, load_kalibr
 from .omni import EUCM, DoubleSphere, Mei
 from .orbslam import is_orbslam, load_orbslam, orbslam_imu, orbslam_names, orbslam_pose
 from .panorama import Equirectangular, LensNormalMap
@@ -158,6 +158,23 @@ def imu_rotation(path) -> np.ndarray:
     return DEFAULT_ROTATION @ T[:3, :3]
 
 
+def imu_time_shift(path, key: str | None = None) -> int:
+    """Nanoseconds to add to camera ``key``'s stamps (default: the first camera) to read
+    the IMU's clock at the same instant: Kalibr's ``timeshift_cam_imu`` (camchain-imucam;
+    t_imu = t_cam + shift, in seconds), Basalt's ``cam_time_offset_ns``; 0 where the file
+    gives none (ORB-SLAM3 has no such field)."""
+    path = Path(path)
+    data = _document(path)
+    chain = _chain(data)
+    if chain is None:
+        raise ValueError(f"{path}: not a Kalibr camchain, Basalt calibration or ORB-SLAM3 "
+                         "settings, so it has no camera-IMU time shift")
+    names = chain.names(data)
+    if key is not None and key not in names:
+        raise ValueError(f"{path}: no camera '{key}' in the {chain.kind} (it has {names})")
+    return chain.clock(path, data, key or names[0])
+
+
 def with_fov_and_mask(cam: Camera, fov_deg: float | None = None, image_mask=None) -> Camera:
     """``cam`` with a usable field of view (:meth:`Camera.with_fov`) and an image mask
     (``[H, W]`` array, or an image file: :func:`read_mask`), each where given."""
@@ -207,15 +224,17 @@ class _Chain(NamedTuple):
     pose: Callable  # (path, data, name) -> [4, 4] cam0's optical frame <- its, or None
     extrinsics: str  # what an error asks for
     imu: Callable  # (path, data) -> [4, 4] cam0's optical frame <- the IMU's, or None
+    clock: Callable  # (path, data, name) -> ns that turn the camera's stamps into the IMU's
 
 
 _CHAINS = (
     _Chain("camchain", is_kalibr, kalibr_names, lambda src, data, name: load_kalibr(src, data[name]),
-           kalibr_pose, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)", kalibr_imu),
+           kalibr_pose, "'T_cn_cnm1' (or 'T_cam_imu' on it and on cam0)", kalibr_imu,
+           kalibr_clock),
     _Chain("Basalt calibration", is_basalt, basalt_names, load_basalt, basalt_pose,
-           "'T_imu_cam' for it", basalt_imu),
+           "'T_imu_cam' for it", basalt_imu, basalt_clock),
     _Chain("ORB-SLAM3 settings", is_orbslam, orbslam_names, load_orbslam, orbslam_pose,
-           "'Stereo.T_c1_c2' (or 'Tlr')", orbslam_imu))
+           "'Stereo.T_c1_c2' (or 'Tlr')", orbslam_imu, lambda path, data, name: 0))
 
 
 def _chain(data) -> _Chain | None:

@@ -83,4 +83,10 @@ def kalibr_imu(path, data: dict) -> np.ndarray | None:
     return None if T is None else Src(path, name).rigid(T, "T_cam_imu")
 
 
+def kalibr_clock(path, data: dict, name: str) -> int:
+    """Camera ``name``'s ``timeshift_cam_imu`` (seconds; t_imu = t_cam + shift) in ns."""
+    return round(Src(path, name).finite(data[name].get("timeshift_cam_imu", 0.0),
+                                        "timeshift_cam_imu") * 1e9)
+
+
 # -- OCamCalib -----------------------------------------------------------------------------
