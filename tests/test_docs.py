@@ -53,6 +53,8 @@ def undocumented(module):
             fn = attr.fget if isinstance(attr, property) else attr
             if a.startswith("_") or not inspect.isfunction(fn):
                 continue
+            if "." not in fn.__qualname__:  # made at run time (PyG's generated collect())
+                continue
             origin = doc_origin(obj, a)
             # torch's generic forward() text says nothing of shapes: forward documents itself
             own = origin is not None and (origin.__module__.startswith("usf_graph")
