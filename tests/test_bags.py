@@ -310,14 +310,19 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
     assert "several --topic are a rig's cameras (--rig)" in capsys.readouterr().err
 
 
-def imu_msg(ts, acc, sec, nanosec):
+def imu_msg(ts, acc, sec, nanosec, quat=(0.0, 0.0, 0.0, 1.0), no_orientation=False):
+    """An Imu message; ``quat`` (x, y, z, w) its orientation, ``no_orientation`` marks it
+    unknown (``orientation_covariance[0] = -1``)."""
     T = ts.types
     v3 = T["geometry_msgs/msg/Vector3"]
     h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
                                  frame_id="imu")
+    cov = np.zeros(9)
+    cov[0] = -1.0 if no_orientation else 0.0
     return T["sensor_msgs/msg/Imu"](
-        header=h, orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-        orientation_covariance=np.zeros(9), angular_velocity=v3(x=0.0, y=0.0, z=0.0),
+        header=h, orientation=T["geometry_msgs/msg/Quaternion"](
+            **dict(zip("xyzw", map(float, quat)))),
+        orientation_covariance=cov, angular_velocity=v3(x=0.0, y=0.0, z=0.0),
         angular_velocity_covariance=np.zeros(9), linear_acceleration=v3(x=acc[0], y=acc[1], z=acc[2]),
         linear_acceleration_covariance=np.zeros(9))
 
@@ -519,3 +524,53 @@ def test_bayer_16_bit_and_alpha_encodings_read_as_the_scene(tmp_path, encoding):
     assert img.dtype == (np.uint16 if enc == "mono16" else np.uint8)  # colour to 8 bits
     got = img.astype(np.float64) / (257 if img.dtype == np.uint16 else 1)
     np.testing.assert_array_equal(got[2:-2, 2:-2], want[2:-2, 2:-2])
+
+
+def test_the_imu_orientation_gives_up_while_the_platform_accelerates(tmp_path):
+    """An attitude filter's orientation (world <- IMU, REP-145) gives the world's up in the
+    IMU's frame, R^T e_z (scipy's rotation the reference), while the accelerometer, which
+    also reads the platform's acceleration, is tilted away from it."""
+    from scipy.spatial.transform import Rotation
+
+    Q = Rotation.from_rotvec([0.3, -0.5, 1.2])  # world <- IMU
+    up = Q.inv().apply([0.0, 0.0, 1.0])
+    accel = Q.inv().apply([3.0, 0.0, 9.81])  # braking/accelerating at 3 m/s^2
+    msgs = [("/imu", imu_msg(ROS2, accel, 7, i * 10**7, quat=Q.as_quat()), i) for i in range(20)]
+    bag = write_bag(tmp_path / "imu", False, msgs)
+    u = bags.ImuOrientation(bag, "/imu").up(7 * 10**9 + 10**8)
+    np.testing.assert_allclose(u, up, atol=1e-12)
+    a = bags.Accelerometer(bag, "/imu").up(7 * 10**9 + 10**8)
+    assert np.degrees(np.arccos(a @ up)) > 15  # the accelerometer tilts by atan(3 / 9.81)
+    unknown = [("/imu", imu_msg(ROS2, accel, 7, 0, no_orientation=True), 0)]
+    with pytest.raises(ValueError, match=r"gives no orientation .*--imu-up accel"):
+        bags.ImuOrientation(write_bag(tmp_path / "none", False, unknown), "/imu")
+    zero = [("/imu", imu_msg(ROS2, accel, 7, 0, quat=(0, 0, 0, 0)), 0)]
+    with pytest.raises(ValueError, match="is not a rotation"):
+        bags.ImuOrientation(write_bag(tmp_path / "zero", False, zero), "/imu")
+
+
+def test_predict_reads_up_from_the_imu_orientation(tmp_path, capsys):
+    from scipy.spatial.transform import Rotation
+
+    from usf_graph.cli import main
+
+    T = np.eye(4)
+    T[:3, :3] = [[0, 1, 0], [0, 0, 1], [1, 0, 0]]
+    chain = tmp_path / "camchain-imucam.yaml"
+    chain.write_text(yaml.safe_dump({"cam0": dict(
+        camera_model="pinhole", distortion_model="none", distortion_coeffs=[],
+        intrinsics=[30.0, 30.0, 31.5, 23.5], resolution=[64, 48], rostopic="/cam0/image_raw",
+        T_cam_imu=T.tolist())}))
+    Q = Rotation.from_rotvec([0.1, 1.4, 0.2])  # world <- IMU: IMU x nearly up
+    msgs = [("/cam0/image_raw", image_msg(ROS2, frame(0), 3, 0), 0)]
+    msgs += [("/imu0", imu_msg(ROS2, (0.0, 5.0, 0.0), 3, 0, quat=Q.as_quat()), 1)]
+    bag = write_bag(tmp_path / "run", False, msgs)
+    tiny_seg_checkpoint(tmp_path / "seg.pt")
+    ckpt = str(tmp_path / "seg.pt")
+    assert main(["predict", "seg", ckpt, str(bag), "--camera", str(chain), "--imu", "/imu0",
+                 "--imu-up", "orientation", "--out", str(tmp_path / "o")]) == 0
+    up = cameras.imu_rotation(chain) @ Q.inv().apply([0.0, 0.0, 1.0])
+    assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in capsys.readouterr().out
+    assert main(["predict", "seg", ckpt, str(bag), "--camera", str(chain),
+                 "--imu-up", "orientation"]) == 2
+    assert "--imu-up says how to read --imu's messages" in capsys.readouterr().err

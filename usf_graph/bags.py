@@ -22,6 +22,7 @@ import numpy as np
 
 from .cameras import Camera
 from .cameras.io import camera_info_to_camera
+from .geometry import rotation_from_quaternion
 
 #: Files read as ROS bags (besides a ROS 2 bag's folder).
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
@@ -191,7 +192,8 @@ class Accelerometer:
 
     At rest an accelerometer reads the specific force, ``+g`` away from the earth: the mean
     of its readings about a frame's stamp is up in the IMU's frame, to the platform's own
-    acceleration over that window (a robot that brakes hard tilts it)."""
+    acceleration over that window (a robot that brakes hard tilts it; read the IMU's own
+    attitude estimate with :class:`ImuOrientation` instead, where it gives one)."""
 
     def __init__(self, path, topic: str):
         found = _of(topics(path), (IMU_TYPE,))
@@ -200,14 +202,18 @@ class Accelerometer:
                              f"{', '.join(sorted(found)) or 'none'}")
         self.path, self.topic = path, topic
         stamps, acc = [], []
-        for _, t, load in _messages(path, {topic}):
+        for i, (_, t, load) in enumerate(_messages(path, {topic})):
             msg = load()
-            a = msg.linear_acceleration
             stamps.append(_stamp(msg, t))
-            acc.append((a.x, a.y, a.z))
+            acc.append(self._reading(msg, f"{path} [{topic} #{i}]"))
         order = np.argsort(stamps, kind="stable")
         self.stamps = np.asarray(stamps, np.int64)[order]
         self.acc = np.asarray(acc, np.float64).reshape(-1, 3)[order]
+
+    @staticmethod
+    def _reading(msg, where: str) -> tuple:
+        a = msg.linear_acceleration
+        return a.x, a.y, a.z
 
     def up(self, stamp_ns: int, window_ns: int = 10**8) -> np.ndarray:
         """Unit up ``[3]`` in the IMU's frame: the mean reading within ``window_ns / 2`` of
@@ -227,6 +233,28 @@ class Accelerometer:
             raise ValueError(f"{self.path} [{self.topic}]: the accelerometer reads {n:.3g} m/s^2 "
                              f"about {stamp_ns} ns, too little to tell up")
         return a / n
+
+
+class ImuOrientation(Accelerometer):
+    """Up from the ``orientation`` an IMU's attitude filter fills in (REP-145: the IMU's
+    frame in a world frame whose z points up, as most drivers and ``robot_localization``
+    give it): ``R^T e_z``, the world's up in the IMU's frame, averaged about each stamp as
+    :class:`Accelerometer` averages its readings. Unlike the raw accelerometer it does not
+    tilt while the platform accelerates. Messages whose ``orientation_covariance[0]`` is
+    -1 (the message's "no orientation") are refused."""
+
+    @staticmethod
+    def _reading(msg, where: str) -> tuple:
+        if msg.orientation_covariance[0] == -1:
+            raise ValueError(f"{where}: the IMU gives no orientation (orientation_covariance[0] "
+                             "is -1); read up from its accelerometer instead (--imu-up accel)")
+        q = np.array([msg.orientation.w, msg.orientation.x, msg.orientation.y,
+                      msg.orientation.z], np.float64)
+        if not np.isfinite(q).all() or np.linalg.norm(q) < 0.5:  # drivers write unit ones
+            raise ValueError(f"{where}: the IMU's orientation {q.tolist()} (w, x, y, z) is "
+                             "not a rotation")
+        R = rotation_from_quaternion(q)  # world <- IMU
+        return tuple(R[2])  # R^T e_z
 
 
 def _stamp(msg, t: int) -> int:

@@ -58,6 +58,10 @@ def add_predict_parser(sub, fmt) -> None:
                         "T_cam_imu, Basalt T_imu_cam, ORB-SLAM3 IMU.T_b_c1)")
     p.add_argument("--imu-window", type=float, default=100.0, metavar="MS",
                    help="--imu: the readings averaged about each frame's stamp")
+    p.add_argument("--imu-up", choices=("accel", "orientation"), default="accel",
+                   help="--imu: up from the accelerometer (tilted while the platform "
+                        "accelerates), or from the orientation the IMU's attitude filter "
+                        "fills in (a gravity-aligned world frame, REP-145)")
     p.add_argument("--camera", default=None,
                    help=CAMERA_HELP + "; for a ROS bag, default: its camera_info beside the "
                         "image topic")
@@ -150,6 +154,8 @@ def cmd_predict(args) -> int:
                                  or args.up_lines):
         raise ValueError("--imu reads up from a ROS bag's accelerometer: every input a bag, and "
                          "not with --up or --up-lines")
+    if args.imu is None and args.imu_up != "accel":
+        raise ValueError("--imu-up says how to read --imu's messages: give --imu TOPIC")
     if args.camera is None and args.key is not None:
         raise ValueError("--key picks a camera in --camera's file; a bag's camera_info holds one")
     _up_arg(args)  # its errors before anything loads

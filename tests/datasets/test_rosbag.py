@@ -74,3 +74,34 @@ def test_each_frame_gets_the_imus_up(tmp_path, bag):
         RosBagFrames(tmp_path / "d", chain, progress=False)
     with pytest.raises(ValueError, match="every must be a positive whole number"):
         RosBagFrames(tmp_path / "d", path, every=0, progress=False)
+
+
+def test_the_imus_orientation_is_read_on_its_own_clock(tmp_path, bag):
+    """``imu_up="orientation"``, and the calibration's ``timeshift_cam_imu`` (1 s here): the
+    frame stamped 50 + i s reads the orientation the IMU gave at 51 + i s."""
+    from scipy.spatial.transform import Rotation
+
+    path, cam, _ = bag
+    rot = lambda t: Rotation.from_rotvec([0.05 * int(t), 0.0, 0.0])  # noqa: E731 (world <- IMU)
+    msgs = [("/imu", imu_msg(ROS2, (0.0, 0.0, 9.81), 50 + k // 10, (k % 10) * 10**8,
+                             quat=rot(50 + k / 10).as_quat()), k) for k in range(60)]
+    for i in range(4):
+        big = np.resize(frame(i), (cam.height, cam.width, 3)).astype(np.uint8)
+        msgs.append(("/cam/image_raw", image_msg(ROS2, big, 50 + i, 0), 100 + i))
+    imu_bag = write_bag(tmp_path / "imu", False, msgs)
+    chain = tmp_path / "camchain-imucam.yaml"
+    c = yaml.safe_load((FIXTURES / "kalibr_rig.yaml").read_text())["cam0"]
+    c.update(intrinsics=[float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy)],
+             resolution=[cam.width, cam.height], distortion_coeffs=[float(v) for v in cam.k],
+             T_cam_imu=np.eye(4).tolist(), timeshift_cam_imu=1.0)
+    chain.write_text(yaml.safe_dump({"cam0": c}))
+    ds = RosBagFrames(tmp_path / "d", imu_bag, camera=chain, grid="icosahedral:3", imu="/imu",
+                      imu_up="orientation", progress=False)
+    assert ds.imu_time_shift_ns == 10**9
+    want = [cameras.DEFAULT_ROTATION @ rot(51 + i).inv().apply([0.0, 0.0, 1.0]) for i in range(4)]
+    np.testing.assert_allclose(ds.gravity.numpy(), want, atol=1e-12)
+    same = RosBagFrames(tmp_path / "d", imu_bag, camera=chain, grid="icosahedral:3", imu="/imu",
+                        imu_up="orientation", imu_time_shift_ns=0, progress=False)
+    np.testing.assert_allclose(same.gravity.numpy()[1:], want[:3], atol=1e-12)  # its own file
+    with pytest.raises(ValueError, match="imu_up must be 'accel' or 'orientation'"):
+        RosBagFrames(tmp_path / "d", imu_bag, camera=chain, imu="/imu", imu_up="gyro")

@@ -18,7 +18,7 @@ from torch_geometric.data import Dataset
 from tqdm.auto import tqdm
 
 from .. import bags
-from ..cameras import Camera, imu_rotation, load
+from ..cameras import Camera, imu_rotation, imu_time_shift, load
 from ..fileio import atomic_torch_save
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage, unit_range
@@ -42,6 +42,11 @@ class RosBagFrames(Dataset):
             ``imu_window_ns`` about the frame's stamp), turned into the camera's sphere frame
             by ``imu_to_sphere`` (``[3, 3]``), or by the camera-IMU extrinsics of the
             calibration file ``camera`` (:func:`usf_graph.cameras.imu_rotation`).
+        imu_up: ``"accel"`` (the accelerometer, :class:`~usf_graph.bags.Accelerometer`) or
+            ``"orientation"`` (the IMU's attitude estimate,
+            :class:`~usf_graph.bags.ImuOrientation`).
+        imu_time_shift_ns: added to the frames' stamps to read the IMU's clock; default:
+            the calibration file's (:func:`usf_graph.cameras.imu_time_shift`), else 0.
 
     A sample has ``x [N, C]`` (the image's channels in [0, 1]: RGB, or one for a mono
     camera), ``pos``, ``area``, ``mask [N]`` (the points the camera sees), ``stamp_ns [1]``
@@ -52,7 +57,8 @@ class RosBagFrames(Dataset):
 
     def __init__(self, root, bag, topic: str | None = None, camera=None, grid="icosahedral:5",
                  every: int = 1, interpolation: str = "bilinear", imu: str | None = None,
-                 imu_to_sphere=None, imu_window_ns: int = 10**8, transform=None,
+                 imu_to_sphere=None, imu_window_ns: int = 10**8, imu_up: str = "accel",
+                 imu_time_shift_ns: int | None = None, transform=None,
                  pre_transform=None, progress: bool = True):
         if int(every) != every or every < 1:
             raise ValueError(f"every must be a positive whole number, got {every}")
@@ -65,8 +71,13 @@ class RosBagFrames(Dataset):
         self.camera: Camera = (bags.camera(self.bag, self.topic) if camera is None else
                                camera if isinstance(camera, Camera) else load(camera))
         self.imu, self.imu_window_ns = imu, int(imu_window_ns)
-        self.imu_to_sphere = None
+        if imu_up not in ("accel", "orientation"):
+            raise ValueError(f"imu_up must be 'accel' or 'orientation', got {imu_up!r}")
+        self.imu_up, self.imu_to_sphere, self.imu_time_shift_ns = imu_up, None, 0
         if imu is not None:
+            if imu_time_shift_ns is None and isinstance(camera, (str, Path)):
+                imu_time_shift_ns = imu_time_shift(camera)
+            self.imu_time_shift_ns = int(imu_time_shift_ns or 0)
             if imu_to_sphere is None and isinstance(camera, (str, Path)):
                 imu_to_sphere = imu_rotation(camera)
             if imu_to_sphere is None:
@@ -96,7 +107,8 @@ class RosBagFrames(Dataset):
                "topic": self.topic, "camera": self.camera.key(), "grid": self.grid.spec,
                "every": self.every, "interpolation": self.interpolation, "imu": self.imu,
                "imu_to_sphere": None if self.imu_to_sphere is None else self.imu_to_sphere.round(12).tolist(),
-               "window": self.imu_window_ns}
+               "window": self.imu_window_ns, "imu_up": self.imu_up,
+               "shift": self.imu_time_shift_ns}
         digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
         return [f"rosbag_{self.bag.stem}_{digest}.pt"]
 
@@ -104,7 +116,8 @@ class RosBagFrames(Dataset):
         raise FileNotFoundError(f"{self.bag} does not exist")
 
     def process(self):
-        acc = None if self.imu is None else bags.Accelerometer(self.bag, self.imu)
+        reader = bags.ImuOrientation if self.imu_up == "orientation" else bags.Accelerometer
+        acc = None if self.imu is None else reader(self.bag, self.imu)
         xs, stamps, ups = [], [], []
         for f in tqdm(bags.frames(self.bag, self.topic, self.every), desc=f"lifting {self.topic}",
                       disable=not self.progress, leave=False):
@@ -114,7 +127,8 @@ class RosBagFrames(Dataset):
             xs.append(self.frontend.lift(unit_range(img)))
             stamps.append(f.stamp_ns)
             if acc is not None:
-                ups.append(self.imu_to_sphere @ acc.up(f.stamp_ns, self.imu_window_ns))
+                ups.append(self.imu_to_sphere @ acc.up(f.stamp_ns + self.imu_time_shift_ns,
+                                                       self.imu_window_ns))
         if not xs:
             raise ValueError(f"{self.bag} [{self.topic}] has no frames")
         x = torch.stack(xs)
