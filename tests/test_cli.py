@@ -176,6 +176,14 @@ def test_lift_cli_reports_bad_input(tmp_path, capsys):
     assert rc == 2
     assert "160" in capsys.readouterr().err
     assert main(["lift", str(tmp_path / "none.png"), "--camera", str(tmp_path / "cam.yaml")]) == 2
+    assert f"image {tmp_path / 'none.png'} does not exist" in capsys.readouterr().err
+    (tmp_path / "empty.png").write_bytes(b"")
+    (tmp_path / "text.png").write_text("not a picture")
+    for name in ("empty.png", "text.png"):
+        assert main(["lift", str(tmp_path / name), "--camera", str(tmp_path / "cam.yaml")]) == 2
+        err = capsys.readouterr().err
+        assert err == f"usf-graph: error: cannot read image {tmp_path / name}: empty, or not an " \
+                      "image format OpenCV reads\n"
 
 
 def test_info_reports_versions_and_working_extensions(capsys):

@@ -114,14 +114,17 @@ def read_image(path):
             return np.load(p, allow_pickle=False)
         except (OSError, ValueError) as e:
             raise ValueError(f"cannot read image {p}: {e}") from e
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        from .bags import is_bag
+    from .bags import is_bag
+    from .fileio import decode_image
 
-        if is_bag(p):
-            raise ValueError(f"{p} is a ROS bag, not an image: 'usf-graph predict' reads bags "
-                             "(in Python: usf_graph.bags.frames)")
-        raise ValueError(f"cannot read image {p}: missing, or not an image format OpenCV reads")
+    if is_bag(p) and p.exists():
+        raise ValueError(f"{p} is a ROS bag, not an image: 'usf-graph predict' reads bags "
+                         "(in Python: usf_graph.bags.frames)")
+    if not p.is_file():
+        raise ValueError(f"image {p} does not exist" + (" (it is a folder)" if p.is_dir() else ""))
+    img = decode_image(p)
+    if img is None:
+        raise ValueError(f"cannot read image {p}: empty, or not an image format OpenCV reads")
     if img.ndim == 3 and img.shape[2] in (3, 4):  # OpenCV's BGR(A) -> RGB(A)
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
     return img

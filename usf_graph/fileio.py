@@ -1,4 +1,5 @@
-"""Atomic file writes: a temp file in the target's folder, then ``os.replace``.
+"""Files: atomic writes (a temp file in the target's folder, then ``os.replace``),
+checksums, downloads and image decoding.
 
 Readers never see a partial file, concurrent writers of one path each leave a complete
 one, and a failed write removes its temp file.
@@ -34,6 +35,19 @@ def atomic_torch_save(obj, path) -> None:
     import torch
 
     atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def decode_image(path, flags: int | None = None):
+    """The image in file ``path`` as OpenCV decodes it (``flags``: default
+    ``IMREAD_UNCHANGED``), or None when the file is empty or not an image OpenCV reads.
+    Decoded from memory: unlike ``cv2.imread``, nothing is printed on stderr, and any path
+    the OS accepts works. A missing file raises ``FileNotFoundError``."""
+    import cv2
+    import numpy as np
+
+    data = np.fromfile(Path(path), np.uint8)
+    flags = cv2.IMREAD_UNCHANGED if flags is None else flags
+    return cv2.imdecode(data, flags) if data.size else None
 
 
 def file_md5(path) -> str:

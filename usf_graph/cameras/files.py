@@ -98,9 +98,11 @@ def plain_list(a) -> str:
 
 def read_mask(path) -> np.ndarray:
     """An image mask from an image file: nonzero pixels are seen, zero ones ignored."""
-    import cv2
+    from ..fileio import decode_image
 
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if not Path(path).is_file():
+        raise ValueError(f"cannot read the image mask {path}: it does not exist")
+    m = decode_image(path)
     if m is None:
         raise ValueError(f"cannot read the image mask {path}: not an image file OpenCV reads")
     return mask_from_image(m)

@@ -21,7 +21,7 @@ from torch_geometric.data import Dataset
 from tqdm.auto import tqdm
 
 from ..cameras import Equirectangular
-from ..fileio import atomic_torch_save
+from ..fileio import atomic_torch_save, decode_image
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage
 from ..grids import Grid, from_spec
@@ -125,7 +125,7 @@ class Pandora(UprightAsReleased, Dataset):
         for name, (b, c) in tqdm(anns.items(), desc=f"lifting PANDORA {self.split}",
                                  disable=not self.progress, leave=False):
             path = Path(self.root) / "images" / name
-            img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            img = decode_image(path, cv2.IMREAD_COLOR) if path.is_file() else None
             if img is None:
                 raise FileNotFoundError(f"{path} is missing or not an image. " + GET_IT.format(
                     root=self.root, split=self.split))

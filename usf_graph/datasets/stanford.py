@@ -26,7 +26,7 @@ from torch_geometric.data import Dataset
 from tqdm.auto import tqdm
 
 from ..cameras import Equirectangular
-from ..fileio import atomic_torch_save
+from ..fileio import atomic_torch_save, decode_image
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage
 from ..grids import Grid, from_spec
@@ -75,9 +75,7 @@ def decode_semantic(rgb: np.ndarray, table: np.ndarray) -> np.ndarray:
 
 
 def _read(path: Path, flags) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), flags)
+    img = decode_image(path, flags)
     if img is None:
         raise ValueError(f"{path} is not a readable PNG (corrupt or truncated); download it again")
     return img
