@@ -182,8 +182,10 @@ def cmd_eval(args) -> int:
     from .datasets import SphericalMNIST
     from .models import SphericalClassifier
     from .train import evaluate, load_checkpoint, resolve_device
+    from .train.provenance import announce
 
     blob = load_checkpoint(args.checkpoint)
+    announce(args.checkpoint, blob.get("provenance"))
     model = SphericalClassifier.from_config(blob["config"])
     model.load_state_dict(blob["state_dict"])
     model.to(resolve_device(args.device))

@@ -288,7 +288,9 @@ def ready_model(ckpt, args):
     """``ckpt``'s model on ``--device``, with the up estimate's test-time options
     (:func:`up_options`): what ``eval`` and ``predict`` run."""
     from .train import resolve_device
+    from .train.provenance import announce
 
+    announce(ckpt.path, ckpt.provenance)
     model = ckpt.model.to(resolve_device(args.device))
     up_options(model, args)
     if getattr(args, "gray", False):

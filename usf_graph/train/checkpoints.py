@@ -26,7 +26,9 @@ class ProtocolCheckpoint:
     task's protocol default); ``metrics``: the metrics saved with it; ``dataset``: what it
     was trained on, ``rooms``, ``stanford2d3ds`` (with its ``fold``) or ``pandora``; ``seed``:
     a rooms run's seed (None where the checkpoint predates recording it); ``materials``: its
-    rooms' (:mod:`usf_graph.scenes.materials`; ``"random"`` where not recorded)."""
+    rooms' (:mod:`usf_graph.scenes.materials`; ``"random"`` where not recorded);
+    ``provenance``: the code and command that made it
+    (:func:`~usf_graph.train.provenance.provenance`; None before session 51)."""
 
     path: str
     task: str
@@ -39,6 +41,7 @@ class ProtocolCheckpoint:
     fold: int | None = None
     seed: int | None = None
     materials: str = "random"
+    provenance: dict | None = None
 
     @property
     def planar(self) -> bool:
@@ -103,4 +106,4 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
         dataset = "pandora" if task == "det" and model.num_classes == len(PANDORA_CLASSES) else "rooms"
     return ProtocolCheckpoint(str(path), task, name, model, blob["config"],
                               size or _default_size(task), blob.get("metrics", {}), dataset, fold,
-                              seed, data.get("materials", "random"))
+                              seed, data.get("materials", "random"), blob.get("provenance"))

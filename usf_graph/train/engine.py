@@ -22,7 +22,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
-from ..fileio import atomic_torch_save
+from ..fileio import atomic_torch_save, atomic_write
 from ..nn.norm import MaskedBatchNorm
 
 Step = Callable[[nn.Module, Any], tuple[torch.Tensor, dict, int]]
@@ -151,11 +151,14 @@ def teardown_distributed() -> None:
 
 def save_checkpoint(path, model: nn.Module, config: dict, metrics: dict,
                     optimizer=None, scheduler=None, epoch: int = 0, extra: dict | None = None) -> None:
-    """Atomically write state_dict, config, metrics (and optimizer state for resuming;
-    ``extra``: more entries, e.g. :func:`fit`'s random states)."""
+    """Atomically write state_dict, config, metrics, where it came from
+    (:func:`~usf_graph.train.provenance.provenance`), and optimizer state for resuming
+    (``extra``: more entries, e.g. :func:`fit`'s random states)."""
+    from .provenance import provenance
+
     model = model.module if hasattr(model, "module") else model
     blob = {"state_dict": model.state_dict(), "config": config, "metrics": metrics,
-            "epoch": epoch, **(extra or {})}
+            "epoch": epoch, "provenance": provenance(), **(extra or {})}
     if optimizer is not None:
         blob["optimizer"] = optimizer.state_dict()
     if scheduler is not None:
@@ -402,15 +405,18 @@ def _log(log_dir: Path, history: list[dict], writer) -> None:
 
 def write_results(out, results: dict, t0: float, figure: str | None = None,
                   plot: Callable[[Path], object] | None = None) -> dict:
-    """Finish a task's run: add its wall time, write ``results.json`` under ``out``, then
-    draw ``figure`` with ``plot(path)`` when given. A failed plot is reported and must not
-    lose the results, which are already written."""
+    """Finish a task's run: add its wall time and provenance, write ``results.json`` under
+    ``out`` (atomically), then draw ``figure`` with ``plot(path)`` when given. A failed plot
+    is reported and must not lose the results, which are already written."""
     import time
+
+    from .provenance import provenance
 
     out = Path(out)
     results["seconds"] = round(time.time() - t0, 1)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    results["provenance"] = provenance()
+    text = json.dumps(results, indent=1)
+    atomic_write(out / "results.json", lambda f: f.write(text), mode="w")
     if figure is None:
         return results
     try:
