@@ -833,3 +833,44 @@ def test_lift_and_predict_choose_the_stitching_distance(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["lift", *paths, "--camera", str(chain), "--distance", "far"])
     assert "a distance in the calibration's unit, or 'auto'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("task", ["seg", "det"])
+def test_eval_scores_a_checkpoint_through_the_users_camera(task, tmp_path, capsys):
+    """``eval --camera``: (a) and the rooms through that camera, zero-shot; the camera's
+    score is what the same test views, rendered through it by hand, give."""
+    from usf_graph.datasets import RoomsDetection, RoomsSegmentation
+    from usf_graph.models import SphericalDetector
+    from usf_graph.train import det, save_checkpoint, seg
+    from usf_graph.train.apply import choose_interpolation
+
+    cam = cameras.KannalaBrandt(20.0, 20.0, 31.5, 23.5, 64, 48, k=(0.01, 0.0, 0.0, 0.0))
+    cam.save(tmp_path / "fisheye.yaml")
+    data = {"dataset": "rooms", "seed": 0, "materials": "random"}
+    if task == "seg":
+        net = tiny_seg_checkpoint(tmp_path / "m.pt", size=16)
+        save_checkpoint(tmp_path / "m.pt", net, {"model": "spherical_unet", "size": 16,
+                                                 **net.config}, {}, extra={"data": data})
+    else:
+        torch.manual_seed(0)
+        net = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(4, 4, 4))
+        save_checkpoint(tmp_path / "m.pt", net, {"size": 16, **net.config}, {},
+                        extra={"data": data})
+    root = tmp_path / "rooms"
+    assert main(["eval", task, str(tmp_path / "m.pt"), "--root", str(root), "--num-test", "2",
+                 "--camera", str(tmp_path / "fisheye.yaml")]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("(")]
+    assert [ln.split()[0] for ln in lines if "mIoU" in ln or "AP50" in ln] == ["(a)", "(camera)"]
+    grid = "icosahedral:3"
+    kw = dict(camera=cameras.load(tmp_path / "fisheye.yaml"), grid=grid, rotate="none",
+              num_scenes=2, seed=0, materials="random", progress=False,
+              interpolation=choose_interpolation(cam, grids.from_spec(grid)))
+    net.eval()
+    if task == "seg":
+        r = seg.evaluate_set(net, RoomsSegmentation(root, "test", **kw), progress=False)[0]
+        want = f"(camera) mIoU {100 * r['mIoU']:.2f}, mAcc {100 * r['mAcc']:.2f}"
+    else:
+        data = det.DetectionSet.spherical(RoomsDetection(root, "test", **kw))
+        r = det.score(det.predict(net, data, det.PREDICT_BATCH), data, net.num_classes)
+        want = f"(camera) AP {100 * r['AP']:.2f}, AP50 {100 * r['AP50']:.2f}"
+    assert any(ln.startswith(want) for ln in lines), (want, lines)

@@ -176,7 +176,8 @@ def cmd_eval(args) -> int:
     from .cli_det import given
 
     other = given(args, "dataset", "fold", "test", "size", "num_test", "boxes", "known_up",
-                  "up_lines", "level_prior", "sign_check", "render", "gray")
+                  "up_lines", "level_prior", "sign_check", "render", "gray", "camera", "key",
+                  "fov", "image_mask")
     if other:  # rather than ignore them
         raise ValueError(f"{', '.join(other)}: options of 'eval det|seg', not of 'eval mnist'")
     from .datasets import SphericalMNIST

@@ -8,6 +8,8 @@ import math
 
 import numpy as np
 
+from .cli_inputs import camera_options, camera_test
+
 
 def at_least(lo: float, kind=int, above: bool = False, most: float | None = None):
     """An argparse type: a finite ``kind`` of at least ``lo`` (above it with ``above``; at
@@ -122,6 +124,11 @@ def add_eval_options(e) -> None:
                    help="det, seg: the model reads the test images' luma only, as a mono "
                         "camera records them (what a colour model loses there; a checkpoint of "
                         "'train --gray' reads them so anyway)")
+    e.add_argument("--camera", default=None, metavar="CALIB",
+                   help="det, seg on rooms: also score through this calibrated camera, "
+                        "zero-shot, the test rooms rendered through it at its size (any file "
+                        "'predict --camera' reads), beside (a) unless --test names others")
+    camera_options(e)
     add_device_option(e)
 
 
@@ -267,7 +274,8 @@ def eval_data(ckpt, args) -> str:
         raise ValueError(f"{data} is not {ckpt.task} data: 'usf-graph eval {ckpt.task}' scores "
                          f"rooms or {real}")
     if data != "rooms":
-        rooms_only = given(args, "test", "num_test", *(("size",) if data == "pandora" else ()))
+        rooms_only = given(args, "test", "num_test", "camera",
+                           *(("size",) if data == "pandora" else ()))
         if rooms_only:
             raise ValueError(f"{', '.join(rooms_only)}: rooms options; {data} is scored on its "
                              "own test data as released")
@@ -345,13 +353,18 @@ def cmd_eval_det(args) -> int:
                              "size only; score a spherical checkpoint on pandora")
         tests = {"pandora test": Pandora(args.root or "data/pandora", "test", grid=model.input_grid)}
     else:
-        names = args.test or list(PROTOCOL)
+        from .datasets import RoomsDetection
+
+        grid = getattr(model, "input_grid", "icosahedral:5")  # the planar one reads panoramas
+        own = camera_test(args, ckpt, RoomsDetection, grid)
+        names = args.test or (["a"] if own is not None else list(PROTOCOL))
         if wrong := [k for k in names if k not in PROTOCOL]:  # before any rendering
             raise ValueError(f"detection has tests {', '.join(PROTOCOL)}, not {wrong[0]!r}")
-        sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, num_train=0,
-                             num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed),
-                             materials=ckpt.materials)
-        tests = {f"({k})": sets[k] for k in names}
+        sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, grid=grid,
+                             num_train=0, num_test=args.num_test or 50,
+                             seed=ckpt.rooms_seed(args.seed), materials=ckpt.materials,
+                             tests=names)
+        tests = {f"({k})": sets[k] for k in names} | ({} if own is None else {"(camera)": own})
     for k, ds in tests.items():
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
         u = split_up(model, ds, args.known_up, args.up_lines, batch_size=PREDICT_BATCH)

@@ -141,3 +141,27 @@ def alpha_masked(camera, image, path):
     print(f"{Path(path).name}: its alpha channel hides {int((~opaque).sum())} pixels; they are "
           "left out")
     return camera.with_image_mask(opaque, combine=True)
+
+
+def camera_test(args, ckpt, dataset, grid: str):
+    """``eval --camera``: the rooms test views of ``ckpt``'s seed and materials seen
+    through the user's calibrated camera (``--key``, ``--fov``, ``--image-mask``), as the
+    protocol's zero-shot lenses see them (level, along each viewpoint's random yaw; the
+    camera's own mounting kept), at its calibrated size, lifted onto ``grid`` as
+    ``predict`` would lift it (``area`` for images finer than the grid); None without
+    ``--camera``. ``dataset``: :class:`~usf_graph.datasets.RoomsSegmentation` or
+    :class:`~usf_graph.datasets.RoomsDetection`."""
+    if args.camera is None:
+        if args.key is not None or args.fov is not None or args.image_mask is not None:
+            raise ValueError("--key, --fov and --image-mask describe --camera's camera: give "
+                             "--camera")
+        return None
+    from .grids import from_spec
+    from .train.apply import choose_interpolation
+
+    cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask)
+    print(f"(camera) {cam}")
+    return dataset(args.root or "data/rooms", "test", camera=cam, grid=grid, rotate="none",
+                   num_scenes=args.num_test or 50, seed=ckpt.rooms_seed(args.seed),
+                   materials=ckpt.materials,
+                   interpolation=choose_interpolation(cam, from_spec(grid)))

@@ -15,6 +15,7 @@ from .cli_det import (
     run_kwargs,
     up_kwargs,
 )
+from .cli_inputs import camera_test
 
 
 def cmd_train_seg(args) -> int:
@@ -54,6 +55,7 @@ def cmd_train_seg(args) -> int:
 
 
 def cmd_eval_seg(args) -> int:
+    from .cameras import Equirectangular
     from .train.checkpoints import load_protocol_model
     from .train.gravity import format_up_report
     from .train.seg import PROTOCOL, evaluate_protocol, evaluate_set, protocol_sets
@@ -75,13 +77,20 @@ def cmd_eval_seg(args) -> int:
         res = {f"fold {fold} test": evaluate_set(model, test, f"{name} fold {fold}", args.known_up,
                                                  up_lines=args.up_lines, render=render)[0]}
     else:
-        tests = args.test or list(PROTOCOL)
+        from .datasets import RoomsSegmentation
+
+        own = camera_test(args, ckpt, RoomsSegmentation, f"icosahedral:{level}")
+        tests = args.test or (["a"] if own is not None else list(PROTOCOL))
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, level, num_train=0,
                              num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed), tests=tests,
                              materials=ckpt.materials)
         res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up,
                                    up_lines=args.up_lines, render=render)
         res = {f"({k})": r for k, r in res.items()}
+        if own is not None:  # a planar model sees it re-imaged as its training panorama
+            pano = Equirectangular(2 * ckpt.size, ckpt.size)
+            res["(camera)"] = evaluate_set(model, own, f"{name} (camera)", args.known_up,
+                                           up_lines=args.up_lines, render=render, pano=pano)[0]
     for k, r in res.items():
         print(f"{k} " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
                                   ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))

@@ -279,9 +279,9 @@ def score(dets: list[dict], data: DetectionSet, num_classes: int) -> dict:
 
 def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train: int = 200,
                   num_test: int = 50, seed: int = 0, progress: bool = True,
-                  materials: str = "random") -> dict:
+                  materials: str = "random", tests=tuple(PROTOCOL)) -> dict:
     """The rooms splits of the protocol: ``{"train": ..., "a": ..., "b": ..., "c": ..., "d": ...}``
-    (no ``train`` when ``num_train`` is 0), of rooms with ``materials``
+    (no ``train`` when ``num_train`` is 0; the ``tests`` named), of rooms with ``materials``
     (:mod:`usf_graph.scenes.materials`)."""
     from ..datasets import RoomsDetection
     from ..scenes.lenses import protocol_cameras
@@ -290,7 +290,8 @@ def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train:
     kw = dict(grid=grid, seed=seed, progress=progress, materials=materials)
     sets = {} if not num_train else {"train": RoomsDetection(
         root, "train", camera=cams["equirectangular"], num_scenes=num_train, **kw)}
-    for k, (cam, rot) in PROTOCOL.items():
+    for k in tests:
+        cam, rot = PROTOCOL[k]
         sets[k] = RoomsDetection(root, "test", camera=cams[cam], rotate=rot, num_scenes=num_test, **kw)
     return sets
 

@@ -287,18 +287,19 @@ def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = T
 
 def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
                  progress: bool = True, up_lines: bool = False,
-                 render: str = "nearest") -> tuple[dict, np.ndarray]:
+                 render: str = "nearest", pano: Equirectangular | None = None
+                 ) -> tuple[dict, np.ndarray]:
     """:func:`score` and the pixel predictions of a trained model on one test set (a rooms
     test or :class:`~usf_graph.datasets.Stanford2D3DS`); ``known_up``: a spherical model
     reads the views' gravity (:func:`views_up`); ``up_lines``: through a pinhole, its up
     estimate picks among the straight-line axes of each image
     (:func:`~usf_graph.train.gravity.lines_up`; other cameras keep the estimate). A model
     with an up estimate also gets its :func:`~usf_graph.train.gravity.up_summary` (``"up"``;
-    the estimate runs once, for the prediction and the report). ``render``: as
+    the estimate runs once, for the prediction and the report). ``render``, ``pano``: as
     :func:`predict`'s."""
     u = split_up(model, ds, known_up, up_lines, batch_size=PREDICT_BATCH)
     pix, pts = predict(model, ds, PREDICT_BATCH, progress=progress, desc=desc, up=u.up,
-                       render=render)
+                       render=render, pano=pano)
     r = score(pix, ds, pts)
     if u.estimate is not None:
         r["up"] = u.report(views_up(ds))
