@@ -858,8 +858,14 @@ def test_eval_scores_a_checkpoint_through_the_users_camera(task, tmp_path, capsy
                         extra={"data": data})
     root = tmp_path / "rooms"
     assert main(["eval", task, str(tmp_path / "m.pt"), "--root", str(root), "--num-test", "2",
-                 "--camera", str(tmp_path / "fisheye.yaml")]) == 0
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("(")]
+                 "--camera", str(tmp_path / "fisheye.yaml"), "--figure",
+                 str(tmp_path / "fig.png")]) == 0
+    out = capsys.readouterr().out
+    assert f"figure: {tmp_path / 'fig.png'}" in out
+    fig = cv2.imread(str(tmp_path / "fig.png"))
+    # seg: a row per test (a, camera) of image, truth, prediction; det: one row of two
+    assert fig.shape[0] > (2 if task == "seg" else 1) * 48 and fig.shape[1] > 2 * 64
+    lines = [ln for ln in out.splitlines() if ln.startswith("(")]
     assert [ln.split()[0] for ln in lines if "mIoU" in ln or "AP50" in ln] == ["(a)", "(camera)"]
     grid = "icosahedral:3"
     kw = dict(camera=cameras.load(tmp_path / "fisheye.yaml"), grid=grid, rotate="none",

@@ -177,7 +177,7 @@ def cmd_eval(args) -> int:
 
     other = given(args, "dataset", "fold", "test", "size", "num_test", "boxes", "known_up",
                   "up_lines", "level_prior", "sign_check", "render", "gray", "camera", "key",
-                  "fov", "image_mask")
+                  "fov", "image_mask", "figure")
     if other:  # rather than ignore them
         raise ValueError(f"{', '.join(other)}: options of 'eval det|seg', not of 'eval mnist'")
     from .datasets import SphericalMNIST

@@ -129,6 +129,9 @@ def add_eval_options(e) -> None:
                         "zero-shot, the test rooms rendered through it at its size (any file "
                         "'predict --camera' reads), beside (a) unless --test names others")
     camera_options(e)
+    e.add_argument("--figure", default=None, metavar="PNG",
+                   help="det, seg on rooms: also draw a test view of each test: the image, "
+                        "the truth and the prediction (det: the boxes on it)")
     add_device_option(e)
 
 
@@ -274,7 +277,7 @@ def eval_data(ckpt, args) -> str:
         raise ValueError(f"{data} is not {ckpt.task} data: 'usf-graph eval {ckpt.task}' scores "
                          f"rooms or {real}")
     if data != "rooms":
-        rooms_only = given(args, "test", "num_test", "camera",
+        rooms_only = given(args, "test", "num_test", "camera", "figure",
                            *(("size",) if data == "pandora" else ()))
         if rooms_only:
             raise ValueError(f"{', '.join(rooms_only)}: rooms options; {data} is scored on its "
@@ -365,10 +368,14 @@ def cmd_eval_det(args) -> int:
                              seed=ckpt.rooms_seed(args.seed), materials=ckpt.materials,
                              tests=names)
         tests = {f"({k})": sets[k] for k in names} | ({} if own is None else {"(camera)": own})
+    drawn: dict = {"sets": {}, "preds": {}, "ignored": {}}  # for --figure
     for k, ds in tests.items():
         data = DetectionSet.planar(ds, cfg["width"], cfg["height"]) if planar else DetectionSet.spherical(ds)
         u = split_up(model, ds, args.known_up, args.up_lines, batch_size=PREDICT_BATCH)
-        r = score(predict(model, data, PREDICT_BATCH, up=u.up), data, model.num_classes)
+        found = predict(model, data, PREDICT_BATCH, up=u.up)
+        r = score(found, data, model.num_classes)
+        key = k.strip("()")
+        drawn["sets"][key], drawn["preds"][key], drawn["ignored"][key] = ds, found, data.ignored()
         print(f"{k} {data.describe_ignored()}")
         print(f"{k} " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
         if u.estimate is not None:
@@ -381,4 +388,10 @@ def cmd_eval_det(args) -> int:
                   f"{np.median(q['iou']):.2f}, {100 * np.mean(q['iou'] >= 0.5):.0f}% at 0.5 or more; "
                   f"errors (medians): centre {np.median(q['centre_deg']):.1f} deg, log size "
                   f"{np.median(q['log_size_err']):.2f}, log aspect {np.median(q['log_aspect_err']):.2f}")
+    if args.figure:
+        from .viz import plot_detections
+
+        plot_detections(drawn["sets"], drawn["preds"], args.figure, samples=(0,),
+                        ignored=drawn["ignored"])
+        print(f"figure: {args.figure}")
     return 0

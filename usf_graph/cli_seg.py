@@ -84,13 +84,19 @@ def cmd_eval_seg(args) -> int:
         sets = protocol_sets(args.root or "data/rooms", args.size or ckpt.size, level, num_train=0,
                              num_test=args.num_test or 50, seed=ckpt.rooms_seed(args.seed), tests=tests,
                              materials=ckpt.materials)
-        res, _ = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up,
-                                   up_lines=args.up_lines, render=render)
+        res, preds = evaluate_protocol(model, sets, tests, name=name, known_up=args.known_up,
+                                       up_lines=args.up_lines, render=render)
         res = {f"({k})": r for k, r in res.items()}
         if own is not None:  # a planar model sees it re-imaged as its training panorama
             pano = Equirectangular(2 * ckpt.size, ckpt.size)
-            res["(camera)"] = evaluate_set(model, own, f"{name} (camera)", args.known_up,
-                                           up_lines=args.up_lines, render=render, pano=pano)[0]
+            res["(camera)"], preds["camera"] = evaluate_set(
+                model, own, f"{name} (camera)", args.known_up, up_lines=args.up_lines,
+                render=render, pano=pano)
+            sets["camera"] = own
+        if args.figure:
+            from .viz import plot_segmentation
+
+            plot_segmentation(sets, {name: preds}, args.figure)
     for k, r in res.items():
         print(f"{k} " + ", ".join(f"{m} {100 * r[m]:.2f}" for m in
                                   ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))
@@ -98,4 +104,6 @@ def cmd_eval_seg(args) -> int:
             print(f"{k} " + format_up_report(r["up"]))
         if args.up_lines and "lines" not in r.get("up", {}):
             print(f"{k} {NO_LINES}")
+    if args.figure:
+        print(f"figure: {args.figure}")
     return 0

@@ -237,19 +237,21 @@ def plot_detections(sets: dict, preds: dict, path=None, samples=(0, 1), min_scor
                     ignored: dict | None = None):
     """The detection protocol's figure: for a few test views, the true boxes (green) and
     the detections scoring at least ``min_score`` (yellow, named) on the panorama, the
-    rotated panorama, the fisheye and the pinhole image. ``sets``/``preds``: protocol key ->
-    dataset / list of detections (see :mod:`usf_graph.train.det`); ``ignored``: protocol
-    key -> bool ``[K]`` over the split's true boxes, those that scoring ignores because the
-    camera cuts them (drawn red)."""
+    rotated panorama, the fisheye and the pinhole image (and any other test set, titled
+    by its key). ``sets``/``preds``: protocol key -> dataset / list of detections (see
+    :mod:`usf_graph.train.det`); ``ignored``: protocol key -> bool ``[K]`` over the
+    split's true boxes, those that scoring ignores because the camera cuts them (drawn
+    red)."""
     from .scenes import DETECTION_CLASSES
 
+    titles = {"a": "panorama", "b": "rotated", "c": "fisheye 190", "d": "pinhole 90"}
     rows = []
     for i in samples:
         row = []
-        for key, title in (("a", "panorama"), ("b", "rotated"), ("c", "fisheye 190"),
-                           ("d", "pinhole 90")):
-            if key not in sets:
+        for key in sets:
+            if key not in preds:  # the training split
                 continue
+            title = titles.get(key, key)
             ds, det = sets[key], preds[key][i]
             a, b = int(ds.box_ptr[i]), int(ds.box_ptr[i + 1])
             cut = np.zeros(b - a, bool) if ignored is None else np.asarray(ignored[key][a:b], bool)
