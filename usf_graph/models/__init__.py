@@ -8,7 +8,8 @@ from .planar_detector import PlanarDetector
 from .planar_seg import PlanarDeepLab, PlanarUNet
 from .pointcloud import PointCloudNet, PointNet
 from .sign import SignCheck, set_sign_check
-from .unet import SphericalBackbone, SphericalUNet, UpNet, set_level_prior
+from .unet import SphericalBackbone, SphericalUNet
+from .upnet import UpNet, set_level_prior
 
 __all__ = ["SphericalClassifier", "PlanarCNN", "grid_graph", "PointCloudNet", "PointNet",
            "SphericalDetector", "PlanarDetector", "SphericalBackbone", "SphericalUNet",

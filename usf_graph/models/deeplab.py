@@ -9,7 +9,8 @@ from torch import nn
 from ..nn import MaskedBatchNorm
 from ..nn.pool import global_mean_pool_area
 from .stages import ConvStage, _oriented, blur, level_spacing
-from .unet import SphericalBackbone, _check_upright, _Segmenter
+from .unet import SphericalBackbone, _Segmenter
+from .upnet import _check_upright
 
 
 class Pointwise(nn.Module):

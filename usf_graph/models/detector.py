@@ -46,7 +46,8 @@ from .centernet import (
     neighbour_table,
 )
 from .stages import ConvStage, _oriented
-from .unet import FillHidden, SphericalBackbone, WithUp, _check_upright
+from .unet import FillHidden, SphericalBackbone
+from .upnet import WithUp, _check_upright
 
 MAX_FOV = 3.1  # radians; a box must stay inside a hemisphere
 
@@ -78,7 +79,7 @@ class SphericalDetector(Detector, WithUp):
     ``(s, o, r, a_1..a_K, w_1..w_K)`` of the module docstring (``K = gradient_fields``).
 
     With ``gravity=True`` it also reads each point's height along an equivariant up
-    estimate, as :class:`~usf_graph.models.unet.WithUp` describes (``forward(x, mask,
+    estimate, as :class:`~usf_graph.models.upnet.WithUp` describes (``forward(x, mask,
     up=None)``; the estimate, when it runs, is returned as ``"gravity"``): PANDORA boxes are upright in
     the world, and objects stand on the floor. With ``upright=True`` as well, the backbone
     reads :class:`~usf_graph.nn.UpJet` features (of the input and of ``up_fields``
@@ -89,7 +90,7 @@ class SphericalDetector(Detector, WithUp):
     ``upright_convs`` (a level), the stages on that level and coarser, the head's included,
     use :class:`~usf_graph.nn.UprightConv`: oriented kernels in the frame of up (the
     detection protocol uses 4; README). ``gray``: it reads only its input's luma, for mono
-    cameras (:class:`~usf_graph.models.unet.WithUp`).
+    cameras (:class:`~usf_graph.models.upnet.WithUp`).
 
     ``forward(x, mask)`` returns those fields; :meth:`loss` trains them against boxes and
     :meth:`detect` decodes boxes. ``mask [N]`` (a camera's field of view, one for the

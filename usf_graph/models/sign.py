@@ -27,7 +27,8 @@ from torch import nn
 
 from ..tracing import field_of
 from .stages import refined_copy
-from .unet import SphericalUNet, UpNet
+from .unet import SphericalUNet
+from .upnet import UpNet
 
 #: The share of the sphere a camera must see for the check to be asked (a 190-degree
 #: fisheye sees 0.54 of it, a 90-degree pinhole 0.17).

@@ -82,7 +82,7 @@ def metadata(bound: BoundModel) -> dict[str, str]:
             "cameras": json.dumps({n: io.camera_key for n, io in zip(bound.names, bound.cameras)}),
             "grid": bound.model.input_grid, "interpolation": bound.interpolation}
     if mode is None:  # how the estimate inside reads up
-        from ..models.unet import UpNet
+        from ..models.upnet import UpNet
 
         net = next(m for m in bound.model.modules() if isinstance(m, UpNet))
         meta["estimate"] = json.dumps({"level_prior": float(net.level_prior),

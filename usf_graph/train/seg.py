@@ -255,7 +255,7 @@ def make_model(name: str, level: int = 5, upright: bool = True,
     (:class:`~usf_graph.nn.UprightConv`, ``upright_convs=level - 1``). ``channel_scale``:
     every channel count times this (:func:`~usf_graph.train.engine.scaled_channels`; the
     up estimate keeps its own). ``gray``: the model reads only its input's luma (for mono
-    cameras; :class:`~usf_graph.models.unet.WithUp`)."""
+    cameras; :class:`~usf_graph.models.upnet.WithUp`)."""
     if name not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
     C = len(SEMANTIC_CLASSES)
