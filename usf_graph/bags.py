@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .cameras import Camera
-from .cameras.io import camera_info_to_camera
+from .cameras.formats import camera_info_to_camera
 from .geometry import rotation_from_quaternion
 
 #: Files read as ROS bags (besides a ROS 2 bag's folder).

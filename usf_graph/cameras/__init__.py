@@ -1,19 +1,10 @@
 """Camera models: pixel <-> ray in both directions, lens normal maps, calibration files."""
 
 from .base import DEFAULT_ROTATION, Camera
+from .files import read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt
-from .io import (
-                 from_doc,
-                 imu_rotation,
-                 imu_time_shift,
-                 load,
-                 load_all,
-                 load_rig,
-                 read_mask,
-                 rig_topics,
-                 save,
-                 with_fov_and_mask,
-)
+from .formats import from_doc, with_fov_and_mask
+from .io import imu_rotation, imu_time_shift, load, load_all, load_rig, rig_topics, save
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
