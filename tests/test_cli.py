@@ -2,12 +2,14 @@ import argparse
 import functools
 import importlib
 import inspect
+import re
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
+import usf_graph
 from tests.helpers import FIXTURES, tiny_seg_checkpoint
 from usf_graph import SphericalFrontend, SphericalImage, cameras, grids
 from usf_graph.cli import build_parser, main
@@ -192,6 +194,40 @@ def test_info_reports_versions_and_working_extensions(capsys):
     assert torch.__version__ in out
     assert "compiled extensions  load and run" in out
     assert "USF_GRAPH_CACHE" in out and f"torch threads        {torch.get_num_threads()}" in out
+
+
+def test_info_describes_a_checkpoint(tmp_path, capsys):
+    from usf_graph.models import PlanarCNN, SphericalClassifier, SphericalDetector
+    from usf_graph.train import save_checkpoint
+
+    seg = tiny_seg_checkpoint(tmp_path / "seg.pt")
+    save_checkpoint(tmp_path / "seg.pt", seg, {"model": "spherical_unet", **seg.config},
+                    {"a": {"mIoU": 0.4567, "acc": 0.9}, "d": {"mIoU": 0.1234}},
+                    extra={"data": {"dataset": "rooms", "seed": 3, "materials": "by_kind"}})
+    assert main(["info", str(tmp_path / "seg.pt")]) == 0
+    rows = dict(re.split(r"\s{2,}", ln, maxsplit=1) for ln in capsys.readouterr().out.splitlines())
+    numbers = sum(v.numel() for v in seg.state_dict().values())
+    assert rows["model"] == f"spherical_unet, {numbers:,} stored numbers"
+    assert rows["input"] == "icosahedral:3 (642 points); gravity" and rows["classes"] == "13"
+    assert rows["trained on"] == "dataset rooms, seed 3, materials by_kind"
+    assert rows["(a)"] == "mIoU 45.67" and rows["(d)"] == "mIoU 12.34"
+    assert rows["made by"].startswith(f"usf-graph {usf_graph.__version__}")
+    det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(4, 4, 4))
+    save_checkpoint(tmp_path / "det.pt", det, det.config, {"c": {"AP50": 0.25, "AP": 0.1}})
+    mnist = SphericalClassifier(level=2, channels=(4, 4))
+    save_checkpoint(tmp_path / "mnist.pt", mnist, mnist.config, {"NR": 0.9512, "R": 0.9433})
+    cnn = PlanarCNN()
+    save_checkpoint(tmp_path / "cnn.pt", cnn, cnn.config, {"NR": 0.98})
+    for name, model, test, score in (("det", "spherical_detector", "(c)", "AP50 25.00"),
+                                     ("mnist", "spherical_classifier", "(R)", "accuracy 94.33"),
+                                     ("cnn", "planar_cnn", "(NR)", "accuracy 98.00")):
+        assert main(["info", str(tmp_path / f"{name}.pt")]) == 0
+        rows = dict(re.split(r"\s{2,}", ln, maxsplit=1)
+                    for ln in capsys.readouterr().out.splitlines())
+        assert rows["model"].startswith(f"{model},") and rows[test] == score, rows
+    (tmp_path / "bad.pt").write_bytes(b"junk")
+    assert main(["info", str(tmp_path / "bad.pt")]) == 2
+    assert "is not a readable usf-graph checkpoint" in capsys.readouterr().err
 
 
 def test_info_says_how_to_get_the_optional_export_packages(capsys, monkeypatch):

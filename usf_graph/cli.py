@@ -225,8 +225,13 @@ def build_parser() -> argparse.ArgumentParser:
                     "and train spherical graph networks on them.",
         epilog="Run 'usf-graph COMMAND --help' for the options of a command.")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
-    sub.add_parser("info", help="versions, compiled extensions, cache, threads",
-                   description="Print versions, check the compiled extensions, show the cache.")
+    i = sub.add_parser("info", help="versions, compiled extensions, cache, threads; or what a "
+                                    "checkpoint holds",
+                       description="Print versions, check the compiled extensions, show the "
+                                   "cache; with a checkpoint, what it holds: the model, its "
+                                   "input, its training data, its saved scores and what made it.")
+    i.add_argument("checkpoint", nargs="?", default=None,
+                   help="a checkpoint .pt of 'usf-graph train' to describe instead")
 
     c = sub.add_parser("camera", help="describe a calibration file (field of view, plot)",
                        formatter_class=fmt,

@@ -13,7 +13,44 @@ REQUIRED = ("torch_geometric", "torch_scatter", "torch_cluster", "scipy", "cv2",
 OPTIONAL = ("onnx", "onnxscript", "onnxruntime")
 
 
+def checkpoint_rows(path) -> list[tuple[str, str]]:
+    """What a checkpoint holds, as (field, value) rows for people: the model and its input,
+    what it was trained on, the scores saved with it and what made it."""
+    from .train import load_checkpoint
+    from .train.provenance import describe
+
+    blob = load_checkpoint(path)
+    cfg, data = blob["config"], blob.get("data", {})
+    level = cfg.get("input_level", cfg.get("level"))
+    name = cfg.get("model") or ("planar_detector" if "height" in cfg else
+                                "spherical_detector" if "head_level" in cfg else
+                                "spherical_classifier" if level is not None else "planar_cnn")
+    numbers = sum(v.numel() for v in blob["state_dict"].values() if hasattr(v, "numel"))
+    seen = (f"icosahedral:{level} ({10 * 4 ** level + 2} points)" if level is not None else
+            f"{2 * cfg['size']}x{cfg['size']} panoramas" if "size" in cfg else
+            f"{cfg['width']}x{cfg['height']} panoramas" if "height" in cfg else "images")
+    flags = [k for k in ("gravity", "upright", "gray") if cfg.get(k)]
+    rows = [("checkpoint", str(path)), ("model", f"{name}, {numbers:,} stored numbers"),
+            ("input", seen + (f"; {', '.join(flags)}" if flags else "")),
+            ("classes", str(cfg.get("num_classes", cfg.get("classes", "?"))))]
+    if data:
+        rows.append(("trained on", ", ".join(f"{k} {v}" for k, v in data.items())))
+    for test, m in sorted(blob.get("metrics", {}).items()):  # seg and det: per test; mnist: NR, R
+        shown = [f"{k} {100 * m[k]:.2f}" for k in ("mIoU", "AP50") if k in m] \
+            if isinstance(m, dict) else [f"accuracy {100 * m:.2f}"] if isinstance(m, float) else []
+        if shown:
+            rows.append((f"({test})", ", ".join(shown)))
+    rows.append(("made by", describe(blob.get("provenance"))))
+    return rows
+
+
 def cmd_info(args) -> int:
+    if getattr(args, "checkpoint", None):
+        rows = checkpoint_rows(args.checkpoint)
+        w = max(len(k) for k, _ in rows)
+        for k, v in rows:
+            print(f"{k:<{w}}  {v}")
+        return 0
     import numpy
     import torch
 
