@@ -104,3 +104,28 @@ def test_visible_subgraph_errors(two_cameras):
         VisibleSubgraph()(img.clone().update({"mask": torch.zeros_like(img.mask)}))
     with pytest.raises(ValueError, match="needs data.mask"):
         VisibleSubgraph()(img.clone().update({"mask": None}))
+
+
+@pytest.mark.parametrize("layer", ["gcn", "gat"])
+def test_pyg_layers_on_distance_affinities_are_equivariant(layer):
+    """PyG's layers read the graph and its affinities only, so they keep the grid's exact
+    symmetries (HEALPix maps onto itself under 90 degrees about z), in float64."""
+    import math
+
+    from usf_graph.geometry import rotation_from_axis_angle
+    from usf_graph.nn import geodesic_radius_graph
+    from usf_graph.testing import assert_equivariant
+
+    hp = grids.healpix(4)
+    ei, ew = geodesic_radius_graph(hp.pos, 1.7 * hp.spacing)
+    w = torch.exp(-0.5 * (ew / hp.spacing) ** 2)
+    torch.manual_seed(0)
+    conv = (GCNConv(3, 5) if layer == "gcn" else GATConv(3, 5, heads=2, edge_dim=1)).double()
+    fn = (lambda x: conv(x, ei, w)) if layer == "gcn" else (lambda x: conv(x, ei, w[:, None]))
+    R = rotation_from_axis_angle(torch.tensor([0.0, 0, 1], dtype=torch.float64),
+                                 torch.tensor(math.pi / 2, dtype=torch.float64))
+    x = torch.randn(len(hp), 3, dtype=torch.float64)
+    assert fn(x).shape == (len(hp), 5 if layer == "gcn" else 10)
+    assert assert_equivariant(fn, x, hp.pos, R, atol=1e-10) < 1e-10
+    with pytest.raises(AssertionError):  # the check can fail: a layer that reads pos is not
+        assert_equivariant(lambda x: fn(x) + hp.pos[:, :1], x, hp.pos, R, atol=1e-10)
