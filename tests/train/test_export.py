@@ -71,6 +71,7 @@ def test_onnx_with_an_imu_up_gives_usf_graphs_labels(tmp_path):
     assert json.loads(meta["classes"]) == [f"class {k}" for k in range(5)] and meta["unseen"] == "255"
     assert meta["up"] == "input" and json.loads(meta["inputs"]) == ["image", "up"]
     assert json.loads(meta["cameras"])["image"] == cam.key() and meta["grid"] == "icosahedral:3"
+    assert json.loads(meta["provenance"])["usf_graph"] == meta["usf_graph"]  # who wrote it
     for seed, up in ((1, [0.0, 0.0, 1.0]), (2, [0.3, -0.2, 0.9])):  # new rooms, a tilted up
         image = _room_image(cam, seed)
         labels, u = run(image, up)

@@ -65,11 +65,13 @@ def metadata(bound: BoundModel) -> dict[str, str]:
     (a JSON list, index = label), ``inputs`` and ``outputs`` (names), ``up``
     (``input``, ``estimate``, ``none`` or a fixed JSON ``[x, y, z]``), ``up_frame``,
     ``cameras`` (each camera's calibration as ``Camera.key()``, JSON), ``grid``,
-    ``interpolation`` and the ``usf_graph`` version that wrote it; with the estimate inside,
+    ``interpolation``, the ``usf_graph`` version that wrote it and the ``provenance`` of the
+    export (JSON, :func:`~usf_graph.train.provenance.provenance`); with the estimate inside,
     ``estimate`` (JSON: its ``level_prior`` and whether a ``sign_check`` corrects it); a segmenter's
     ``unseen`` (the label of pixels without a ray), a detector's ``boxes`` (their form)
     and ``decoding`` (JSON: ``k``, ``threshold``, ``nms``, ``drop_hidden``)."""
     from .. import __version__
+    from .provenance import provenance
 
     mode = bound.up_mode
     up = "estimate" if mode is None else mode if isinstance(mode, str) else json.dumps(mode.tolist())
@@ -80,7 +82,8 @@ def metadata(bound: BoundModel) -> dict[str, str]:
             "up_frame": "the sphere frame of the camera (of a rig's first camera): x forward, "
                         "y left, z up",
             "cameras": json.dumps({n: io.camera_key for n, io in zip(bound.names, bound.cameras)}),
-            "grid": bound.model.input_grid, "interpolation": bound.interpolation}
+            "grid": bound.model.input_grid, "interpolation": bound.interpolation,
+            "provenance": json.dumps(provenance())}
     if mode is None:  # how the estimate inside reads up
         from ..models.upnet import UpNet
 
