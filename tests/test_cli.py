@@ -169,10 +169,29 @@ def test_every_command_and_option_has_help(capsys):
     for word in ("icosahedral:L", "healpix:NSIDE", "bilinear", "Kalibr", "equirectangular",
                  "(default: icosahedral:6)", "--image-mask", "--fov"):
         assert word in text, word
+def test_a_calibration_is_scaled_to_an_image_resized_as_a_whole(tmp_path, capsys):
+    """A half-size frame of a calibrated camera lifts through the calibration scaled to it
+    (with a note); a frame of another aspect ratio (a crop) is refused as before."""
+    cam = cameras.KannalaBrandt(60.0, 60.0, 79.5, 59.5, 160, 120, k=(0.01, 0, 0, 0))
+    cam.save(tmp_path / "cam.yaml")
+    img = (np.random.default_rng(0).random((60, 80, 3)) * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "half.png"), img[..., ::-1])
+    assert main(["lift", str(tmp_path / "half.png"), "--camera", str(tmp_path / "cam.yaml"),
+                 "--grid", "icosahedral:3", "--out", str(tmp_path / "s.pt")]) == 0
+    assert ("note: the image is 80x60 and the calibration 160x120: scaling the calibration "
+            "by 0.5") in capsys.readouterr().out
+    ref = SphericalFrontend(cam.resized(80, 60), grids.icosahedral(3))(img)
+    assert torch.equal(load_lifted(tmp_path / "s.pt").x, ref.x)
+    cv2.imwrite(str(tmp_path / "crop.png"), img[:50])
+    assert main(["lift", str(tmp_path / "crop.png"), "--camera", str(tmp_path / "cam.yaml"),
+                 "--grid", "icosahedral:3"]) == 2
+    assert "camera.resized(W, H)" in capsys.readouterr().err
+
+
 def test_lift_cli_reports_bad_input(tmp_path, capsys):
     cam = cameras.Pinhole(100.0, 100.0, 79.5, 59.5, 160, 120)
     cam.save(tmp_path / "cam.yaml")
-    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((60, 80), np.uint8))
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((60, 100), np.uint8))  # not a resize
     rc = main(["lift", str(tmp_path / "small.png"), "--camera", str(tmp_path / "cam.yaml"),
                "--grid", "icosahedral:3"])
     assert rc == 2

@@ -32,7 +32,10 @@ def camera_options(p, mask: bool = True) -> None:
 
 
 def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape=None):
-    """A camera from a calibration file or ``equirectangular[:WxH]`` (size from the image)."""
+    """A camera from a calibration file or ``equirectangular[:WxH]`` (size from the image).
+    With ``image_shape``, a calibration made for another size of the same aspect ratio is
+    scaled to the image (:meth:`~usf_graph.cameras.Camera.resized`, with a note): a video
+    recorded or saved smaller than the calibration images."""
     from . import cameras
 
     if spec.split(":")[0].lower() in ("equirectangular", "panorama"):
@@ -51,7 +54,15 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
         else:
             raise ValueError("give the panorama's size: equirectangular:WIDTHxHEIGHT")
         return cameras.with_fov_and_mask(cameras.Equirectangular(w, h), fov, image_mask)
-    return cameras.load(spec, key=key, fov_deg=fov, image_mask=image_mask)
+    cam = cameras.load(spec, key=key, fov_deg=fov)
+    if image_shape is not None and tuple(image_shape[:2]) != (cam.height, cam.width):
+        h, w = image_shape[:2]
+        if abs(w / cam.width - h / cam.height) < 0.01 * w / cam.width:
+            print(f"note: the image is {w}x{h} and the calibration {cam.width}x{cam.height}: "
+                  f"scaling the calibration by {w / cam.width:.4g} (if the image is a crop, "
+                  "calibrate for it instead)")
+            cam = cam.resized(w, h)
+    return cameras.with_fov_and_mask(cam, None, image_mask)
 
 
 def rig_options(p) -> None:

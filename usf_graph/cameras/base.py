@@ -283,6 +283,13 @@ class Camera:
             "distance", distance, "It is the radius of the scene sphere, in the unit of the "
             "cameras' positions."))
 
+    def resized(self, width: int, height: int) -> Camera:
+        """This camera for its images resized to ``width x height`` by ``cv2.resize`` (the
+        whole frame): the same lens on another pixel grid (:mod:`usf_graph.cameras.resize`)."""
+        from .resize import resized
+
+        return resized(self, width, height)
+
     def with_fov(self, fov_deg: float | None) -> Camera:
         """A copy that sees only rays within ``fov_deg / 2`` of the optical axis (``None``:
         the whole lens). Use it for a lens whose calibration extrapolates past its image

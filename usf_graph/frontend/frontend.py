@@ -85,8 +85,10 @@ def _as_image(image, cam: Camera, batched: bool = False):
     if arr.ndim != nd + 1 or hw != (cam.height, cam.width):
         want = "[B, H, W, C]" if batched else "[H, W] or [H, W, C]"
         raise ValueError(f"image has shape {tuple(np.shape(image))} but the camera expects "
-                         f"{want} with H x W = {cam.height} x {cam.width}. Resize the image or "
-                         "use the camera calibrated for this resolution.")
+                         f"{want} with H x W = {cam.height} x {cam.width}. Use the camera "
+                         "calibrated for this resolution, or, for images resized as a whole, "
+                         "camera.resized(W, H) (the command line does it when the aspect "
+                         "ratio matches).")
     if arr.shape[-1] == 0:
         raise ValueError(f"image has shape {tuple(np.shape(image))}: no channels to lift")
     return arr, is_np
