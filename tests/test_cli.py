@@ -115,6 +115,18 @@ def test_lift_cli_lifts_a_rig_onto_one_sphere(tmp_path, capsys):
     assert (got.x - at_infinity.to(got.x.dtype)).abs().max() > 2.5  # 6 px of parallax, 3 grey levels
     docs = read_lifted(tmp_path / "d.pt")["cameras"]
     assert docs["cam1"]["distance"] == 1.0 and docs["cam1"]["position"] == [-0.05, 0.0, 0.0]
+    for i in (0, 1):  # the frames at half size: each camera scaled to its image
+        cv2.imwrite(str(tmp_path / f"half{i}.png"), cv2.resize(ramp[i], (200, 200),
+                                                               interpolation=cv2.INTER_AREA))
+    assert main(["lift", str(tmp_path / "half0.png"), str(tmp_path / "half1.png"), "--camera",
+                 str(rig), "--grid", "icosahedral:3", "--fov", "190", "--out",
+                 str(tmp_path / "h.pt")]) == 0
+    assert capsys.readouterr().out.count("scaling the calibration by 0.5") == 2
+    halves = [cv2.imread(str(tmp_path / f"half{i}.png"), cv2.IMREAD_UNCHANGED)[..., None]
+              for i in (0, 1)]
+    small = {n: c.resized(200, 200) for n, c in cams.items()}
+    torch.testing.assert_close(load_lifted(tmp_path / "h.pt").x,
+                               RigFrontend(small, grids.icosahedral(3)).lift(halves).float())
     assert main(["lift", str(tmp_path / "cam0.png"), "--camera", str(rig), "--distance", "1"]) == 2
     assert "--distance stitches a rig's cameras" in capsys.readouterr().err
     assert main(["lift", str(tmp_path / "cam0.png"), str(tmp_path / "cam1.png"), "--camera",

@@ -54,15 +54,23 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
         else:
             raise ValueError("give the panorama's size: equirectangular:WIDTHxHEIGHT")
         return cameras.with_fov_and_mask(cameras.Equirectangular(w, h), fov, image_mask)
-    cam = cameras.load(spec, key=key, fov_deg=fov)
-    if image_shape is not None and tuple(image_shape[:2]) != (cam.height, cam.width):
-        h, w = image_shape[:2]
-        if abs(w / cam.width - h / cam.height) < 0.01 * w / cam.width:
-            print(f"note: the image is {w}x{h} and the calibration {cam.width}x{cam.height}: "
-                  f"scaling the calibration by {w / cam.width:.4g} (if the image is a crop, "
-                  "calibrate for it instead)")
-            cam = cam.resized(w, h)
+    cam = fit_to_image(cameras.load(spec, key=key, fov_deg=fov), image_shape)
     return cameras.with_fov_and_mask(cam, None, image_mask)
+
+
+def fit_to_image(cam, image_shape):
+    """``cam`` scaled to an image of another size with the same aspect ratio (a frame
+    resized as a whole; :meth:`~usf_graph.cameras.Camera.resized`), with a note; else
+    ``cam`` (a crop is the lift's error to report)."""
+    if image_shape is None or tuple(image_shape[:2]) == (cam.height, cam.width):
+        return cam
+    h, w = image_shape[:2]
+    if abs(w / cam.width - h / cam.height) >= 0.01 * w / cam.width:
+        return cam
+    print(f"note: the image is {w}x{h} and the calibration {cam.width}x{cam.height}: scaling "
+          f"the calibration by {w / cam.width:.4g} (if the image is a crop, calibrate for it "
+          "instead)")
+    return cam.resized(w, h)
 
 
 def rig_options(p) -> None:
@@ -91,14 +99,20 @@ def _distance(text: str):
 def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None, images=None,
                   grid=None) -> dict:
     """Every camera of a rig's file (:func:`usf_graph.cameras.load_rig`; ``key``: a COLMAP
-    rig's id), mounted in the rig, each with the usable field of view and image mask given,
+    rig's id), mounted in the rig, each scaled to its image in ``images`` where that is the
+    frame resized as a whole (:func:`fit_to_image`), with the usable field of view and
+    image mask given,
     stitched at ``distance`` (:func:`usf_graph.cameras.stitch_at`) where given; ``"auto"``:
     where ``images`` agree best on ``grid`` (icosahedral:5 by default;
     :func:`usf_graph.frontend.choose_distance`)."""
+    import numpy as np
+
     from . import cameras
 
-    rig = {n: cameras.with_fov_and_mask(c, fov, image_mask)
-           for n, c in cameras.load_rig(spec, key=key).items()}
+    rig = cameras.load_rig(spec, key=key)
+    if images is not None and len(images) == len(rig):  # frames resized as a whole
+        rig = {n: fit_to_image(c, np.shape(im)) for (n, c), im in zip(rig.items(), images)}
+    rig = {n: cameras.with_fov_and_mask(c, fov, image_mask) for n, c in rig.items()}
     if distance == "auto":
         from .frontend import choose_distance
         from .grids import icosahedral
