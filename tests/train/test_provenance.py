@@ -24,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_provenance_names_the_code_libraries_and_command(monkeypatch):
     monkeypatch.setattr(sys, "argv", ["/somewhere/bin/usf-graph", "train", "seg", "--out",
                                       "my runs/a"])
+    git_state.cache_clear()  # read HEAD now (the cache is per process)
     p = provenance()
     assert p["usf_graph"] == usf_graph.__version__ and p["torch"] == torch.__version__
     assert p["torch_geometric"] == torch_geometric.__version__
