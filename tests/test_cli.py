@@ -290,6 +290,12 @@ def test_camera_cli_prints_field_of_view_and_plots(tmp_path, capsys):
     assert main(["camera", str(tmp_path / "half.yaml")]) == 0
     assert "of the sphere" in (line := capsys.readouterr().out.splitlines()[3])
     assert abs(float(line.split("=")[1].split("%")[0]) - 50.0) < 0.6
+    # --resize: the calibration for half-size frames, saved and read back
+    assert main(["camera", path, "--resize", "320x240", "--save", str(tmp_path / "s.yaml")]) == 0
+    assert "image          320 x 240" in capsys.readouterr().out
+    assert cameras.load(tmp_path / "s.yaml").key() == cam.resized(320, 240).key()
+    assert main(["camera", path, "--resize", "320"]) == 2
+    assert "bad --resize '320': write WIDTHxHEIGHT" in capsys.readouterr().err
 
 
 def test_camera_cli_reports_bad_files(tmp_path, capsys):

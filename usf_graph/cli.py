@@ -247,6 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "e.g. to reconstruct with intrinsics calibrated elsewhere")
     c.add_argument("--plot", default=None, metavar="PNG",
                    help="write a figure of the lens normal map and its coverage of the sphere")
+    c.add_argument("--resize", default=None, metavar="WxH",
+                   help="the calibration for its images resized as a whole to this size "
+                        "(cv2.resize; Camera.resized), e.g. to --save a half-size calibration")
     c.add_argument("--save", default=None, metavar="YAML",
                    help="write the camera in usf-graph's YAML (e.g. a panorama: "
                         "usf-graph camera equirectangular:2048x1024 --save pano.yaml)")

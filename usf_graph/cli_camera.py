@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import math
 
-from .cli_inputs import camera_from_spec
+from .cameras import with_fov_and_mask
+from .cli_inputs import camera_from_spec, image_size
 
 
 def _vec(a) -> str:
@@ -23,7 +24,10 @@ def _centre(cam) -> str:
 def cmd_camera(args) -> int:
     if args.all:
         return _list_cameras(args)
-    cam = camera_from_spec(args.calib, args.key, args.fov, args.image_mask)
+    cam = camera_from_spec(args.calib, args.key, args.fov)
+    if args.resize:
+        cam = cam.resized(*image_size(args.resize, "--resize", "640x480"))
+    cam = with_fov_and_mask(cam, None, args.image_mask)
     if args.save_colmap:
         _save_colmap({1: cam}, args.save_colmap)
     om = cam.solid_angle()
@@ -50,9 +54,9 @@ def _list_cameras(args) -> int:
     """``camera --all``: one line per camera of the file."""
     from . import cameras
 
-    if args.key is not None or args.plot or args.save:
-        raise ValueError("--all lists every camera of the file; leave out --key, --plot and "
-                         "--save (then pick one with --key)")
+    if args.key is not None or args.plot or args.save or args.resize:
+        raise ValueError("--all lists every camera of the file; leave out --key, --plot, "
+                         "--save and --resize (then pick one with --key)")
     print(f"{'key':<10} {'model':<16} {'image':>11} {'fov (deg)':>10}  {'optical axis (sphere frame)':<29} "
           "optical centre")
     found = cameras.load_all(args.calib)

@@ -44,11 +44,7 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
                              "panorama has none")
         size = spec.partition(":")[2]
         if size:
-            try:
-                w, h = (int(v) for v in size.lower().split("x"))
-            except ValueError:
-                raise ValueError(f"bad panorama size {size!r}: write equirectangular:WIDTHxHEIGHT, "
-                                 "e.g. equirectangular:2048x1024") from None
+            w, h = image_size(size, "panorama size", "equirectangular:2048x1024")
         elif image_shape is not None:
             h, w = image_shape[:2]
         else:
@@ -56,6 +52,17 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
         return cameras.with_fov_and_mask(cameras.Equirectangular(w, h), fov, image_mask)
     cam = fit_to_image(cameras.load(spec, key=key, fov_deg=fov), image_shape)
     return cameras.with_fov_and_mask(cam, None, image_mask)
+
+
+def image_size(text: str, what: str = "image size", example: str = "640x480") -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` -> ``(width, height)``, both positive whole numbers."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        w = h = 0
+    if w < 1 or h < 1:
+        raise ValueError(f"bad {what} {text!r}: write WIDTHxHEIGHT, e.g. {example}")
+    return w, h
 
 
 def fit_to_image(cam, image_shape):
