@@ -65,7 +65,7 @@ def predict_rig_bag(run, model, names, out: Path, args) -> None:
     from .cameras import rig_topics
 
     bag = args.image[0]
-    auto = args.distance == "auto"  # chosen on the first frame, kept for the others
+    auto = args.distance == "auto"
     rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key,
                         None if auto else args.distance)
     topics = args.topic or rig_topics(args.camera)
@@ -77,13 +77,14 @@ def predict_rig_bag(run, model, names, out: Path, args) -> None:
                          f"{len(topics)} topics were given ({', '.join(topics)})")
     print(f"rig {', '.join(f'{n} <- {t}' for n, t in zip(rig, topics))}")
     name = Path(bag).stem
-    imu = imu_up(args)
+    imu, fitted = imu_up(args), False
     for f in rig_frames(bag, topics, args.every, round(args.max_skew * 1e6)):
         sources = [f"{bag}#{t}@{s}" for t, s in zip(topics, f.stamps_ns)]
         print(f"== {bag}#{f.index} ({', '.join(str(s) for s in f.stamps_ns)})")
-        if auto:
-            rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, "auto", f.images)
-            auto = False
+        if not fitted:  # to the first frame's sizes ('auto': its distance), kept for the rest
+            rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
+                                f.images)
+            fitted = True
         cams = {n: alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), f.images, sources)}
         run(model, [f"{name}_{n}_{f.index:06d}" for n in rig], sources, f.images, cams, names,
             out, args, up=None if imu is None else imu(bag, f.stamps_ns[0]))
