@@ -301,6 +301,22 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
                  "--out", str(tmp_path / "auto")]) == 0
     assert capsys.readouterr().out.count("stitching distance chosen where the cameras agree best: ") == 1
     assert (tmp_path / "auto" / "drive_cam1_000001_labels.png").is_file()
+    # frames recorded at half size: the calibrations are fitted to them, as for image files
+    small = [(t, image_msg(ROS2, cv2.resize(m.data.reshape(m.height, m.width, 3), (200, 200),
+                                            interpolation=cv2.INTER_AREA), 5, 0), n)
+             for t, m, n in msgs[:2]]
+    for k, (_, m, _) in enumerate(small):
+        cv2.imwrite(str(tmp_path / f"half_{k}.png"),
+                    cv2.cvtColor(m.data.reshape(200, 200, 3), cv2.COLOR_RGB2BGR))
+    assert main(["predict", "seg", ckpt, str(write_bag(tmp_path / "small", False, small)),
+                 *common, "--out", str(tmp_path / "s")]) == 0
+    assert capsys.readouterr().out.count("scaling the calibration by 0.5") == 2
+    assert main(["predict", "seg", ckpt, str(tmp_path / "half_0.png"), str(tmp_path / "half_1.png"),
+                 *common, "--out", str(tmp_path / "s")]) == 0
+    for k, name in enumerate(rig):
+        a = cv2.imread(str(tmp_path / "s" / f"small_{name}_000000_labels.png"), cv2.IMREAD_UNCHANGED)
+        b = cv2.imread(str(tmp_path / "s" / f"half_{k}_labels.png"), cv2.IMREAD_UNCHANGED)
+        assert a.shape == (200, 200) and np.array_equal(a, b)
     assert main(["predict", "seg", ckpt, str(bag), *common, "--topic", "/front/image_raw"]) == 2
     assert "has 2 cameras (cam0, cam1) but 1 topics" in capsys.readouterr().err
     assert main(["predict", "seg", ckpt, str(bag), "--camera", str(FIXTURES / "basalt_calib.json"),
