@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import as_rotation_matrix
+from .resize import moved, resized
 
 FORMAT_TAG = "usf_graph_camera"  # marks usf-graph's own calibration YAML
 
@@ -286,9 +287,18 @@ class Camera:
     def resized(self, width: int, height: int) -> Camera:
         """This camera for its images resized to ``width x height`` by ``cv2.resize`` (the
         whole frame): the same lens on another pixel grid (:mod:`usf_graph.cameras.resize`)."""
-        from .resize import resized
-
         return resized(self, width, height)
+
+    def _resized(self, width: int, height: int, sx: float, sy: float) -> Camera:
+        # the models whose pixels are an affine map (fx, fy, cx, cy[, skew]) of a projection
+        p = dict(self.params(), width=width, height=height)
+        if "fx" not in p:
+            raise ValueError(f"{type(self).__name__} cannot be resized")
+        p.update(fx=self.fx * sx, fy=self.fy * sy, cx=float(moved(self.cx, sx)),
+                 cy=float(moved(self.cy, sy)))
+        if "skew" in p:
+            p["skew"] = self.skew * sx
+        return type(self)(**p, rotation=self.rotation)
 
     def with_fov(self, fov_deg: float | None) -> Camera:
         """A copy that sees only rays within ``fov_deg / 2`` of the optical axis (``None``:

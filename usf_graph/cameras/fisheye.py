@@ -14,6 +14,7 @@ from .base import (
     set_intrinsics,
 )
 from .radial import from_incidence, incidence, monotone_limit, solve_monotone
+from .resize import moved, one_factor
 
 # r / f as a function of the incidence angle theta, its inverse, and the largest theta.
 _PROJECTIONS = {
@@ -57,6 +58,11 @@ class Fisheye(Camera):
     def params(self) -> dict:
         return dict(f=self.f, cx=self.cx, cy=self.cy, width=self.width, height=self.height,
                     model=self.projection, fov_deg=self.fov)
+
+    def _resized(self, width, height, sx, sy) -> Fisheye:
+        s = one_factor(self, sx, sy)  # one focal length
+        return Fisheye(self.f * s, float(moved(self.cx, s)), float(moved(self.cy, s)), width,
+                       height, self.projection, self.fov, self.rotation)
 
     def _project(self, rays):
         theta = incidence(rays)

@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry import from_latlon, normalize, to_latlon
 from .base import Camera, check_finite
+from .resize import moved
 
 
 class Equirectangular(Camera):
@@ -43,6 +44,9 @@ class Equirectangular(Camera):
     def params(self) -> dict:
         return dict(width=self.width, height=self.height, lat_range=list(self.lat_range),
                     lon_range=list(self.lon_range))
+
+    def _resized(self, width, height, sx, sy) -> Equirectangular:
+        return Equirectangular(width, height, self.lat_range, self.lon_range, self.rotation)
 
     def _unproject(self, uv):
         (a, b), (c, d) = self.lat_range, self.lon_range
@@ -119,6 +123,12 @@ class LensNormalMap(Camera):
         """Refuses: a ray table has no calibration file format; save its arrays with numpy."""
         raise ValueError("a LensNormalMap is its table: save it with "
                          "numpy.savez(path, rays=cam.rays, valid=cam.valid_table)")
+
+    def _resized(self, width, height, sx, sy) -> LensNormalMap:
+        # each new pixel's ray, from where it lies in the table (its own interpolation)
+        u, v = np.meshgrid(moved(np.arange(width), 1 / sx), moved(np.arange(height), 1 / sy))
+        rays, ok = self.unproject(np.stack([u, v], -1))
+        return LensNormalMap(rays, ok, self.rotation, self.source)
 
     def _rebuild(self, rotation) -> LensNormalMap:
         return LensNormalMap(self.rays, self.valid_table, rotation, self.source)

@@ -6,6 +6,7 @@ import numpy as np
 
 from .base import Camera, check_finite
 from .radial import incidence, monotone_limit, solve_monotone
+from .resize import moved, one_factor
 
 
 class Scaramuzza(Camera):
@@ -44,6 +45,13 @@ class Scaramuzza(Camera):
         return dict(pol=self.pol.tolist(), center=self.center.tolist(),
                     affine=self.affine.tolist(), width=self.width, height=self.height,
                     invpol=None if self.invpol is None else self.invpol.tolist())
+
+    def _resized(self, width, height, sx, sy) -> Scaramuzza:
+        # the sensor radius scales by s: pol'(s r) = s pol(r), and so does invpol's rho
+        s = one_factor(self, sx, sy)
+        return Scaramuzza([a * s ** (1 - i) for i, a in enumerate(self.pol)],
+                          moved(self.center, s), self.affine, width, height,
+                          None if self.invpol is None else self.invpol * s, self.rotation)
 
     def _theta(self, rho):  # incidence angle as a function of the sensor radius
         return np.arctan2(rho, -np.polynomial.polynomial.polyval(rho, self.pol))
