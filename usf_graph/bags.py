@@ -257,6 +257,10 @@ class ImuOrientation(Accelerometer):
         return tuple(R[2])  # R^T e_z
 
 
+#: How an IMU topic gives up: the accelerometer, or the attitude filter's orientation.
+IMU_SOURCES = {"accel": Accelerometer, "orientation": ImuOrientation}
+
+
 def _stamp(msg, t: int) -> int:
     """The header's stamp in ns; the recording time ``t`` where the stamp is 0."""
     s = msg.header.stamp

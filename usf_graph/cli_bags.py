@@ -40,7 +40,7 @@ def imu_up(args):
     """``--imu``: (bag, stamp) -> up in the cameras' sphere frame, or None."""
     if args.imu is None:
         return None
-    from .bags import Accelerometer, ImuOrientation
+    from .bags import IMU_SOURCES
     from .cameras import imu_rotation, imu_time_shift
 
     if args.camera is None:
@@ -53,8 +53,7 @@ def imu_up(args):
 
     def up(bag, stamp):
         if bag not in readings:
-            readings[bag] = (ImuOrientation if args.imu_up == "orientation" else
-                             Accelerometer)(bag, args.imu)
+            readings[bag] = IMU_SOURCES[args.imu_up](bag, args.imu)
         return R @ readings[bag].up(stamp + shift, round(args.imu_window * 1e6))
     return up
 

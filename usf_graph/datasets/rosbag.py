@@ -71,7 +71,7 @@ class RosBagFrames(Dataset):
         self.camera: Camera = (bags.camera(self.bag, self.topic) if camera is None else
                                camera if isinstance(camera, Camera) else load(camera))
         self.imu, self.imu_window_ns = imu, int(imu_window_ns)
-        if imu_up not in ("accel", "orientation"):
+        if imu_up not in bags.IMU_SOURCES:
             raise ValueError(f"imu_up must be 'accel' or 'orientation', got {imu_up!r}")
         self.imu_up, self.imu_to_sphere, self.imu_time_shift_ns = imu_up, None, 0
         if imu is not None:
@@ -116,8 +116,7 @@ class RosBagFrames(Dataset):
         raise FileNotFoundError(f"{self.bag} does not exist")
 
     def process(self):
-        reader = bags.ImuOrientation if self.imu_up == "orientation" else bags.Accelerometer
-        acc = None if self.imu is None else reader(self.bag, self.imu)
+        acc = None if self.imu is None else bags.IMU_SOURCES[self.imu_up](self.bag, self.imu)
         xs, stamps, ups = [], [], []
         for f in tqdm(bags.frames(self.bag, self.topic, self.every), desc=f"lifting {self.topic}",
                       disable=not self.progress, leave=False):
