@@ -32,7 +32,7 @@ def checkpoint_rows(path) -> list[tuple[str, str]]:
     flags = [k for k in ("gravity", "upright", "gray") if cfg.get(k)]
     rows = [("checkpoint", str(path)), ("model", f"{name}, {numbers:,} stored numbers"),
             ("input", seen + (f"; {', '.join(flags)}" if flags else "")),
-            ("classes", str(cfg.get("num_classes", cfg.get("classes", "?"))))]
+            ("classes", str(cfg.get("num_classes", "?")))]
     if data:
         rows.append(("trained on", ", ".join(f"{k} {v}" for k, v in data.items())))
     for test, m in sorted(blob.get("metrics", {}).items()):  # seg and det: per test; mnist: NR, R

@@ -108,17 +108,14 @@ def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None,
     """Every camera of a rig's file (:func:`usf_graph.cameras.load_rig`; ``key``: a COLMAP
     rig's id), mounted in the rig, each scaled to its image in ``images`` where that is the
     frame resized as a whole (:func:`fit_to_image`), with the usable field of view and
-    image mask given,
-    stitched at ``distance`` (:func:`usf_graph.cameras.stitch_at`) where given; ``"auto"``:
-    where ``images`` agree best on ``grid`` (icosahedral:5 by default;
+    image mask given, stitched at ``distance`` (:func:`usf_graph.cameras.stitch_at`) where
+    given; ``"auto"``: where ``images`` agree best on ``grid`` (icosahedral:5 by default;
     :func:`usf_graph.frontend.choose_distance`)."""
-    import numpy as np
-
     from . import cameras
 
     rig = cameras.load_rig(spec, key=key)
     if images is not None and len(images) == len(rig):  # frames resized as a whole
-        rig = {n: fit_to_image(c, np.shape(im)) for (n, c), im in zip(rig.items(), images)}
+        rig = {n: fit_to_image(c, im.shape) for (n, c), im in zip(rig.items(), images)}
     rig = {n: cameras.with_fov_and_mask(c, fov, image_mask) for n, c in rig.items()}
     if distance == "auto":
         from .frontend import choose_distance
