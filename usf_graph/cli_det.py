@@ -83,7 +83,7 @@ def add_train_options(t) -> None:
 
 def add_device_option(p, what: str = "the model runs") -> None:
     """``--device`` of ``train``, ``eval`` and ``predict``
-    (:func:`~usf_graph.train.engine.resolve_device`)."""
+    (:func:`~usf_graph.train.devices.resolve_device`)."""
     p.add_argument("--device", default="cpu",
                    help=f"where {what}: cpu, cuda, cuda:N, or auto (a GPU when torch sees one); "
                         "under torchrun, cuda is each process's own GPU")

@@ -6,7 +6,8 @@ import torch
 from torch.utils.data import TensorDataset
 
 from usf_graph.models import SphericalClassifier
-from usf_graph.train.engine import fit, teardown_distributed
+from usf_graph.train.devices import teardown_distributed
+from usf_graph.train.engine import fit
 
 
 class NoNorm(SphericalClassifier):

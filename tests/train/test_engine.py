@@ -213,7 +213,7 @@ def test_resume_goes_on_as_an_uninterrupted_run_would(tmp_path):
 
 
 def test_resolve_device_gives_what_the_machine_has_and_names_what_it_lacks(monkeypatch):
-    from usf_graph.train.engine import resolve_device
+    from usf_graph.train.devices import resolve_device
 
     cpu = torch.device("cpu")
     assert resolve_device(None) == cpu and resolve_device("cpu") == cpu
@@ -238,7 +238,7 @@ def test_resolve_device_gives_what_the_machine_has_and_names_what_it_lacks(monke
 def test_to_device_moves_every_tensor_of_a_batch_and_nothing_else():
     from torch_geometric.data import Batch, Data
 
-    from usf_graph.train.engine import model_device, to_device
+    from usf_graph.train.devices import model_device, to_device
 
     pyg = Batch.from_data_list([Data(x=torch.rand(3, 2), pos=torch.rand(3, 3)) for _ in range(2)])
     batch = (torch.rand(2), None, [pyg, 3], {"mask": torch.ones(4, dtype=torch.bool), "name": "a"})

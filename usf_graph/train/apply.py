@@ -24,7 +24,7 @@ from ..frontend import SphericalFrontend
 from ..frontend.image import unit_range
 from ..frontend.interpolation import valid_pixels
 from ..grids import from_spec
-from .engine import model_device
+from .devices import model_device
 
 #: Unseen pixels of a label image (the datasets' ignore index).
 UNSEEN = 255

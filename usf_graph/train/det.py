@@ -28,16 +28,13 @@ from ..scenes import DETECTION_CLASSES
 from ..scenes.materials import check_materials
 from .det_data import DetectionSet
 from .det_metrics import coco_ap, usf_map
+from .devices import model_device, resolve_device, setup_distributed, to_device
 from .engine import (
     check_channel_scale,
     fit,
-    model_device,
-    resolve_device,
     save_checkpoint,
     scaled_channels,
     seed_everything,
-    setup_distributed,
-    to_device,
     write_results,
 )
 from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
@@ -248,7 +245,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
 
     ``resume``: continue an interrupted run under ``out``, every stage from its ``last.pt``
     (:func:`~usf_graph.train.engine.fit`; finished ones just load). ``device``: where the
-    detectors train and predict (:func:`~usf_graph.train.engine.resolve_device`; default
+    detectors train and predict (:func:`~usf_graph.train.devices.resolve_device`; default
     the CPU). ``materials``: the rooms' (:mod:`usf_graph.scenes.materials`; ``"random"``,
     the protocol's). ``gray``: both detectors read only their views' luma (mono cameras;
     :func:`make_detector`), in training and in every test."""

@@ -23,15 +23,7 @@ from tqdm.auto import tqdm
 
 from ..fileio import atomic_torch_save, atomic_write
 from ..nn.norm import MaskedBatchNorm
-from .devices import (  # noqa: F401 (the engine's API since before the split)
-    is_distributed,
-    is_planar,
-    model_device,
-    resolve_device,
-    setup_distributed,
-    teardown_distributed,
-    to_device,
-)
+from .devices import is_distributed, model_device, resolve_device, setup_distributed, to_device
 
 Step = Callable[[nn.Module, Any], tuple[torch.Tensor, dict, int]]
 

@@ -17,7 +17,8 @@ from tqdm.auto import tqdm
 from ..geometry import geodesic_distance
 from ..models.gravity import UNSURE_MARGIN, pick_axis
 from ..nn.batching import to_static
-from .engine import fit, is_planar, model_device
+from .devices import is_planar, model_device
+from .engine import fit
 from .fov import RandomFields, random_cap
 
 #: Weight of the up estimate's loss (:meth:`GravityHead.loss`) in a training step.

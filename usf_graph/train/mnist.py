@@ -12,15 +12,8 @@ from ..cameras import Equirectangular
 from ..datasets import SphericalMNIST
 from ..frontend import SphericalFrontend
 from ..models import PlanarCNN, SphericalClassifier
-from .engine import (
-    evaluate,
-    fit,
-    resolve_device,
-    save_checkpoint,
-    seed_everything,
-    setup_distributed,
-    write_results,
-)
+from .devices import resolve_device, setup_distributed
+from .engine import evaluate, fit, save_checkpoint, seed_everything, write_results
 
 
 def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
@@ -41,7 +34,7 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
     :class:`~usf_graph.nn.GradientPairs` layers. Writes results.json, checkpoints and a figure.
     ``resume``: continue an interrupted run under ``out`` (:func:`~usf_graph.train.engine.fit`).
     ``device``: where the models train and are scored
-    (:func:`~usf_graph.train.engine.resolve_device`; default the CPU).
+    (:func:`~usf_graph.train.devices.resolve_device`; default the CPU).
 
     Under ``torchrun`` every process trains its share; rank 0 alone evaluates and writes
     (the other ranks return ``{}``)."""

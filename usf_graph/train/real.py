@@ -13,14 +13,8 @@ import numpy as np
 
 from ..scenes import PANDORA_CLASSES
 from . import det, seg
-from .engine import (
-    fit,
-    resolve_device,
-    save_checkpoint,
-    seed_everything,
-    setup_distributed,
-    write_results,
-)
+from .devices import resolve_device, setup_distributed
+from .engine import fit, save_checkpoint, seed_everything, write_results
 from .gravity import pretrain_up
 
 

@@ -38,16 +38,13 @@ from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from ..scenes.materials import check_materials
+from .devices import is_planar, model_device, resolve_device, setup_distributed
 from .engine import (
     check_channel_scale,
     fit,
-    is_planar,
-    model_device,
-    resolve_device,
     save_checkpoint,
     scaled_channels,
     seed_everything,
-    setup_distributed,
     write_results,
 )
 from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
@@ -382,7 +379,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     0 skips it). ``resume``: continue an interrupted run under ``out``, every stage from
     its ``last.pt`` (:func:`~usf_graph.train.engine.fit`; finished ones just load).
     ``device``: where the models train and predict
-    (:func:`~usf_graph.train.engine.resolve_device`; default the CPU). ``materials``: the
+    (:func:`~usf_graph.train.devices.resolve_device`; default the CPU). ``materials``: the
     rooms' (:mod:`usf_graph.scenes.materials`; ``"random"``, the protocol's). ``gray``:
     every model reads only its views' luma (:func:`make_model`): a mono camera's protocol,
     its tests gray as well."""
