@@ -357,10 +357,10 @@ def test_the_accelerometer_gives_up_about_each_stamp(tmp_path):
     assert np.degrees(np.arccos(np.clip(u @ up, -1, 1))) < 0.5 and abs(np.linalg.norm(u) - 1) < 1e-12
     # the mean over the window: readings 30..50 (150 to 250 ms, at 5 ms each)
     want = np.mean([m[1].linear_acceleration.x for m in msgs[30:51]])
-    assert u[0] == pytest.approx(want / np.linalg.norm(acc.acc[30:51].mean(0)), rel=1e-12)
+    assert u[0] == pytest.approx(want / np.linalg.norm(acc.readings[30:51].mean(0)), rel=1e-12)
     # past the last reading but within the window: the nearest
     np.testing.assert_allclose(acc.up(7 * 10**9 + 495 * 10**6 + 9 * 10**7),
-                               acc.acc[99] / np.linalg.norm(acc.acc[99]))
+                               acc.readings[99] / np.linalg.norm(acc.readings[99]))
     with pytest.raises(ValueError, match=r"no IMU reading within 100 ms of the frame at 8000000000 ns"):
         acc.up(8 * 10**9)
     with pytest.raises(ValueError, match=r"reads 0.05 m/s\^2 about 9000000000 ns, too little to tell up"):

@@ -201,14 +201,16 @@ class Accelerometer:
             raise ValueError(f"{path}: no sensor_msgs/Imu topic {topic!r}; its IMU topics: "
                              f"{', '.join(sorted(found)) or 'none'}")
         self.path, self.topic = path, topic
-        stamps, acc = [], []
+        stamps, readings = [], []
         for i, (_, t, load) in enumerate(_messages(path, {topic})):
             msg = load()
             stamps.append(_stamp(msg, t))
-            acc.append(self._reading(msg, f"{path} [{topic} #{i}]"))
+            readings.append(self._reading(msg, f"{path} [{topic} #{i}]"))
         order = np.argsort(stamps, kind="stable")
         self.stamps = np.asarray(stamps, np.int64)[order]
-        self.acc = np.asarray(acc, np.float64).reshape(-1, 3)[order]
+        #: Each stamp's up-pointing reading ``[T, 3]`` in the IMU's frame (not unit for the
+        #: accelerometer); ``stamps [T]`` in ns, sorted.
+        self.readings = np.asarray(readings, np.float64).reshape(-1, 3)[order]
 
     @staticmethod
     def _reading(msg, where: str) -> tuple:
@@ -221,13 +223,13 @@ class Accelerometer:
         lo = int(np.searchsorted(self.stamps, stamp_ns - window_ns // 2, side="left"))
         hi = int(np.searchsorted(self.stamps, stamp_ns + window_ns // 2, side="right"))
         if hi > lo:
-            a = self.acc[lo:hi].mean(0)
+            a = self.readings[lo:hi].mean(0)
         else:
             j = int(np.argmin(np.abs(self.stamps - stamp_ns))) if len(self.stamps) else -1
             if j < 0 or abs(int(self.stamps[j]) - stamp_ns) > window_ns:
                 raise ValueError(f"{self.path} [{self.topic}]: no IMU reading within "
                                  f"{window_ns / 1e6:g} ms of the frame at {stamp_ns} ns")
-            a = self.acc[j]
+            a = self.readings[j]
         n = float(np.linalg.norm(a))
         if not np.isfinite(n) or n < 0.1:  # a free fall, or no data (0.1: g units pass too)
             raise ValueError(f"{self.path} [{self.topic}]: the accelerometer reads {n:.3g} m/s^2 "
