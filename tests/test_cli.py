@@ -2,6 +2,7 @@ import argparse
 import functools
 import importlib
 import inspect
+import math
 import re
 
 import cv2
@@ -146,6 +147,43 @@ def test_render_and_camera_save_commands(tmp_path, capsys):
     view = cv2.imread(str(tmp_path / "view.png"))[..., ::-1]
     # the red band left of the panorama's centre is left of the pinhole's centre, in red
     assert view[50, 20, 0] > 200 and view[50, 20, 2] == 0 and view[50, 80].max() == 0
+
+
+def test_render_level_straightens_a_tilted_panorama(tmp_path, capsys):
+    """``render --level``: up from the panorama's straight lines (or ``--up``), and the
+    target turned so that it is level: a panorama with its horizon straight, a pinhole
+    upright; each matches the room rendered level along the heading kept."""
+    from usf_graph.frontend.lines import lines_up
+    from usf_graph.geometry import level_rotation, rotation_from_axis_angle
+    from usf_graph.scenes import make_room, render
+
+    cam = cameras.Equirectangular(256, 128)
+    scene = make_room(seed=3, index=3, materials="by_kind")
+    pos, R0 = scene.viewpoint(0)
+    T = rotation_from_axis_angle(np.array([0.0, 1.0, 0.0]), math.radians(15)) \
+        @ rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-8))
+    up = T.T @ [0.0, 0.0, 1.0]
+    cv2.imwrite(str(tmp_path / "tilted.png"), render(scene, cam, pos, R0 @ T, boxes=False).rgb[..., ::-1])
+    level = R0 @ T @ level_rotation(up).T  # the room level, along the heading the turn keeps
+    pin = cameras.Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
+    pin.save(tmp_path / "pin.yaml")
+    for to, flags in (("equirectangular", []), ("equirectangular", ["--up", *map(str, up)]),
+                      (str(tmp_path / "pin.yaml"), [])):
+        assert main(["render", str(tmp_path / "tilted.png"), "--camera", "equirectangular",
+                     "--to", to, "--level", *flags, "--out", str(tmp_path / "out.png")]) == 0
+        said = capsys.readouterr().out
+        assert ("up given" if flags else "up from the straight lines") in said
+        off = float(re.search(r"which is ([\d.]+) degrees off level", said).group(1))
+        assert abs(off - math.degrees(math.acos(up[2]))) < (0.05 if flags else 0.5)  # T's 17.0
+        out = cv2.imread(str(tmp_path / "out.png"))[..., ::-1].astype(float)
+        target = cam if to == "equirectangular" else pin
+        truth = render(scene, target, pos, level, boxes=False).rgb
+        assert np.median(np.abs(out - truth).mean(-1)) < 2.0
+        if target is cam:  # its verticals are columns again (a 90-degree view has too few lines)
+            assert np.degrees(np.arccos(lines_up(out.astype(np.uint8), cam)[2])) < 1.5
+    assert main(["render", str(tmp_path / "tilted.png"), "--camera", "equirectangular", "--to",
+                 "equirectangular", "--up", "0", "0", "1", "--out", str(tmp_path / "o.png")]) == 2
+    assert "add --level" in capsys.readouterr().err
 
 
 def test_cache_command_shows_and_clears(tmp_path, monkeypatch, capsys):
@@ -731,10 +769,10 @@ def test_eval_refuses_a_device_the_machine_lacks(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "data").exists()
 
 
-def test_predict_up_lines_reads_a_pinholes_straight_lines(tmp_path, capsys):
+def test_predict_up_lines_reads_the_images_straight_lines(tmp_path, capsys):
     """``--up-lines``: the up estimate picks among the Manhattan axes of the image's lines;
-    the up printed and written is that axis. Refused with --up or a fisheye; a featureless
-    image falls back to the estimate and says so."""
+    the up printed and written is that axis, through a pinhole and through a fisheye.
+    Refused with --up; a featureless image falls back to the estimate and says so."""
     import json
 
     from usf_graph.cameras import Fisheye, Pinhole
@@ -765,9 +803,15 @@ def test_predict_up_lines_reads_a_pinholes_straight_lines(tmp_path, capsys):
     assert main(["predict", "det", *common, "--camera", str(tmp_path / "pinhole.yaml"), "--up-lines",
                  "--up", "0", "0", "1"]) == 2
     assert "not with --up" in capsys.readouterr().err
-    Fisheye(40.0, 63.5, 63.5, 128, 128).save(tmp_path / "fish.yaml")
-    assert main(["predict", "det", *common, "--camera", str(tmp_path / "fish.yaml"), "--up-lines"]) == 2
-    assert "perspective camera" in capsys.readouterr().err
+    fish = Fisheye(40.0, 63.5, 63.5, 128, 128)  # a lens that bends lines: read through pinholes
+    fish_rgb = render(scene, fish, *scene.viewpoint(0), boxes=False).rgb
+    cv2.imwrite(str(tmp_path / "view.png"), cv2.cvtColor(fish_rgb, cv2.COLOR_RGB2BGR))
+    fish.save(tmp_path / "fish.yaml")
+    assert main(["predict", "det", *common, "--camera", str(tmp_path / "fish.yaml"), "--up-lines"]) == 0
+    assert "picked by the estimate among the image's straight-line axes" in capsys.readouterr().out
+    up = np.array(json.loads((tmp_path / "out" / "view_boxes.json").read_text())["up"]["up"])
+    axes = manhattan_axes(*line_normals(fish_rgb, fish))
+    assert np.isclose(np.abs(axes @ up).max(), 1.0, atol=1e-6)
     with pytest.raises(ValueError, match="or 'lines'"):
         detect_image(det, rgb, cam, up="level")
 

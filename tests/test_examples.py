@@ -405,3 +405,13 @@ def test_rig_parallax_example_small_run(tmp_path):
     floor, inf, two = s["no baseline (the floor)"], s["at infinity"], s["stitched at 2 m"]
     assert floor["labels_wrong"] < two["labels_wrong"] < inf["labels_wrong"]
     assert floor["colour_err_seams"] < two["colour_err_seams"] < inf["colour_err_seams"]
+
+
+def test_level_panorama_example_levels_a_tilted_room(tmp_path, capsys):
+    ex = load("level_panorama")
+    res = ex.run(tmp_path, pitch=-12.0, roll=9.0, size=256)
+    assert abs(res["tilt_deg"] - 15.0) < 0.5  # about 12 and 9 degrees together
+    assert res["up_error_deg"] < 1.0
+    assert res["pixel_error_leveled"] < 0.3 * res["pixel_error_tilted"]
+    assert (tmp_path / "tilted.png").exists() and (tmp_path / "level.jpg").exists()
+    assert f"up from the lines {res['up_error_deg']:.2f} degrees off" in capsys.readouterr().out

@@ -125,3 +125,26 @@ def test_tangent_towards_points_along_the_great_circle():
     near = near / near.norm()
     assert (tangent_towards(p[:1], near) - torch.tensor([[0.0, 1, 0]])).abs().max() < 1e-12
     assert (tangent_towards(p, p) == 0).all()  # no direction where q = p
+
+
+@settings(max_examples=200, deadline=None)
+@given(unit)
+def test_level_rotation_turns_up_to_z_about_a_horizontal_axis(u):
+    """The smallest turn: a proper rotation taking ``u`` to +z by the angle between them,
+    about an axis orthogonal to both (so it adds no turn about up: no change of heading)."""
+    R = G.level_rotation(u * 3.0)  # any length
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+    assert np.allclose(R @ u, [0.0, 0.0, 1.0], atol=1e-12)
+    assert np.isclose(G.rotation_angle(R), math.acos(np.clip(u[2], -1, 1)), atol=1e-7)
+    axis = np.cross(u, [0.0, 0.0, 1.0])
+    if np.linalg.norm(axis) > 1e-6:
+        assert np.allclose(R @ axis, axis, atol=1e-12)
+
+
+def test_level_rotation_at_the_poles_and_on_bad_input():
+    assert np.array_equal(G.level_rotation([0.0, 0.0, 2.0]), np.eye(3))
+    R = G.level_rotation([0.0, 0.0, -1.0])
+    assert np.allclose(R @ [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]) and np.isclose(np.linalg.det(R), 1.0)
+    for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [1.0, 2.0]):
+        with pytest.raises(ValueError, match="finite, non-zero 3-vector"):
+            G.level_rotation(bad)

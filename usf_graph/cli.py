@@ -57,6 +57,23 @@ def cmd_lift(args) -> int:
     return 0
 
 
+def _level(img, src, up):
+    """The rotation that levels ``src``'s sphere frame (:func:`usf_graph.geometry.level_rotation`)
+    from ``up`` (given) or the image's straight lines, with what it found printed."""
+    import numpy as np
+
+    from .frontend.lines import lines_up
+    from .geometry import level_rotation
+
+    u = lines_up(img, src) if up is None else np.asarray(up, np.float64)
+    R = level_rotation(u)
+    u = u / np.linalg.norm(u)
+    print(f"up {'given' if up is not None else 'from the straight lines'}: "
+          f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) in the camera's sphere frame, which is "
+          f"{np.degrees(np.arccos(np.clip(u[2], -1, 1))):.1f} degrees off level")
+    return R
+
+
 def cmd_render(args) -> int:
     import cv2
     import numpy as np
@@ -66,6 +83,10 @@ def cmd_render(args) -> int:
     img = read_image(args.image)
     src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
     dst = camera_from_spec(args.to, args.to_key, image_shape=img.shape)
+    if args.level:
+        dst = dst.turned(_level(img, src, args.up).T)
+    elif args.up is not None:
+        raise ValueError("--up says where up is for --level: add --level")
     out = render(img, src, dst, interpolation=args.interpolation)
     if out.ndim == 3 and out.shape[2] in (3, 4):
         out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
@@ -301,6 +322,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--to-key", default=None, metavar="CAM", help="camera of a target camchain")
     r.add_argument("--interpolation", default="bilinear", choices=("bilinear", "nearest"),
                    help="nearest for label images")
+    r.add_argument("--level", action="store_true",
+                   help="level the view: turn the target camera so that gravity's up is its "
+                        "sphere frame's +z (a panorama's horizon straight, a pinhole's "
+                        "upright), keeping its heading. Up from the image's straight lines "
+                        "(walls, doors, shelves: the camera held within 40 degrees of "
+                        "upright), or --up")
+    r.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="with --level: up in the source camera's sphere frame (x forward, "
+                        "y left, z up), e.g. from an IMU")
     r.add_argument("--out", required=True, metavar="IMG", help="output image (.png, .jpg, .npy)")
 
     sc = sub.add_parser("scenes", help="render procedural rooms through three lenses",

@@ -89,8 +89,6 @@ def add_device_option(p, what: str = "the model runs") -> None:
                         "under torchrun, cuda is each process's own GPU")
 
 
-#: What ``eval --up-lines`` says of a test whose camera is no pinhole.
-NO_LINES = "--up-lines: this camera bends straight lines (no pinhole); the estimate as it is"
 
 
 def add_eval_options(e) -> None:
@@ -111,9 +109,9 @@ def add_eval_options(e) -> None:
     e.add_argument("--boxes", action="store_true", help="det: also decode each true box at its centre point")
     e.add_argument("--known-up", action="store_true", help="det, seg: spherical models read each "
                    "view's true gravity, as from an IMU, not their estimate")
-    e.add_argument("--up-lines", action="store_true", help="det, seg on rooms: through the pinhole "
-                   "(d), the up estimate picks among the Manhattan axes of each image's straight "
-                   "lines (docs/up_estimate.md); other cameras keep the estimate")
+    e.add_argument("--up-lines", action="store_true", help="det, seg on rooms: the up estimate picks "
+                   "among the Manhattan axes of each image's straight lines (any lens; "
+                   "docs/up_estimate.md)")
     estimate_options(e, "det, seg: ")
     e.add_argument("--render", default=None, choices=("nearest", "soft"),
                    help="seg: how the grid's predictions reach the pixels; nearest: the nearest "
@@ -380,8 +378,6 @@ def cmd_eval_det(args) -> int:
         print(f"{k} " + ", ".join(f"{m} {100 * v:.2f}" for m, v in r.items()))
         if u.estimate is not None:
             print(f"{k} " + format_up_report(u.report(views_up(ds))))
-        if args.up_lines and u.axes is None:
-            print(f"{k} {NO_LINES}")
         if args.boxes:
             q = box_quality(model, data)
             print(f"{k} each true box decoded at its centre point: IoU median "

@@ -76,8 +76,8 @@ def add_predict_parser(sub, fmt) -> None:
                         "with --rig the rig's, cam0's), e.g. from an IMU; default: the model's "
                         "own estimate")
     p.add_argument("--up-lines", action="store_true",
-                   help="a pinhole's image: the up estimate picks among the Manhattan axes of "
-                        "its straight lines (docs/up_estimate.md); not with --up or --rig")
+                   help="the up estimate picks among the Manhattan axes of the image's straight "
+                        "lines (any lens: docs/up_estimate.md); not with --up or --rig")
     estimate_options(p)
     add_device_option(p)
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
@@ -118,7 +118,7 @@ def _report_up(info: dict) -> str:
 def _up_arg(args):
     """``--up`` or ``--up-lines`` as :func:`~usf_graph.train.apply.segment_image`'s ``up``."""
     if args.up_lines and (args.up is not None or args.rig):
-        raise ValueError("--up-lines reads one pinhole's straight lines: not with --up (a known "
+        raise ValueError("--up-lines reads one camera's straight lines: not with --up (a known "
                          "up needs no estimate) or --rig")
     return "lines" if args.up_lines else args.up
 

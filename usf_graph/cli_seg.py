@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 from .cli_det import (
-    NO_LINES,
     eval_data,
     given_or_default,
     print_targets,
@@ -102,8 +101,6 @@ def cmd_eval_seg(args) -> int:
                                   ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU") if m in r))
         if "up" in r:
             print(f"{k} " + format_up_report(r["up"]))
-        if args.up_lines and "lines" not in r.get("up", {}):
-            print(f"{k} {NO_LINES}")
     if args.figure:
         print(f"figure: {args.figure}")
     return 0

@@ -25,6 +25,7 @@ __all__ = [
     "rotation_from_quaternion",
     "rotation_angle",
     "rotate",
+    "level_rotation",
 ]
 
 
@@ -190,3 +191,19 @@ def rotate(points, R):
         points, R = torch.as_tensor(points), torch.as_tensor(R)
         return points @ R.to(points.dtype).transpose(-1, -2)
     return np.asarray(points) @ np.swapaxes(np.asarray(R, np.float64), -1, -2)
+
+
+def level_rotation(up) -> np.ndarray:
+    """The smallest rotation ``[3, 3]`` that turns the direction ``up [3]`` (any length) to
+    +z: about the horizontal axis ``up x z``, so that the azimuth (yaw) of every horizontal
+    direction stays. A frame turned by it is level; ``up = -z`` turns about x."""
+    v = np.asarray(up, np.float64).reshape(-1)
+    n = float(np.linalg.norm(v)) if v.shape == (3,) else 0.0
+    if not (np.isfinite(n) and n > 0):
+        raise ValueError(f"up must be a finite, non-zero 3-vector, got {np.asarray(up).tolist()}")
+    u = v / n
+    axis = np.cross(u, [0.0, 0.0, 1.0])
+    s, c = float(np.linalg.norm(axis)), float(u[2])
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    return rotation_from_axis_angle(axis / s, math.atan2(s, c))

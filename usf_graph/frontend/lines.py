@@ -1,13 +1,15 @@
-"""Straight lines of a perspective image as great circles on the sphere, and the three
-orthogonal directions they meet at (a room's Manhattan axes): a geometric cue to up that
-holds through a narrow camera, where a learned estimate sees little of the room.
+"""Straight lines of an image as great circles on the sphere, the three orthogonal
+directions they meet at (a room's Manhattan axes), and the one of them that is up: a
+geometric cue to up that needs no training, and holds through a narrow camera, where a
+learned estimate sees little of the room.
 
 A straight 3D line images to a straight segment through a pinhole without distortion;
 its two ends' rays span a plane through the centre, whose normal ``n`` is orthogonal to
 the line's direction. Parallel lines share a direction ``v`` (their vanishing direction)
-with ``n . v = 0`` for each. OpenCV's line segment detector finds the segments; the axes
-are the directions that the most line length points at. Everything is in the camera's
-sphere frame (``camera.rotation`` applied), so the axes turn with the camera.
+with ``n . v = 0`` for each. OpenCV's line segment detector finds the segments (a camera
+that bends lines is first re-imaged through pinholes); the axes are the directions that
+the most line length points at. Everything is in the camera's sphere frame
+(``camera.rotation`` applied), so the axes turn with the camera.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ import math
 import cv2
 import numpy as np
 
-from ..cameras import Camera, Pinhole
+from ..cameras import DEFAULT_ROTATION, Camera, Pinhole
+from ..geometry import rotation_from_axis_angle
 from .frontend import render
 
 #: Lines closer than this (degrees) to a direction's great circle point at it.
@@ -26,6 +29,8 @@ LINE_TOLERANCE = 1.5
 MIN_LINES = 8
 #: The longest lines whose pairs are tried as the first axis (every pair: deterministic).
 MAX_LINES = 200
+#: Degrees: the most :func:`lines_up` lets up lie from its prior (at 45, two axes are as near).
+MAX_TILT = 40.0
 
 
 def _undistorted(camera: Camera):
@@ -51,31 +56,38 @@ def _gray(image) -> np.ndarray:
     return np.clip(np.round(a), 0, 255).astype(np.uint8)
 
 
-def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The straight segments of ``image`` (``[H, W]`` or ``[H, W, C]``; integers in [0,
-    255] or floats in [0, 1]) taken by ``camera``, a :class:`~usf_graph.cameras.Pinhole`
-    (with distortion, the image is first re-imaged through the same pinhole without it).
+def _faces(camera: Camera) -> list[Pinhole]:
+    """Six 90-degree pinholes without distortion, the faces of a cube about the sphere's
+    centre (axes +-x, +-y, +-z of the sphere frame), each with about ``camera``'s angular
+    pixel density at its image centre, and the faces that see none of ``camera``'s rays left
+    out: the straight images of a camera that bends lines."""
+    rays, valid = camera.lens_normal_map()
+    cy, cx = camera.height // 2, camera.width // 2
+    step = [math.acos(float(np.clip(rays[i, j] @ rays[i + di, j + dj], -1, 1)))
+            for i, j, di, dj in ((cy, cx, 0, 1), (cy, cx, 1, 0))
+            if i + di < camera.height and j + dj < camera.width and valid[i, j] and valid[i + di, j + dj]]
+    if not step or min(step) <= 0:
+        raise ValueError(f"{type(camera).__name__} has no rays at its image centre to tell its "
+                         "resolution from; give a camera that sees there")
+    side = int(np.clip(math.ceil(2.0 / min(step)), 16, 2048))  # a face spans tan 45 = 1 each way
+    f, c = side / 2, (side - 1) / 2
+    axes = (([0, 0, 1], 0.0), ([0, 0, 1], 0.5), ([0, 0, 1], 1.0), ([0, 0, 1], 1.5),
+            ([0, 1, 0], -0.5), ([0, 1, 0], 0.5))  # x turned to +x, +y, -x, -y, +z, -z
+    faces = []
+    for axis, turns in axes:
+        face = Pinhole(f, f, c, c, side, side,
+                       rotation=rotation_from_axis_angle(np.array(axis, float), turns * math.pi)
+                       @ DEFAULT_ROTATION)
+        if camera.sees(face.lens_normal_map()[0].reshape(-1, 3))[1].any():
+            faces.append(face)
+    return faces
 
-    Returns ``normals [L, 3]``: unit normals, in the sphere frame, of the great circles
-    through the segments, and ``weights [L]``: the segments' angular lengths (radians).
-    Segments that touch pixels the camera does not see are left out, so the border of its
-    image mask is no line. ``upsample``: the image is enlarged this many times first, so
-    that short segments are found (OpenCV's LSD, default parameters); by default twice
-    below 512 pixels a side, else not (a 1080p image: about 1 s in all, on 2 cores)."""
-    ideal = _undistorted(camera)
-    if ideal is None:
-        raise ValueError(f"straight lines need a perspective camera (a Pinhole); "
-                         f"{type(camera).__name__} bends them. Give the model's own up estimate "
-                         "or a known up instead")
-    h, w = camera.height, camera.width
-    if np.asarray(image).shape[:2] != (h, w):
-        raise ValueError(f"the image is {np.asarray(image).shape[:2]} (H, W), the camera's "
-                         f"{(h, w)}: give the image the camera was calibrated for")
-    gray = _gray(image)
-    seen = camera.lens_normal_map()[1]
-    if camera.params().get("dist"):
-        seen = render(seen.astype(np.float32), camera, ideal) > 0.5
-        gray = render(gray, camera, ideal)
+
+def _segment_normals(gray: np.ndarray, seen: np.ndarray, ideal: Pinhole,
+                     upsample: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`line_normals` of a straight image ``gray [H, W]`` (uint8) taken by the pinhole
+    ``ideal`` (no distortion), of which ``seen [H, W]`` holds real pixels."""
+    h, w = gray.shape
     # a segment may not come within 2 pixels of a pixel the camera does not see (the
     # image's own border is no such pixel)
     inner = cv2.erode(np.pad(seen, 1, mode="edge").astype(np.uint8), np.ones((5, 5), np.uint8))[1:-1, 1:-1] > 0
@@ -99,6 +111,36 @@ def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np
     length = np.linalg.norm(n, axis=1)
     long = length > 1e-9
     return n[long] / length[long, None], np.arcsin(np.clip(length[long], 0, 1))
+
+
+def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The straight segments of ``image`` (``[H, W]`` or ``[H, W, C]``; integers in [0,
+    255] or floats in [0, 1]) taken by ``camera``, any model. A pinhole's image is read as
+    it is (with distortion, re-imaged through the same pinhole without it first); any other
+    camera's (a fisheye, a panorama), which bends straight lines, is re-imaged through the
+    six faces of a cube of 90-degree pinholes (:func:`_faces`), and a line a face's border
+    cuts counts as its two pieces, on one great circle.
+
+    Returns ``normals [L, 3]``: unit normals, in the sphere frame, of the great circles
+    through the segments, and ``weights [L]``: the segments' angular lengths (radians).
+    Segments that touch pixels the camera does not see are left out, so the border of its
+    image mask is no line. ``upsample``: each straight image is enlarged this many times
+    first, so that short segments are found (OpenCV's LSD, default parameters); by default
+    twice below 512 pixels a side, else not (a 1080p image: about 1 s in all, on 2 cores)."""
+    h, w = camera.height, camera.width
+    if np.asarray(image).shape[:2] != (h, w):
+        raise ValueError(f"the image is {np.asarray(image).shape[:2]} (H, W), the camera's "
+                         f"{(h, w)}: give the image the camera was calibrated for")
+    gray = _gray(image)
+    seen = camera.lens_normal_map()[1]
+    ideal = _undistorted(camera)
+    if ideal is not None and not camera.params().get("dist"):
+        views = [(gray, seen, ideal)]
+    else:
+        views = [(render(gray, camera, v), render(seen.astype(np.float32), camera, v) > 0.5, v)
+                 for v in ([ideal] if ideal is not None else _faces(camera))]
+    found = [_segment_normals(g, s, v, upsample) for g, s, v in views]
+    return np.concatenate([n for n, _ in found]), np.concatenate([w for _, w in found])
 
 
 def _support(v: np.ndarray, normals: np.ndarray, weights: np.ndarray, tol: float) -> np.ndarray:
@@ -185,4 +227,49 @@ def image_axes(images, camera: Camera, **kw) -> list[np.ndarray | None]:
     return [manhattan_axes(*line_normals(im, camera), **kw) for im in images]
 
 
-__all__ = ["LINE_TOLERANCE", "MIN_LINES", "MAX_LINES", "line_normals", "manhattan_axes", "image_axes"]
+def image_up(camera: Camera) -> np.ndarray:
+    """The direction ``[3]`` (sphere frame) in which ``camera``'s image points up at its
+    centre: the tangent at the centre pixel's ray towards the ray one pixel above it. Up
+    for a level camera; for a panorama, its +z."""
+    c = np.array([[(camera.width - 1) / 2, (camera.height - 1) / 2]])
+    rays, valid = camera.unproject(np.concatenate([c, c - [0.0, 1.0]]))
+    if not valid.all():
+        raise ValueError(f"{type(camera).__name__} has no ray at its image centre, so its image "
+                         "has no up to start from: give the prior (a known up) instead")
+    a, b = rays @ camera.rotation.T
+    t = b - (b @ a) * a
+    return t / np.linalg.norm(t)
+
+
+def lines_up(image, camera: Camera, prior=None, max_tilt: float = MAX_TILT) -> np.ndarray:
+    """Up ``[3]`` in ``camera``'s sphere frame from the straight lines of ``image``: of the
+    Manhattan axes they meet at (:func:`line_normals`, :func:`manhattan_axes`), the one
+    nearest ``prior`` (default :func:`image_up`: the camera held roughly upright), signed
+    towards it. No training, and no reliance on what the room looks like: walls, doors,
+    shelves and windows give the lines.
+
+    Raises where the image has too few straight lines, and where the nearest axis lies more
+    than ``max_tilt`` degrees from ``prior``: past 45 degrees another axis is nearer, so
+    which one is up is a guess (give a prior nearer up, e.g. from an IMU)."""
+    p = image_up(camera) if prior is None else np.asarray(prior, np.float64).reshape(3)
+    if not (np.isfinite(p).all() and np.linalg.norm(p) > 0):
+        raise ValueError(f"the prior up must be a finite, non-zero 3-vector, got {p.tolist()}")
+    p = p / np.linalg.norm(p)
+    normals, weights = line_normals(image, camera)
+    axes = manhattan_axes(normals, weights)
+    if axes is None:
+        raise ValueError(f"the image has {len(normals)} straight lines, too few (under "
+                         f"{MIN_LINES}) to tell up from: give up instead (an IMU, or a model's "
+                         "estimate)")
+    k = int(np.abs(axes @ p).argmax())
+    up = axes[k] * np.sign(axes[k] @ p)
+    tilt = math.degrees(math.acos(min(1.0, float(up @ p))))
+    if tilt > max_tilt:
+        raise ValueError(f"the lines' axis nearest the prior up lies {tilt:.1f} degrees from it "
+                         f"(over {max_tilt:g}), so which axis is up is a guess: give a prior "
+                         "nearer up, e.g. from an IMU")
+    return up
+
+
+__all__ = ["LINE_TOLERANCE", "MIN_LINES", "MAX_LINES", "MAX_TILT", "line_normals", "manhattan_axes",
+           "image_axes", "image_up", "lines_up"]

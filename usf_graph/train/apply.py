@@ -198,13 +198,14 @@ def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | N
     """``up="lines"``: the model's up estimate picks among the Manhattan axes of the
     image's straight lines (:func:`~usf_graph.train.gravity.estimate_up` with ``axes``) ->
     ``([1, 3] or None, its info)``; ``None`` (the estimate as it is) when the image has too
-    few lines. The camera must be one pinhole, whose image keeps lines straight."""
+    few lines. The camera must be one camera (any model: :func:`~usf_graph.frontend.lines.line_normals`
+    straightens a fisheye's or a panorama's lines through pinholes), not a rig."""
     from ..frontend.lines import line_normals, manhattan_axes
     from ..models.gravity import UNSURE_MARGIN
     from .gravity import estimate_up, require_up_estimate
 
     if not isinstance(fe, SphericalFrontend):
-        raise ValueError("up='lines' reads the straight lines of one pinhole's image, not a rig's")
+        raise ValueError("up='lines' reads the straight lines of one camera's image, not a rig's")
     require_up_estimate(model, "up='lines'")
     axes = manhattan_axes(*line_normals(rgb01(image, colour_model=False), fe.camera))  # warned at lift
     if axes is None:
@@ -245,7 +246,7 @@ def segment_image(model, image, camera, up=None, interpolation: str = "auto",
     """A trained spherical segmenter on one image of ``camera``.
 
     ``up``: gravity's up in the camera's sphere frame (an IMU), else the model's estimate;
-    ``"lines"``: through a pinhole, the estimate's pick among the Manhattan axes of the
+    ``"lines"``: the estimate's pick among the Manhattan axes of the
     image's straight lines (:mod:`usf_graph.frontend.lines`; the estimate where it has too
     few). A rig (:func:`lift_for`) is segmented as one sphere. Returns ``{"labels": [H, W]
     uint8 in the camera's pixels (:data:`UNSEEN` where it has no ray or the mask ignores

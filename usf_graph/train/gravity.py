@@ -99,7 +99,7 @@ def estimate_up(gravity, x: torch.Tensor, mask: torch.Tensor | None,
 
 def lines_axes(ds) -> torch.Tensor:
     """The Manhattan axes of the straight lines of each image of a split (``ds.image [S, H,
-    W, C]`` taken by ``ds.camera``, a pinhole; :func:`~usf_graph.frontend.lines.image_axes`)
+    W, C]`` taken by ``ds.camera``, any model; :func:`~usf_graph.frontend.lines.image_axes`)
     -> ``[S, 3, 3]``, NaN for an image with too few lines."""
     from ..frontend.lines import image_axes
 
@@ -115,18 +115,12 @@ def _split_mask(ds) -> torch.Tensor | None:
     return mask[0] if mask is not None and mask.dim() == 2 else mask
 
 
-def _has_lines(ds) -> bool:
-    from ..cameras import Pinhole
-
-    return isinstance(getattr(ds, "camera", None), Pinhole)
-
-
 def lines_up(gravity, ds) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Through a pinhole, the up estimate ``gravity`` picking among the straight-line axes
-    of each image of the split ``ds`` (:func:`estimate_up` with :func:`lines_axes`) ->
-    ``(up [S, 3], axes [S, 3, 3])``; ``None`` when ``ds.camera`` is no pinhole, whose
-    images bend straight lines."""
-    if not _has_lines(ds):
+    """The up estimate ``gravity`` picking among the straight-line axes of each image of
+    the split ``ds`` (:func:`estimate_up` with :func:`lines_axes`) -> ``(up [S, 3], axes [S,
+    3, 3])``; ``None`` when the split has no one camera (``ds.camera``) to read lines
+    through."""
+    if getattr(ds, "camera", None) is None:
         return None
     up, _, axes = _split_estimate(gravity, ds, up_lines=True)
     return up, axes
@@ -134,9 +128,9 @@ def lines_up(gravity, ds) -> tuple[torch.Tensor, torch.Tensor] | None:
 
 def _split_estimate(gravity, ds, up_lines: bool = False, batch_size: int = 16):
     """The estimate ``gravity`` on every view of the split ``ds`` -> ``(up [S, 3], margin
-    [S], axes [S, 3, 3] or None)``; with ``up_lines`` and a pinhole, its pick among each
+    [S], axes [S, 3, 3] or None)``; with ``up_lines`` and one camera, its pick among each
     image's straight-line axes (:func:`lines_axes`)."""
-    axes = lines_axes(ds) if up_lines and _has_lines(ds) else None
+    axes = lines_axes(ds) if up_lines and getattr(ds, "camera", None) is not None else None
     return (*estimate_up(gravity, ds.x, _split_mask(ds), batch_size, axes), axes)
 
 

@@ -288,9 +288,8 @@ def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
                  ) -> tuple[dict, np.ndarray]:
     """:func:`score` and the pixel predictions of a trained model on one test set (a rooms
     test or :class:`~usf_graph.datasets.Stanford2D3DS`); ``known_up``: a spherical model
-    reads the views' gravity (:func:`views_up`); ``up_lines``: through a pinhole, its up
-    estimate picks among the straight-line axes of each image
-    (:func:`~usf_graph.train.gravity.lines_up`; other cameras keep the estimate). A model
+    reads the views' gravity (:func:`views_up`); ``up_lines``: its up estimate picks among the
+    straight-line axes of each image (:func:`~usf_graph.train.gravity.lines_up`). A model
     with an up estimate also gets its :func:`~usf_graph.train.gravity.up_summary` (``"up"``;
     the estimate runs once, for the prediction and the report). ``render``, ``pano``: as
     :func:`predict`'s."""
