@@ -147,6 +147,13 @@ def test_render_and_camera_save_commands(tmp_path, capsys):
     view = cv2.imread(str(tmp_path / "view.png"))[..., ::-1]
     # the red band left of the panorama's centre is left of the pinhole's centre, in red
     assert view[50, 20, 0] > 200 and view[50, 20, 2] == 0 and view[50, 80].max() == 0
+    # a target is taken at its own size (not fitted to the source image, even at the same
+    # aspect); a panorama without a size gets the source's width at 2:1
+    cameras.Pinhole(100, 100, 99.5, 99.5, 200, 200).save(tmp_path / "pin2.yaml")
+    for to, shape in ((str(tmp_path / "pin2.yaml"), (200, 200, 3)), ("equirectangular", (50, 100, 3))):
+        assert main(["render", str(tmp_path / "view.png"), "--camera", str(tmp_path / "pin.yaml"),
+                     "--to", to, "--out", str(tmp_path / "again.png")]) == 0
+        assert cv2.imread(str(tmp_path / "again.png")).shape == shape
 
 
 def test_render_level_straightens_a_tilted_panorama(tmp_path, capsys):

@@ -14,6 +14,7 @@ from .cli_inputs import (
     CAMERA_HELP,
     camera_from_spec,
     camera_options,
+    is_panorama_spec,
     read_image,
     rig_from_spec,
     rig_options,
@@ -82,7 +83,10 @@ def cmd_render(args) -> int:
 
     img = read_image(args.image)
     src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
-    dst = camera_from_spec(args.to, args.to_key, image_shape=img.shape)
+    # a target is the camera asked for, not fitted to the source image; a panorama without
+    # a size gets the source's width, at 2:1
+    dst = camera_from_spec(args.to, args.to_key,
+                           image_shape=(img.shape[1] // 2, img.shape[1]) if is_panorama_spec(args.to) else None)
     if args.level:
         dst = dst.turned(_level(img, src, args.up).T)
     elif args.up is not None:
@@ -318,7 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("image", help="the source image")
     r.add_argument("--camera", required=True, help="source camera: " + CAMERA_HELP)
     camera_options(r)
-    r.add_argument("--to", required=True, help="target camera, same forms as --camera")
+    r.add_argument("--to", required=True, help="target camera, same forms as --camera, at its "
+                   "calibration's size ('equirectangular': the source image's width, 2:1)")
     r.add_argument("--to-key", default=None, metavar="CAM", help="camera of a target camchain")
     r.add_argument("--interpolation", default="bilinear", choices=("bilinear", "nearest"),
                    help="nearest for label images")

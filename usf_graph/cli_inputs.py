@@ -31,6 +31,11 @@ def camera_options(p, mask: bool = True) -> None:
                             "body, NaN pixels)")
 
 
+def is_panorama_spec(spec: str) -> bool:
+    """``equirectangular`` or ``panorama``, with or without ``:WxH``."""
+    return spec.split(":")[0].lower() in ("equirectangular", "panorama")
+
+
 def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape=None):
     """A camera from a calibration file or ``equirectangular[:WxH]`` (size from the image).
     With ``image_shape``, a calibration made for another size of the same aspect ratio is
@@ -38,7 +43,7 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
     recorded or saved smaller than the calibration images."""
     from . import cameras
 
-    if spec.split(":")[0].lower() in ("equirectangular", "panorama"):
+    if is_panorama_spec(spec):
         if key is not None:
             raise ValueError("--key picks a camera in a Kalibr, Basalt or COLMAP file; a "
                              "panorama has none")
