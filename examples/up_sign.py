@@ -4,7 +4,7 @@ With the level prior (``--level-prior``), what the up estimate still gets wrong 
 fisheye is mostly the sign. This trains a sign check and asks it on the protocol's tests:
 a :class:`~usf_graph.models.SignCheck` (an upright ``SphericalUNet`` with one output
 channel, the protocol's U-Net configuration, trained by
-:func:`~usf_graph.train.gravity.pretrain_sign`) reads the image with heights and ``UpJet`` features along a candidate
+:func:`~usf_graph.train.sign.pretrain_sign`) reads the image with heights and ``UpJet`` features along a candidate
 up u. Its score s(u) is the area-weighted mean output over the visible points, trained by
 ``softplus(s(-g) - s(g))`` on the training views' known gravity g, jittered. It trains
 first on whole panoramas, then with a share of the batches through random fields of view
@@ -33,7 +33,8 @@ from usf_graph.models import SignCheck, set_level_prior
 from usf_graph.train import save_checkpoint, seg
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.engine import seed_everything
-from usf_graph.train.gravity import GROSS_DEGREES, pretrain_sign, views_up
+from usf_graph.train.gravity import GROSS_DEGREES, views_up
+from usf_graph.train.sign import pretrain_sign
 
 
 @torch.no_grad()

@@ -121,8 +121,8 @@ def test_up_sign_example_small_run(tmp_path, capsys):
     it flips gets exactly the opposite up, the printed counts are the returned ones, and
     ``--save`` writes a check that ``load_sign_check`` reads back."""
     from usf_graph.train.engine import save_checkpoint
-    from usf_graph.train.gravity import load_sign_check
     from usf_graph.train.seg import make_model
+    from usf_graph.train.sign import load_sign_check
 
     torch.manual_seed(0)
     net = make_model("spherical_unet", level=3)

@@ -316,7 +316,8 @@ def up_options(model, args) -> None:
     ``--known-up``."""
     from .models import set_level_prior, set_sign_check
     from .train import model_device
-    from .train.gravity import check_up_choice, load_sign_check, require_up_estimate
+    from .train.gravity import check_up_choice, require_up_estimate
+    from .train.sign import load_sign_check
 
     check_up_choice(getattr(args, "known_up", False), getattr(args, "up_lines", False))
     for option, given in (("--up-lines", getattr(args, "up_lines", False)),

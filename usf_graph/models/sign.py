@@ -16,7 +16,7 @@ through heights and derivatives along it, so the check rotates with the input.
 It is asked only where the camera sees at least ``min_field`` of the sphere: on a
 90-degree pinhole (a sixth of it) it flipped more right estimates than wrong ones. The
 field's share of the sphere does not change under rotation, so neither does the gate.
-Trained by :func:`usf_graph.train.gravity.pretrain_sign`; attached to a model's up estimate
+Trained by :func:`usf_graph.train.sign.pretrain_sign`; attached to a model's up estimate
 by :func:`set_sign_check`.
 """
 

@@ -1,0 +1,74 @@
+"""The sign check's training and loading (train.sign)."""
+
+import pytest
+import torch
+from torch import nn
+
+from usf_graph.grids import icosahedral
+from usf_graph.train.sign import load_sign_check, pretrain_sign
+
+
+class _SignViews:
+    """Views whose first channel is each point's height along the view's gravity: an
+    image that says which way is up, for the sign check to learn."""
+
+    def __init__(self, n: int, seed: int, level: int = 3):
+        gen = torch.Generator().manual_seed(seed)
+        self.grid = icosahedral(level)
+        pos = self.grid.pos.float()
+        self.gravity = nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)
+        noise = 0.3 * torch.randn(n, len(pos), 2, generator=gen)
+        self.x = torch.cat([(pos @ self.gravity.T).T[..., None], noise], -1)
+        self.mask = torch.ones(n, len(pos), dtype=torch.bool)
+
+    def __len__(self):
+        return len(self.x)
+
+
+def _sign_check():
+    from usf_graph.models import SignCheck
+
+    torch.manual_seed(0)
+    return SignCheck(level=3, channels=(8, 8, 8))
+
+
+def test_pretrain_sign_learns_which_way_is_up():
+    """Untrained, the check flips about half of the right ups of new views; trained on
+    views whose image shows the height, it keeps every right up and turns every
+    upside-down one."""
+    test = _SignViews(16, 1)
+    x, g = test.x, test.gravity
+    check = _sign_check().eval()
+    with torch.no_grad():
+        before = (check(x, None, g) == g).all(-1).float().mean()
+    check = pretrain_sign(check, _SignViews(48, 0), epochs=3, cut_epochs=1, share=0.5, progress=False)
+    assert not check.training
+    with torch.no_grad():
+        kept, turned = check(x, None, g), check(x, None, -g)
+    assert torch.equal(kept, g) and torch.equal(turned, g), float(before)
+
+
+def test_pretrain_sign_refuses_other_grids_and_nan_views():
+    with pytest.raises(ValueError, match="the views have 2562 points, the sign check reads 642"):
+        pretrain_sign(_sign_check(), _SignViews(4, 0, level=4), progress=False)
+    bad = _SignViews(8, 0)
+    bad.x[3, 10, 0] = float("nan")
+    with pytest.raises(ValueError, match="x has NaN or inf"):
+        pretrain_sign(_sign_check(), bad, epochs=1, cut_epochs=0, progress=False)
+    bad.x = torch.full_like(bad.x, 3e38)  # finite views whose loss overflows
+    with pytest.raises(FloatingPointError, match="sign check's loss is not finite"):
+        pretrain_sign(_sign_check(), bad, epochs=1, cut_epochs=0, progress=False)
+
+
+def test_a_saved_sign_check_loads_with_its_weights(tmp_path):
+    from usf_graph.train.engine import save_checkpoint
+
+    check = _sign_check()
+    check.config["min_field"] = 0.25
+    save_checkpoint(tmp_path / "sign.pt", check, {"model": "sign_check", **check.config}, {})
+    got = load_sign_check(tmp_path / "sign.pt")
+    assert not got.training and got.config == check.config
+    assert all(torch.equal(a, b) for a, b in zip(got.state_dict().values(), check.state_dict().values()))
+    save_checkpoint(tmp_path / "other.pt", check, {"model": "spherical_unet"}, {})
+    with pytest.raises(ValueError, match="is not a sign check"):
+        load_sign_check(tmp_path / "other.pt")
