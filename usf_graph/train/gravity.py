@@ -1,7 +1,10 @@
 """How dense spherical models with an up estimate (``gravity=True``) are trained: the
 network reads the heights along the views' known gravity, slightly jittered, while its
 :class:`~usf_graph.models.UpNet` learns to estimate that gravity from the image, either
-in the same steps or beforehand and alone (:func:`pretrain_up`, then frozen)."""
+in the same steps or beforehand and alone (:func:`pretrain_up`, then frozen); and how a
+test split's up is read (:func:`split_up`: the estimate, its pick among the straight
+lines' axes, or the views' known gravity) and reported (:func:`up_report`). The sign
+check: :mod:`usf_graph.train.sign`."""
 
 from __future__ import annotations
 
