@@ -41,7 +41,7 @@ def run(out="runs/level", pitch: float = 15.0, roll: float = -8.0, size: int = 5
     tilted = render(scene, cam, pos, R0 @ T, boxes=False).rgb
     up = lines_up(tilted, cam)
     R = level_rotation(up)
-    leveled = reimage(tilted, cam, cam.turned(R.T))
+    leveled = reimage(tilted, cam.turned(R), cam)  # the camera mounted level, re-imaged
     truth = render(scene, cam, pos, R0 @ T @ level_rotation(true_up).T, boxes=False).rgb
     res = {"tilt_deg": math.degrees(math.acos(true_up[2])),
            "up_error_deg": math.degrees(math.acos(min(1.0, float(up @ true_up)))),

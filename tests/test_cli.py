@@ -191,6 +191,19 @@ def test_render_level_straightens_a_tilted_panorama(tmp_path, capsys):
     assert main(["render", str(tmp_path / "tilted.png"), "--camera", "equirectangular", "--to",
                  "equirectangular", "--up", "0", "0", "1", "--out", str(tmp_path / "o.png")]) == 2
     assert "add --level" in capsys.readouterr().err
+    # lift --level: the signal on the grid, in the level frame
+    cv2.imwrite(str(tmp_path / "truth.png"), render(scene, cam, pos, level, boxes=False).rgb[..., ::-1])
+    for name, image, flags in (("leveled", "tilted", ["--level"]), ("truth", "truth", []),
+                               ("tilted", "tilted", [])):
+        assert main(["lift", str(tmp_path / f"{image}.png"), "--camera", "equirectangular", "--grid",
+                     "icosahedral:4", *flags, "--out", str(tmp_path / f"{name}.pt")]) == 0
+    got, want, raw = (load_lifted(tmp_path / f"{n}.pt").x for n in ("leveled", "truth", "tilted"))
+    assert "degrees off level" in capsys.readouterr().out
+    err = (got - want).abs().mean(-1)
+    assert float(err.median()) < 3.0 and float(err.mean()) < 0.3 * float((raw - want).abs().mean())
+    assert main(["lift", str(tmp_path / "tilted.png"), str(tmp_path / "truth.png"), "--camera",
+                 str(FIXTURES / "kalibr_rig.yaml"), "--level"]) == 2
+    assert "reads one camera's image" in capsys.readouterr().err
 
 
 def test_cache_command_shows_and_clears(tmp_path, monkeypatch, capsys):

@@ -15,6 +15,8 @@ from .cli_inputs import (
     camera_from_spec,
     camera_options,
     is_panorama_spec,
+    level_options,
+    leveled,
     read_image,
     rig_from_spec,
     rig_options,
@@ -28,6 +30,9 @@ def cmd_lift(args) -> int:
     images = [read_image(p) for p in args.image]
     grid = grids.from_spec(args.grid)
     if len(images) > 1:
+        if args.level or args.up is not None:
+            raise ValueError("--level reads one camera's image; level a rig's sphere from its "
+                             "IMU instead (usf-graph predict --rig --imu)")
         rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
                             images, grid)
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
@@ -38,6 +43,7 @@ def cmd_lift(args) -> int:
             raise ValueError("--distance stitches a rig's cameras; one image is lifted from its "
                              "own camera's centre, give the rig's images to use it")
         cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+        cam = leveled(cam, images[0], args)
         fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
         x = fe.lift(images[0])
     print(f"{fe}\n-> x {tuple(x.shape)}, {int(fe.mask.sum())}/{len(grid)} points visible")
@@ -58,23 +64,6 @@ def cmd_lift(args) -> int:
     return 0
 
 
-def _level(img, src, up):
-    """The rotation that levels ``src``'s sphere frame (:func:`usf_graph.geometry.level_rotation`)
-    from ``up`` (given) or the image's straight lines, with what it found printed."""
-    import numpy as np
-
-    from .frontend.lines import lines_up
-    from .geometry import level_rotation
-
-    u = lines_up(img, src) if up is None else np.asarray(up, np.float64)
-    R = level_rotation(u)
-    u = u / np.linalg.norm(u)
-    print(f"up {'given' if up is not None else 'from the straight lines'}: "
-          f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) in the camera's sphere frame, which is "
-          f"{np.degrees(np.arccos(np.clip(u[2], -1, 1))):.1f} degrees off level")
-    return R
-
-
 def cmd_render(args) -> int:
     import cv2
     import numpy as np
@@ -87,10 +76,7 @@ def cmd_render(args) -> int:
     # a size gets the source's width, at 2:1
     dst = camera_from_spec(args.to, args.to_key,
                            image_shape=(img.shape[1] // 2, img.shape[1]) if is_panorama_spec(args.to) else None)
-    if args.level:
-        dst = dst.turned(_level(img, src, args.up).T)
-    elif args.up is not None:
-        raise ValueError("--up says where up is for --level: add --level")
+    src = leveled(src, img, args)  # the source mounted level: the target sees a level scene
     out = render(img, src, dst, interpolation=args.interpolation)
     if out.ndim == 3 and out.shape[2] in (3, 4):
         out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
@@ -310,6 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
     li.add_argument("--out", default=None, metavar="PT",
                     help="write the lifted signal, mask and geometry spec (not the graph); "
                          "usf_graph.frontend.load_lifted(PT) rebuilds the SphericalImage")
+    level_options(li, "lift onto the grid in a level frame: the camera turned so that "
+                      "gravity's up is the sphere's +z")
     li.add_argument("--preview", default=None, metavar="PNG",
                     help="write a Mollweide picture of the lifted image, seen from the centre")
 
@@ -327,15 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--to-key", default=None, metavar="CAM", help="camera of a target camchain")
     r.add_argument("--interpolation", default="bilinear", choices=("bilinear", "nearest"),
                    help="nearest for label images")
-    r.add_argument("--level", action="store_true",
-                   help="level the view: turn the target camera so that gravity's up is its "
-                        "sphere frame's +z (a panorama's horizon straight, a pinhole's "
-                        "upright), keeping its heading. Up from the image's straight lines "
-                        "(walls, doors, shelves: the camera held within 40 degrees of "
-                        "upright), or --up")
-    r.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                   help="with --level: up in the source camera's sphere frame (x forward, "
-                        "y left, z up), e.g. from an IMU")
+    level_options(r, "the source camera turned so that gravity's up is the sphere's +z, so "
+                     "that the target sees a level scene (a panorama's horizon straight, a "
+                     "pinhole upright)")
     r.add_argument("--out", required=True, metavar="IMG", help="output image (.png, .jpg, .npy)")
 
     sc = sub.add_parser("scenes", help="render procedural rooms through three lenses",

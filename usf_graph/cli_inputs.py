@@ -31,6 +31,40 @@ def camera_options(p, mask: bool = True) -> None:
                             "body, NaN pixels)")
 
 
+def level_options(p, what: str) -> None:
+    """``--level`` (doing ``what``) and ``--up X Y Z``."""
+    p.add_argument("--level", action="store_true",
+                   help=f"level the view: {what}, keeping its heading. Up from the image's "
+                        "straight lines (walls, doors, shelves: the camera held within 40 "
+                        "degrees of upright), or --up")
+    p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help="with --level: up in the source camera's sphere frame (x forward, "
+                        "y left, z up), e.g. from an IMU")
+
+
+def leveled(cam, image, args):
+    """``cam`` mounted in a level frame, where ``args.level``: turned by the smallest rotation
+    that takes up (``args.up``, else from the straight lines of ``image``, which ``cam``
+    took) to +z (:func:`usf_graph.geometry.level_rotation`), with what was found printed.
+    As it is otherwise (and ``--up`` alone refused)."""
+    if not args.level:
+        if args.up is not None:
+            raise ValueError("--up says where up is for --level: add --level")
+        return cam
+    import numpy as np
+
+    from .frontend.lines import lines_up
+    from .geometry import level_rotation
+
+    u = lines_up(image, cam) if args.up is None else np.asarray(args.up, np.float64)
+    R = level_rotation(u)
+    u = u / np.linalg.norm(u)
+    print(f"up {'given' if args.up is not None else 'from the straight lines'}: "
+          f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) in the camera's sphere frame, which is "
+          f"{np.degrees(np.arccos(np.clip(u[2], -1, 1))):.1f} degrees off level")
+    return cam.turned(R)
+
+
 def is_panorama_spec(spec: str) -> bool:
     """``equirectangular`` or ``panorama``, with or without ``:WxH``."""
     return spec.split(":")[0].lower() in ("equirectangular", "panorama")

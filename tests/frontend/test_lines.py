@@ -139,8 +139,9 @@ def test_lines_up_finds_gravity_through_a_tilt(camera):
 
 
 def test_leveling_a_tilted_panorama_gives_the_level_one():
-    """Look, don't trust: re-imaging the tilted panorama through a camera turned by
-    level_rotation(lines_up(...)) matches the room rendered level along the same heading."""
+    """Look, don't trust: the tilted panorama's camera mounted turned by
+    level_rotation(lines_up(...)), re-imaged, matches the room rendered level along the same
+    heading."""
     cam = Equirectangular(256, 128)
     scene = make_room(seed=3, index=3, materials="by_kind")
     pos, R0 = scene.viewpoint(0)
@@ -148,7 +149,9 @@ def test_leveling_a_tilted_panorama_gives_the_level_one():
         @ rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(-8))
     tilted = render(scene, cam, pos, R0 @ T, boxes=False).rgb.astype(np.float64)
     R = level_rotation(lines_up(tilted.astype(np.uint8), cam))
-    leveled = reimage(tilted, cam, cam.turned(R.T))
+    leveled = reimage(tilted, cam.turned(R), cam)
+    # the same as keeping the source and turning the target back
+    assert np.allclose(reimage(tilted, cam, cam.turned(R.T)), leveled, atol=1e-9)
     # the room seen level along the heading the minimal turn keeps
     truth = render(scene, cam, pos, R0 @ T @ level_rotation(T.T @ [0.0, 0.0, 1.0]).T, boxes=False).rgb
     err = np.abs(leveled - truth).mean(-1)
