@@ -242,6 +242,28 @@ def test_render_leaves_out_source_pixels_without_a_ray(interpolation):
     assert 0.1 < (out != 0).mean() < seen.mean()
 
 
+def test_render_with_the_source_valid_pixels_given_matches_it_computing_them():
+    """``source_valid`` (a caller's valid_pixels, reused across targets) changes nothing:
+    the same image as without it, and the pixels a given map leaves out are left out. A map
+    of another shape is refused."""
+    from usf_graph.frontend.interpolation import valid_pixels
+
+    fish = cameras.KannalaBrandt(20.0, 20.0, 31.5, 31.5, 64, 64, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
+    img = np.random.default_rng(0).random((64, 64, 2))
+    left = (np.arange(64) < 32)[None, :].repeat(64, 0)
+    for dst in (cameras.Equirectangular(96, 48), cameras.Pinhole(20.0, 20.0, 19.5, 19.5, 40, 40)):
+        for interpolation in ("bilinear", "nearest"):
+            np.testing.assert_array_equal(
+                render(img, fish, dst, interpolation, source_valid=valid_pixels(fish)),
+                render(img, fish, dst, interpolation))
+            # the pixels left out never blend in (1e6 there would show)
+            out = render(np.where(left[..., None], img, 1e6), fish, dst, interpolation,
+                         source_valid=valid_pixels(fish) & left)
+            assert 0 < (out != 0).mean() and out.max() <= 1.0
+    with pytest.raises(ValueError, match="the camera's image"):
+        render(img, fish, dst, source_valid=np.ones((32, 64), bool))
+
+
 def test_data_loader_offsets_and_to_image_and_render():
     cam, img = equirect_image(64)
     g = grids.icosahedral(2)

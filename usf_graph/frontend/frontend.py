@@ -376,11 +376,15 @@ def _check_finite(x: torch.Tensor, mask: torch.Tensor) -> None:
                          "mask them: image_mask= in Python, --image-mask on the command line")
 
 
-def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear"):
+def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear",
+           source_valid: np.ndarray | None = None):
     """Re-image ``image`` taken by ``cam_src`` as ``cam_dst`` would see it, through the
     sphere: each destination pixel's ray is projected into the source camera. Pixels the
     source does not see are 0; source pixels without a ray or that its image mask ignores
-    are left out, as in every lift. Returns numpy (or torch, for torch input) ``[H', W'(, C)]``."""
+    are left out, as in every lift. ``source_valid``: those pixels, ``[H, W]`` bool
+    (:func:`~usf_graph.frontend.interpolation.valid_pixels` of ``cam_src``), where the caller
+    has them: re-imaging a large image into several targets then unprojects it once.
+    Returns numpy (or torch, for torch input) ``[H', W'(, C)]``."""
     arr, is_np = _as_image(image, cam_src)
     rays, valid = cam_dst.lens_normal_map()
     pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
@@ -388,7 +392,7 @@ def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "biline
     seen &= valid.ravel()
     entries = bilinear_entries if interpolation == "bilinear" else nearest_entries
     idx, w = entries(cam_src, np.nan_to_num(uv, nan=-1.0), seen)
-    w = valid_entries(cam_src, idx, w)  # as every lift: pixels without a ray never blend in
+    w = valid_entries(cam_src, idx, w, valid=source_valid)  # as every lift: pixels without a ray never blend in
     t = torch.as_tensor(arr)
     flat = (t if t.is_floating_point() else t.double()).reshape(-1, t.shape[-1])
     w = torch.as_tensor(w, dtype=flat.dtype)[..., None]

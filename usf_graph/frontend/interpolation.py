@@ -125,11 +125,15 @@ def valid_pixels(cam: Camera, image_mask=None) -> np.ndarray:
     return ok
 
 
-def valid_entries(cam: Camera, idx: np.ndarray, w: np.ndarray, image_mask=None) -> np.ndarray:
+def valid_entries(cam: Camera, idx: np.ndarray, w: np.ndarray, image_mask=None,
+                  valid: np.ndarray | None = None) -> np.ndarray:
     """The weights ``w [M, P]`` of interpolation entries (``idx [M, P]``, e.g.
-    :func:`bilinear_entries`') with the pixels outside :func:`valid_pixels` left out and
-    each row renormalized over the rest; a row with no valid pixel is all 0."""
-    ok = valid_pixels(cam, image_mask).ravel()
+    :func:`bilinear_entries`') with the pixels outside :func:`valid_pixels` (or ``valid``,
+    those pixels computed before) left out and each row renormalized over the rest; a row
+    with no valid pixel is all 0."""
+    if valid is not None and np.shape(valid) != (cam.height, cam.width):
+        raise ValueError(f"valid is {np.shape(valid)}, the camera's image {(cam.height, cam.width)}")
+    ok = (valid_pixels(cam, image_mask) if valid is None else np.asarray(valid, bool)).ravel()
     if ok.all():
         return w
     w = w * ok[idx]

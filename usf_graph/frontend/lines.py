@@ -22,6 +22,7 @@ import numpy as np
 from ..cameras import DEFAULT_ROTATION, Camera, Pinhole
 from ..geometry import rotation_from_axis_angle
 from .frontend import render
+from .interpolation import valid_pixels
 
 #: Lines closer than this (degrees) to a direction's great circle point at it.
 LINE_TOLERANCE = 1.5
@@ -29,6 +30,9 @@ LINE_TOLERANCE = 1.5
 MIN_LINES = 8
 #: The longest lines whose pairs are tried as the first axis (every pair: deterministic).
 MAX_LINES = 200
+#: Pixels: the largest side of the cube faces a lens that bends lines is re-imaged through
+#: (0.18 degrees a pixel).
+MAX_FACE = 512
 #: Degrees: the most :func:`lines_up` lets up lie from its prior (at 45, two axes are as near).
 MAX_TILT = 40.0
 
@@ -59,17 +63,20 @@ def _gray(image) -> np.ndarray:
 def _faces(camera: Camera) -> list[Pinhole]:
     """Six 90-degree pinholes without distortion, the faces of a cube about the sphere's
     centre (axes +-x, +-y, +-z of the sphere frame), each with about ``camera``'s angular
-    pixel density at its image centre, and the faces that see none of ``camera``'s rays left
-    out: the straight images of a camera that bends lines."""
-    rays, valid = camera.lens_normal_map()
+    pixel density at its image centre (at most :data:`MAX_FACE` pixels a side), and the
+    faces that see none of ``camera``'s rays left out: the straight images of a camera that
+    bends lines."""
     cy, cx = camera.height // 2, camera.width // 2
-    step = [math.acos(float(np.clip(rays[i, j] @ rays[i + di, j + dj], -1, 1)))
-            for i, j, di, dj in ((cy, cx, 0, 1), (cy, cx, 1, 0))
-            if i + di < camera.height and j + dj < camera.width and valid[i, j] and valid[i + di, j + dj]]
+    px = np.array([[cx, cy], [cx + 1, cy], [cx, cy + 1]], np.float64)
+    rays, valid = camera.unproject(px)
+    step = [math.acos(float(np.clip(rays[0] @ rays[k], -1, 1))) for k in (1, 2)
+            if valid[0] and valid[k] and px[k, 0] < camera.width and px[k, 1] < camera.height]
     if not step or min(step) <= 0:
         raise ValueError(f"{type(camera).__name__} has no rays at its image centre to tell its "
                          "resolution from; give a camera that sees there")
-    side = int(np.clip(math.ceil(2.0 / min(step)), 16, 2048))  # a face spans tan 45 = 1 each way
+    # a face spans tan 45 = 1 each way; finer than MAX_FACE the lines gain little precision
+    # and cost much time (a 4096-pixel panorama's faces would be 1,304 pixels a side)
+    side = int(np.clip(math.ceil(2.0 / min(step)), 16, MAX_FACE))
     f, c = side / 2, (side - 1) / 2
     axes = (([0, 0, 1], 0.0), ([0, 0, 1], 0.5), ([0, 0, 1], 1.0), ([0, 0, 1], 1.5),
             ([0, 1, 0], -0.5), ([0, 1, 0], 0.5))  # x turned to +x, +y, -x, -y, +z, -z
@@ -132,13 +139,17 @@ def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np
         raise ValueError(f"the image is {np.asarray(image).shape[:2]} (H, W), the camera's "
                          f"{(h, w)}: give the image the camera was calibrated for")
     gray = _gray(image)
-    seen = camera.lens_normal_map()[1]
+    seen = valid_pixels(camera)
     ideal = _undistorted(camera)
     if ideal is not None and not camera.params().get("dist"):
         views = [(gray, seen, ideal)]
-    else:
-        views = [(render(gray, camera, v), render(seen.astype(np.float32), camera, v) > 0.5, v)
-                 for v in ([ideal] if ideal is not None else _faces(camera))]
+    else:  # re-imaged with a channel of ones, which is 0 where the camera does not see
+        both = np.stack([gray.astype(np.float32), np.ones(gray.shape, np.float32)], -1)
+        views = []
+        for v in [ideal] if ideal is not None else _faces(camera):
+            straight = render(both, camera, v, source_valid=seen)
+            views.append((np.clip(np.round(straight[..., 0]), 0, 255).astype(np.uint8),
+                          straight[..., 1] > 0.5, v))
     found = [_segment_normals(g, s, v, upsample) for g, s, v in views]
     return np.concatenate([n for n, _ in found]), np.concatenate([w for _, w in found])
 
@@ -271,5 +282,5 @@ def lines_up(image, camera: Camera, prior=None, max_tilt: float = MAX_TILT) -> n
     return up
 
 
-__all__ = ["LINE_TOLERANCE", "MIN_LINES", "MAX_LINES", "MAX_TILT", "line_normals", "manhattan_axes",
+__all__ = ["LINE_TOLERANCE", "MIN_LINES", "MAX_LINES", "MAX_FACE", "MAX_TILT", "line_normals", "manhattan_axes",
            "image_axes", "image_up", "lines_up"]
