@@ -415,3 +415,12 @@ def test_level_panorama_example_levels_a_tilted_room(tmp_path, capsys):
     assert res["pixel_error_leveled"] < 0.3 * res["pixel_error_tilted"]
     assert (tmp_path / "tilted.png").exists() and (tmp_path / "level.jpg").exists()
     assert f"up from the lines {res['up_error_deg']:.2f} degrees off" in capsys.readouterr().out
+
+
+def test_level_panorama_survey_scores_each_lens_on_tilted_rooms(capsys):
+    ex = load("level_panorama")
+    errors = ex.survey(size=128, rooms=2)
+    assert set(errors) == {"panorama", "fisheye 190", "pinhole 90"}
+    assert all(len(e) == 2 for e in errors.values())
+    assert errors["panorama"][1] < 1.5  # a room with materials by kind, through the panorama
+    assert "within 1 degree on" in capsys.readouterr().out

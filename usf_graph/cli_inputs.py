@@ -36,7 +36,8 @@ def level_options(p, what: str) -> None:
     p.add_argument("--level", action="store_true",
                    help=f"level the view: {what}, keeping its heading. Up from the image's "
                         "straight lines (walls, doors, shelves: the camera held within 40 "
-                        "degrees of upright), or --up")
+                        "degrees of upright; reliable on panoramas, less so through narrow "
+                        "views: check the result), or --up")
     p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help="with --level: up in the source camera's sphere frame (x forward, "
                         "y left, z up), e.g. from an IMU")
