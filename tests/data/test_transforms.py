@@ -1,13 +1,14 @@
 import numpy as np
 import pytest
 import torch
+from torch_geometric.data import Data
 from torch_geometric.loader import DataLoader
 
 from usf_graph import SphericalFrontend, cameras, grids
 from usf_graph.data import GeodesicRadiusGraph, RandomRotation, rotate_sample
 from usf_graph.frontend import GeometryCache
 from usf_graph.frontend.interpolation import barycentric_entries
-from usf_graph.geometry import random_rotation
+from usf_graph.geometry import random_rotation, rotation_from_axis_angle
 from usf_graph.nn import geodesic_radius_graph
 
 A = np.array([0.3, -0.8, 0.5])
@@ -38,6 +39,12 @@ def test_relift_is_exact_rotation_through_rotated_camera():
     truth = f(p @ R.numpy())  # x'(p) = x(R^T p)
     assert np.abs(out.x[:, 0].double().numpy() - truth).max() < 2e-3
     assert not np.allclose(out.x[:, 0].numpy(), data.x[:, 0].numpy(), atol=0.05)
+    # a dataset's sample: the picture stored per graph ([1, H, W, C]) and per-point labels,
+    # which turn grid to grid as without the frontend (no labels image to re-lift exactly)
+    data.image, data.y = torch.from_numpy(img)[None], torch.arange(len(fe.grid)) % 13
+    out = RandomRotation(seed=5, frontend=fe)(data.clone())
+    assert torch.equal(out.x, ref)
+    assert torch.equal(out.y, rotate_sample(data.clone(), R).y)
 
 
 def test_rotation_sequence_is_seeded():
@@ -110,3 +117,56 @@ def test_geodesic_radius_graph_transform_and_batches():
     assert repr(t).startswith("GeodesicRadiusGraph(r=")
     with pytest.raises(ValueError, match="radius"):
         GeodesicRadiusGraph(0)
+
+
+def test_rotate_sample_turns_labels_and_up_with_the_signal():
+    """A symmetry of the grid maps points onto points, so everything turns exactly: the
+    signal and float targets resampled, integer labels permuted (not blended), up turned."""
+    from usf_graph.testing import symmetry_permutation
+
+    g = grids.icosahedral(3)
+    # a fifth of a turn about an icosahedron vertex: a symmetry of the grid
+    v = g.pos[0].double()
+    R = torch.as_tensor(rotation_from_axis_angle(v.numpy(), 2 * np.pi / 5))
+    sigma = symmetry_permutation(g.pos, R)  # R p_i = p_sigma(i)
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(len(g), 3, generator=gen, dtype=torch.float64)
+    y = torch.randint(0, 13, (len(g),), generator=gen)
+    depth = torch.rand(len(g), generator=gen, dtype=torch.float64)
+    up = torch.tensor([[0.3, -0.2, 0.9]], dtype=torch.float64)
+    out = rotate_sample(Data(x=x.clone(), y=y.clone(), pos=g.pos, up=up.clone()), R)
+    want_x, want_y = torch.empty_like(x), torch.empty_like(y)
+    want_x[sigma], want_y[sigma] = x, y  # x'(R p) = x(p)
+    torch.testing.assert_close(out.x, want_x, atol=1e-9, rtol=0)
+    assert torch.equal(out.y, want_y) and out.y.dtype == y.dtype
+    torch.testing.assert_close(out.up, up @ R.T)
+    dep = rotate_sample(Data(x=x.clone(), y=depth.clone(), pos=g.pos), R).y  # a float target
+    want = torch.empty_like(depth)
+    want[sigma] = depth
+    torch.testing.assert_close(dep, want, atol=1e-9, rtol=0)
+
+
+def test_rotate_sample_labels_match_the_room_seen_turned():
+    """Labels of a rendered room, turned grid to grid, against the room's exact labels seen
+    from the turned frame: equal but on the boundaries between objects; a cap's mask
+    moves with them, and what it turns out of view is ignored."""
+    from usf_graph.data.transforms import IGNORE_LABEL
+    from usf_graph.datasets.rooms import grid_labels
+    from usf_graph.scenes import IGNORE, make_room
+
+    assert IGNORE_LABEL == IGNORE
+    g = grids.icosahedral(5)
+    pos = g.pos.double().numpy()
+    scene = make_room(seed=3, index=3, materials="by_kind")
+    position, RA = scene.viewpoint(0)
+    Q = random_rotation(seed=4).numpy()
+    cap = torch.as_tensor(pos @ np.array([1.0, 0.0, 0.0]) > 0.2)  # a 156-degree field of view
+    ya = torch.as_tensor(grid_labels(scene, position, RA, pos, cap.numpy()))
+    yb = grid_labels(scene, position, RA @ Q.T, pos, np.ones(len(pos), bool))  # world = RA Q^T p
+    out = rotate_sample(Data(x=torch.zeros(len(pos), 1), y=ya, pos=g.pos, mask=cap), torch.as_tensor(Q))
+    seen = out.mask.numpy()
+    assert 0.2 < seen.mean() < 0.5 and (out.y.numpy()[~seen] == IGNORE).all()
+    agree = (out.y.numpy()[seen] == yb[seen]).mean()
+    assert agree > 0.95, agree
+    with pytest.raises(ValueError, match="rotate_boxes"):
+        rotate_sample(Data(x=torch.zeros(len(pos), 1), pos=g.pos, boxes=torch.zeros(1, 5)), Q)

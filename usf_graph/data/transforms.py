@@ -25,7 +25,9 @@ class RandomRotation(BaseTransform):
     * Otherwise the signal is resampled grid to grid with barycentric weights on the
       grid's triangulation; a point stays visible only if its whole triangle is.
 
-    The rotation used is stored in ``data.rotation [3, 3]``.
+    Per-point labels ``y`` and gravity ``up`` turn with the signal (:func:`rotate_sample`);
+    a sample with spherical boxes is refused. The rotation used is stored in
+    ``data.rotation [3, 3]``.
 
     Args:
         seed: seed of a private ``torch.Generator``; the sequence of rotations is then
@@ -53,28 +55,71 @@ class RandomRotation(BaseTransform):
         return f"{type(self).__name__}({exact})"
 
 
-def rotate_sample(data: Data, R: torch.Tensor, frontend=None) -> Data:
-    """``data`` with its signal turned by the rotation ``R`` (see :class:`RandomRotation`)."""
+#: The label that :func:`rotate_sample` gives points it turns out of the field of view
+#: (usf-graph's ignore index, ``scenes.classes.IGNORE``).
+IGNORE_LABEL = 255
+
+
+def rotate_sample(data: Data, R: torch.Tensor, frontend=None,
+                  ignore_index: int = IGNORE_LABEL) -> Data:
+    """``data`` with its signal turned by the rotation ``R`` (see :class:`RandomRotation`),
+    and with it everything the view's frame fixes:
+
+    * ``x`` and ``mask``: re-lifted (``frontend`` and ``data.image``) or resampled;
+    * per-point labels ``y [N]`` (integers): the label of the nearest of the three grid
+      points the turned point falls between, ``ignore_index`` where it leaves the field of
+      view; a float ``y [N, ...]`` is resampled as ``x`` is;
+    * gravity ``up [1, 3]`` (or ``[3]``): turned to ``R up``.
+
+    The source pictures (``image``, ``label_image``) stay as they were taken. Spherical
+    boxes are refused: turn them with :func:`usf_graph.ops.rotate_boxes`."""
+    if getattr(data, "boxes", None) is not None:
+        raise ValueError("rotate_sample turns the signal, labels and up of a sample, not its "
+                         "spherical boxes: turn those with usf_graph.ops.rotate_boxes(boxes, R) "
+                         "in your own transform, or render rotated views")
     R64 = torch.as_tensor(R, dtype=torch.float64)
+    n = data.pos.shape[0]
+    y = getattr(data, "y", None)
+    per_point = isinstance(y, torch.Tensor) and y.dim() >= 1 and y.shape[0] == n
     image = getattr(data, "image", None)
-    if frontend is not None and image is not None:
+    exact = frontend is not None and image is not None
+    if not exact or per_point:
+        pos = data.pos.detach().to(torch.float64).numpy()
+        idx, w = barycentric_entries(pos, pos @ R64.numpy())  # row p: R^T p
+        idx, w = torch.from_numpy(idx), torch.from_numpy(w)
+    if exact:
         cam = frontend.camera
         fe = SphericalFrontend(cam.turned(R64.numpy()), frontend.grid,
                                frontend.interpolation, frontend.radius,
                                cache=GeometryCache(None, max_items=1))
-        x = fe.lift(image.numpy() if isinstance(image, torch.Tensor) else image)
+        img = image.numpy() if isinstance(image, torch.Tensor) else image
+        if img.ndim >= 3 and img.shape[0] == 1 and img.shape[1:3] == (cam.height, cam.width):
+            img = img[0]  # stored per graph, as [1, H, W(, C)] (PyG batching)
+        x = fe.lift(img)
         data.x, data.mask = x.to(data.x.dtype), fe.mask.clone()
-        return data
-    pos = data.pos.detach().to(torch.float64).numpy()
-    idx, w = barycentric_entries(pos, pos @ R64.numpy())  # row p: R^T p
-    idx, w = torch.from_numpy(idx), torch.from_numpy(w).to(data.x.dtype)
-    x = data.x if data.x.ndim == 2 else data.x[:, None]
-    xr = (x[idx] * w[..., None]).sum(1)
-    data.x = xr if data.x.ndim == 2 else xr[:, 0]
-    if getattr(data, "mask", None) is not None:
-        data.mask = data.mask[idx].all(1)
-        data.x = data.x * data.mask.reshape(-1, *([1] * (data.x.ndim - 1)))
+    else:
+        data.x = _resampled(data.x, idx, w)
+        if getattr(data, "mask", None) is not None:
+            data.mask = data.mask[idx].all(1)
+            data.x = data.x * data.mask.reshape(-1, *([1] * (data.x.ndim - 1)))
+    if per_point:
+        if y.is_floating_point():
+            data.y = _resampled(y, idx, w)
+        else:
+            data.y = y[idx[torch.arange(n), w.argmax(1)]]
+            if getattr(data, "mask", None) is not None:
+                data.y = torch.where(data.mask, data.y, torch.full_like(data.y, ignore_index))
+    up = getattr(data, "up", None)
+    if isinstance(up, torch.Tensor) and up.shape[-1:] == (3,) and up.numel() == 3:
+        data.up = (up.to(torch.float64) @ R64.T).to(up.dtype)
     return data
+
+
+def _resampled(v: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Per-point values ``v [N, ...]`` at the turned points: barycentric blends."""
+    flat = v if v.ndim >= 2 else v[:, None]
+    out = (flat[idx] * w.to(v.dtype).reshape(*w.shape, *([1] * (flat.ndim - 1)))).sum(1)
+    return out if v.ndim >= 2 else out[:, 0]
 
 
 class GeodesicRadiusGraph(BaseTransform):
