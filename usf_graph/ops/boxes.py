@@ -23,8 +23,8 @@ import torch
 from ..geometry import (
     as_rotation_matrix,
     from_latlon,
+    level_rotation,
     normalize,
-    rotation_from_axis_angle,
     to_latlon,
 )
 from ..tracing import check_values
@@ -221,7 +221,7 @@ def fit_box(directions, up=(0.0, 0.0, 1.0), iters: int = 60, tol: float = 1e-12,
     if len(d) == 0:
         raise ValueError("fit_box needs at least one direction")
     up = normalize(np.asarray(up, np.float64))
-    R = _align_z(up)  # work in a frame whose z is up, so roll 0 = vertical axis up
+    R = level_rotation(up)  # work in a frame whose z is up, so roll 0 = vertical axis up
     d = d @ R.T
     c = normalize(d.mean(0) if centre is None else R @ np.asarray(centre, np.float64))
     if not np.all(d @ c > 1e-6):
@@ -267,12 +267,3 @@ def _asymmetry(d, lon, lat):
     if not np.all(z > 1e-9):
         return None
     return np.array([(x.max() + x.min()) / 2, (y.max() + y.min()) / 2])
-
-
-def _align_z(up):
-    """A rotation taking ``up`` to +z."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(up, z)
-    if np.linalg.norm(axis) < 1e-15:
-        return np.eye(3) if up @ z > 0 else np.diag([1.0, -1.0, -1.0])
-    return rotation_from_axis_angle(axis, np.arctan2(np.linalg.norm(axis), up @ z))
