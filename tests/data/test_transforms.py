@@ -170,3 +170,28 @@ def test_rotate_sample_labels_match_the_room_seen_turned():
     assert agree > 0.95, agree
     with pytest.raises(ValueError, match="rotate_boxes"):
         rotate_sample(Data(x=torch.zeros(len(pos), 1), pos=g.pos, boxes=torch.zeros(1, 5)), Q)
+
+
+def test_level_turns_a_sample_so_that_its_up_is_z():
+    """Level: the smallest turn taking data.up to +z, applied like RandomRotation's (the
+    signal re-lifted through the camera mounted turned, labels and up with it)."""
+    from usf_graph.data import Level
+    from usf_graph.geometry import level_rotation
+
+    cam, img = pano()
+    fe = SphericalFrontend(cam, grids.icosahedral(4), cache=GeometryCache(None))
+    u = torch.nn.functional.normalize(torch.tensor([[0.2, -0.3, 0.93]], dtype=torch.float64), dim=-1)
+    data = fe(img)
+    data.image, data.up, data.y = torch.from_numpy(img)[None], u.clone(), torch.arange(len(fe.grid)) % 13
+    out = Level(frontend=fe)(data.clone())
+    R = level_rotation(u[0].numpy())
+    torch.testing.assert_close(out.up[0], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close(out.rotation, torch.as_tensor(R).to(out.pos.dtype))
+    ref = SphericalFrontend(cam.turned(R), fe.grid, cache=GeometryCache(None)).lift(img)
+    assert torch.equal(out.x, ref)
+    assert torch.equal(out.y, rotate_sample(data.clone(), torch.as_tensor(R)).y)
+    grid_to_grid = Level()(data.clone())  # without the frontend: resampled, up still +z
+    assert (grid_to_grid.x - ref).abs().max() < 0.05 and torch.allclose(grid_to_grid.up, out.up)
+    with pytest.raises(ValueError, match="needs data.up"):
+        Level()(fe(img))
+    assert repr(Level(fe)) == "Level(re-lift)"

@@ -4,10 +4,11 @@ from ..frontend.image import SphericalImage
 from .transforms import (
     GaussianEdgeWeight,
     GeodesicRadiusGraph,
+    Level,
     RandomRotation,
     VisibleSubgraph,
     rotate_sample,
 )
 
-__all__ = ["SphericalImage", "RandomRotation", "GeodesicRadiusGraph", "GaussianEdgeWeight",
+__all__ = ["SphericalImage", "RandomRotation", "Level", "GeodesicRadiusGraph", "GaussianEdgeWeight",
            "VisibleSubgraph", "rotate_sample"]

@@ -9,7 +9,7 @@ from torch_geometric.transforms import BaseTransform
 
 from ..frontend import GeometryCache, SphericalFrontend
 from ..frontend.interpolation import barycentric_entries
-from ..geometry import random_rotation
+from ..geometry import level_rotation, random_rotation
 from ..graph import geodesic_radius_graph
 
 
@@ -53,6 +53,38 @@ class RandomRotation(BaseTransform):
     def __repr__(self) -> str:
         exact = "re-lift" if self.frontend is not None else "grid-to-grid"
         return f"{type(self).__name__}({exact})"
+
+
+class Level(BaseTransform):
+    r"""Turns a sample so that its gravity ``data.up`` (e.g. from an IMU:
+    :class:`~usf_graph.datasets.RosBagFrames`) becomes +z: by the smallest rotation
+    :math:`R` with :math:`R\,u = e_z` (:func:`~usf_graph.geometry.level_rotation`, which
+    keeps the heading), applied as :class:`RandomRotation` applies its own (labels and up
+    with the signal; exact with ``frontend`` and ``data.image``). For models that are not
+    rotation-equivariant, which need their inputs level. The rotation used is stored in
+    ``data.rotation [3, 3]``.
+
+    Args:
+        frontend: the :class:`~usf_graph.frontend.SphericalFrontend` that lifted the
+            samples, for the exact path.
+    """
+
+    def __init__(self, frontend=None):
+        self.frontend = frontend
+
+    def forward(self, data: Data) -> Data:
+        """``data`` turned level, ``data.up`` then +z."""
+        up = getattr(data, "up", None)
+        if up is None:
+            raise ValueError("Level needs data.up, gravity's up in the sample's frame (an IMU: "
+                             "RosBagFrames(imu=...), or the rooms datasets' views)")
+        R = torch.as_tensor(level_rotation(up.detach().double().cpu().reshape(-1).numpy()))
+        data = rotate_sample(data, R, self.frontend)
+        data.rotation = R.to(data.pos.dtype)
+        return data
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({'re-lift' if self.frontend is not None else 'grid-to-grid'})"
 
 
 #: The label that :func:`rotate_sample` gives points it turns out of the field of view
