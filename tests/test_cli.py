@@ -686,6 +686,10 @@ def test_predict_cli_on_a_rig(tmp_path, capsys):
     for name, lab in zip(rig, want):
         assert np.array_equal(cv2.imread(str(tmp_path / "out" / f"{name}_labels.png"),
                                          cv2.IMREAD_UNCHANGED), lab)
+    # --up-lines reads both cameras' lines (the panorama's labels are text: few lines)
+    assert main([*argv, "--up-lines"]) == 0
+    lines_said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("up: (")]
+    assert len(lines_said) == 1 and ("straight-line axes" in lines_said[0] or "too few" in lines_said[0])
     # the detector on the rig: boxes in the rig's frame, drawn where each camera sees them
     import json
 

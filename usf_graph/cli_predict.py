@@ -77,7 +77,8 @@ def add_predict_parser(sub, fmt) -> None:
                         "own estimate")
     p.add_argument("--up-lines", action="store_true",
                    help="the up estimate picks among the Manhattan axes of the image's straight "
-                        "lines (any lens: docs/up_estimate.md); not with --up or --rig")
+                        "lines (any lens, a rig's cameras together: docs/up_estimate.md); not "
+                        "with --up")
     estimate_options(p)
     add_device_option(p)
     p.add_argument("--interpolation", default="auto", choices=("auto",) + METHODS,
@@ -117,9 +118,9 @@ def _report_up(info: dict) -> str:
 
 def _up_arg(args):
     """``--up`` or ``--up-lines`` as :func:`~usf_graph.train.apply.segment_image`'s ``up``."""
-    if args.up_lines and (args.up is not None or args.rig):
-        raise ValueError("--up-lines reads one camera's straight lines: not with --up (a known "
-                         "up needs no estimate) or --rig")
+    if args.up_lines and args.up is not None:
+        raise ValueError("--up-lines lets the estimate pick among the image's straight lines: "
+                         "not with --up (a known up needs no estimate)")
     return "lines" if args.up_lines else args.up
 
 

@@ -212,3 +212,36 @@ def test_an_image_mask_is_left_out_and_unseen(views):
     assert (r["labels"][:, 16:] == UNSEEN).all() and (r["labels"][:, :16] != UNSEEN).any()
     whole = segment_image(net, img, ds.camera, interpolation="bilinear")  # not the masked frontend
     assert (whole["labels"][:, 16:] != UNSEEN).any()
+
+
+def test_a_rigs_up_lines_read_every_cameras_lines_together():
+    """``up="lines"`` on a rig: the estimate picks among the axes of all its cameras' lines
+    (in the rig's frame), the same whether the cameras sit apart and are stitched at a
+    distance or share a centre: where lines point does not depend on where one stands."""
+    from usf_graph.cameras import stitch_at
+    from usf_graph.frontend.lines import line_normals, manhattan_axes, rig_line_normals
+    from usf_graph.geometry import rotation_from_axis_angle
+    from usf_graph.scenes import make_room, render
+
+    base = Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
+    rig = {"front": base, "left": base.turned(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.pi / 2))}
+    scene = make_room(seed=3, index=3, materials="by_kind")
+    pos, R = scene.viewpoint(0)
+    images = [render(scene, c, pos, R, boxes=False).rgb for c in rig.values()]
+    n, w = rig_line_normals(images, rig.values())
+    one = [line_normals(im, c) for im, c in zip(images, rig.values())]
+    assert np.array_equal(n, np.concatenate([a for a, _ in one])) and len(n) > 40
+    apart = stitch_at({k: c.with_position(np.array([0.05 * i, 0.0, 0.0])) for i, (k, c) in
+                       enumerate(rig.items())}, 2.0)
+    assert np.array_equal(rig_line_normals(images, apart.values())[0], n)
+    axes = manhattan_axes(n, w)
+    assert np.degrees(np.arccos(np.abs(axes @ R[2]).max())) < 1.0  # the room's up among them
+    torch.manual_seed(0)
+    det = SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(8, 8, 8),
+                            gravity=True).eval()
+    r = detect_image(det, images, rig, up="lines")
+    assert r["source"] == "lines" and np.isclose(np.abs(axes @ np.array(r["up"])).max(), 1.0, atol=1e-6)
+    named = detect_image(det, dict(zip(reversed(list(rig)), reversed(images))), rig, up="lines")
+    assert np.allclose(named["up"], r["up"])  # images by name, in any order
+    with pytest.raises(ValueError, match="1 images for 2 cameras"):
+        rig_line_normals(images[:1], rig.values())

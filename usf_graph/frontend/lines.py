@@ -154,6 +154,18 @@ def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np
     return np.concatenate([n for n, _ in found]), np.concatenate([w for _, w in found])
 
 
+def rig_line_normals(images, cameras) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`line_normals` of a rig's cameras (``cameras``, mounted in the rig's frame) on
+    their ``images`` (one each, in order), together, in the rig's sphere frame. Where lines
+    point does not depend on where a camera sits, so each camera's lines are read from
+    its own centre (a position the rig's stitching gave it is dropped)."""
+    images, cameras = list(images), list(cameras)
+    if len(images) != len(cameras):
+        raise ValueError(f"{len(images)} images for {len(cameras)} cameras: give one image per camera")
+    found = [line_normals(im, cam.with_position(None)) for im, cam in zip(images, cameras)]
+    return np.concatenate([n for n, _ in found]), np.concatenate([w for _, w in found])
+
+
 def _support(v: np.ndarray, normals: np.ndarray, weights: np.ndarray, tol: float) -> np.ndarray:
     """The line length pointing at each direction of ``v [K, 3]``."""
     return ((np.abs(v @ normals.T) < math.sin(math.radians(tol))) * weights).sum(-1)
@@ -283,4 +295,4 @@ def lines_up(image, camera: Camera, prior=None, max_tilt: float = MAX_TILT) -> n
 
 
 __all__ = ["LINE_TOLERANCE", "MIN_LINES", "MAX_LINES", "MAX_FACE", "MAX_TILT", "line_normals", "manhattan_axes",
-           "image_axes", "image_up", "lines_up"]
+           "image_axes", "image_up", "lines_up", "rig_line_normals"]

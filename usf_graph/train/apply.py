@@ -198,16 +198,21 @@ def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | N
     """``up="lines"``: the model's up estimate picks among the Manhattan axes of the
     image's straight lines (:func:`~usf_graph.train.gravity.estimate_up` with ``axes``) ->
     ``([1, 3] or None, its info)``; ``None`` (the estimate as it is) when the image has too
-    few lines. The camera must be one camera (any model: :func:`~usf_graph.frontend.lines.line_normals`
-    straightens a fisheye's or a panorama's lines through pinholes), not a rig."""
-    from ..frontend.lines import line_normals, manhattan_axes
+    few lines. Any camera (:func:`~usf_graph.frontend.lines.line_normals` straightens a
+    fisheye's or a panorama's lines through pinholes), and a rig (its cameras' lines
+    together, :func:`~usf_graph.frontend.lines.rig_line_normals`)."""
+    from ..frontend.lines import line_normals, manhattan_axes, rig_line_normals
     from ..models.gravity import UNSURE_MARGIN
     from .gravity import estimate_up, require_up_estimate
 
-    if not isinstance(fe, SphericalFrontend):
-        raise ValueError("up='lines' reads the straight lines of one camera's image, not a rig's")
     require_up_estimate(model, "up='lines'")
-    axes = manhattan_axes(*line_normals(rgb01(image, colour_model=False), fe.camera))  # warned at lift
+    if isinstance(fe, SphericalFrontend):
+        lines = line_normals(rgb01(image, colour_model=False), fe.camera)  # warned at lift
+    else:  # a rig: its images in its cameras' order
+        ims = [image[n] for n in fe.names] if isinstance(image, Mapping) else list(image)
+        lines = rig_line_normals([rgb01(im, colour_model=False) for im in ims],
+                                 [f.camera for f in fe.frontends])
+    axes = manhattan_axes(*lines)
     if axes is None:
         return None, {"lines": "too few straight lines: the estimate"}
     up, margin = estimate_up(model.gravity, x, mask, axes=torch.as_tensor(axes)[None])
