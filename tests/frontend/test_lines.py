@@ -184,9 +184,11 @@ def test_line_normals_turn_with_the_camera():
     Q = rotation_from_axis_angle(np.array([1.0, 2.0, 2.0]) / 3, 0.7)
     n2, w2 = line_normals(rgb, cam.with_rotation(Q @ cam.rotation))
     assert len(n) > 20 and np.allclose(n2, n @ Q.T, atol=1e-12) and np.allclose(w2, w)
-    # float images in [0, 1] read as the same picture
+    # float images in [0, 1] and 16-bit ones read as the same picture
     n3, _ = line_normals(rgb.astype(np.float64) / 255, cam)
     assert np.allclose(n3, n, atol=1e-12)
+    n4, _ = line_normals(rgb.astype(np.uint16) * 257, cam)
+    assert np.allclose(n4, n, atol=1e-12)
 
 
 def test_lines_are_not_found_on_the_border_of_an_image_mask():

@@ -55,8 +55,11 @@ def _gray(image) -> np.ndarray:
         raise ValueError(f"image must be [H, W] or [H, W, C], got shape {np.asarray(image).shape}")
     if not np.isfinite(a).all():
         raise ValueError("the image has NaN or inf pixels; fill or mask them before finding lines")
-    if not np.issubdtype(np.asarray(image).dtype, np.integer):
+    dtype = np.asarray(image).dtype
+    if not np.issubdtype(dtype, np.integer):
         a = a * 255.0  # float images are in [0, 1], as the rest of the library reads them
+    elif dtype == np.uint16:  # 16-bit cameras: their whole range, not its first 255
+        a = a / 257.0
     return np.clip(np.round(a), 0, 255).astype(np.uint8)
 
 
