@@ -156,6 +156,26 @@ def test_render_and_camera_save_commands(tmp_path, capsys):
         assert cv2.imread(str(tmp_path / "again.png")).shape == shape
 
 
+def test_camera_overlay_draws_the_graticule_on_the_cameras_image(tmp_path, capsys):
+    from usf_graph.viz import draw_graticule
+
+    cv2.imwrite(str(tmp_path / "pano.png"), np.zeros((360, 720, 3), np.uint8))
+    assert main(["camera", "equirectangular", "--overlay", str(tmp_path / "pano.png"),
+                 str(tmp_path / "g.png")]) == 0  # a panorama's size from the image
+    got = cv2.imread(str(tmp_path / "g.png"))[..., ::-1]
+    assert np.array_equal(got, draw_graticule(np.zeros((360, 720, 3), np.uint8), cameras.Equirectangular(720, 360)))
+    pin = cameras.Pinhole(256.0, 256.0, 255.5, 191.5, 512, 384)
+    pin.save(tmp_path / "pin.yaml")
+    cv2.imwrite(str(tmp_path / "half.png"), np.zeros((192, 256, 3), np.uint8))  # resized as a whole
+    assert main(["camera", str(tmp_path / "pin.yaml"), "--overlay", str(tmp_path / "half.png"),
+                 str(tmp_path / "h.png")]) == 0
+    assert "scaling the calibration by 0.5" in capsys.readouterr().out
+    want = draw_graticule(np.zeros((192, 256, 3), np.uint8), pin.resized(256, 192))
+    assert np.array_equal(cv2.imread(str(tmp_path / "h.png"))[..., ::-1], want)
+    assert main(["camera", str(tmp_path / "pin.yaml"), "--all", "--overlay", str(tmp_path / "half.png"),
+                 str(tmp_path / "h.png")]) == 2
+
+
 def test_render_level_straightens_a_tilted_panorama(tmp_path, capsys):
     """``render --level``: up from the panorama's straight lines (or ``--up``), and the
     target turned so that it is level: a panorama with its horizon straight, a pinhole

@@ -98,3 +98,36 @@ def test_frame_video_writes_what_it_is_given(tmp_path):
         FrameVideo(tmp_path / "a.gif")
     with pytest.raises(ValueError, match="frame rate must be positive"):
         FrameVideo(tmp_path / "a.avi", fps=0)
+
+
+def test_graticule_lies_where_the_sphere_frame_says():
+    """The horizon through a level pinhole is the row of its principal point; a panorama's
+    meridians are its columns every 15 degrees and its parallels its rows; a fisheye's red
+    edge is its image circle. Nothing is drawn far from every circle."""
+    from usf_graph.cameras import Equirectangular, Fisheye, Pinhole
+    from usf_graph.viz import HORIZON, VIEW_EDGE, draw_graticule
+
+    pin = Pinhole(256.0, 256.0, 255.5, 191.5, 512, 384)
+    out = draw_graticule(np.zeros((384, 512, 3), np.uint8), pin)
+    assert out.shape == (384, 512, 3)
+    row = out[191:193, 100:400].reshape(-1, 3)
+    assert (np.abs(row.astype(int) - HORIZON).max(1) < 40).mean() > 0.9  # the horizon, yellow
+    # meridians are vertical lines (lon 15 and 30 at columns 186.9 and 107.7), the 15-degree
+    # parallel bends above row 125 there: nothing in between
+    assert (out[130:180, 115:180] == 0).all() and (out[197:250, 191:251] == 0).all()
+    assert (out[100:300, 186:189].max(-1).max(-1) > 100).mean() > 0.9  # the 15-degree meridian
+    pano = Equirectangular(720, 360)
+    out = draw_graticule(np.zeros((360, 720), np.float32), pano)  # gray floats too
+    cols = out[20:340:7, [179, 180, 359, 360]].max(-1)  # lon 90 and 0: columns 179.5 and 359.5
+    assert (cols > 100).all()
+    assert (out[124:146, 184:206] == 0).all()  # inside a 15-degree cell (rows 119.5-149.5)
+    assert np.all(np.abs(out[179:181, 200:300].astype(int) - HORIZON).max(-1).min(0) < 60)
+    assert (out[118:122, 200:300].min(-1).max(0) > 100).all()  # 30 N (antialiased: grey-white)
+    fish = Fisheye(100.0, 255.5, 255.5, 512, 512, model="equidistant", fov_deg=180)
+    out = draw_graticule(np.zeros((512, 512, 3), np.uint8), fish)
+    r = 100.0 * np.pi / 2  # the image circle's radius: 157 pixels
+    t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
+    on = out[np.round(255.5 + (r - 1) * np.sin(t)).astype(int), np.round(255.5 + (r - 1) * np.cos(t)).astype(int)]
+    assert (np.abs(on.astype(int) - VIEW_EDGE).max(1) < 60).mean() > 0.8
+    with pytest.raises(ValueError, match="the camera's"):
+        draw_graticule(np.zeros((10, 10, 3), np.uint8), fish)

@@ -258,6 +258,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "e.g. to reconstruct with intrinsics calibrated elsewhere")
     c.add_argument("--plot", default=None, metavar="PNG",
                    help="write a figure of the lens normal map and its coverage of the sphere")
+    c.add_argument("--overlay", nargs=2, default=None, metavar=("IMAGE", "OUT"),
+                   help="draw the sphere frame's parallels and meridians every 15 degrees "
+                        "(the horizon in yellow) and the edge of the usable view (red) on an "
+                        "image the camera took: on a level camera the meridians follow the "
+                        "scene's verticals and the horizon the real one, through any lens")
     c.add_argument("--resize", default=None, metavar="WxH",
                    help="the calibration for its images resized as a whole to this size "
                         "(cv2.resize; Camera.resized), e.g. to --save a half-size calibration")

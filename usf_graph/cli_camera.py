@@ -6,7 +6,7 @@ import json
 import math
 
 from .cameras import with_fov_and_mask
-from .cli_inputs import camera_from_spec, image_size
+from .cli_inputs import camera_from_spec, fit_to_image, image_size, is_panorama_spec, read_image
 
 
 def _vec(a) -> str:
@@ -24,7 +24,9 @@ def _centre(cam) -> str:
 def cmd_camera(args) -> int:
     if args.all:
         return _list_cameras(args)
-    cam = camera_from_spec(args.calib, args.key, args.fov)
+    # a panorama without a size takes the overlaid image's
+    shape = read_image(args.overlay[0]).shape if args.overlay and is_panorama_spec(args.calib) else None
+    cam = camera_from_spec(args.calib, args.key, args.fov, image_shape=shape)
     if args.resize:
         cam = cam.resized(*image_size(args.resize, "--resize", "640x480"))
     cam = with_fov_and_mask(cam, None, args.image_mask)
@@ -44,19 +46,36 @@ def cmd_camera(args) -> int:
 
         plot_lens_normal_map(cam, args.plot)
         print(f"wrote {args.plot}")
+    if args.overlay:
+        _overlay(cam, *args.overlay)
     if args.save:
         cam.save(args.save)
         print(f"wrote {args.save} (usf-graph YAML; read it with --camera {args.save})")
     return 0
 
 
+def _overlay(cam, image_path: str, out: str) -> None:
+    """``camera --overlay IMAGE OUT``: the graticule drawn on the camera's image
+    (:func:`usf_graph.viz.draw_graticule`; the calibration scaled to an image resized as a
+    whole)."""
+    import cv2
+
+    from .viz import draw_graticule
+
+    img = read_image(image_path)
+    drawn = draw_graticule(img, fit_to_image(cam, img.shape))
+    if not cv2.imwrite(out, cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
+        raise ValueError(f"cannot write {out}: use an image suffix OpenCV knows (.png, .jpg)")
+    print(f"wrote {out}")
+
+
 def _list_cameras(args) -> int:
     """``camera --all``: one line per camera of the file."""
     from . import cameras
 
-    if args.key is not None or args.plot or args.save or args.resize:
+    if args.key is not None or args.plot or args.save or args.resize or args.overlay:
         raise ValueError("--all lists every camera of the file; leave out --key, --plot, "
-                         "--save and --resize (then pick one with --key)")
+                         "--overlay, --save and --resize (then pick one with --key)")
     print(f"{'key':<10} {'model':<16} {'image':>11} {'fov (deg)':>10}  {'optical axis (sphere frame)':<29} "
           "optical centre")
     found = cameras.load_all(args.calib)

@@ -157,6 +157,33 @@ def labelled_panorama(width: int = 1024, height: int = 512) -> np.ndarray:
 TRUTH, DETECTION, CUT = (0, 255, 0), (255, 255, 0), (255, 60, 60)
 
 
+def _draw_curve(out: np.ndarray, camera, points: np.ndarray, colour, thickness: int = 2,
+                scale: int = 1) -> list:
+    """Draws the sphere-frame curve ``points [M, 3]`` on ``out`` (the camera's image enlarged
+    ``scale`` times) where ``camera`` sees it, cut where it does not or where a panorama
+    wraps; returns the drawn runs of pixel points."""
+    import cv2
+
+    uv, seen = camera.sees(points)
+    uv = (uv + 0.5) * scale - 0.5  # pixel centres of the enlarged image
+    runs, cur = [], []
+    for (u, v), ok in zip(uv, seen):
+        if ok and cur and abs(u - cur[-1][0]) > scale * camera.width / 2:  # panorama seam
+            runs.append(cur)
+            cur = []
+        if ok:
+            cur.append((u, v))
+        elif cur:
+            runs.append(cur)
+            cur = []
+    runs.append(cur)
+    for r in runs:
+        if len(r) > 1:
+            pts = np.round(np.array(r) * 4).astype(np.int32)  # 2 fractional bits
+            cv2.polylines(out, [pts], False, colour, thickness, cv2.LINE_AA, shift=2)
+    return runs
+
+
 def draw_boxes(image: np.ndarray, camera, boxes, names=None, colour=DETECTION,
                thickness: int = 2, scale: int = 1) -> np.ndarray:
     """A copy of ``image [H, W, 3]`` uint8 with spherical ``boxes [K, 5]`` (the camera's
@@ -173,28 +200,61 @@ def draw_boxes(image: np.ndarray, camera, boxes, names=None, colour=DETECTION,
         out = cv2.resize(out, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     boxes = _np(boxes).reshape(-1, 5)
     for k, b in enumerate(boxes):
-        uv, seen = camera.sees(box_edges(b, 64))
-        uv = (uv + 0.5) * scale - 0.5  # pixel centres of the enlarged image
-        runs, cur = [], []
-        for (u, v), ok in zip(uv, seen):
-            if ok and cur and abs(u - cur[-1][0]) > scale * camera.width / 2:  # panorama seam
-                runs.append(cur)
-                cur = []
-            if ok:
-                cur.append((u, v))
-            elif cur:
-                runs.append(cur)
-                cur = []
-        runs.append(cur)
-        for r in runs:
-            if len(r) > 1:
-                pts = np.round(np.array(r) * 4).astype(np.int32)  # 2 fractional bits
-                cv2.polylines(out, [pts], False, colour, thickness, cv2.LINE_AA, shift=2)
+        runs = _draw_curve(out, camera, box_edges(b, 64), colour, thickness, scale)
         top = max((r for r in runs if r), key=len, default=None)
         if names is not None and top:
             u, v = min(top, key=lambda q: q[1])
             cv2.putText(out, str(names[k]), (int(u), max(int(v) - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX,
                         0.4, colour, 1, cv2.LINE_AA)
+    return out
+
+
+#: Colours (RGB) of :func:`draw_graticule`: the horizon, the other circles, the edge of view.
+HORIZON, GRATICULE, VIEW_EDGE = (255, 220, 0), (255, 255, 255), (255, 60, 60)
+
+
+def draw_graticule(image: np.ndarray, camera, step: float = 15.0) -> np.ndarray:
+    """A copy of ``image [H, W(, 3)]`` (uint8, or floats in [0, 1]) with the parallels and
+    meridians of ``camera``'s sphere frame every ``step`` degrees (the horizon thicker, in
+    yellow), the meridian straight ahead (x) labelled 0 and the edge of the camera's
+    usable view in red: a check of a calibration and its mounting by eye. Through any lens
+    the meridians are vertical great circles, so on a level camera (or with the IMU's
+    mounting) they follow the scene's verticals and the horizon lies on the real one; a
+    fisheye's red edge should lie on its image circle."""
+    import cv2
+
+    from .geometry import from_latlon
+
+    img = np.asarray(image)
+    if img.shape[:2] != (camera.height, camera.width):
+        raise ValueError(f"the image is {img.shape[:2]} (H, W), the camera's "
+                         f"{(camera.height, camera.width)}: give the image the camera took")
+    if img.dtype != np.uint8:
+        img = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+    out = np.ascontiguousarray(np.repeat(img[..., None], 3, -1) if img.ndim == 2 else img[..., :3])
+    scale = max(1, round(512 / max(camera.width, camera.height)))  # small images: enlarged
+    if scale != 1:
+        out = cv2.resize(out, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    half = np.radians(np.linspace(-90.0, 90.0, 361))
+    for lon in np.arange(-180.0, 180.0, step):
+        _draw_curve(out, camera, from_latlon(half, np.full_like(half, np.radians(lon))),
+                    GRATICULE, 1, scale)
+    t = np.radians(np.linspace(-180.0, 180.0, 721))
+    lats = np.arange(-90.0 + step, 90.0, step)
+    for lat in sorted(lats, key=lambda a: a == 0):  # the horizon last, on top
+        _draw_curve(out, camera, from_latlon(np.full_like(t, np.radians(lat)), t),
+                    HORIZON if lat == 0 else GRATICULE, 2 if lat == 0 else 1, scale)
+    uv, seen = camera.sees(np.array([[1.0, 0.0, 0.0]]))
+    if seen[0]:
+        u, v = (uv[0] + 0.5) * scale - 0.5
+        cv2.putText(out, "0", (int(u) + 4, int(v) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, HORIZON, 1,
+                    cv2.LINE_AA)
+    valid = camera.lens_normal_map()[1].astype(np.uint8)
+    if scale != 1:
+        valid = cv2.resize(valid, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    edges, _ = cv2.findContours(valid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not valid.all():
+        cv2.drawContours(out, edges, -1, VIEW_EDGE, 2)
     return out
 
 
