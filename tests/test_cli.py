@@ -156,6 +156,32 @@ def test_render_and_camera_save_commands(tmp_path, capsys):
         assert cv2.imread(str(tmp_path / "again.png")).shape == shape
 
 
+def test_render_stitches_a_rigs_images(tmp_path, capsys):
+    from usf_graph.frontend import render, render_rig
+    from usf_graph.viz import labelled_panorama
+
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    text = (255 * labelled_panorama(512, 256)).round().astype(np.uint8)
+    paths = []
+    for n, c in rig.items():
+        paths.append(str(tmp_path / f"{n}.png"))
+        cv2.imwrite(paths[-1], render(text, cameras.Equirectangular(512, 256), c)[..., ::-1])
+    views = [cv2.imread(p)[..., ::-1] for p in paths]
+    common = ["render", *paths, "--camera", str(FIXTURES / "kalibr_rig.yaml"), "--fov", "190"]
+    assert main([*common, "--to", "equirectangular:512x256", "--blend", "feather",
+                 "--out", str(tmp_path / "pano.png")]) == 0
+    assert "rig of 2 (cam0, cam1)" in capsys.readouterr().out
+    got = cv2.imread(str(tmp_path / "pano.png"))[..., ::-1]
+    assert np.array_equal(got, render_rig(views, rig, cameras.Equirectangular(512, 256), blend="feather"))
+    for flags, why in ((["--to", "equirectangular"], "give the panorama's size"),
+                       (["--to", "equirectangular:512x256", "--level"], "reads one camera's image")):
+        assert main([*common, *flags, "--out", str(tmp_path / "x.png")]) == 2
+        assert why in capsys.readouterr().err
+    assert main(["render", paths[0], "--camera", str(FIXTURES / "kalibr_rig.yaml"), "--to",
+                 "equirectangular", "--distance", "2", "--out", str(tmp_path / "x.png")]) == 2
+    assert "give the rig's images" in capsys.readouterr().err
+
+
 def test_camera_overlay_draws_the_graticule_on_the_cameras_image(tmp_path, capsys):
     from usf_graph.viz import draw_graticule
 

@@ -4,6 +4,7 @@ grid to keep the suite fast."""
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +46,7 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     assert ns["h"].shape == (int(ns["img"].mask.sum()), 8)
     shell = re.findall(r"```bash\n(.*?)```", section, re.S)
     lines = [ln for block in shell for ln in block.splitlines() if ln.startswith("usf-graph ")]
-    assert len(lines) == 7
+    assert len(lines) == 8
     for ln in lines:
         argv = shlex.split(ln.split("#")[0].replace("icosahedral:6", "icosahedral:3"))[1:]
         assert main(argv) == 0, ln
@@ -56,6 +57,7 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     # the leveling: up from the askew room's lines, and the command turning it level
     assert np.degrees(np.arccos(ns["up"] @ ns["tilt"][2])) < 1.0  # gravity, in the askew frame
     assert (tmp_path / "level.png").exists() and (tmp_path / "level_fisheye.png").exists()
+    assert cv2.imread(str(tmp_path / "stitched.png")).shape == (512, 1024, 3)  # the rig, stitched
 
 
 def test_scenes_section_runs(tmp_path, monkeypatch):

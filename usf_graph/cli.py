@@ -68,24 +68,40 @@ def cmd_render(args) -> int:
     import cv2
     import numpy as np
 
-    from .frontend import render
+    from .frontend import render, render_rig
 
-    img = read_image(args.image)
-    src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
+    images = [read_image(p) for p in args.image]
+    img = images[0]
+    if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
+        raise ValueError("a rig's images have no one width to take: give the panorama's size, "
+                         "--to equirectangular:WIDTHxHEIGHT")
     # a target is the camera asked for, not fitted to the source image; a panorama without
     # a size gets the source's width, at 2:1
     dst = camera_from_spec(args.to, args.to_key,
                            image_shape=(img.shape[1] // 2, img.shape[1]) if is_panorama_spec(args.to) else None)
-    src = leveled(src, img, args)  # the source mounted level: the target sees a level scene
-    out = render(img, src, dst, interpolation=args.interpolation)
+    if len(images) > 1:
+        if args.level or args.up is not None:
+            raise ValueError("--level reads one camera's image; a rig's images are stitched as "
+                             "the rig is mounted")
+        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images)
+        out = render_rig(images, rig, dst, blend=args.blend, interpolation=args.interpolation)
+        print(f"rig of {len(rig)} ({', '.join(rig)}) -> {type(dst).__name__} {dst.width}x{dst.height}, "
+              f"blend {args.blend}")
+    else:
+        if args.distance is not None:
+            raise ValueError("--distance stitches a rig's cameras; give the rig's images")
+        src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
+        src = leveled(src, img, args)  # the source mounted level: the target sees a level scene
+        out = render(img, src, dst, interpolation=args.interpolation)
+        print(f"{type(src).__name__} {src.width}x{src.height} -> {type(dst).__name__} "
+              f"{dst.width}x{dst.height}")
     if out.ndim == 3 and out.shape[2] in (3, 4):
         out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
     if args.out.endswith(".npy"):
         np.save(args.out, out)
     elif not cv2.imwrite(args.out, out):
         raise ValueError(f"cannot write {args.out}: use an image suffix OpenCV knows (.png, .jpg)")
-    print(f"{type(src).__name__} {src.width}x{src.height} -> {type(dst).__name__} "
-          f"{dst.width}x{dst.height}: wrote {args.out}")
+    print(f"wrote {args.out}")
     return 0
 
 
@@ -227,7 +243,6 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``usf-graph`` argument parser, every command and option with its help."""
     from .cli_det import count, positive_int
     from .frontend.interpolation import METHODS
-    from .frontend.rig import BLENDS
 
     fmt = _Help
     p = argparse.ArgumentParser(
@@ -294,10 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "the image) | rbf (Gaussian)")
     li.add_argument("--radius", type=float, default=None,
                     help="graph radius in radians (default: 1.6 grid spacings)")
-    li.add_argument("--blend", default="best", choices=BLENDS,
-                    help="rigs: where cameras overlap, the one looking closest (best) or a "
-                         "weighted average (feather)")
-    rig_options(li)
+    rig_options(li, blend=True)
     li.add_argument("--out", default=None, metavar="PT",
                     help="write the lifted signal, mask and geometry spec (not the graph); "
                          "usf_graph.frontend.load_lifted(PT) rebuilds the SphericalImage")
@@ -311,8 +323,10 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Re-image a picture through the sphere: each pixel of the "
                                    "target camera takes the source image's value on its ray "
                                    "(0 where the source does not see). E.g. a fisheye view of "
-                                   "a panorama.")
-    r.add_argument("image", help="the source image")
+                                   "a panorama, or a rig's images stitched into one.")
+    r.add_argument("image", nargs="+", help="the source image; several: one per camera of the "
+                   "--camera rig, in its order, stitched (e.g. two back-to-back fisheyes into "
+                   "a panorama)")
     r.add_argument("--camera", required=True, help="source camera: " + CAMERA_HELP)
     camera_options(r)
     r.add_argument("--to", required=True, help="target camera, same forms as --camera, at its "
@@ -323,6 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     level_options(r, "the source camera turned so that gravity's up is the sphere's +z, so "
                      "that the target sees a level scene (a panorama's horizon straight, a "
                      "pinhole upright)")
+    rig_options(r, blend=True)
     r.add_argument("--out", required=True, metavar="IMG", help="output image (.png, .jpg, .npy)")
 
     sc = sub.add_parser("scenes", help="render procedural rooms through three lenses",

@@ -120,8 +120,14 @@ def fit_to_image(cam, image_shape):
     return cam.resized(w, h)
 
 
-def rig_options(p) -> None:
-    """``--distance``, for the commands that read a rig."""
+def rig_options(p, blend: bool = False) -> None:
+    """``--distance``, for the commands that read a rig; with ``blend``, ``--blend``."""
+    if blend:
+        from .frontend.rig import BLENDS
+
+        p.add_argument("--blend", default="best", choices=BLENDS,
+                       help="rigs: where cameras overlap, the one looking closest (best) or a "
+                            "weighted average (feather)")
     p.add_argument("--distance", type=_distance, default=None, metavar="M",
                    help="with a rig: stitch its cameras at this distance from the rig's centre "
                         "('auto': where the cameras agree best on their overlaps, from the "

@@ -4,7 +4,7 @@ rigs, and lifted samples on disk."""
 from .cache import GeometryCache, default_cache
 from .frontend import SphericalFrontend, default_radius, grid_graph, render
 from .lifted import load_lifted, read_lifted, save_lifted
-from .rig import RigFrontend, choose_distance
+from .rig import RigFrontend, blend_weights, choose_distance, render_rig
 
-__all__ = ["SphericalFrontend", "RigFrontend", "choose_distance", "GeometryCache", "default_cache",
+__all__ = ["SphericalFrontend", "RigFrontend", "choose_distance", "render_rig", "blend_weights", "GeometryCache", "default_cache",
            "default_radius", "grid_graph", "render", "save_lifted", "load_lifted", "read_lifted"]

@@ -14,10 +14,68 @@ from ..cameras.base import angle_to
 from ..cameras.rig import rig_centre
 from ..grids import Grid
 from .cache import GeometryCache
-from .frontend import SphericalFrontend
+from .frontend import SphericalFrontend, render
 from .image import SphericalImage
 
 BLENDS = ("best", "feather")
+
+
+def blend_weights(cameras: Sequence[Camera], pos: np.ndarray, seen: np.ndarray,
+                  blend: str = "best") -> tuple[np.ndarray, np.ndarray]:
+    r"""How a rig's ``cameras`` share the directions ``pos [M, 3]`` that each sees
+    (``seen [K, M]``): ``(weights [K, M]`` float64, summing to 1 where any camera sees,
+    ``best [M]``: the camera whose optical axis is nearest, -1 where none sees). ``blend``:
+    ``best`` gives each direction to that camera alone; ``feather`` weighs camera
+    :math:`c` by :math:`\theta^{\max}_c - \theta_c`, the angle left to its field's edge."""
+    if blend not in BLENDS:
+        raise ValueError(f"blend must be one of {BLENDS}, got {blend!r}")
+    ang = np.stack([angle_to(c.to_optical(pos), c.optical_axis) for c in cameras])
+    ang = np.where(seen, ang, np.inf)
+    best = ang.argmin(0)
+    if blend == "best":
+        w = ((np.arange(len(cameras))[:, None] == best[None]) & seen).astype(np.float64)
+    else:
+        edge = np.array([c.max_incidence for c in cameras])[:, None]
+        w = np.where(seen, np.maximum(edge - ang, 0.0), 0.0)
+        tot = w.sum(0)
+        # a point only seen at the very edge of every camera takes the best one
+        w = np.where(tot > 0, w / np.where(tot > 0, tot, 1), (w == 0) & (ang == ang.min(0)))
+        w = np.where(seen, w, 0.0)
+    return w, np.where(seen.any(0), best, -1)
+
+
+def render_rig(images, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst: Camera,
+               blend: str = "best", interpolation: str = "bilinear") -> np.ndarray:
+    """A rig's images (one per camera, in order, or ``{name: image}``) re-imaged as
+    ``cam_dst`` would see the scene from the rig's centre: each camera re-imaged alone
+    (:func:`~usf_graph.frontend.render`; stitched cameras look from their own centres)
+    and blended as :class:`RigFrontend` blends them (:func:`blend_weights`). E.g. two
+    back-to-back fisheyes stitched into an equirectangular panorama. Pixels no camera sees
+    are 0. Returns ``[H', W'(, C)]`` float64 (uint8 for uint8 images)."""
+    names = list(cameras) if isinstance(cameras, Mapping) else None
+    cams = list(cameras.values()) if names is not None else list(cameras)
+    if isinstance(images, Mapping):
+        images = [images[n] for n in names] if names else list(images.values())
+    images = list(images)
+    if len(images) != len(cams):
+        raise ValueError(f"the rig has {len(cams)} cameras but {len(images)} images were "
+                         "given, one per camera in that order")
+    rays, valid = cam_dst.lens_normal_map()
+    pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
+    parts, seen = [], []
+    for im, cam in zip(images, cams):
+        a = np.asarray(im, np.float64)
+        flat = a[..., None] if a.ndim == 2 else a
+        both = render(np.concatenate([flat, np.ones(flat.shape[:2] + (1,))], -1), cam, cam_dst,
+                      interpolation)
+        parts.append(both[..., :-1].reshape(len(pos), -1))
+        seen.append((both[..., -1] > 0.5).reshape(-1) & valid.reshape(-1))
+    w, _ = blend_weights(cams, pos, np.stack(seen), blend)
+    out = sum(wk[:, None] * p for wk, p in zip(w, parts)).reshape(cam_dst.height, cam_dst.width, -1)
+    out = out[..., 0] if np.ndim(images[0]) == 2 else out
+    if np.asarray(images[0]).dtype == np.uint8:
+        return np.clip(np.round(out), 0, 255).astype(np.uint8)
+    return out
 
 
 class RigFrontend:
@@ -54,7 +112,7 @@ class RigFrontend:
                  interpolation: str = "bilinear", blend: str = "best",
                  radius: float | None = None, cache: GeometryCache | None = None,
                  distance: float | None = None, centre="mean"):
-        if blend not in BLENDS:
+        if blend not in BLENDS:  # before any table is built
             raise ValueError(f"blend must be one of {BLENDS}, got {blend!r}")
         if isinstance(cameras, Mapping):
             self.names, cams = list(cameras), list(cameras.values())
@@ -69,22 +127,9 @@ class RigFrontend:
         self.frontends = [SphericalFrontend(c, grid, interpolation, radius, cache=cache)
                           for c in cams]
         seen = torch.stack([fe.mask for fe in self.frontends]).numpy()  # [K, N]
-        pos = grid.pos.numpy()
-        ang = np.stack([angle_to(c.to_optical(pos), c.optical_axis) for c in cams])
-        ang = np.where(seen, ang, np.inf)
-        best = ang.argmin(0)
+        w, best = blend_weights(cams, grid.pos.numpy(), seen, blend)
         self.mask = torch.from_numpy(seen.any(0))
-        self.source = torch.from_numpy(np.where(seen.any(0), best, -1))
-        if blend == "best":
-            w = (np.arange(len(cams))[:, None] == best[None]) & seen
-            w = w.astype(np.float64)
-        else:
-            edge = np.array([c.max_incidence for c in cams])[:, None]
-            w = np.where(seen, np.maximum(edge - ang, 0.0), 0.0)
-            tot = w.sum(0)
-            # a point only seen at the very edge of every camera takes the best one
-            w = np.where(tot > 0, w / np.where(tot > 0, tot, 1), (w == 0) & (ang == ang.min(0)))
-            w = np.where(seen, w, 0.0)
+        self.source = torch.from_numpy(best)
         self.weights = torch.from_numpy(w)
 
     @classmethod
