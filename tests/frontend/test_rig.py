@@ -170,6 +170,8 @@ def test_render_rig_stitches_the_cameras_into_one_panorama():
     views = {n: render(text, big, c) for n, c in rig.items()}
     back = render_rig(dict(reversed(views.items())), rig, big)  # by name, in any order
     assert back.dtype == np.uint8 and np.abs(back.astype(int) - text).mean() < 8
+    deep = render_rig({n: v.astype(np.uint16) * 257 for n, v in views.items()}, rig, big)
+    assert deep.dtype == np.uint16 and np.abs(deep.astype(int) - 257 * back.astype(int)).max() <= 257
     one = render_rig([views["cam0"]], [rig["cam0"]], big)  # one camera: render back
     assert np.array_equal(one, render(views["cam0"].astype(float), rig["cam0"], big).round().astype(np.uint8))
     with pytest.raises(ValueError, match="2 cameras but 1 images"):

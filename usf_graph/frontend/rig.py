@@ -51,7 +51,7 @@ def render_rig(images, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst
     (:func:`~usf_graph.frontend.render`; stitched cameras look from their own centres)
     and blended as :class:`RigFrontend` blends them (:func:`blend_weights`). E.g. two
     back-to-back fisheyes stitched into an equirectangular panorama. Pixels no camera sees
-    are 0. Returns ``[H', W'(, C)]`` float64 (uint8 for uint8 images)."""
+    are 0. Returns ``[H', W'(, C)]`` float64 (integer images: their type)."""
     names = list(cameras) if isinstance(cameras, Mapping) else None
     cams = list(cameras.values()) if names is not None else list(cameras)
     if isinstance(images, Mapping):
@@ -73,8 +73,9 @@ def render_rig(images, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst
     w, _ = blend_weights(cams, pos, np.stack(seen), blend)
     out = sum(wk[:, None] * p for wk, p in zip(w, parts)).reshape(cam_dst.height, cam_dst.width, -1)
     out = out[..., 0] if np.ndim(images[0]) == 2 else out
-    if np.asarray(images[0]).dtype == np.uint8:
-        return np.clip(np.round(out), 0, 255).astype(np.uint8)
+    dtype = np.asarray(images[0]).dtype
+    if np.issubdtype(dtype, np.integer):  # as render keeps an integer image's type
+        return np.clip(np.round(out), np.iinfo(dtype).min, np.iinfo(dtype).max).astype(dtype)
     return out
 
 
