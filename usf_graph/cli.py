@@ -9,100 +9,14 @@ from pathlib import Path
 
 from .cli_bags import cmd_bag
 from .cli_camera import cmd_camera
+from .cli_images import cmd_lift, cmd_render
 from .cli_info import cmd_cache, cmd_info
 from .cli_inputs import (
     CAMERA_HELP,
-    camera_from_spec,
     camera_options,
-    is_panorama_spec,
     level_options,
-    leveled,
-    read_image,
-    rig_from_spec,
     rig_options,
 )
-
-
-def cmd_lift(args) -> int:
-    from . import grids
-    from .frontend import RigFrontend, SphericalFrontend, save_lifted
-
-    images = [read_image(p) for p in args.image]
-    grid = grids.from_spec(args.grid)
-    if len(images) > 1:
-        if args.level or args.up is not None:
-            raise ValueError("--level reads one camera's image; level a rig's sphere from its "
-                             "IMU instead (usf-graph predict --rig --imu)")
-        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
-                            images, grid)
-        fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
-                         radius=args.radius)
-        x = fe.lift(images)
-    else:
-        if args.distance is not None:
-            raise ValueError("--distance stitches a rig's cameras; one image is lifted from its "
-                             "own camera's centre, give the rig's images to use it")
-        cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
-        cam = leveled(cam, images[0], args)
-        fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
-        x = fe.lift(images[0])
-    print(f"{fe}\n-> x {tuple(x.shape)}, {int(fe.mask.sum())}/{len(grid)} points visible")
-    if args.out:
-        save_lifted(args.out, x, fe, source=" ".join(args.image))
-        size = Path(args.out).stat().st_size
-        print(f"wrote {args.out} ({size / 1e6:.2f} MB: signal, mask and geometry spec; "
-              "read it with usf_graph.frontend.load_lifted)")
-    if args.preview:
-        from .viz import plot_sphere
-
-        v = x.float()  # RGB images in colour, other channel counts as their mean
-        if v.shape[-1] == 4:
-            v = v[:, :3]
-        plot_sphere(grid.pos, v if v.shape[-1] == 3 else v.mean(-1), fe.mask, args.preview,
-                    title=" + ".join(args.image))
-        print(f"wrote {args.preview}")
-    return 0
-
-
-def cmd_render(args) -> int:
-    import cv2
-    import numpy as np
-
-    from .frontend import render, render_rig
-
-    images = [read_image(p) for p in args.image]
-    img = images[0]
-    if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
-        raise ValueError("a rig's images have no one width to take: give the panorama's size, "
-                         "--to equirectangular:WIDTHxHEIGHT")
-    # a target is the camera asked for, not fitted to the source image; a panorama without
-    # a size gets the source's width, at 2:1
-    dst = camera_from_spec(args.to, args.to_key,
-                           image_shape=(img.shape[1] // 2, img.shape[1]) if is_panorama_spec(args.to) else None)
-    if len(images) > 1:
-        if args.level or args.up is not None:
-            raise ValueError("--level reads one camera's image; a rig's images are stitched as "
-                             "the rig is mounted")
-        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images)
-        out = render_rig(images, rig, dst, blend=args.blend, interpolation=args.interpolation)
-        print(f"rig of {len(rig)} ({', '.join(rig)}) -> {type(dst).__name__} {dst.width}x{dst.height}, "
-              f"blend {args.blend}")
-    else:
-        if args.distance is not None:
-            raise ValueError("--distance stitches a rig's cameras; give the rig's images")
-        src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
-        src = leveled(src, img, args)  # the source mounted level: the target sees a level scene
-        out = render(img, src, dst, interpolation=args.interpolation)
-        print(f"{type(src).__name__} {src.width}x{src.height} -> {type(dst).__name__} "
-              f"{dst.width}x{dst.height}")
-    if out.ndim == 3 and out.shape[2] in (3, 4):
-        out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
-    if args.out.endswith(".npy"):
-        np.save(args.out, out)
-    elif not cv2.imwrite(args.out, out):
-        raise ValueError(f"cannot write {args.out}: use an image suffix OpenCV knows (.png, .jpg)")
-    print(f"wrote {args.out}")
-    return 0
 
 
 def cmd_scenes(args) -> int:
