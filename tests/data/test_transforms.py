@@ -168,6 +168,10 @@ def test_rotate_sample_labels_match_the_room_seen_turned():
     assert 0.2 < seen.mean() < 0.5 and (out.y.numpy()[~seen] == IGNORE).all()
     agree = (out.y.numpy()[seen] == yb[seen]).mean()
     assert agree > 0.95, agree
+    # labels with several columns per point (multi-label) turn and hide alike
+    multi = rotate_sample(Data(x=torch.zeros(len(pos), 1), y=torch.stack([ya, ya], -1), pos=g.pos,
+                               mask=cap), torch.as_tensor(Q)).y
+    assert torch.equal(multi, torch.stack([out.y, out.y], -1))
     with pytest.raises(ValueError, match="rotate_boxes"):
         rotate_sample(Data(x=torch.zeros(len(pos), 1), pos=g.pos, boxes=torch.zeros(1, 5)), Q)
 

@@ -139,8 +139,9 @@ def rotate_sample(data: Data, R: torch.Tensor, frontend=None,
             data.y = _resampled(y, idx, w)
         else:
             data.y = y[idx[torch.arange(n), w.argmax(1)]]
-            if getattr(data, "mask", None) is not None:
-                data.y = torch.where(data.mask, data.y, torch.full_like(data.y, ignore_index))
+            if getattr(data, "mask", None) is not None:  # [N] against labels [N, ...]
+                seen = data.mask.reshape(-1, *([1] * (data.y.ndim - 1)))
+                data.y = torch.where(seen, data.y, torch.full_like(data.y, ignore_index))
     up = getattr(data, "up", None)
     if isinstance(up, torch.Tensor) and up.shape[-1:] == (3,) and up.numel() == 3:
         data.up = (up.to(torch.float64) @ R64.T).to(up.dtype)
