@@ -89,3 +89,8 @@ def test_export_frame_benchmark_runs(task):
     else:  # every detection of both files found alike
         alike = re.findall(r"\| (\d+) of (\d+) \|", out)
         assert len(alike) == 2 and all(a == b and int(a) > 0 for a, b in alike)
+
+
+def test_lines_benchmark_runs():
+    out = run("benchmarks/lines.py", "--sizes", "256", "--reps", "1")
+    assert "| 256x128 |" in out and "first version (s)" in out
