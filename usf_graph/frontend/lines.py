@@ -125,7 +125,7 @@ def _segment_normals(gray: np.ndarray, seen: np.ndarray, ideal: Pinhole,
 
 def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The straight segments of ``image`` (``[H, W]`` or ``[H, W, C]``; integers in [0,
-    255] or floats in [0, 1]) taken by ``camera``, any model. A pinhole's image is read as
+    255], uint16 in [0, 65535] or floats in [0, 1]) taken by ``camera``, any model. A pinhole's image is read as
     it is (with distortion, re-imaged through the same pinhole without it first); any other
     camera's (a fisheye, a panorama), which bends straight lines, is re-imaged through the
     six faces of a cube of 90-degree pinholes (:func:`_faces`), and a line a face's border
