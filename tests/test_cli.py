@@ -173,6 +173,20 @@ def test_render_stitches_a_rigs_images(tmp_path, capsys):
     assert "rig of 2 (cam0, cam1)" in capsys.readouterr().out
     got = cv2.imread(str(tmp_path / "pano.png"))[..., ::-1]
     assert np.array_equal(got, render_rig(views, rig, cameras.Equirectangular(512, 256), blend="feather"))
+    # --split: one frame with both fisheyes side by side (a dual-fisheye 360 camera's)
+    cv2.imwrite(str(tmp_path / "dual.png"), np.concatenate([cv2.imread(p) for p in paths], 1))
+    split = ["--camera", str(FIXTURES / "kalibr_rig.yaml"), "--fov", "190", "--split"]
+    assert main(["render", str(tmp_path / "dual.png"), *split, "--to", "equirectangular:512x256",
+                 "--blend", "feather", "--out", str(tmp_path / "pano2.png")]) == 0
+    assert np.array_equal(cv2.imread(str(tmp_path / "pano2.png")), cv2.imread(str(tmp_path / "pano.png")))
+    for name, argv in (("apart", [*paths, *split[:-1]]), ("dual", [str(tmp_path / "dual.png"), *split])):
+        assert main(["lift", *argv, "--grid", "icosahedral:3", "--out", str(tmp_path / f"{name}.pt")]) == 0
+    assert torch.equal(load_lifted(tmp_path / "apart.pt").x, load_lifted(tmp_path / "dual.pt").x)
+    capsys.readouterr()
+    cv2.imwrite(str(tmp_path / "odd.png"), np.zeros((400, 801, 3), np.uint8))
+    for argv, why in (([*paths, *split], "give one"), ([str(tmp_path / "odd.png"), *split], "801 pixels wide")):
+        assert main(["render", *argv, "--to", "equirectangular:64x32", "--out", str(tmp_path / "x.png")]) == 2
+        assert why in capsys.readouterr().err
     for flags, why in ((["--to", "equirectangular"], "give the panorama's size"),
                        (["--to", "equirectangular:512x256", "--level"], "reads one camera's image")):
         assert main([*common, *flags, "--out", str(tmp_path / "x.png")]) == 2

@@ -8,11 +8,28 @@ from pathlib import Path
 from .cli_inputs import camera_from_spec, is_panorama_spec, leveled, read_image, rig_from_spec
 
 
+def read_images(args) -> list:
+    """The images of ``args.image``; with ``args.split``, the one image cut into the rig's
+    cameras' images, side by side (a dual-fisheye 360 camera's frame)."""
+    images = [read_image(p) for p in args.image]
+    if not getattr(args, "split", False):
+        return images
+    from .cameras import load_rig
+
+    if len(images) != 1:
+        raise ValueError("--split cuts one image into the rig's cameras' images; give one")
+    n, w = len(load_rig(args.camera, key=args.key)), images[0].shape[1]
+    if n < 2 or w % n:
+        raise ValueError(f"--split: the image is {w} pixels wide, which does not cut into "
+                         f"{n} equal parts, one per camera of {args.camera}")
+    return [images[0][:, k * w // n:(k + 1) * w // n] for k in range(n)]
+
+
 def cmd_lift(args) -> int:
     from . import grids
     from .frontend import RigFrontend, SphericalFrontend, save_lifted
 
-    images = [read_image(p) for p in args.image]
+    images = read_images(args)
     grid = grids.from_spec(args.grid)
     if len(images) > 1:
         if args.level or args.up is not None:
@@ -55,7 +72,7 @@ def cmd_render(args) -> int:
 
     from .frontend import render, render_rig
 
-    images = [read_image(p) for p in args.image]
+    images = read_images(args)
     img = images[0]
     if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
         raise ValueError("a rig's images have no one width to take: give the panorama's size, "

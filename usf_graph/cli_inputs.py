@@ -121,8 +121,12 @@ def fit_to_image(cam, image_shape):
 
 
 def rig_options(p, blend: bool = False) -> None:
-    """``--distance``, for the commands that read a rig; with ``blend``, ``--blend``."""
+    """``--distance``, for the commands that read a rig; with ``blend``, ``--blend`` and
+    ``--split``."""
     if blend:
+        p.add_argument("--split", action="store_true",
+                       help="rigs: the one image holds the rig's cameras' images side by side, "
+                            "in its order, of equal widths (a dual-fisheye 360 camera's frame)")
         from .frontend.rig import BLENDS
 
         p.add_argument("--blend", default="best", choices=BLENDS,
