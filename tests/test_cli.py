@@ -746,6 +746,33 @@ def test_predict_cli_on_a_rig(tmp_path, capsys):
     for name, lab in zip(rig, want):
         assert np.array_equal(cv2.imread(str(tmp_path / "out" / f"{name}_labels.png"),
                                          cv2.IMREAD_UNCHANGED), lab)
+    # --split: a frame with both cameras side by side, and a video of such frames (MJPG:
+    # its frames are checked against what the library gives on the decoded frames)
+    dual = np.concatenate([cv2.imread(p) for p in paths], 1)
+    cv2.imwrite(str(tmp_path / "dual.png"), dual)
+    split = ["--rig", "--split", "--camera", str(FIXTURES / "kalibr_rig.yaml"), "--fov", "190",
+             "--out", str(tmp_path / "split")]
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "dual.png"), *split]) == 0
+    for name, lab in zip(rig, want):
+        assert np.array_equal(cv2.imread(str(tmp_path / "split" / f"dual_{name}_labels.png"),
+                                         cv2.IMREAD_UNCHANGED), lab)
+    video = cv2.VideoWriter(str(tmp_path / "dual.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 5,
+                            (dual.shape[1], dual.shape[0]))
+    for _ in range(2):
+        video.write(dual)
+    video.release()
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "dual.avi"), *split]) == 0
+    cap = cv2.VideoCapture(str(tmp_path / "dual.avi"))
+    frame = cv2.cvtColor(cap.read()[1], cv2.COLOR_BGR2RGB)
+    cap.release()
+    got = segment_image(seg.eval(), [frame[:, :400], frame[:, 400:]], rig)["labels"]
+    assert np.array_equal(cv2.imread(str(tmp_path / "split" / "dual_000000_cam1_labels.png"),
+                                     cv2.IMREAD_UNCHANGED), got[1])
+    assert (tmp_path / "split" / "dual_000001_cam0_labels.png").exists()  # every frame
+    capsys.readouterr()
+    assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "dual.png"), "--split",
+                 "--camera", str(FIXTURES / "kalibr_rig.yaml")]) == 2
+    assert "add --rig" in capsys.readouterr().err
     # --up-lines reads both cameras' lines (the panorama's labels are text: few lines)
     assert main([*argv, "--up-lines"]) == 0
     lines_said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("up: (")]

@@ -38,7 +38,7 @@ def add_export_parser(sub, fmt) -> None:
                         "sphere: the program takes one image per camera, in the file's order, "
                         "and gives one label image per camera (seg) or one set of boxes in the "
                         "rig's sphere frame (det)")
-    rig_options(p)
+    rig_options(p, split=False)
     up = p.add_mutually_exclusive_group()
     up.add_argument("--up-input", action="store_true",
                     help="the program takes gravity's up in the camera's sphere frame (x "

@@ -5,7 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .cli_inputs import camera_from_spec, is_panorama_spec, leveled, read_image, rig_from_spec
+from .cli_inputs import (
+    camera_from_spec,
+    is_panorama_spec,
+    leveled,
+    read_image,
+    rig_from_spec,
+    split_frame,
+)
 
 
 def read_images(args) -> list:
@@ -18,11 +25,7 @@ def read_images(args) -> list:
 
     if len(images) != 1:
         raise ValueError("--split cuts one image into the rig's cameras' images; give one")
-    n, w = len(load_rig(args.camera, key=args.key)), images[0].shape[1]
-    if n < 2 or w % n:
-        raise ValueError(f"--split: the image is {w} pixels wide, which does not cut into "
-                         f"{n} equal parts, one per camera of {args.camera}")
-    return [images[0][:, k * w // n:(k + 1) * w // n] for k in range(n)]
+    return split_frame(images[0], len(load_rig(args.camera, key=args.key)), args.camera)
 
 
 def cmd_lift(args) -> int:

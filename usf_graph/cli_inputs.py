@@ -120,13 +120,15 @@ def fit_to_image(cam, image_shape):
     return cam.resized(w, h)
 
 
-def rig_options(p, blend: bool = False) -> None:
-    """``--distance``, for the commands that read a rig; with ``blend``, ``--blend`` and
-    ``--split``."""
-    if blend:
+def rig_options(p, blend: bool = False, split: bool = True) -> None:
+    """``--distance``, for the commands that read a rig; with ``blend``, ``--blend``; with
+    ``split``, ``--split`` (:func:`split_frame`)."""
+    if split:
         p.add_argument("--split", action="store_true",
-                       help="rigs: the one image holds the rig's cameras' images side by side, "
-                            "in its order, of equal widths (a dual-fisheye 360 camera's frame)")
+                       help="rigs: each image (or video frame) holds the rig's cameras' images "
+                            "side by side, in its order, of equal widths (a dual-fisheye 360 "
+                            "camera's frame)")
+    if blend:
         from .frontend.rig import BLENDS
 
         p.add_argument("--blend", default="best", choices=BLENDS,
@@ -139,6 +141,16 @@ def rig_options(p, blend: bool = False) -> None:
                         "in the calibration's unit (metres; COLMAP: the model's), so that "
                         "near scenes line up across cameras that are apart (default: at "
                         "infinity, the baseline ignored)")
+
+
+def split_frame(image, count: int, what: str) -> list:
+    """``image [H, W, ...]`` cut along its width into ``count`` equal images, left to right
+    (``what``: the rig, for the error)."""
+    w = image.shape[1]
+    if count < 2 or w % count:
+        raise ValueError(f"--split: the image is {w} pixels wide, which does not cut into "
+                         f"{count} equal parts, one per camera of {what}")
+    return [image[:, k * w // count:(k + 1) * w // count] for k in range(count)]
 
 
 def _distance(text: str):

@@ -19,6 +19,7 @@ from .cli_inputs import (
     read_image,
     rig_from_spec,
     rig_options,
+    split_frame,
 )
 
 #: Files ``predict`` reads as videos, frame by frame.
@@ -138,9 +139,14 @@ def cmd_predict(args) -> int:
         raise ValueError("--distance stitches the cameras of a --rig; one camera needs none")
     streams = [p for p in args.image if _is_video(p) or is_bag(p)]
     rig_bag = args.rig and len(args.image) == 1 and is_bag(args.image[0])
-    if args.rig and streams and not rig_bag:
+    if args.split and not args.rig:
+        raise ValueError("--split cuts each frame into a rig's cameras' images: add --rig")
+    if args.split and any(is_bag(p) for p in args.image):
+        raise ValueError("--split cuts images and video frames; a rig's bag has a topic per camera")
+    if args.rig and streams and not rig_bag and not args.split:
         raise ValueError("--rig reads one image per camera, or one ROS bag with a topic per "
-                         "camera; not videos, nor bags among images")
+                         "camera; not videos, nor bags among images (a video whose frames "
+                         "hold every camera side by side: add --split)")
     if args.every != 1 and not streams:
         raise ValueError("--every picks a video's or a bag's frames; no video (" +
                          ", ".join(VIDEO_SUFFIXES) + ") or ROS bag was given")
@@ -187,6 +193,9 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
     """Every image, frame or rig frame of ``args.image`` through ``run``."""
     if rig_bag:  # a rig's recording: one image per camera and frame, one sphere each
         predict_rig_bag(run, model, names, out, args)
+        return
+    if args.split:  # every image or video frame holds the rig's cameras side by side
+        _predict_split(run, model, names, out, args)
         return
     if args.rig:  # one frame of the rig: an image per camera, one sphere
         images = [read_image(p) for p in args.image]
@@ -251,6 +260,26 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
             cap.release()
         if not taken:
             raise ValueError(f"video {path} has no frames OpenCV can decode")
+
+
+def _predict_split(run, model, names, out: Path, args) -> None:
+    """``predict --rig --split``: each image or video frame cut into the rig's cameras'
+    images (:func:`~usf_graph.cli_inputs.split_frame`), one sphere each; the rig fitted to
+    the first frame (``--distance auto``: chosen there) and kept for the rest."""
+    from .cameras import load_rig
+
+    count = len(load_rig(args.camera, key=args.key))
+    rig = None
+    for stem, source, image, _, _ in _inputs(args.image, args.every):
+        parts = split_frame(image, count, args.camera)
+        if rig is None:
+            rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
+                                parts)
+        if len(args.image) > 1 or _is_video(args.image[0]):
+            print(f"== {source}")
+        sources = [f"{source}[{n}]" for n in rig]
+        cams = {n: alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), parts, sources)}
+        run(model, [f"{stem}_{n}" for n in rig], sources, parts, cams, names, out, args)
 
 
 def _rig_cameras(images, sources, args):
