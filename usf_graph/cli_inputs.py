@@ -147,7 +147,10 @@ def split_frame(image, count: int, what: str) -> list:
     """``image [H, W, ...]`` cut along its width into ``count`` equal images, left to right
     (``what``: the rig, for the error)."""
     w = image.shape[1]
-    if count < 2 or w % count:
+    if count < 2:
+        raise ValueError(f"--split cuts a frame into a rig's cameras' images; {what} has one "
+                         "camera: leave out --split")
+    if w % count:
         raise ValueError(f"--split: the image is {w} pixels wide, which does not cut into "
                          f"{count} equal parts, one per camera of {what}")
     return [image[:, k * w // count:(k + 1) * w // count] for k in range(count)]
