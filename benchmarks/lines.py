@@ -26,7 +26,7 @@ import torch
 from usf_graph.cameras import Equirectangular
 from usf_graph.frontend import lines as L
 from usf_graph.frontend import render
-from usf_graph.geometry import rotation_from_axis_angle
+from usf_graph.geometry import geodesic_distance, rotation_from_axis_angle
 from usf_graph.scenes import make_room
 from usf_graph.scenes import render as render_room
 
@@ -78,7 +78,7 @@ def main(argv=None) -> None:
         cam = Equirectangular(w, w // 2)
         t_new, u_new = best(L.lines_up, a.reps, img, cam)
         t_ref, u_ref = best(reference_up, a.reps, img, cam)
-        err = [math.degrees(math.acos(min(1.0, float(u @ truth)))) for u in (u_new, u_ref)]
+        err = [math.degrees(geodesic_distance(u, truth)) for u in (u_new, u_ref)]
         print(f"| {w}x{w // 2} | {t_new:.2f} | {t_ref:.2f} | {t_ref / t_new:.1f}x | "
               f"{err[0]:.2f} / {err[1]:.2f} |", flush=True)
 

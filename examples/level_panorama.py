@@ -24,7 +24,7 @@ import numpy as np
 from usf_graph.cameras import Equirectangular
 from usf_graph.frontend import render as reimage
 from usf_graph.frontend.lines import lines_up
-from usf_graph.geometry import level_rotation, rotation_from_axis_angle
+from usf_graph.geometry import geodesic_distance, level_rotation, rotation_from_axis_angle
 from usf_graph.scenes import make_room, render
 
 
@@ -44,8 +44,8 @@ def run(out="runs/level", pitch: float = 15.0, roll: float = -8.0, size: int = 5
     R = level_rotation(up)
     leveled = reimage(tilted, cam.turned(R), cam)  # the camera mounted level, re-imaged
     truth = render(scene, cam, pos, R0 @ T @ level_rotation(true_up).T, boxes=False).rgb
-    res = {"tilt_deg": math.degrees(math.acos(true_up[2])),
-           "up_error_deg": math.degrees(math.acos(min(1.0, float(up @ true_up)))),
+    res = {"tilt_deg": math.degrees(geodesic_distance(true_up, [0.0, 0.0, 1.0])),
+           "up_error_deg": math.degrees(geodesic_distance(up, true_up)),
            "pixel_error_tilted": float(np.abs(tilted.astype(float) - truth).mean()),
            "pixel_error_leveled": float(np.abs(leveled.astype(float) - truth).mean())}
     print(f"tilted {res['tilt_deg']:.1f} degrees; up from the lines {res['up_error_deg']:.2f} degrees "
@@ -88,7 +88,7 @@ def survey(size: int = 512, rooms: int = 12, max_tilt: float = 20.0, seed: int =
                 @ rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(tilts[k, 1]))
             try:
                 up = lines_up(render(scene, cam, pos, R, boxes=False).rgb, cam)
-                errors[name].append(math.degrees(math.acos(min(1.0, float(up @ R[2])))))
+                errors[name].append(math.degrees(geodesic_distance(up, R[2])))
             except ValueError:
                 errors[name].append(math.nan)
         e = np.array(errors[name])

@@ -55,14 +55,14 @@ def leveled(cam, image, args):
     import numpy as np
 
     from .frontend.lines import lines_up
-    from .geometry import level_rotation
+    from .geometry import geodesic_distance, level_rotation
 
     u = lines_up(image, cam) if args.up is None else np.asarray(args.up, np.float64)
     R = level_rotation(u)
     u = u / np.linalg.norm(u)
     print(f"up {'given' if args.up is not None else 'from the straight lines'}: "
           f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) in the camera's sphere frame, which is "
-          f"{np.degrees(np.arccos(np.clip(u[2], -1, 1))):.1f} degrees off level")
+          f"{np.degrees(geodesic_distance(u, [0.0, 0.0, 1.0])):.1f} degrees off level")
     return cam.turned(R)
 
 

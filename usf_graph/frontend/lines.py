@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..cameras import DEFAULT_ROTATION, Camera, Pinhole
-from ..geometry import rotation_from_axis_angle
+from ..geometry import geodesic_distance, rotation_from_axis_angle
 from .frontend import render
 from .interpolation import valid_pixels
 
@@ -72,7 +72,7 @@ def _faces(camera: Camera) -> list[Pinhole]:
     cy, cx = camera.height // 2, camera.width // 2
     px = np.array([[cx, cy], [cx + 1, cy], [cx, cy + 1]], np.float64)
     rays, valid = camera.unproject(px)
-    step = [math.acos(float(np.clip(rays[0] @ rays[k], -1, 1))) for k in (1, 2)
+    step = [float(geodesic_distance(rays[0], rays[k])) for k in (1, 2)
             if valid[0] and valid[k] and px[k, 0] < camera.width and px[k, 1] < camera.height]
     if not step or min(step) <= 0:
         raise ValueError(f"{type(camera).__name__} has no rays at its image centre to tell its "
@@ -289,7 +289,7 @@ def lines_up(image, camera: Camera, prior=None, max_tilt: float = MAX_TILT) -> n
                          "estimate)")
     k = int(np.abs(axes @ p).argmax())
     up = axes[k] * np.sign(axes[k] @ p)
-    tilt = math.degrees(math.acos(min(1.0, float(up @ p))))
+    tilt = math.degrees(float(geodesic_distance(up, p)))
     if tilt > max_tilt:
         raise ValueError(f"the lines' axis nearest the prior up lies {tilt:.1f} degrees from it "
                          f"(over {max_tilt:g}), so which axis is up is a guess: give a prior "
