@@ -28,25 +28,31 @@ def read_images(args) -> list:
     return split_frame(images[0], len(load_rig(args.camera, key=args.key)), args.camera)
 
 
+def _check_one_or_rig(args, rig: bool) -> None:
+    """``--level`` reads one camera's image; ``--distance`` stitches a rig's cameras."""
+    if rig and (args.level or args.up is not None):
+        raise ValueError("--level reads one camera's image; a rig's images are stitched as the "
+                         "rig is mounted (level its sphere from its IMU: usf-graph predict "
+                         "--rig --imu)")
+    if not rig and args.distance is not None:
+        raise ValueError("--distance stitches a rig's cameras; one image is seen from its own "
+                         "camera's centre: give the rig's images to use it")
+
+
 def cmd_lift(args) -> int:
     from . import grids
     from .frontend import RigFrontend, SphericalFrontend, save_lifted
 
     images = read_images(args)
     grid = grids.from_spec(args.grid)
+    _check_one_or_rig(args, len(images) > 1)
     if len(images) > 1:
-        if args.level or args.up is not None:
-            raise ValueError("--level reads one camera's image; level a rig's sphere from its "
-                             "IMU instead (usf-graph predict --rig --imu)")
         rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
                             images, grid)
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
                          radius=args.radius)
         x = fe.lift(images)
     else:
-        if args.distance is not None:
-            raise ValueError("--distance stitches a rig's cameras; one image is lifted from its "
-                             "own camera's centre, give the rig's images to use it")
         cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
         cam = leveled(cam, images[0], args)
         fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
@@ -84,17 +90,13 @@ def cmd_render(args) -> int:
     # a size gets the source's width, at 2:1
     dst = camera_from_spec(args.to, args.to_key,
                            image_shape=(img.shape[1] // 2, img.shape[1]) if is_panorama_spec(args.to) else None)
+    _check_one_or_rig(args, len(images) > 1)
     if len(images) > 1:
-        if args.level or args.up is not None:
-            raise ValueError("--level reads one camera's image; a rig's images are stitched as "
-                             "the rig is mounted")
         rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images)
         out = render_rig(images, rig, dst, blend=args.blend, interpolation=args.interpolation)
         print(f"rig of {len(rig)} ({', '.join(rig)}) -> {type(dst).__name__} {dst.width}x{dst.height}, "
               f"blend {args.blend}")
     else:
-        if args.distance is not None:
-            raise ValueError("--distance stitches a rig's cameras; give the rig's images")
         src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
         src = leveled(src, img, args)  # the source mounted level: the target sees a level scene
         out = render(img, src, dst, interpolation=args.interpolation)

@@ -195,8 +195,8 @@ def rotate(points, R):
 
 def level_rotation(up) -> np.ndarray:
     """The smallest rotation ``[3, 3]`` that turns the direction ``up [3]`` (any length) to
-    +z: about the horizontal axis ``up x z``, so that the azimuth (yaw) of every horizontal
-    direction stays. A frame turned by it is level; ``up = -z`` turns about x."""
+    +z: about the horizontal axis ``up x z``, orthogonal to both, so that it adds no turn
+    about up (the heading stays). A frame turned by it is level; ``up = -z`` turns about x."""
     v = np.asarray(up, np.float64).reshape(-1)
     n = float(np.linalg.norm(v)) if v.shape == (3,) else 0.0
     if not (np.isfinite(n) and n > 0):

@@ -223,6 +223,7 @@ def draw_graticule(image: np.ndarray, camera, step: float = 15.0) -> np.ndarray:
     fisheye's red edge should lie on its image circle."""
     import cv2
 
+    from .frontend.interpolation import valid_pixels
     from .geometry import from_latlon
 
     img = np.asarray(image)
@@ -249,11 +250,11 @@ def draw_graticule(image: np.ndarray, camera, step: float = 15.0) -> np.ndarray:
         u, v = (uv[0] + 0.5) * scale - 0.5
         cv2.putText(out, "0", (int(u) + 4, int(v) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, HORIZON, 1,
                     cv2.LINE_AA)
-    valid = camera.lens_normal_map()[1].astype(np.uint8)
-    if scale != 1:
-        valid = cv2.resize(valid, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-    edges, _ = cv2.findContours(valid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    valid = valid_pixels(camera).astype(np.uint8)
     if not valid.all():
+        if scale != 1:
+            valid = cv2.resize(valid, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+        edges, _ = cv2.findContours(valid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         cv2.drawContours(out, edges, -1, VIEW_EDGE, 2)
     return out
 

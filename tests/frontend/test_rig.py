@@ -174,7 +174,7 @@ def test_render_rig_stitches_the_cameras_into_one_panorama():
     assert deep.dtype == np.uint16 and np.abs(deep.astype(int) - 257 * back.astype(int)).max() <= 257
     one = render_rig([views["cam0"]], [rig["cam0"]], big)  # one camera: render back
     assert np.array_equal(one, render(views["cam0"].astype(float), rig["cam0"], big).round().astype(np.uint8))
-    with pytest.raises(ValueError, match="2 cameras but 1 images"):
+    with pytest.raises(ValueError, match=r"2 cameras \(cam0, cam1\) but 1 images"):
         render_rig([views["cam0"]], rig, big)
     with pytest.raises(ValueError, match="blend must be one of"):
         render_rig(list(views.values()), rig, big, blend="max")

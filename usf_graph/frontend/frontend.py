@@ -405,5 +405,18 @@ def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "biline
     return out.numpy() if is_np else out
 
 
+def render_seen(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear",
+                source_valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`render` of ``image`` (numpy) as float64, and where the source sees:
+    ``(out [H', W'(, C)], seen [H', W'] bool)``, from a channel of ones re-imaged with it
+    (0 where no source pixel reaches)."""
+    a = np.asarray(image, np.float64)
+    flat = a[..., None] if a.ndim == 2 else a
+    both = render(np.concatenate([flat, np.ones(flat.shape[:2] + (1,))], -1), cam_src, cam_dst,
+                  interpolation, source_valid)
+    out = both[..., :-1]
+    return (out[..., 0] if a.ndim == 2 else out), both[..., -1] > 0.5
+
+
 def _say(msg: str) -> None:
     print(f"[usf-graph] {msg}", file=sys.stderr, flush=True)

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..cameras import DEFAULT_ROTATION, Camera, Pinhole
 from ..geometry import geodesic_distance, rotation_from_axis_angle
-from .frontend import render
+from .frontend import render_seen
 from .interpolation import valid_pixels
 
 #: Lines closer than this (degrees) to a direction's great circle point at it.
@@ -146,13 +146,11 @@ def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np
     ideal = _undistorted(camera)
     if ideal is not None and not camera.params().get("dist"):
         views = [(gray, seen, ideal)]
-    else:  # re-imaged with a channel of ones, which is 0 where the camera does not see
-        both = np.stack([gray.astype(np.float32), np.ones(gray.shape, np.float32)], -1)
+    else:
         views = []
         for v in [ideal] if ideal is not None else _faces(camera):
-            straight = render(both, camera, v, source_valid=seen)
-            views.append((np.clip(np.round(straight[..., 0]), 0, 255).astype(np.uint8),
-                          straight[..., 1] > 0.5, v))
+            straight, sees = render_seen(gray, camera, v, source_valid=seen)
+            views.append((np.clip(np.round(straight), 0, 255).astype(np.uint8), sees, v))
     found = [_segment_normals(g, s, v, upsample) for g, s, v in views]
     return np.concatenate([n for n, _ in found]), np.concatenate([w for _, w in found])
 

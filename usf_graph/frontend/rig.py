@@ -14,7 +14,7 @@ from ..cameras.base import angle_to
 from ..cameras.rig import rig_centre
 from ..grids import Grid
 from .cache import GeometryCache
-from .frontend import SphericalFrontend, render
+from .frontend import SphericalFrontend, render_seen
 from .image import SphericalImage
 
 BLENDS = ("best", "feather")
@@ -44,6 +44,22 @@ def blend_weights(cameras: Sequence[Camera], pos: np.ndarray, seen: np.ndarray,
     return w, np.where(seen.any(0), best, -1)
 
 
+def ordered_images(names: Sequence[str], images) -> list:
+    """One image per camera of a rig whose cameras are ``names``, in that order: ``images``
+    a sequence in that order, or ``{name: image}``."""
+    names = list(names)
+    if isinstance(images, Mapping):
+        missing = [n for n in names if n not in images]
+        if missing:
+            raise ValueError(f"no image for camera(s) {missing}; the rig has {names}")
+        images = [images[n] for n in names]
+    images = list(images)
+    if len(images) != len(names):
+        raise ValueError(f"the rig has {len(names)} cameras ({', '.join(names)}) but "
+                         f"{len(images)} images were given, one per camera in that order")
+    return images
+
+
 def render_rig(images, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst: Camera,
                blend: str = "best", interpolation: str = "bilinear") -> np.ndarray:
     """A rig's images (one per camera, in order, or ``{name: image}``) re-imaged as
@@ -52,24 +68,21 @@ def render_rig(images, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst
     and blended as :class:`RigFrontend` blends them (:func:`blend_weights`). E.g. two
     back-to-back fisheyes stitched into an equirectangular panorama. Pixels no camera sees
     are 0. Returns ``[H', W'(, C)]`` float64 (integer images: their type)."""
-    names = list(cameras) if isinstance(cameras, Mapping) else None
-    cams = list(cameras.values()) if names is not None else list(cameras)
-    if isinstance(images, Mapping):
-        images = [images[n] for n in names] if names else list(images.values())
-    images = list(images)
-    if len(images) != len(cams):
-        raise ValueError(f"the rig has {len(cams)} cameras but {len(images)} images were "
-                         "given, one per camera in that order")
+    if isinstance(cameras, Mapping):
+        names, cams = list(cameras), list(cameras.values())
+    else:  # unnamed cameras: a mapping of images is taken in its own order
+        cams = list(cameras)
+        names = [f"cam{i}" for i in range(len(cams))]
+        if isinstance(images, Mapping):
+            images = list(images.values())
+    images = ordered_images(names, images)
     rays, valid = cam_dst.lens_normal_map()
     pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
     parts, seen = [], []
     for im, cam in zip(images, cams):
-        a = np.asarray(im, np.float64)
-        flat = a[..., None] if a.ndim == 2 else a
-        both = render(np.concatenate([flat, np.ones(flat.shape[:2] + (1,))], -1), cam, cam_dst,
-                      interpolation)
-        parts.append(both[..., :-1].reshape(len(pos), -1))
-        seen.append((both[..., -1] > 0.5).reshape(-1) & valid.reshape(-1))
+        out, sees = render_seen(im, cam, cam_dst, interpolation)
+        parts.append(out.reshape(len(pos), -1))
+        seen.append(sees.reshape(-1))
     w, _ = blend_weights(cams, pos, np.stack(seen), blend)
     out = sum(wk[:, None] * p for wk, p in zip(w, parts)).reshape(cam_dst.height, cam_dst.width, -1)
     out = out[..., 0] if np.ndim(images[0]) == 2 else out
@@ -164,16 +177,7 @@ class RigFrontend:
                 f"visible={int(self.mask.sum())}/{len(self.grid)})")
 
     def _ordered(self, images) -> list:
-        if isinstance(images, Mapping):
-            missing = [n for n in self.names if n not in images]
-            if missing:
-                raise ValueError(f"no image for camera(s) {missing}; the rig has {self.names}")
-            images = [images[n] for n in self.names]
-        images = list(images)
-        if len(images) != len(self.frontends):
-            raise ValueError(f"the rig has {len(self.frontends)} cameras ({self.names}) but "
-                             f"{len(images)} images were given, one per camera in that order")
-        return images
+        return ordered_images(self.names, images)
 
     def _blend(self, parts: list[torch.Tensor]) -> torch.Tensor:
         out = None
@@ -225,10 +229,7 @@ def choose_distance(cameras: Mapping[str, Camera], grid: Grid, images,
     names, cams = list(cameras), list(cameras.values())
     if len(cams) < 2:
         raise ValueError("choosing a stitching distance compares cameras: the rig needs two")
-    images = list(images)
-    if len(images) != len(cams):
-        raise ValueError(f"the rig has {len(cams)} cameras ({names}) but {len(images)} images "
-                         "were given, one per camera in that order")
+    images = ordered_images(names, images)
     far = rig_centre(cameras, centre)[1]
     tries = [d for d in candidates if d is None or d > far * (1 + 1e-9)]
     if not tries:

@@ -202,6 +202,7 @@ def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | N
     fisheye's or a panorama's lines through pinholes), and a rig (its cameras' lines
     together, :func:`~usf_graph.frontend.lines.rig_line_normals`)."""
     from ..frontend.lines import line_normals, manhattan_axes, rig_line_normals
+    from ..frontend.rig import ordered_images
     from ..models.gravity import UNSURE_MARGIN
     from .gravity import estimate_up, require_up_estimate
 
@@ -209,8 +210,7 @@ def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | N
     if isinstance(fe, SphericalFrontend):
         lines = line_normals(rgb01(image, colour_model=False), fe.camera)  # warned at lift
     else:  # a rig: its images in its cameras' order
-        ims = [image[n] for n in fe.names] if isinstance(image, Mapping) else list(image)
-        lines = rig_line_normals([rgb01(im, colour_model=False) for im in ims],
+        lines = rig_line_normals([rgb01(im, colour_model=False) for im in ordered_images(fe.names, image)],
                                  [f.camera for f in fe.frontends])
     axes = manhattan_axes(*lines)
     if axes is None:
