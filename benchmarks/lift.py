@@ -50,7 +50,7 @@ def main():
             fe.lift(img)
             cold = time.perf_counter() - t
             warm = best_of(lambda fe=fe, img=img: fe.lift(img), a.reps)
-            mx, my = fe._remap_maps()
+            mx, my = fe._remap().maps
             border = cv2.BORDER_WRAP if cam.wraps_u else cv2.BORDER_CONSTANT
             floor = best_of(lambda img=img, mx=mx, my=my, b=border:
                             cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=b),

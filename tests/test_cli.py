@@ -196,6 +196,64 @@ def test_render_stitches_a_rigs_images(tmp_path, capsys):
     assert "give the rig's images" in capsys.readouterr().err
 
 
+def decoded(path):
+    """Every frame of a video, RGB, as OpenCV decodes it."""
+    cap, frames = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, bgr = cap.read()
+        if not ok:
+            break
+        frames.append(bgr[..., ::-1])
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    cap.release()
+    return frames, fps
+
+
+def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
+    """``render`` of a dual-fisheye video (both circles side by side in each frame) gives
+    the stitched panorama video: each frame what ``render_rig`` gives the decoded frame,
+    at the source's frame rate; one camera's video with ``--every`` and ``--fps``; mixed or
+    misdirected inputs are refused."""
+    from tests.frontend.test_rig import scene
+    from usf_graph.frontend import render, render_rig
+
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    big = cameras.Equirectangular(512, 256)
+    text = (255 * scene(big.lens_normal_map()[0])).round().astype(np.uint8)  # smooth: JPEG keeps it
+    first = next(iter(rig.values()))
+    writer = cv2.VideoWriter(str(tmp_path / "dual.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 5,
+                             (2 * first.width, first.height))
+    for k in range(3):  # the world turns 40 pixels a frame
+        moved = np.roll(text, 40 * k, axis=1)
+        writer.write(np.concatenate([render(moved, big, c) for c in rig.values()], 1)[..., ::-1].copy())
+    writer.release()
+    split = ["--camera", str(FIXTURES / "kalibr_rig.yaml"), "--fov", "190", "--split"]
+    assert main(["render", str(tmp_path / "dual.avi"), *split, "--to", "equirectangular:256x128",
+                 "--out", str(tmp_path / "pano.avi")]) == 0
+    assert "wrote" in capsys.readouterr().out
+    got, fps = decoded(tmp_path / "pano.avi")
+    frames, _ = decoded(tmp_path / "dual.avi")
+    assert len(got) == 3 and fps == 5
+    pano = cameras.Equirectangular(256, 128)
+    for g, f in zip(got, frames):
+        want = render_rig(np.split(f, 2, axis=1), rig, pano)
+        assert np.abs(g.astype(float) - want).mean() < 2  # Motion JPEG, both ways
+    assert np.abs(got[0].astype(float) - got[1]).mean() > 10  # the frames differ
+    # one camera, every second frame, another rate: frames 0 and 2
+    cv2.imwrite(str(tmp_path / "cam0.png"), np.zeros((first.height, first.width, 3), np.uint8))
+    assert main(["render", str(tmp_path / "pano.avi"), "--camera", "equirectangular",
+                 "--to", "equirectangular:128x64", "--every", "2", "--fps", "7",
+                 "--out", str(tmp_path / "small.mp4")]) == 0
+    small, fps = decoded(tmp_path / "small.mp4")
+    assert len(small) == 2 and fps == 7 and small[0].shape == (64, 128, 3)
+    for argv, why in (([str(tmp_path / "pano.avi"), str(tmp_path / "cam0.png")], "not both"),
+                      ([str(tmp_path / "cam0.png"), "--every", "2"], "no video was given"),
+                      ([str(tmp_path / "pano.avi"), "--out", str(tmp_path / "x.png")], ".mp4 or .avi")):
+        argv = argv if "--out" in argv else [*argv, "--out", str(tmp_path / "x.avi")]
+        assert main(["render", *argv, "--camera", "equirectangular", "--to", "equirectangular:64x32"]) == 2
+        assert why in capsys.readouterr().err
+
+
 def test_camera_overlay_draws_the_graticule_on_the_cameras_image(tmp_path, capsys):
     from usf_graph.viz import draw_graticule
 

@@ -13,6 +13,7 @@ from .cli_images import cmd_lift, cmd_render
 from .cli_info import cmd_cache, cmd_info
 from .cli_inputs import (
     CAMERA_HELP,
+    VIDEO_SUFFIXES,
     camera_options,
     level_options,
     rig_options,
@@ -155,7 +156,7 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``usf-graph`` argument parser, every command and option with its help."""
-    from .cli_det import count, positive_int
+    from .cli_det import at_least, count, positive_int
     from .frontend.interpolation import METHODS
 
     fmt = _Help
@@ -240,7 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "a panorama, or a rig's images stitched into one.")
     r.add_argument("image", nargs="+", help="the source image; several: one per camera of the "
                    "--camera rig, in its order, stitched (e.g. two back-to-back fisheyes into "
-                   "a panorama)")
+                   "a panorama). Videos (" + ", ".join(VIDEO_SUFFIXES) + ") the same way, "
+                   "frame by frame, into a video: the geometry is built once")
     r.add_argument("--camera", required=True, help="source camera: " + CAMERA_HELP)
     camera_options(r)
     r.add_argument("--to", required=True, help="target camera, same forms as --camera, at its "
@@ -252,7 +254,12 @@ def build_parser() -> argparse.ArgumentParser:
                      "that the target sees a level scene (a panorama's horizon straight, a "
                      "pinhole upright)")
     rig_options(r, blend=True)
-    r.add_argument("--out", required=True, metavar="IMG", help="output image (.png, .jpg, .npy)")
+    r.add_argument("--every", type=positive_int, default=1, metavar="N",
+                   help="videos: re-image every N-th frame")
+    r.add_argument("--fps", type=at_least(0.0, float, above=True), default=None,
+                   help="videos: the output's frame rate (default: the source's, over --every)")
+    r.add_argument("--out", required=True, metavar="IMG",
+                   help="output image (.png, .jpg, .npy); for videos, .mp4 or .avi")
 
     sc = sub.add_parser("scenes", help="render procedural rooms through three lenses",
                         formatter_class=fmt,

@@ -3,15 +3,19 @@ camera onto a grid, or into another camera's pixels."""
 
 from __future__ import annotations
 
+from itertools import chain
 from pathlib import Path
 
 from .cli_inputs import (
     camera_from_spec,
     is_panorama_spec,
+    is_video,
     leveled,
     read_image,
     rig_from_spec,
     split_frame,
+    video_frames,
+    video_info,
 )
 
 
@@ -75,33 +79,91 @@ def cmd_lift(args) -> int:
     return 0
 
 
+def _target(args, image):
+    """``--to``: the camera asked for, not fitted to the source image; a panorama without a
+    size gets the source's width, at 2:1."""
+    return camera_from_spec(args.to, args.to_key, image_shape=(image.shape[1] // 2, image.shape[1])
+                            if is_panorama_spec(args.to) else None)
+
+
+def _reimager(args, images):
+    """What re-images one frame (a list of images: one, or one per camera of a rig) into
+    ``--to``, built from the first frame, and what it says of itself."""
+    from .frontend import Reimager, RigReimager
+
+    if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
+        raise ValueError("a rig's images have no one width to take: give the panorama's size, "
+                         "--to equirectangular:WIDTHxHEIGHT")
+    dst = _target(args, images[0])
+    _check_one_or_rig(args, len(images) > 1)
+    if len(images) > 1:
+        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images)
+        r = RigReimager(rig, dst, blend=args.blend, interpolation=args.interpolation)
+        return r, (f"rig of {len(rig)} ({', '.join(rig)}) -> {type(dst).__name__} "
+                   f"{dst.width}x{dst.height}, blend {args.blend}")
+    src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+    src = leveled(src, images[0], args)  # the source mounted level: the target sees a level scene
+    one = Reimager(src, dst, interpolation=args.interpolation)
+    return (lambda ims: one(ims[0])), (f"{type(src).__name__} {src.width}x{src.height} -> "
+                                       f"{type(dst).__name__} {dst.width}x{dst.height}")
+
+
+def _frames(args):
+    """Each frame of ``args.image``'s videos, read together (one per camera, or one cut by
+    ``--split``), as a list of images, every ``args.every``-th; stops at the shortest."""
+    from .cameras import load_rig
+
+    streams = [video_frames(p, args.every) for p in args.image]
+    count = len(load_rig(args.camera, key=args.key)) if args.split else None
+    for frame in zip(*streams):
+        images = [im for _, im in frame]
+        yield split_frame(images[0], count, args.camera) if args.split else images
+
+
+def _render_video(args) -> None:
+    """``render`` of videos: the geometry built on the first frame (leveled there with
+    ``--level``) and every frame re-imaged through it, written to ``--out``."""
+    from tqdm.auto import tqdm
+
+    from .viz import FrameVideo
+
+    if len(args.image) > 1 and args.split:
+        raise ValueError("--split cuts one video's frames into the rig's cameras' images; give one")
+    fps, count = video_info(args.image[0])
+    fps = args.fps or (fps / args.every if fps > 0 else 30.0)
+    if Path(args.out).suffix.lower() not in FrameVideo.CODECS:
+        raise ValueError(f"--out {args.out}: a video's frames go to a video, .mp4 or .avi")
+    frames = _frames(args)
+    first = next(frames)
+    reimage, what = _reimager(args, first)
+    print(what)
+    video = FrameVideo(args.out, fps)
+    total = -(-count // args.every) if count else None
+    try:
+        for images in tqdm(chain([first], frames), total=total, desc="re-imaging frames", unit="frame"):
+            video.add(reimage(images))
+    finally:
+        video.close()
+    print(f"wrote {args.out} ({video.frames} frames at {video.fps:g} fps)")
+
+
 def cmd_render(args) -> int:
     import cv2
     import numpy as np
 
-    from .frontend import render, render_rig
-
+    videos = [p for p in args.image if is_video(p)]
+    if videos and len(videos) < len(args.image):
+        raise ValueError("give images or videos, not both: a video's frames are re-imaged "
+                         "with the video's other cameras' frames")
+    if args.every != 1 and not videos:
+        raise ValueError("--every picks a video's frames; no video was given")
+    if videos:
+        _render_video(args)
+        return 0
     images = read_images(args)
-    img = images[0]
-    if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
-        raise ValueError("a rig's images have no one width to take: give the panorama's size, "
-                         "--to equirectangular:WIDTHxHEIGHT")
-    # a target is the camera asked for, not fitted to the source image; a panorama without
-    # a size gets the source's width, at 2:1
-    dst = camera_from_spec(args.to, args.to_key,
-                           image_shape=(img.shape[1] // 2, img.shape[1]) if is_panorama_spec(args.to) else None)
-    _check_one_or_rig(args, len(images) > 1)
-    if len(images) > 1:
-        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images)
-        out = render_rig(images, rig, dst, blend=args.blend, interpolation=args.interpolation)
-        print(f"rig of {len(rig)} ({', '.join(rig)}) -> {type(dst).__name__} {dst.width}x{dst.height}, "
-              f"blend {args.blend}")
-    else:
-        src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, img.shape)
-        src = leveled(src, img, args)  # the source mounted level: the target sees a level scene
-        out = render(img, src, dst, interpolation=args.interpolation)
-        print(f"{type(src).__name__} {src.width}x{src.height} -> {type(dst).__name__} "
-              f"{dst.width}x{dst.height}")
+    reimage, what = _reimager(args, images)
+    out = reimage(images)
+    print(what)
     if out.ndim == 3 and out.shape[2] in (3, 4):
         out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
     if args.out.endswith(".npy"):

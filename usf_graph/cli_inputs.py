@@ -224,6 +224,51 @@ def read_image(path):
     return img
 
 
+#: Files read as videos, frame by frame.
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
+
+
+def is_video(path) -> bool:
+    return Path(path).suffix.lower() in VIDEO_SUFFIXES
+
+
+def video_frames(path, every: int = 1):
+    """``(index, RGB frame)`` of every ``every``-th frame of the video ``path``, decoded one
+    at a time so that a long video never sits in memory."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise ValueError(f"cannot read video {path}: missing, or a codec OpenCV lacks; "
+                         "extract its frames as images instead")
+    i = taken = 0
+    try:
+        while True:
+            ok, bgr = cap.read()
+            if not ok:
+                break
+            if i % every == 0:
+                taken += 1
+                yield i, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            i += 1
+    finally:
+        cap.release()
+    if not taken:
+        raise ValueError(f"video {path} has no frames OpenCV can decode")
+
+
+def video_info(path) -> tuple[float, int]:
+    """``(frames per second, frame count)`` of a video as its header gives them (0 where it
+    does not)."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    try:
+        return float(cap.get(cv2.CAP_PROP_FPS) or 0.0), int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    finally:
+        cap.release()
+
+
 def alpha_masked(camera, image, path):
     """``camera`` with the pixels that ``image``'s alpha channel makes fully transparent
     masked too (as ``--image-mask`` would); unchanged without alpha or where all is opaque."""

@@ -13,17 +13,17 @@ from .bags import is_bag
 from .cli_bags import bag_camera, imu_up, predict_rig_bag
 from .cli_inputs import (
     CAMERA_HELP,
+    VIDEO_SUFFIXES,
     alpha_masked,
     camera_from_spec,
     camera_options,
+    is_video,
     read_image,
     rig_from_spec,
     rig_options,
     split_frame,
+    video_frames,
 )
-
-#: Files ``predict`` reads as videos, frame by frame.
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
 
 
 def add_predict_parser(sub, fmt) -> None:
@@ -137,7 +137,7 @@ def cmd_predict(args) -> int:
                          "each other in --out; predict them in separate runs")
     if args.distance is not None and not args.rig:
         raise ValueError("--distance stitches the cameras of a --rig; one camera needs none")
-    streams = [p for p in args.image if _is_video(p) or is_bag(p)]
+    streams = [p for p in args.image if is_video(p) or is_bag(p)]
     rig_bag = args.rig and len(args.image) == 1 and is_bag(args.image[0])
     if args.split and not args.rig:
         raise ValueError("--split cuts each frame into a rig's cameras' images: add --rig")
@@ -218,17 +218,11 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
         run(model, [stem], [source], [image], cam, names, out, args, up=up)
 
 
-def _is_video(path) -> bool:
-    return Path(path).suffix.lower() in VIDEO_SUFFIXES
-
-
 def _inputs(paths, every: int = 1, topic: str | None = None):
     """``(stem, source, RGB image, bag or None, stamp in ns or None)`` of every image, and of every ``every``-th
     frame of every video (stem ``<video>_<frame index>``, source ``<video>#<frame index>``)
     and ROS bag (source ``<bag>#<topic>@<stamp in ns>``), read one at a time so that a long
     recording never sits in memory."""
-    import cv2
-
     from .bags import frames
 
     for path in paths:
@@ -238,28 +232,11 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
                 yield (f"{name}_{f.index:06d}", f"{path}#{f.topic}@{f.stamp_ns}", f.image, path,
                        f.stamp_ns)
             continue
-        if not _is_video(path):
+        if not is_video(path):
             yield Path(path).stem, str(path), read_image(path), None, None
             continue
-        cap = cv2.VideoCapture(str(path))
-        if not cap.isOpened():
-            raise ValueError(f"cannot read video {path}: missing, or a codec OpenCV lacks; "
-                             "extract its frames as images instead")
-        i = taken = 0
-        try:
-            while True:
-                ok, bgr = cap.read()
-                if not ok:
-                    break
-                if i % every == 0:
-                    taken += 1
-                    yield f"{Path(path).stem}_{i:06d}", f"{path}#{i}", \
-                        cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), None, None
-                i += 1
-        finally:
-            cap.release()
-        if not taken:
-            raise ValueError(f"video {path} has no frames OpenCV can decode")
+        for i, rgb in video_frames(path, every):
+            yield f"{Path(path).stem}_{i:06d}", f"{path}#{i}", rgb, None, None
 
 
 def _predict_split(run, model, names, out: Path, args) -> None:
@@ -275,7 +252,7 @@ def _predict_split(run, model, names, out: Path, args) -> None:
         if rig is None:
             rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
                                 parts)
-        if len(args.image) > 1 or _is_video(args.image[0]):
+        if len(args.image) > 1 or is_video(args.image[0]):
             print(f"== {source}")
         sources = [f"{source}[{n}]" for n in rig]
         cams = {n: alpha_masked(c, im, s) for (n, c), im, s in zip(rig.items(), parts, sources)}

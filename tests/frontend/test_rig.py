@@ -173,7 +173,8 @@ def test_render_rig_stitches_the_cameras_into_one_panorama():
     deep = render_rig({n: v.astype(np.uint16) * 257 for n, v in views.items()}, rig, big)
     assert deep.dtype == np.uint16 and np.abs(deep.astype(int) - 257 * back.astype(int)).max() <= 257
     one = render_rig([views["cam0"]], [rig["cam0"]], big)  # one camera: render back
-    assert np.array_equal(one, render(views["cam0"].astype(float), rig["cam0"], big).round().astype(np.uint8))
+    exact = render(views["cam0"].astype(float), rig["cam0"], big).round()  # float64: the exact table
+    assert one.dtype == np.uint8 and np.abs(one - exact).max() <= 1  # cv2.remap's 1/32 pixel
     with pytest.raises(ValueError, match=r"2 cameras \(cam0, cam1\) but 1 images"):
         render_rig([views["cam0"]], rig, big)
     with pytest.raises(ValueError, match="blend must be one of"):

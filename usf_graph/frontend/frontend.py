@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import hashlib
-import math
 import sys
 
-import cv2
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -18,16 +16,11 @@ from ..sparse import quiet_sparse
 from .cache import GeometryCache, default_cache
 from .image import SphericalImage
 from .interpolation import (
-    bilinear_entries,
     build_table,
     check_method,
-    nearest_entries,
-    valid_entries,
     valid_pixels,
 )
-
-_REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32)
-_ROW = 1024  # cv2.remap maps must be narrower than SHRT_MAX, so fold N points into rows
+from .remap import Remap
 
 
 def default_radius(grid: Grid) -> float:
@@ -147,8 +140,7 @@ class SphericalFrontend:
         self._uv = t["uv"].numpy()
         self.radius = float(radius) if radius is not None else default_radius(grid)
         self._edges = None  # built on first use: lift/lift_batch never need the graph
-        self._all_seen = bool(self.mask.all())
-        self._maps, self._border = None, None
+        self._fast = None
         self._render = {}
 
     @property
@@ -176,70 +168,19 @@ class SphericalFrontend:
                 f"'{self.interpolation}', radius={self.radius:.4g}, visible={int(self.mask.sum())})")
 
     # -- lifting -----------------------------------------------------------------------
-    def _remap_maps(self):
-        if self._maps is None:
-            from .interpolation import _wrap_or_clamp
-
-            n = len(self._uv)
-            rows = math.ceil(n / _ROW)
-            seen = self.mask.numpy()
-            u, v = _wrap_or_clamp(self.camera, self._uv[:, 0].astype(np.float64), self._uv[:, 1])
-            # unseen points sample far outside the image: 0 under BORDER_CONSTANT
-            mx = np.full(rows * _ROW, -16, np.float32)
-            my = np.full(rows * _ROW, -16, np.float32)
-            mx[:n], my[:n] = np.where(seen, u, -16), np.where(seen, v, -16)
-            self._maps = (mx.reshape(rows, _ROW), my.reshape(rows, _ROW))
-            self._border = self._border_rows(*self._maps)
-        return self._maps
-
-    def _border_rows(self, mx, my):
-        """For bilinear lifts, the seen points whose four pixels include one without a ray
-        (past a fisheye's image circle) or a masked one: ``(rows, pixels, A)`` with ``A``
-        their table rows as a scipy CSR ``[R, P]`` over the ``P`` pixels they read; None if
-        there are none. The table leaves such pixels out and renormalizes over the rest,
-        where cv2.remap would blend them in, so lift recomputes these few points from it."""
-        if self.interpolation != "bilinear":
-            return None  # nearest reads one pixel, which for a seen point is valid
-        cam = self.camera
-        valid = valid_pixels(cam, self._image_mask)
-        border = cv2.BORDER_WRAP if cam.wraps_u else cv2.BORDER_CONSTANT
-        w = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=border)
-        rows = np.flatnonzero(self.mask.numpy() & (w.ravel()[:self.num_points] < 1 - 1e-4))
-        if not len(rows):
-            return None
-        from scipy import sparse
-
-        crow, col, val = (np.asarray(a) for a in self._rows)
-        A = sparse.csr_matrix((val, col, crow), shape=(self.num_points, cam.width * cam.height))[rows]
-        A.eliminate_zeros()  # a pixel without a ray may hold anything, NaN included
-        pixels = np.unique(A.indices)  # lift then reads these few pixels, not the image
-        A = sparse.csr_matrix((A.data, np.searchsorted(pixels, A.indices), A.indptr),
-                              shape=(len(rows), len(pixels)))
-        return rows, pixels, A
-
-    def _can_remap(self, arr) -> bool:
-        return (self.interpolation in ("bilinear", "nearest") and isinstance(arr, np.ndarray)
-                and arr.dtype.type in _REMAP_DTYPES and arr.shape[-1] <= 4)
+    def _remap(self) -> Remap:
+        """The ``cv2.remap`` fast path of :meth:`lift`, built on first use."""
+        if self._fast is None:
+            self._fast = Remap(self.camera, self._uv, self.mask.numpy(), self.interpolation,
+                               valid_pixels(self.camera, self._image_mask))
+        return self._fast
 
     def lift(self, image) -> torch.Tensor:
         """One image ``[H, W]`` or ``[H, W, C]`` (numpy or torch) -> ``[N, C]`` float32
         (float64 stays float64). Points outside the field of view are 0."""
         arr, is_np = _as_image(image, self.camera)
-        if is_np and self._can_remap(arr):
-            mx, my = self._remap_maps()
-            inter = cv2.INTER_LINEAR if self.interpolation == "bilinear" else cv2.INTER_NEAREST
-            # seen points are clamped inside the image, so the border only matters for
-            # unseen ones (constant 0), except in u for panoramas that wrap around
-            border = cv2.BORDER_WRAP if self.camera.wraps_u else cv2.BORDER_CONSTANT
-            out = cv2.remap(arr, mx, my, inter, borderMode=border)
-            out = out.reshape(-1, arr.shape[-1])[:self.num_points]
-            x = torch.from_numpy(out.astype(np.float32, copy=False))
-            if self._border is not None:
-                rows, pixels, A = self._border
-                x[rows] = torch.from_numpy((A @ arr.reshape(-1, arr.shape[-1])[pixels]).astype(np.float32))
-            if self.camera.wraps_u and not self._all_seen:
-                # unseen points wrapped onto masked pixels, which may hold NaN (0 * NaN = NaN)
-                x.masked_fill_(~self.mask[:, None], 0.0)
+        if is_np and self.interpolation in ("bilinear", "nearest") and Remap.accepts(arr):
+            x = torch.from_numpy(self._remap()(arr))
             if arr.dtype.kind != "f":
                 return x  # integer pixels cannot be NaN
         else:
@@ -374,48 +315,6 @@ def _check_finite(x: torch.Tensor, mask: torch.Tensor) -> None:
     if not torch.isfinite(x[..., mask, :]).all():
         raise ValueError("the image has NaN or inf in pixels the camera sees; clean them, or "
                          "mask them: image_mask= in Python, --image-mask on the command line")
-
-
-def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear",
-           source_valid: np.ndarray | None = None):
-    """Re-image ``image`` taken by ``cam_src`` as ``cam_dst`` would see it, through the
-    sphere: each destination pixel's ray is projected into the source camera. Pixels the
-    source does not see are 0; source pixels without a ray or that its image mask ignores
-    are left out, as in every lift. ``source_valid``: those pixels, ``[H, W]`` bool
-    (:func:`~usf_graph.frontend.interpolation.valid_pixels` of ``cam_src``), where the caller
-    has them: re-imaging a large image into several targets then unprojects it once.
-    Returns numpy (or torch, for torch input) ``[H', W'(, C)]``."""
-    arr, is_np = _as_image(image, cam_src)
-    rays, valid = cam_dst.lens_normal_map()
-    pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
-    uv, seen = cam_src.sees(pos)
-    seen &= valid.ravel()
-    entries = bilinear_entries if interpolation == "bilinear" else nearest_entries
-    idx, w = entries(cam_src, np.nan_to_num(uv, nan=-1.0), seen)
-    w = valid_entries(cam_src, idx, w, valid=source_valid)  # as every lift: pixels without a ray never blend in
-    t = torch.as_tensor(arr)
-    flat = (t if t.is_floating_point() else t.double()).reshape(-1, t.shape[-1])
-    w = torch.as_tensor(w, dtype=flat.dtype)[..., None]
-    out = torch.where(w > 0, flat[torch.as_tensor(idx)] * w, 0).sum(1)  # a left-out NaN stays out
-    out = out.reshape(cam_dst.height, cam_dst.width, -1)
-    if not t.is_floating_point():
-        out = out.round().clamp(0, torch.iinfo(t.dtype).max).to(t.dtype)
-    if np.ndim(image) == 2:
-        out = out[..., 0]
-    return out.numpy() if is_np else out
-
-
-def render_seen(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear",
-                source_valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`render` of ``image`` (numpy) as float64, and where the source sees:
-    ``(out [H', W'(, C)], seen [H', W'] bool)``, from a channel of ones re-imaged with it
-    (0 where no source pixel reaches)."""
-    a = np.asarray(image, np.float64)
-    flat = a[..., None] if a.ndim == 2 else a
-    both = render(np.concatenate([flat, np.ones(flat.shape[:2] + (1,))], -1), cam_src, cam_dst,
-                  interpolation, source_valid)
-    out = both[..., :-1]
-    return (out[..., 0] if a.ndim == 2 else out), both[..., -1] > 0.5
 
 
 def _say(msg: str) -> None:

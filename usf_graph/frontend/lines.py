@@ -21,8 +21,8 @@ import numpy as np
 
 from ..cameras import DEFAULT_ROTATION, Camera, Pinhole
 from ..geometry import geodesic_distance, rotation_from_axis_angle
-from .frontend import render_seen
 from .interpolation import valid_pixels
+from .reimage import render_seen
 
 #: Lines closer than this (degrees) to a direction's great circle point at it.
 LINE_TOLERANCE = 1.5

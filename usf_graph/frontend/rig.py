@@ -14,8 +14,9 @@ from ..cameras.base import angle_to
 from ..cameras.rig import rig_centre
 from ..grids import Grid
 from .cache import GeometryCache
-from .frontend import SphericalFrontend, render_seen
+from .frontend import SphericalFrontend
 from .image import SphericalImage
+from .reimage import Reimager
 
 BLENDS = ("best", "feather")
 
@@ -60,36 +61,67 @@ def ordered_images(names: Sequence[str], images) -> list:
     return images
 
 
+class RigReimager:
+    """A rig's images (one per camera) re-imaged as ``cam_dst`` would see the scene from the
+    rig's centre, with the geometry built once: each camera re-imaged alone
+    (:class:`~usf_graph.frontend.reimage.Reimager`; stitched cameras look from their own
+    centres) and blended as :class:`RigFrontend` blends them (:func:`blend_weights`). E.g.
+    two back-to-back fisheyes stitched into an equirectangular panorama, frame after frame.
+
+    Args:
+        cameras: the rig, ``{name: Camera}`` (or a sequence, named ``cam0``, ``cam1``, ...).
+        cam_dst: the camera to see the scene through.
+        blend: ``best`` or ``feather`` (:func:`blend_weights`).
+        interpolation: ``bilinear`` or ``nearest``.
+    """
+
+    def __init__(self, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst: Camera,
+                 blend: str = "best", interpolation: str = "bilinear"):
+        self._named = isinstance(cameras, Mapping)
+        cams = list(cameras.values()) if self._named else list(cameras)
+        self.names = list(cameras) if self._named else [f"cam{i}" for i in range(len(cams))]
+        self.cam_dst = cam_dst
+        rays, valid = cam_dst.lens_normal_map()  # once for every camera
+        self._parts = [Reimager(c, cam_dst, interpolation, target=(rays, valid)) for c in cams]
+        pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
+        w, best = blend_weights(cams, pos, np.stack([r.seen.ravel() for r in self._parts]), blend)
+        self._weights = w.astype(np.float32)
+        self.seen = (best >= 0).reshape(cam_dst.height, cam_dst.width)
+
+    def __call__(self, images) -> np.ndarray:
+        """One image per camera (in order, or ``{name: image}``) -> ``[H', W'(, C)]``:
+        float32 for float images, an integer image's type (rounded) for integer ones. Pixels
+        no camera sees are 0."""
+        if not self._named and isinstance(images, Mapping):
+            images = list(images.values())  # unnamed cameras: a mapping taken in its order
+        images = ordered_images(self.names, images)
+        out = None
+        for wk, r, im in zip(self._weights, self._parts, images):
+            a = np.asarray(im)
+            if not wk.any():
+                r(a)  # still checks the image's size
+                continue
+            part = r(a if a.dtype == np.float32 else a.astype(np.float32))
+            part = part.reshape(len(wk), -1)
+            out = wk[:, None] * part if out is None else out + wk[:, None] * part
+        shape = (self.cam_dst.height, self.cam_dst.width)
+        c = 1 if np.ndim(images[0]) == 2 else np.shape(images[0])[-1]
+        out = np.zeros((len(self._weights[0]), c), np.float32) if out is None else out
+        out = out.reshape(*shape, c)
+        out = out[..., 0] if np.ndim(images[0]) == 2 else out
+        dtype = np.asarray(images[0]).dtype
+        if np.issubdtype(dtype, np.integer):  # as a Reimager keeps an integer image's type
+            return np.clip(np.round(out), np.iinfo(dtype).min, np.iinfo(dtype).max).astype(dtype)
+        return out
+
+
 def render_rig(images, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst: Camera,
                blend: str = "best", interpolation: str = "bilinear") -> np.ndarray:
     """A rig's images (one per camera, in order, or ``{name: image}``) re-imaged as
-    ``cam_dst`` would see the scene from the rig's centre: each camera re-imaged alone
-    (:func:`~usf_graph.frontend.render`; stitched cameras look from their own centres)
-    and blended as :class:`RigFrontend` blends them (:func:`blend_weights`). E.g. two
-    back-to-back fisheyes stitched into an equirectangular panorama. Pixels no camera sees
-    are 0. Returns ``[H', W'(, C)]`` float64 (integer images: their type)."""
-    if isinstance(cameras, Mapping):
-        names, cams = list(cameras), list(cameras.values())
-    else:  # unnamed cameras: a mapping of images is taken in its own order
-        cams = list(cameras)
-        names = [f"cam{i}" for i in range(len(cams))]
-        if isinstance(images, Mapping):
-            images = list(images.values())
-    images = ordered_images(names, images)
-    rays, valid = cam_dst.lens_normal_map()
-    pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
-    parts, seen = [], []
-    for im, cam in zip(images, cams):
-        out, sees = render_seen(im, cam, cam_dst, interpolation)
-        parts.append(out.reshape(len(pos), -1))
-        seen.append(sees.reshape(-1))
-    w, _ = blend_weights(cams, pos, np.stack(seen), blend)
-    out = sum(wk[:, None] * p for wk, p in zip(w, parts)).reshape(cam_dst.height, cam_dst.width, -1)
-    out = out[..., 0] if np.ndim(images[0]) == 2 else out
-    dtype = np.asarray(images[0]).dtype
-    if np.issubdtype(dtype, np.integer):  # as render keeps an integer image's type
-        return np.clip(np.round(out), np.iinfo(dtype).min, np.iinfo(dtype).max).astype(dtype)
-    return out
+    ``cam_dst`` would see the scene from the rig's centre: :class:`RigReimager` for one
+    frame (build one for many). Pixels no camera sees are 0. Returns ``[H', W'(, C)]``
+    float32 (integer images: their type)."""
+    return RigReimager(cameras, cam_dst, blend, interpolation)(images)
 
 
 class RigFrontend:
