@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from tests.helpers import FIXTURES
 from usf_graph import cameras
-from usf_graph.frontend import Reimager, RigReimager, render, render_rig
+from usf_graph.frontend import Reimager, RigReimager, blend_weights, render, render_rig
 from usf_graph.geometry import rotation_from_axis_angle
 
 
@@ -124,7 +124,9 @@ def test_reimager_refuses_what_it_cannot_use():
 
 
 def test_rig_reimager_serves_many_frames_as_render_rig():
-    """A rig's stitching built once gives each frame what :func:`render_rig` gives it."""
+    """A rig's stitching built once gives each frame what :func:`render_rig` gives it, and
+    what each camera's exact re-imaging blended by :func:`blend_weights` gives (each camera
+    samples only its share of the pixels)."""
     rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
     pano = cameras.Equirectangular(96, 48)
     rr = RigReimager(rig, pano, blend="feather")
@@ -136,3 +138,12 @@ def test_rig_reimager_serves_many_frames_as_render_rig():
         assert out.dtype == np.uint8 and out.shape == (48, 96, 3)
         assert np.array_equal(out, render_rig(frames, rig, pano, blend="feather"))
         assert np.array_equal(out, rr(dict(reversed(list(zip(rig, frames))))))
+    rays, valid = pano.lens_normal_map()
+    floats = [rng.random((c.height, c.width, 2)) for c in rig.values()]
+    for blend in ("best", "feather"):
+        alone = [Reimager(c, pano) for c in rig.values()]
+        w, _ = blend_weights(list(rig.values()), np.where(valid[..., None], rays, 1.0).reshape(-1, 3),
+                             np.stack([r.seen.ravel() for r in alone]), blend)
+        want = sum(wk.reshape(48, 96, 1) * r(f) for wk, r, f in zip(w, alone, floats))  # float64: exact
+        got = RigReimager(rig, pano, blend=blend)([f.astype(np.float32) for f in floats])
+        assert got.dtype == np.float32 and 0 < np.abs(got - want).max() < 1 / 32

@@ -63,6 +63,11 @@ class Reimager:
         """``[H', W']`` bool: the target pixels some source pixel reaches."""
         return self._fast.reached.reshape(self.cam_dst.height, self.cam_dst.width)
 
+    def part(self, keep: np.ndarray) -> Remap:
+        """The ``cv2.remap`` path over the target pixels where ``keep`` (``[H' W']`` bool)
+        alone: a rig's camera re-imaging its share of the pixels."""
+        return Remap(self.cam_src, self._uv, self._sees & keep, self.interpolation, self._valid)
+
     def _entries(self):
         """The exact table ``(idx [P, K], w [P, K])``, built on first use."""
         if self._table is None:

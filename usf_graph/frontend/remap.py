@@ -51,9 +51,10 @@ class Remap:
         self._flag = cv2.INTER_LINEAR if interpolation == "bilinear" else cv2.INTER_NEAREST
         self._unseen = np.flatnonzero(~seen) if camera.wraps_u else None
         self._valid = np.asarray(valid, bool)
+        self._some_invalid = not self._valid.all()
         self.reached = seen.copy()
         self._border = None
-        if interpolation == "bilinear" and not self._valid.all():
+        if interpolation == "bilinear" and self._some_invalid:
             self._border = self._border_rows(uv, seen)
 
     def _border_rows(self, uv, seen):
@@ -76,20 +77,42 @@ class Remap:
         ``cv2.remap`` interpolates, at most 4 channels."""
         return isinstance(arr, np.ndarray) and arr.dtype.type in REMAP_DTYPES and arr.shape[-1] <= 4
 
-    def __call__(self, arr: np.ndarray, keep_dtype: bool = False) -> np.ndarray:
+    def blank(self, channels: int, dtype) -> np.ndarray:
+        """Zeros to write several cameras' points into (``into=`` of :meth:`__call__`)."""
+        return np.zeros((self.maps[0].size, channels), dtype)
+
+    def __call__(self, arr: np.ndarray, keep_dtype: bool = False, into: np.ndarray | None = None) -> np.ndarray:
         """``arr [H, W, C]`` -> ``[M, C]`` float32 (``keep_dtype``: ``arr``'s dtype, the
-        border rounded), 0 where a point is not :attr:`reached`."""
+        border rounded), 0 where a point is not :attr:`reached`. With ``into`` (a
+        :meth:`blank` of ``arr``'s dtype, for a camera that does not wrap) only the seen
+        points are written there, the others left as they are: a rig's cameras, each
+        seeing its own pixels, fill one image."""
         c = arr.shape[-1]
-        if arr.dtype.kind == "f" and not self._valid.all() and not np.isfinite(arr).all():
-            arr = np.where(self._valid[..., None], arr, 0)  # a weight OpenCV rounds to 0 times NaN is NaN
-        out = cv2.remap(arr, *self.maps, self._flag, borderMode=self.border_mode)
+        # a weight OpenCV rounds to 0 times a NaN in a pixel that may not be read is NaN
+        dirty = self._some_invalid and arr.dtype.kind == "f"
+        if into is None:
+            out = cv2.remap(arr, *self.maps, self._flag, borderMode=self.border_mode)
+            if dirty and not np.isfinite(out).all():  # the image cleaned only then
+                out = cv2.remap(np.where(self._valid[..., None], arr, 0), *self.maps, self._flag,
+                                borderMode=self.border_mode)
+        else:
+            if self.camera.wraps_u or into.shape != (self.maps[0].size, c) or into.dtype != arr.dtype:
+                raise ValueError("into= takes a blank() of the image's channels and type, for a "
+                                 "camera that does not wrap around")
+            if dirty and not np.isfinite(arr).all():
+                arr = np.where(self._valid[..., None], arr, 0)
+            dst = into.reshape(*self.maps[0].shape, c) if c > 1 else into.reshape(self.maps[0].shape)
+            out = cv2.remap(arr, *self.maps, self._flag, dst=dst, borderMode=cv2.BORDER_TRANSPARENT)
+            if not np.shares_memory(out, into):
+                raise RuntimeError("cv2.remap did not write into the given array")
+            out, keep_dtype = into, True
         out = out.reshape(-1, c)[:self.num_points]
         if not keep_dtype:
             out = out.astype(np.float32, copy=False)
         if self._border is not None:
             rows, idx, w = self._border
             g = arr.reshape(-1, c)[idx].astype(np.float64)
-            part = np.where(w[..., None] > 0, g * w[..., None], 0.0).sum(1)  # unread pixels may hold NaN
+            part = (np.where(w[..., None] > 0, g, 0.0) * w[..., None]).sum(1)  # unread pixels may hold NaN
             if keep_dtype and arr.dtype.kind != "f":
                 part = np.clip(np.round(part), np.iinfo(arr.dtype).min, np.iinfo(arr.dtype).max)
             out[rows] = part

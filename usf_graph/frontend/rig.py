@@ -14,9 +14,10 @@ from ..cameras.base import angle_to
 from ..cameras.rig import rig_centre
 from ..grids import Grid
 from .cache import GeometryCache
-from .frontend import SphericalFrontend
+from .frontend import SphericalFrontend, _as_image
 from .image import SphericalImage
 from .reimage import Reimager
+from .remap import Remap
 
 BLENDS = ("best", "feather")
 
@@ -85,7 +86,11 @@ class RigReimager:
         self._parts = [Reimager(c, cam_dst, interpolation, target=(rays, valid)) for c in cams]
         pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
         w, best = blend_weights(cams, pos, np.stack([r.seen.ravel() for r in self._parts]), blend)
-        self._weights = w.astype(np.float32)
+        # each camera samples only the pixels it has a share of: with "best", each pixel once
+        self._fast = [r.part(wk > 0) for r, wk in zip(self._parts, w)]
+        self._weights = w.astype(np.float32)[..., None]
+        # every share all of a pixel: the cameras write their pixels into one image
+        self._whole = blend == "best" and not any(c.wraps_u for c in cams)
         self.seen = (best >= 0).reshape(cam_dst.height, cam_dst.width)
 
     def __call__(self, images) -> np.ndarray:
@@ -95,24 +100,26 @@ class RigReimager:
         if not self._named and isinstance(images, Mapping):
             images = list(images.values())  # unnamed cameras: a mapping taken in its order
         images = ordered_images(self.names, images)
-        out = None
-        for wk, r, im in zip(self._weights, self._parts, images):
-            a = np.asarray(im)
-            if not wk.any():
-                r(a)  # still checks the image's size
-                continue
-            part = r(a if a.dtype == np.float32 else a.astype(np.float32))
-            part = part.reshape(len(wk), -1)
-            out = wk[:, None] * part if out is None else out + wk[:, None] * part
-        shape = (self.cam_dst.height, self.cam_dst.width)
-        c = 1 if np.ndim(images[0]) == 2 else np.shape(images[0])[-1]
-        out = np.zeros((len(self._weights[0]), c), np.float32) if out is None else out
-        out = out.reshape(*shape, c)
-        out = out[..., 0] if np.ndim(images[0]) == 2 else out
-        dtype = np.asarray(images[0]).dtype
-        if np.issubdtype(dtype, np.integer):  # as a Reimager keeps an integer image's type
-            return np.clip(np.round(out), np.iinfo(dtype).min, np.iinfo(dtype).max).astype(dtype)
-        return out
+        arrs = [_as_image(im, r.cam_src)[0] for im, r in zip(images, self._parts)]
+        if len({(a.shape[-1], a.dtype) for a in arrs}) > 1:
+            raise ValueError("the rig's images differ in channels or type: "
+                             f"{[(a.shape[-1], a.dtype.name) for a in arrs]}; give them alike")
+        c, dtype = arrs[0].shape[-1], arrs[0].dtype
+        n = self.cam_dst.height * self.cam_dst.width
+        if self._whole and Remap.accepts(arrs[0]):  # in the images' own type
+            out = self._fast[0].blank(c, dtype)
+            for fast, a in zip(self._fast, arrs):
+                fast(a, into=out)
+            out = out[:n]
+        else:
+            out = np.zeros((n, c), np.float32)
+            for fast, wk, r, a in zip(self._fast, self._weights, self._parts, arrs):
+                a = a if a.dtype == np.float32 else a.astype(np.float32)
+                out += wk * (fast(a) if Remap.accepts(a) else r(a).reshape(n, c))
+            if np.issubdtype(dtype, np.integer):  # as a Reimager keeps an integer image's type
+                out = np.clip(np.round(out), np.iinfo(dtype).min, np.iinfo(dtype).max).astype(dtype)
+        out = out.reshape(self.cam_dst.height, self.cam_dst.width, c)
+        return out[..., 0] if np.ndim(images[0]) == 2 else out
 
 
 def render_rig(images, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst: Camera,
