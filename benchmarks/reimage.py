@@ -92,9 +92,9 @@ def main():
             t = time.perf_counter()
             r = build()
             built = time.perf_counter() - t
-            warm = best_of(lambda r=r: apply(r), a.reps)
+            warm = best_of(lambda r=r, f=apply: f(r), a.reps)
             remap = r._parts[0]._fast if hasattr(r, "_parts") else r._fast
-            floor = best_of(lambda m=remap: cv2.remap(src, *m.maps, cv2.INTER_LINEAR,
+            floor = best_of(lambda m=remap, src=src: cv2.remap(src, *m.maps, cv2.INTER_LINEAR,
                                                       borderMode=m.border_mode), a.reps)
             t = time.perf_counter()
             before = first()

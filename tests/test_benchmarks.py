@@ -94,3 +94,11 @@ def test_export_frame_benchmark_runs(task):
 def test_lines_benchmark_runs():
     out = run("benchmarks/lines.py", "--sizes", "256", "--reps", "1")
     assert "| 256x128 |" in out and "first version (s)" in out
+
+
+def test_reimage_benchmark_runs():
+    out = run("benchmarks/reimage.py", "--sizes", "128", "--reps", "1")
+    assert "| panorama 128x64 leveled |" in out and "| dual fisheye 2x64x64 -> panorama 128x64 |" in out
+    diffs = re.findall(r"\| (\d+) \(([\d.]+)%\) \|", out)
+    assert len(diffs) == 2 and all(int(d) <= 1 for d, _ in diffs)  # the two paths agree
+
