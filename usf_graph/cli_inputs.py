@@ -5,6 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .videos import VIDEO_SUFFIXES, is_video, split_frame
+from .videos import frames as video_frames
+from .videos import info as video_info
+
+__all__ = ["split_frame", "VIDEO_SUFFIXES", "is_video", "video_frames", "video_info"]
+
 CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, ORB-SLAM3 "
                "settings, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
@@ -143,19 +149,6 @@ def rig_options(p, blend: bool = False, split: bool = True) -> None:
                         "infinity, the baseline ignored)")
 
 
-def split_frame(image, count: int, what: str) -> list:
-    """``image [H, W, ...]`` cut along its width into ``count`` equal images, left to right
-    (``what``: the rig, for the error)."""
-    w = image.shape[1]
-    if count < 2:
-        raise ValueError(f"--split cuts a frame into a rig's cameras' images; {what} has one "
-                         "camera: leave out --split")
-    if w % count:
-        raise ValueError(f"--split: the image is {w} pixels wide, which does not cut into "
-                         f"{count} equal parts, one per camera of {what}")
-    return [image[:, k * w // count:(k + 1) * w // count] for k in range(count)]
-
-
 def _distance(text: str):
     if text == "auto":
         return text
@@ -222,51 +215,6 @@ def read_image(path):
     if img.ndim == 3 and img.shape[2] in (3, 4):  # OpenCV's BGR(A) -> RGB(A)
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
     return img
-
-
-#: Files read as videos, frame by frame.
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
-
-
-def is_video(path) -> bool:
-    return Path(path).suffix.lower() in VIDEO_SUFFIXES
-
-
-def video_frames(path, every: int = 1):
-    """``(index, RGB frame)`` of every ``every``-th frame of the video ``path``, decoded one
-    at a time so that a long video never sits in memory."""
-    import cv2
-
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise ValueError(f"cannot read video {path}: missing, or a codec OpenCV lacks; "
-                         "extract its frames as images instead")
-    i = taken = 0
-    try:
-        while True:
-            ok, bgr = cap.read()
-            if not ok:
-                break
-            if i % every == 0:
-                taken += 1
-                yield i, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-            i += 1
-    finally:
-        cap.release()
-    if not taken:
-        raise ValueError(f"video {path} has no frames OpenCV can decode")
-
-
-def video_info(path) -> tuple[float, int]:
-    """``(frames per second, frame count)`` of a video as its header gives them (0 where it
-    does not)."""
-    import cv2
-
-    cap = cv2.VideoCapture(str(path))
-    try:
-        return float(cap.get(cv2.CAP_PROP_FPS) or 0.0), int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-    finally:
-        cap.release()
 
 
 def alpha_masked(camera, image, path):

@@ -8,25 +8,21 @@ the grid is shared. With an IMU topic every frame also gets its up from the acce
 
 from __future__ import annotations
 
-import hashlib
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch_geometric.data import Dataset
 from tqdm.auto import tqdm
 
 from .. import bags
 from ..cameras import Camera, imu_rotation, imu_time_shift, load
-from ..fileio import atomic_torch_save
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage, unit_range
 from ..grids import Grid, from_spec
-from .stacked import load_or_rebuild, pre_transform_stacked
+from .frames import LiftedFrames, digest
 
 
-class RosBagFrames(Dataset):
+class RosBagFrames(LiftedFrames):
     r"""The frames of a ROS 1 or ROS 2 bag's image topic, lifted onto a grid.
 
     Args:
@@ -87,8 +83,7 @@ class RosBagFrames(Dataset):
             self.imu_to_sphere = np.asarray(imu_to_sphere, np.float64).reshape(3, 3)
         self.frontend = SphericalFrontend(self.camera, self.grid, interpolation=interpolation)
         super().__init__(str(root), transform, pre_transform, log=False)
-        blob = load_or_rebuild(self.processed_paths[0], self.process, ("x", "stamp_ns", "gravity"))
-        self.x, self.stamp_ns, self._gravity = blob["x"], blob["stamp_ns"], blob["gravity"]
+        self._gravity = self._load()["gravity"]
 
     @property
     def raw_dir(self) -> str:
@@ -109,11 +104,12 @@ class RosBagFrames(Dataset):
                "imu_to_sphere": None if self.imu_to_sphere is None else self.imu_to_sphere.round(12).tolist(),
                "window": self.imu_window_ns, "imu_up": self.imu_up,
                "shift": self.imu_time_shift_ns}
-        digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
-        return [f"rosbag_{self.bag.stem}_{digest}.pt"]
+        return [f"rosbag_{self.bag.stem}_{digest(key)}.pt"]
 
     def download(self):
         raise FileNotFoundError(f"{self.bag} does not exist")
+
+    extra_fields = ("gravity",)
 
     def process(self):
         acc = None if self.imu is None else bags.IMU_SOURCES[self.imu_up](self.bag, self.imu)
@@ -130,13 +126,8 @@ class RosBagFrames(Dataset):
                                                        self.imu_window_ns))
         if not xs:
             raise ValueError(f"{self.bag} [{self.topic}] has no frames")
-        x = torch.stack(xs)
-        if self.pre_transform is not None:
-            x = pre_transform_stacked(self.pre_transform, (self._sample(xi) for xi in x), "x",
-                                      fixed=("pos",))
         gravity = torch.as_tensor(np.stack(ups)) if ups else torch.zeros(0, 3, dtype=torch.float64)
-        atomic_torch_save({"x": x.to(torch.float16), "stamp_ns": torch.as_tensor(stamps),
-                           "gravity": gravity}, self.processed_paths[0])
+        self.store(xs, stamps, gravity=gravity)
 
     @property
     def gravity(self) -> torch.Tensor:
@@ -146,16 +137,8 @@ class RosBagFrames(Dataset):
                              "frame's up")
         return self._gravity
 
-    def len(self) -> int:
-        return len(self.x)
-
-    def _sample(self, x) -> SphericalImage:
-        return SphericalImage(x=x, pos=self.grid.pos.float(), area=self.grid.area.float())
-
     def get(self, idx: int) -> SphericalImage:
-        d = self._sample(self.x[idx].float())
-        d.mask = self.frontend.mask.clone()
-        d.stamp_ns = self.stamp_ns[idx].reshape(1)
+        d = super().get(idx)
         if self.imu is not None:
             d.up = self._gravity[idx].float()[None]
         return d
