@@ -63,6 +63,9 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     ok, frame = video.read()
     video.release()
     assert ok and frame.shape == (512, 1024, 3)
+    clip = ns["clip"]  # the same video lifted, frame by frame, onto one sphere each
+    assert len(clip) == 8 and clip[0].mask.all() and clip[7].frame.item() == 7
+    assert (clip[0].x - clip[1].x).abs().mean() > 0.01  # the world turned between frames
 
 
 def test_scenes_section_runs(tmp_path, monkeypatch):
