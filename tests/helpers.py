@@ -65,3 +65,19 @@ def tiny_seg_checkpoint(path, **config):
         seg.head.weight.mul_(30)
     save_checkpoint(path, seg, {"model": "spherical_unet", **config, **seg.config}, {})
     return seg
+
+
+def decode_video(path):
+    """Every frame of a video as OpenCV decodes it (RGB), and its frame rate."""
+    import cv2
+
+    cap, frames = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, bgr = cap.read()
+        if not ok:
+            break
+        frames.append(bgr[..., ::-1])
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    cap.release()
+    return frames, fps
+

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import usf_graph
-from tests.helpers import FIXTURES, tiny_seg_checkpoint
+from tests.helpers import FIXTURES, decode_video, tiny_seg_checkpoint
 from usf_graph import SphericalFrontend, SphericalImage, cameras, grids
 from usf_graph.cli import build_parser, main
 from usf_graph.frontend import RigFrontend, load_lifted, read_lifted
@@ -196,19 +196,6 @@ def test_render_stitches_a_rigs_images(tmp_path, capsys):
     assert "give the rig's images" in capsys.readouterr().err
 
 
-def decoded(path):
-    """Every frame of a video, RGB, as OpenCV decodes it."""
-    cap, frames = cv2.VideoCapture(str(path)), []
-    while True:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        frames.append(bgr[..., ::-1])
-    fps = cap.get(cv2.CAP_PROP_FPS)
-    cap.release()
-    return frames, fps
-
-
 def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     """``render`` of a dual-fisheye video (both circles side by side in each frame) gives
     the stitched panorama video: each frame what ``render_rig`` gives the decoded frame,
@@ -231,8 +218,8 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     assert main(["render", str(tmp_path / "dual.avi"), *split, "--to", "equirectangular:256x128",
                  "--out", str(tmp_path / "pano.avi")]) == 0
     assert "wrote" in capsys.readouterr().out
-    got, fps = decoded(tmp_path / "pano.avi")
-    frames, _ = decoded(tmp_path / "dual.avi")
+    got, fps = decode_video(tmp_path / "pano.avi")
+    frames, _ = decode_video(tmp_path / "dual.avi")
     assert len(got) == 3 and fps == 5
     pano = cameras.Equirectangular(256, 128)
     for g, f in zip(got, frames):
@@ -244,7 +231,7 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     assert main(["render", str(tmp_path / "pano.avi"), "--camera", "equirectangular",
                  "--to", "equirectangular:128x64", "--every", "2", "--fps", "7",
                  "--out", str(tmp_path / "small.mp4")]) == 0
-    small, fps = decoded(tmp_path / "small.mp4")
+    small, fps = decode_video(tmp_path / "small.mp4")
     assert len(small) == 2 and fps == 7 and small[0].shape == (64, 128, 3)
     for argv, why in (([str(tmp_path / "pano.avi"), str(tmp_path / "cam0.png")], "not both"),
                       ([str(tmp_path / "cam0.png"), "--every", "2"], "no video was given"),

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tests.frontend.test_rig import scene
-from tests.helpers import FIXTURES
+from tests.helpers import FIXTURES, decode_video
 from usf_graph import cameras
 from usf_graph.datasets import VideoFrames
 from usf_graph.frontend import RigFrontend, SphericalFrontend, render
@@ -19,17 +19,6 @@ def write_video(path, frames, fps=5):
     for f in frames:
         out.write(np.ascontiguousarray(f[..., ::-1]))
     out.release()
-
-
-def decoded(path):
-    cap, out = cv2.VideoCapture(str(path)), []
-    while True:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        out.append(bgr[..., ::-1])
-    cap.release()
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +35,7 @@ def test_one_cameras_frames_are_lifted_once_with_their_time(tmp_path, world):
     ds = VideoFrames(tmp_path / "data", tmp_path / "walk.avi", pano, grid="icosahedral:3", progress=False)
     assert len(ds) == 4 and "VideoFrames(4, video=walk.avi" in repr(ds)
     fe = SphericalFrontend(pano, ds.grid)
-    for i, rgb in enumerate(decoded(tmp_path / "walk.avi")):
+    for i, rgb in enumerate(decode_video(tmp_path / "walk.avi")[0]):
         d = ds[i]
         torch.testing.assert_close(d.x, fe.lift(rgb.astype(np.float32) / 255).to(torch.float16).float())
         assert d.frame.item() == i and d.stamp_ns.item() == i * 200_000_000  # 5 frames a second
@@ -76,7 +65,7 @@ def test_a_dual_fisheye_video_lifts_onto_one_sphere(tmp_path, world):
                      grid="icosahedral:3", split=True, fov_deg=190, progress=False)
     assert len(ds) == 2 and ds[0].mask.all() and "rig=[cam0, cam1]" in repr(ds)
     fe = RigFrontend(rig, ds.grid)
-    for d, rgb in zip(ds, decoded(tmp_path / "dual.avi")):
+    for d, rgb in zip(ds, decode_video(tmp_path / "dual.avi")[0]):
         want = fe.lift(np.split(rgb.astype(np.float32) / 255, 2, axis=1))
         torch.testing.assert_close(d.x, want.to(torch.float16).float())
     truth = torch.as_tensor(scene(ds.grid.pos.numpy()), dtype=torch.float32)

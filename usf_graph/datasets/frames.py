@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 
 import torch
 from torch_geometric.data import Dataset
@@ -24,10 +25,24 @@ class LiftedFrames(Dataset):
     :class:`~usf_graph.frontend.SphericalFrontend` or
     :class:`~usf_graph.frontend.RigFrontend`), stored as one float16 tensor ``x [S, N, C]``
     with each frame's ``stamp_ns`` and the subclass's own fields. A subclass sets ``grid``
-    and ``frontend``, names its processed file, and makes it with :meth:`store`."""
+    ``frontend`` and :attr:`source` (the recording, read where it is), names its processed
+    file, and makes it with :meth:`store`."""
 
     #: the fields of the processed file besides ``x`` and ``stamp_ns``
     extra_fields: tuple[str, ...] = ()
+    source: Path
+
+    @property
+    def raw_dir(self) -> str:
+        """The folder that holds the recording."""
+        return str(self.source.parent)
+
+    @property
+    def raw_file_names(self):
+        return [self.source.name]
+
+    def download(self):
+        raise FileNotFoundError(f"{self.source} does not exist")
 
     def _load(self) -> dict:
         blob = load_or_rebuild(self.processed_paths[0], self.process,

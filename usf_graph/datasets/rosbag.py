@@ -58,7 +58,8 @@ class RosBagFrames(LiftedFrames):
                  pre_transform=None, progress: bool = True):
         if int(every) != every or every < 1:
             raise ValueError(f"every must be a positive whole number, got {every}")
-        self.bag, self.every, self.interpolation, self.progress = Path(bag), int(every), interpolation, progress
+        self.bag = self.source = Path(bag)
+        self.every, self.interpolation, self.progress = int(every), interpolation, progress
         if not bags.is_bag(self.bag) or not self.bag.exists():
             raise FileNotFoundError(f"{bag} is not a ROS bag (.bag, a ROS 2 bag's folder, .db3 "
                                     "or .mcap)" + ("" if self.bag.exists() else ": it does not exist"))
@@ -86,15 +87,6 @@ class RosBagFrames(LiftedFrames):
         self._gravity = self._load()["gravity"]
 
     @property
-    def raw_dir(self) -> str:
-        """The folder that holds the bag."""
-        return str(self.bag.parent)  # the bag is read where it is
-
-    @property
-    def raw_file_names(self):
-        return [self.bag.name]
-
-    @property
     def processed_file_names(self):
         storage = sorted(self.bag.glob("*")) if self.bag.is_dir() else [self.bag]
         key = {"bag": str(self.bag.resolve()), "files": [(p.name, p.stat().st_size, p.stat().st_mtime_ns)
@@ -105,9 +97,6 @@ class RosBagFrames(LiftedFrames):
                "window": self.imu_window_ns, "imu_up": self.imu_up,
                "shift": self.imu_time_shift_ns}
         return [f"rosbag_{self.bag.stem}_{digest(key)}.pt"]
-
-    def download(self):
-        raise FileNotFoundError(f"{self.bag} does not exist")
 
     extra_fields = ("gravity",)
 

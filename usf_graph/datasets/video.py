@@ -46,7 +46,7 @@ class VideoFrames(LiftedFrames):
                  interpolation: str = "bilinear", split: bool = False, fov_deg: float | None = None,
                  blend: str = "best", distance: float | None = None, transform=None,
                  pre_transform=None, progress: bool = True):
-        self.video = Path(video)
+        self.video = self.source = Path(video)
         if not self.video.is_file():
             raise FileNotFoundError(f"video {video} does not exist")
         if not videos.is_video(self.video):
@@ -78,15 +78,6 @@ class VideoFrames(LiftedFrames):
     extra_fields = ("frame",)
 
     @property
-    def raw_dir(self) -> str:
-        """The folder that holds the video."""
-        return str(self.video.parent)  # the video is read where it is
-
-    @property
-    def raw_file_names(self):
-        return [self.video.name]
-
-    @property
     def processed_file_names(self):
         st = self.video.stat()
         key = {"video": str(self.video.resolve()), "size": st.st_size, "mtime": st.st_mtime_ns,
@@ -94,9 +85,6 @@ class VideoFrames(LiftedFrames):
                "every": self.every, "interpolation": self.interpolation, "split": self.split,
                **self._options}
         return [f"video_{self.video.stem}_{digest(key)}.pt"]
-
-    def download(self):
-        raise FileNotFoundError(f"{self.video} does not exist")
 
     def process(self):
         import torch
