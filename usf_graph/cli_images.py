@@ -130,6 +130,8 @@ def _render_video(args) -> None:
     if len(args.image) > 1 and args.split:
         raise ValueError("--split cuts one video's frames into the rig's cameras' images; give one")
     fps, count = video_info(args.image[0])
+    if not args.fps and fps <= 0:
+        print(f"{args.image[0]}'s header gives no frame rate: writing 30 fps (--fps sets it)")
     fps = args.fps or (fps / args.every if fps > 0 else 30.0)
     if Path(args.out).suffix.lower() not in FrameVideo.CODECS:
         raise ValueError(f"--out {args.out}: a video's frames go to a video, .mp4 or .avi")

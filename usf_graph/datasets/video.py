@@ -3,6 +3,7 @@ a 360 camera's whose frames hold its cameras side by side (a rig, ``split=True``
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -37,7 +38,8 @@ class VideoFrames(LiftedFrames):
 
     A sample has ``x [N, C]`` (RGB in [0, 1]), ``pos``, ``area``, ``mask [N]`` (the points
     the camera sees), ``frame [1]`` (its index in the video) and ``stamp_ns [1]`` (its time
-    from the video's start, by the frame rate in its header). The processed file's name
+    from the video's start, by the frame rate in its header; -1, with a warning, where the
+    header has none). The processed file's name
     hashes the video's path, size and time, the camera, the grid and the options, so a
     change rebuilds it.
     """
@@ -99,7 +101,10 @@ class VideoFrames(LiftedFrames):
             else:
                 xs.append(self.frontend.lift(img))
             index.append(i)
-            stamps.append(round(i / self.fps * 1e9) if self.fps > 0 else 0)
+            stamps.append(round(i / self.fps * 1e9) if self.fps > 0 else -1)
+        if self.fps <= 0:
+            warnings.warn(f"{self.video}'s header gives no frame rate, so its frames have no "
+                          "time: stamp_ns is -1 for each; use frame (its index)", stacklevel=2)
         self.store(xs, stamps, frame=torch.as_tensor(index, dtype=torch.int64))
 
     def get(self, idx: int) -> SphericalImage:
