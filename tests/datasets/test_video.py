@@ -54,6 +54,17 @@ def test_one_cameras_frames_are_lifted_once_with_their_time(tmp_path, world):
     assert torch.equal(fixed.x, ds.x)
 
 
+def test_a_video_without_a_frame_rate_has_no_times(tmp_path, world, monkeypatch):
+    import usf_graph.videos
+
+    pano, frames = world
+    write_video(tmp_path / "walk.avi", frames[:2])
+    monkeypatch.setattr(usf_graph.videos, "info", lambda path: (0.0, 0))  # a header without one
+    with pytest.warns(UserWarning, match="no frame rate"):
+        ds = VideoFrames(tmp_path / "data", tmp_path / "walk.avi", pano, grid="icosahedral:2", progress=False)
+    assert ds.stamp_ns.tolist() == [-1, -1] and ds.frame.tolist() == [0, 1]
+
+
 def test_a_dual_fisheye_video_lifts_onto_one_sphere(tmp_path, world):
     """Each frame holds a Kalibr rig's two fisheyes side by side; split, they are lifted as
     RigFrontend lifts the two images, and the whole sphere is seen."""
