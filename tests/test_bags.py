@@ -326,6 +326,59 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
     assert "several --topic are a rig's cameras (--rig)" in capsys.readouterr().err
 
 
+def test_render_turns_a_bags_frames_into_a_video(tmp_path, capsys):
+    """``render BAG``: one topic through its camera_info, or a rig's topics (the camchain's
+    rostopics) matched by stamp and stitched: each frame of the video is what a Reimager
+    (a RigReimager) gives the bag's frame, at the rate of the bag's stamps."""
+    from tests.frontend.test_rig import scene
+    from tests.helpers import decode_video
+    from usf_graph.cli import main
+    from usf_graph.frontend import Reimager, RigReimager, render
+
+    calib = FIXTURES / "ros_equidistant.yaml"
+    cam = cameras.load(calib)
+    msgs = [(t, m, i) for t, m, i in messages(ROS2, False, 3, calib) if t == "/cam/camera_info"]
+    shots = []
+    for i in range(3):  # 4 frames a second
+        shots.append(cv2.resize(frame(i), (cam.width, cam.height), interpolation=cv2.INTER_CUBIC))
+        msgs.append(("/cam/image_raw", image_msg(ROS2, shots[-1], 100, i * 250_000_000), i + 1))
+    bag = write_bag(tmp_path / "run", False, msgs)
+    pano = cameras.Equirectangular(128, 64)
+    assert main(["render", str(bag), "--to", "equirectangular:128x64", "--out", str(tmp_path / "p.avi")]) == 0
+    assert "camera from" in capsys.readouterr().out
+    got, fps = decode_video(tmp_path / "p.avi")
+    r = Reimager(cam, pano)
+    assert len(got) == 3 and fps == 4
+    for g, shot in zip(got, shots):
+        assert np.abs(g.astype(float) - r(shot)).mean() < 3  # Motion JPEG
+    # a rig's bag: the camchain's topics, matched by stamp, stitched
+    chain = FIXTURES / "kalibr_rig.yaml"
+    rig = {n: c.with_fov(190) for n, c in cameras.load_rig(chain).items()}
+    msgs, views = [], []
+    smooth = scene(cameras.Equirectangular(256, 128).lens_normal_map()[0])  # JPEG keeps it
+    for i, shift in enumerate((0, 40)):
+        world = np.roll(smooth, shift, axis=1)
+        views.append([(255 * render(world, cameras.Equirectangular(256, 128), c)).round().astype(np.uint8)
+                      for c in rig.values()])
+        for k, im in enumerate(views[-1]):
+            msgs.append((cameras.rig_topics(chain)[k], image_msg(ROS2, im, 5 + i, k * 10**6), 2 * i + k))
+    bag = write_bag(tmp_path / "drive", False, msgs)
+    assert main(["render", str(bag), "--camera", str(chain), "--fov", "190", "--to",
+                 "equirectangular:256x128", "--out", str(tmp_path / "r.avi")]) == 0
+    assert "rig of 2 (cam0, cam1)" in capsys.readouterr().out
+    got, fps = decode_video(tmp_path / "r.avi")
+    stitch = RigReimager(rig, cameras.Equirectangular(256, 128))
+    assert len(got) == 2 and fps == 1  # stamps 1 s apart
+    for g, v in zip(got, views):
+        assert np.abs(g.astype(float) - stitch(v)).mean() < 2  # Motion JPEG
+    assert np.abs(got[0].astype(float) - got[1]).mean() > 10  # the world turned
+    for argv, why in (([str(bag), str(bag)], "give one ROS bag"),
+                      ([str(tmp_path / "x.png"), "--topic", "/a"], "no bag was given"),
+                      ([str(tmp_path / "x.png")], "give the camera's calibration")):
+        assert main(["render", *argv, "--to", "equirectangular:64x32", "--out", str(tmp_path / "x.avi")]) == 2
+        assert why in capsys.readouterr().err
+
+
 def imu_msg(ts, acc, sec, nanosec, quat=(0.0, 0.0, 0.0, 1.0), no_orientation=False):
     """An Imu message; ``quat`` (x, y, z, w) its orientation, ``no_orientation`` marks it
     unknown (``orientation_covariance[0] = -1``)."""

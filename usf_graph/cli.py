@@ -242,9 +242,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("image", nargs="+", help="the source image; several: one per camera of the "
                    "--camera rig, in its order, stitched (e.g. two back-to-back fisheyes into "
                    "a panorama). Videos (" + ", ".join(VIDEO_SUFFIXES) + ") the same way, "
-                   "frame by frame, into a video: the geometry is built once")
-    r.add_argument("--camera", required=True, help="source camera: " + CAMERA_HELP)
+                   "or a ROS bag, frame by frame, into a video: the geometry is built once")
+    r.add_argument("--camera", default=None, help="source camera (a ROS bag's camera_info "
+                   "where not given): " + CAMERA_HELP)
     camera_options(r)
+    r.add_argument("--topic", action="append", default=None, metavar="TOPIC",
+                   help="a ROS bag's image topic (default: its only one, or a Kalibr "
+                        "camchain's rostopics); once per camera, in the rig's order, for a "
+                        "rig's bag (frames matched by stamp)")
     r.add_argument("--to", required=True, help="target camera, same forms as --camera, at its "
                    "calibration's size ('equirectangular': the source image's width, 2:1)")
     r.add_argument("--to-key", default=None, metavar="CAM", help="camera of a target camchain")
@@ -255,9 +260,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "pinhole upright)")
     rig_options(r, blend=True)
     r.add_argument("--every", type=positive_int, default=1, metavar="N",
-                   help="videos: re-image every N-th frame")
+                   help="videos and bags: re-image every N-th frame")
     r.add_argument("--fps", type=at_least(0.0, float, above=True), default=None,
-                   help="videos: the output's frame rate (default: the source's, over --every)")
+                   help="videos and bags: the output's frame rate (default: the source's, "
+                        "over --every)")
     r.add_argument("--out", required=True, metavar="IMG",
                    help="output image (.png, .jpg, .npy); for videos, .mp4 or .avi")
 

@@ -86,9 +86,10 @@ def _target(args, image):
                             if is_panorama_spec(args.to) else None)
 
 
-def _reimager(args, images):
+def _reimager(args, images, camera=None):
     """What re-images one frame (a list of images: one, or one per camera of a rig) into
-    ``--to``, built from the first frame, and what it says of itself."""
+    ``--to``, built from the first frame (``camera``: one camera's, where a ROS bag's
+    camera_info gave it), and what it says of itself."""
     from .frontend import Reimager, RigReimager
 
     if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
@@ -101,7 +102,8 @@ def _reimager(args, images):
         r = RigReimager(rig, dst, blend=args.blend, interpolation=args.interpolation)
         return r, (f"rig of {len(rig)} ({', '.join(rig)}) -> {type(dst).__name__} "
                    f"{dst.width}x{dst.height}, blend {args.blend}")
-    src = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+    src = camera if camera is not None else \
+        camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
     src = leveled(src, images[0], args)  # the source mounted level: the target sees a level scene
     one = Reimager(src, dst, interpolation=args.interpolation)
     return (lambda ims: one(ims[0])), (f"{type(src).__name__} {src.width}x{src.height} -> "
@@ -109,40 +111,85 @@ def _reimager(args, images):
 
 
 def _frames(args):
-    """Each frame of ``args.image``'s videos, read together (one per camera, or one cut by
-    ``--split``), as a list of images, every ``args.every``-th; stops at the shortest."""
+    """``(images, stamp in ns or None)`` of each frame of ``args.image``: videos read
+    together (one per camera, or one cut by ``--split``), or a ROS bag's ``--topic`` (a
+    rig's: one topic per camera, frames matched by stamp), every ``args.every``-th; stops
+    at the shortest."""
+    from .bags import frames, is_bag, rig_frames
     from .cameras import load_rig
 
+    if is_bag(args.image[0]):
+        topics = _bag_topics(args)
+        if len(topics) > 1:
+            for f in rig_frames(args.image[0], topics, args.every):
+                yield f.images, f.stamps_ns[0]
+        else:
+            for f in frames(args.image[0], topics[0], args.every):
+                yield [f.image], f.stamp_ns
+        return
     streams = [video_frames(p, args.every) for p in args.image]
     count = len(load_rig(args.camera, key=args.key)) if args.split else None
     for frame in zip(*streams):
         images = [im for _, im in frame]
-        yield split_frame(images[0], count, args.camera) if args.split else images
+        yield (split_frame(images[0], count, args.camera) if args.split else images), None
+
+
+def _bag_topics(args) -> list:
+    """A bag's image topics to read: ``--topic``'s; else a Kalibr camchain's ``rostopic``s
+    when ``--camera`` is one of several cameras and ``--key`` picks none; else the bag's
+    only image topic (``[None]``)."""
+    if args.topic:
+        return args.topic
+    if args.camera is not None and args.key is None:
+        from .cameras import rig_topics
+
+        found = rig_topics(args.camera)
+        if found and len(found) > 1:
+            return found
+    return [None]
+
+
+def _frame_rate(args, first, second) -> float:
+    """``--fps``, else the source's: a video's header's, a bag's from its first two frames'
+    stamps; 30 where neither says (and it is said)."""
+    if args.fps:
+        return args.fps
+    fps = video_info(args.image[0])[0] / args.every if is_video(args.image[0]) else 0.0
+    if first[1] is not None and second is not None and second[1] > first[1]:
+        fps = 1e9 / (second[1] - first[1])
+    if fps <= 0:
+        print(f"{args.image[0]} gives no frame rate: writing 30 fps (--fps sets it)")
+    return fps if fps > 0 else 30.0
 
 
 def _render_video(args) -> None:
-    """``render`` of videos: the geometry built on the first frame (leveled there with
-    ``--level``) and every frame re-imaged through it, written to ``--out``."""
+    """``render`` of videos or a ROS bag: the geometry built on the first frame (leveled
+    there with ``--level``) and every frame re-imaged through it, written to ``--out``."""
     from tqdm.auto import tqdm
 
+    from .bags import is_bag
     from .viz import FrameVideo
 
     if len(args.image) > 1 and args.split:
         raise ValueError("--split cuts one video's frames into the rig's cameras' images; give one")
-    fps, count = video_info(args.image[0])
-    if not args.fps and fps <= 0:
-        print(f"{args.image[0]}'s header gives no frame rate: writing 30 fps (--fps sets it)")
-    fps = args.fps or (fps / args.every if fps > 0 else 30.0)
     if Path(args.out).suffix.lower() not in FrameVideo.CODECS:
         raise ValueError(f"--out {args.out}: a video's frames go to a video, .mp4 or .avi")
     frames = _frames(args)
     first = next(frames)
-    reimage, what = _reimager(args, first)
+    second = next(frames, None)
+    camera = None
+    if args.camera is None:  # a bag's camera_info
+        from .cli_bags import bag_camera
+
+        camera = bag_camera(args.image[0], _bag_topics(args)[0], args)
+    reimage, what = _reimager(args, first[0], camera)
     print(what)
-    video = FrameVideo(args.out, fps)
+    video = FrameVideo(args.out, _frame_rate(args, first, second))
+    count = 0 if is_bag(args.image[0]) else video_info(args.image[0])[1]
     total = -(-count // args.every) if count else None
+    rest = chain([first], [] if second is None else [second], frames)
     try:
-        for images in tqdm(chain([first], frames), total=total, desc="re-imaging frames", unit="frame"):
+        for images, _ in tqdm(rest, total=total, desc="re-imaging frames", unit="frame"):
             video.add(reimage(images))
     finally:
         video.close()
@@ -153,13 +200,25 @@ def cmd_render(args) -> int:
     import cv2
     import numpy as np
 
+    from .bags import is_bag
+
     videos = [p for p in args.image if is_video(p)]
+    bag = any(is_bag(p) for p in args.image)
     if videos and len(videos) < len(args.image):
         raise ValueError("give images or videos, not both: a video's frames are re-imaged "
                          "with the video's other cameras' frames")
-    if args.every != 1 and not videos:
-        raise ValueError("--every picks a video's frames; no video was given")
-    if videos:
+    if bag and len(args.image) > 1:
+        raise ValueError("give one ROS bag (a rig's: --topic once per camera, in the rig's order)")
+    if args.topic and not bag:
+        raise ValueError("--topic picks a ROS bag's image topic; no bag was given")
+    if args.camera is None and not bag:
+        raise ValueError("give the camera's calibration with --camera (only a ROS bag can "
+                         "bring its own, as camera_info)")
+    if args.camera is None and len(args.topic or []) > 1:
+        raise ValueError("a rig's bag: give the rig's calibration with --camera")
+    if args.every != 1 and not (videos or bag):
+        raise ValueError("--every picks a video's or a bag's frames; none was given")
+    if videos or bag:
         _render_video(args)
         return 0
     images = read_images(args)
