@@ -495,6 +495,53 @@ def test_predict_with_imu_up_matches_the_same_up_given(tmp_path, capsys):
     assert "--imu needs the camera-IMU extrinsics" in capsys.readouterr().err
 
 
+def test_render_levels_each_frame_by_the_imu(tmp_path, capsys):
+    """``render BAG --imu``: each frame re-imaged with the camera turned level by the up the
+    IMU reads at its stamp (two stamps, two tilts: the geometry built twice), as a
+    Reimager of the turned camera gives it."""
+    from scipy import ndimage
+
+    from tests.frontend.test_rig import shoot
+    from tests.helpers import decode_video
+    from usf_graph.cli import main
+    from usf_graph.frontend import Reimager
+    from usf_graph.geometry import level_rotation
+
+    chain = tmp_path / "camchain-imucam.yaml"
+    T = np.eye(4)
+    T[:3, :3] = [[0, 1, 0], [0, 0, 1], [1, 0, 0]]  # cam <- IMU, as above
+    chain.write_text(yaml.safe_dump({"cam0": dict(
+        camera_model="pinhole", distortion_model="none", distortion_coeffs=[],
+        intrinsics=[30.0, 30.0, 31.5, 23.5], resolution=[64, 48], rostopic="/cam0/image_raw",
+        T_cam_imu=T.tolist())}))
+    cam = cameras.load(chain)
+    shots = [(255 * shoot(cam.turned(level_rotation(np.array([0.1 * k, 0.0, 1.0]))))).round().astype(np.uint8)
+             for k in range(2)]
+    tilts = [np.array([0.2, 0.0, -0.98]), np.array([0.0, 0.3, -0.95])]  # the IMU's frame
+    msgs = [("/cam0/image_raw", image_msg(ROS2, shots[i], 3 + i, 0), 2 * i) for i in range(2)]
+    msgs += [("/imu0", imu_msg(ROS2, 9.81 * tilts[k // 10], 3 + k // 10, (k % 10) * 10**7), 2 * (k // 10) + 1)
+             for k in range(20)]
+    bag = write_bag(tmp_path / "run", False, msgs)
+    pano = cameras.Equirectangular(128, 64)
+    assert main(["render", str(bag), "--camera", str(chain), "--imu", "/imu0", "--to",
+                 "equirectangular:128x64", "--out", str(tmp_path / "v.avi")]) == 0
+    assert "the geometry built 2 times for 2 frames" in capsys.readouterr().out
+    got, _ = decode_video(tmp_path / "v.avi")
+    ups = [cameras.imu_rotation(chain) @ t / np.linalg.norm(t) for t in tilts]
+    for k, (g, shot) in enumerate(zip(got, shots)):
+        err = []
+        for up in (ups[k], ups[1 - k]):  # its own up, and the other frame's
+            r = Reimager(cam.turned(level_rotation(up)), pano)
+            inner = ndimage.binary_erosion(r.seen, iterations=2)  # JPEG rings at the view's edge
+            err.append(np.abs(g.astype(float) - r(shot))[inner].mean())
+        assert err[0] < 5 and err[1] > 3 * err[0], err  # Motion JPEG; the other up is far off
+    for flags, why in ((["--level"], "not with --level"), (["--imu-up", "orientation"], "give --imu")):
+        imu = [] if "--imu-up" in flags else ["--imu", "/imu0"]
+        assert main(["render", str(bag), "--camera", str(chain), *imu, *flags, "--to",
+                     "equirectangular:64x32", "--out", str(tmp_path / "x.avi")]) == 2
+        assert why in capsys.readouterr().err
+
+
 def test_imu_time_shift_of_every_format(tmp_path):
     """Kalibr's ``timeshift_cam_imu`` (seconds, per camera) and Basalt's
     ``cam_time_offset_ns``, both t_imu = t_cam + shift, in ns; 0 where there is none."""

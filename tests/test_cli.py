@@ -234,7 +234,7 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     small, fps = decode_video(tmp_path / "small.mp4")
     assert len(small) == 2 and fps == 7 and small[0].shape == (64, 128, 3)
     for argv, why in (([str(tmp_path / "pano.avi"), str(tmp_path / "cam0.png")], "not both"),
-                      ([str(tmp_path / "cam0.png"), "--every", "2"], "no video was given"),
+                      ([str(tmp_path / "cam0.png"), "--every", "2"], "none was given"),
                       ([str(tmp_path / "pano.avi"), "--out", str(tmp_path / "x.png")], ".mp4 or .avi")):
         argv = argv if "--out" in argv else [*argv, "--out", str(tmp_path / "x.avi")]
         assert main(["render", *argv, "--camera", "equirectangular", "--to", "equirectangular:64x32"]) == 2

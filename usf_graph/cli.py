@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from .cli_bags import cmd_bag
+from .cli_bags import bag_options, cmd_bag
 from .cli_camera import cmd_camera
 from .cli_images import cmd_lift, cmd_render
 from .cli_info import cmd_cache, cmd_info
@@ -259,6 +259,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "that the target sees a level scene (a panorama's horizon straight, a "
                      "pinhole upright)")
     rig_options(r, blend=True)
+    bag_options(r, "level each frame: the cameras turned so that the IMU's up at the frame's "
+                   "stamp is +z (the geometry rebuilt when up moves by over 0.05 degrees)")
     r.add_argument("--every", type=positive_int, default=1, metavar="N",
                    help="videos and bags: re-image every N-th frame")
     r.add_argument("--fps", type=at_least(0.0, float, above=True), default=None,

@@ -25,6 +25,23 @@ def cmd_bag(args) -> int:
     return 0
 
 
+def bag_options(p, imu_gives: str) -> None:
+    """``--max-skew``, and ``--imu`` (giving ``imu_gives``), ``--imu-window``, ``--imu-up``:
+    a ROS bag's rig frames and IMU."""
+    p.add_argument("--max-skew", type=float, default=10.0, metavar="MS",
+                   help="a rig's ROS bag: the most the cameras' stamps of one frame may differ")
+    p.add_argument("--imu", default=None, metavar="TOPIC",
+                   help=f"ROS bags: {imu_gives} from this sensor_msgs/Imu topic's "
+                        "accelerometer, turned by --camera's camera-IMU extrinsics (Kalibr "
+                        "T_cam_imu, Basalt T_imu_cam, ORB-SLAM3 IMU.T_b_c1)")
+    p.add_argument("--imu-window", type=float, default=100.0, metavar="MS",
+                   help="--imu: the readings averaged about each frame's stamp")
+    p.add_argument("--imu-up", choices=("accel", "orientation"), default="accel",
+                   help="--imu: up from the accelerometer (tilted while the platform "
+                        "accelerates), or from the orientation the IMU's attitude filter "
+                        "fills in (a gravity-aligned world frame, REP-145)")
+
+
 def bag_camera(bag, topic, args):
     """The camera of ``topic``'s images from the bag's camera_info, with ``--fov`` and
     ``--image-mask``."""
@@ -36,8 +53,9 @@ def bag_camera(bag, topic, args):
     return cam
 
 
-def imu_up(args):
-    """``--imu``: (bag, stamp) -> up in the cameras' sphere frame, or None."""
+def imu_up(args, rig: bool | None = None):
+    """``--imu``: (bag, stamp) -> up in the cameras' sphere frame, or None. ``rig``: whether
+    the frames are a rig's (default ``args.rig``), stamped by its first camera."""
     if args.imu is None:
         return None
     from .bags import IMU_SOURCES
@@ -48,7 +66,7 @@ def imu_up(args):
                          "camchain-imucam, Basalt calibration or ORB-SLAM3 settings)")
     R = imu_rotation(args.camera)
     # a rig's frames are stamped by its first camera; one camera's by --key's
-    shift = imu_time_shift(args.camera, None if args.rig else args.key)
+    shift = imu_time_shift(args.camera, None if (args.rig if rig is None else rig) else args.key)
     readings = {}
 
     def up(bag, stamp):

@@ -86,28 +86,61 @@ def _target(args, image):
                             if is_panorama_spec(args.to) else None)
 
 
-def _reimager(args, images, camera=None):
-    """What re-images one frame (a list of images: one, or one per camera of a rig) into
-    ``--to``, built from the first frame (``camera``: one camera's, where a ROS bag's
-    camera_info gave it), and what it says of itself."""
-    from .frontend import Reimager, RigReimager
-
+def _sources(args, images, camera=None) -> tuple[dict, object]:
+    """The source camera(s) fitted to the first frame (``images``: one, or one per camera of
+    a rig; ``camera``: one camera's, where a ROS bag's camera_info gave it; leveled by
+    ``--level``), ``{name: Camera}``, and the ``--to`` target."""
     if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
         raise ValueError("a rig's images have no one width to take: give the panorama's size, "
                          "--to equirectangular:WIDTHxHEIGHT")
     dst = _target(args, images[0])
     _check_one_or_rig(args, len(images) > 1)
     if len(images) > 1:
-        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images)
-        r = RigReimager(rig, dst, blend=args.blend, interpolation=args.interpolation)
-        return r, (f"rig of {len(rig)} ({', '.join(rig)}) -> {type(dst).__name__} "
-                   f"{dst.width}x{dst.height}, blend {args.blend}")
+        return rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images), dst
     src = camera if camera is not None else \
         camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
-    src = leveled(src, images[0], args)  # the source mounted level: the target sees a level scene
+    return {"camera": leveled(src, images[0], args)}, dst  # mounted level: the target sees a level scene
+
+
+def _reimager(args, cams: dict, dst, turn=None):
+    """What re-images one frame (a list of images, one per camera of ``cams``) into ``dst``,
+    the cameras turned by ``turn`` (``[3, 3]``) where given, and what it says of itself."""
+    from .frontend import Reimager, RigReimager
+
+    if turn is not None:
+        cams = {n: c.turned(turn) for n, c in cams.items()}
+    if len(cams) > 1:
+        r = RigReimager(cams, dst, blend=args.blend, interpolation=args.interpolation)
+        return r, (f"rig of {len(cams)} ({', '.join(cams)}) -> {type(dst).__name__} "
+                   f"{dst.width}x{dst.height}, blend {args.blend}")
+    src = next(iter(cams.values()))
     one = Reimager(src, dst, interpolation=args.interpolation)
     return (lambda ims: one(ims[0])), (f"{type(src).__name__} {src.width}x{src.height} -> "
                                        f"{type(dst).__name__} {dst.width}x{dst.height}")
+
+
+class _LevelByImu:
+    """``render --imu``: each frame re-imaged with the cameras turned level by the IMU's up
+    at its stamp; the geometry rebuilt only when up moves by more than ``step`` degrees."""
+
+    def __init__(self, args, cams, dst, step: float = 0.05):
+        from .cli_bags import imu_up
+
+        self.up_at = imu_up(args, rig=len(cams) > 1)
+        self.args, self.cams, self.dst, self.step = args, cams, dst, step
+        self.built, self.builds, self.reimage = None, 0, None
+
+    def __call__(self, images, stamp):
+        import numpy as np
+
+        from .geometry import geodesic_distance, level_rotation
+
+        up = np.asarray(self.up_at(self.args.image[0], stamp), np.float64)
+        up = up / np.linalg.norm(up)
+        if self.built is None or np.degrees(geodesic_distance(up, self.built)) > self.step:
+            self.reimage, _ = _reimager(self.args, self.cams, self.dst, level_rotation(up))
+            self.built, self.builds = up, self.builds + 1
+        return self.reimage(images)
 
 
 def _frames(args):
@@ -121,7 +154,7 @@ def _frames(args):
     if is_bag(args.image[0]):
         topics = _bag_topics(args)
         if len(topics) > 1:
-            for f in rig_frames(args.image[0], topics, args.every):
+            for f in rig_frames(args.image[0], topics, args.every, round(args.max_skew * 1e6)):
                 yield f.images, f.stamps_ns[0]
         else:
             for f in frames(args.image[0], topics[0], args.every):
@@ -182,17 +215,28 @@ def _render_video(args) -> None:
         from .cli_bags import bag_camera
 
         camera = bag_camera(args.image[0], _bag_topics(args)[0], args)
-    reimage, what = _reimager(args, first[0], camera)
-    print(what)
+    cams, dst = _sources(args, first[0], camera)
+    if args.imu is not None:
+        level = _LevelByImu(args, cams, dst)
+        reimage = level
+        print(f"{', '.join(cams)} -> {type(dst).__name__} {dst.width}x{dst.height}, each frame "
+              f"leveled by {args.imu}'s up")
+    else:
+        one, what = _reimager(args, cams, dst)
+        reimage = lambda images, stamp: one(images)  # noqa: E731
+        print(what)
     video = FrameVideo(args.out, _frame_rate(args, first, second))
     count = 0 if is_bag(args.image[0]) else video_info(args.image[0])[1]
     total = -(-count // args.every) if count else None
     rest = chain([first], [] if second is None else [second], frames)
     try:
-        for images, _ in tqdm(rest, total=total, desc="re-imaging frames", unit="frame"):
-            video.add(reimage(images))
+        for images, stamp in tqdm(rest, total=total, desc="re-imaging frames", unit="frame"):
+            video.add(reimage(images, stamp))
     finally:
         video.close()
+    if args.imu is not None:
+        print(f"the geometry built {level.builds} times for {video.frames} frames (up moved "
+              f"more than {level.step:g} degrees)")
     print(f"wrote {args.out} ({video.frames} frames at {video.fps:g} fps)")
 
 
@@ -216,13 +260,18 @@ def cmd_render(args) -> int:
                          "bring its own, as camera_info)")
     if args.camera is None and len(args.topic or []) > 1:
         raise ValueError("a rig's bag: give the rig's calibration with --camera")
+    if args.imu is not None and (not bag or args.level or args.up is not None):
+        raise ValueError("--imu levels each frame of a ROS bag by its IMU's up: a bag, and not "
+                         "with --level or --up")
+    if args.imu is None and args.imu_up != "accel":
+        raise ValueError("--imu-up says how to read --imu's messages: give --imu TOPIC")
     if args.every != 1 and not (videos or bag):
         raise ValueError("--every picks a video's or a bag's frames; none was given")
     if videos or bag:
         _render_video(args)
         return 0
     images = read_images(args)
-    reimage, what = _reimager(args, images)
+    reimage, what = _reimager(args, *_sources(args, images))
     out = reimage(images)
     print(what)
     if out.ndim == 3 and out.shape[2] in (3, 4):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .bags import is_bag
-from .cli_bags import bag_camera, imu_up, predict_rig_bag
+from .cli_bags import bag_camera, bag_options, imu_up, predict_rig_bag
 from .cli_inputs import (
     CAMERA_HELP,
     VIDEO_SUFFIXES,
@@ -51,18 +51,7 @@ def add_predict_parser(sub, fmt) -> None:
                    help="ROS bags: the image topic (sensor_msgs/Image or CompressedImage); "
                         "default: the bag's only one. With --rig, once per camera in the rig's "
                         "order (default: a Kalibr camchain's rostopics)")
-    p.add_argument("--max-skew", type=float, default=10.0, metavar="MS",
-                   help="a rig's ROS bag: the most the cameras' stamps of one frame may differ")
-    p.add_argument("--imu", default=None, metavar="TOPIC",
-                   help="ROS bags: each frame's up from this sensor_msgs/Imu topic's "
-                        "accelerometer, turned by --camera's camera-IMU extrinsics (Kalibr "
-                        "T_cam_imu, Basalt T_imu_cam, ORB-SLAM3 IMU.T_b_c1)")
-    p.add_argument("--imu-window", type=float, default=100.0, metavar="MS",
-                   help="--imu: the readings averaged about each frame's stamp")
-    p.add_argument("--imu-up", choices=("accel", "orientation"), default="accel",
-                   help="--imu: up from the accelerometer (tilted while the platform "
-                        "accelerates), or from the orientation the IMU's attitude filter "
-                        "fills in (a gravity-aligned world frame, REP-145)")
+    bag_options(p, "each frame's up")
     p.add_argument("--camera", default=None,
                    help=CAMERA_HELP + "; for a ROS bag, default: its camera_info beside the "
                         "image topic")
