@@ -102,19 +102,24 @@ def _sources(args, images, camera=None) -> tuple[dict, object]:
     return {"camera": leveled(src, images[0], args)}, dst  # mounted level: the target sees a level scene
 
 
-def _reimager(args, cams: dict, dst, turn=None):
+def _reimager(args, cams: dict, dst, turn=None, fixed: dict | None = None):
     """What re-images one frame (a list of images, one per camera of ``cams``) into ``dst``,
-    the cameras turned by ``turn`` (``[3, 3]``) where given, and what it says of itself."""
+    the cameras turned by ``turn`` (``[3, 3]``) where given, and what it says of itself.
+    ``fixed``: what turning does not change, from an earlier call (``source_valid``, a list
+    per camera, and ``target``)."""
     from .frontend import Reimager, RigReimager
 
     if turn is not None:
         cams = {n: c.turned(turn) for n, c in cams.items()}
+    fixed = fixed or {}
     if len(cams) > 1:
-        r = RigReimager(cams, dst, blend=args.blend, interpolation=args.interpolation)
+        r = RigReimager(cams, dst, blend=args.blend, interpolation=args.interpolation, **fixed)
         return r, (f"rig of {len(cams)} ({', '.join(cams)}) -> {type(dst).__name__} "
                    f"{dst.width}x{dst.height}, blend {args.blend}")
     src = next(iter(cams.values()))
-    one = Reimager(src, dst, interpolation=args.interpolation)
+    valid = fixed.get("source_valid")
+    one = Reimager(src, dst, interpolation=args.interpolation, target=fixed.get("target"),
+                   source_valid=None if valid is None else valid[0])
     return (lambda ims: one(ims[0])), (f"{type(src).__name__} {src.width}x{src.height} -> "
                                        f"{type(dst).__name__} {dst.width}x{dst.height}")
 
@@ -125,10 +130,14 @@ class _LevelByImu:
 
     def __init__(self, args, cams, dst, step: float = 0.05):
         from .cli_bags import imu_up
+        from .frontend.interpolation import valid_pixels
 
         self.up_at = imu_up(args, rig=len(cams) > 1)
         self.args, self.cams, self.dst, self.step = args, cams, dst, step
         self.built, self.builds, self.reimage = None, 0, None
+        # what a turn does not change, found once: each camera's readable pixels, the target's rays
+        self.fixed = {"source_valid": [valid_pixels(c) for c in cams.values()],
+                      "target": dst.lens_normal_map()}
 
     def __call__(self, images, stamp):
         import numpy as np
@@ -138,7 +147,7 @@ class _LevelByImu:
         up = np.asarray(self.up_at(self.args.image[0], stamp), np.float64)
         up = up / np.linalg.norm(up)
         if self.built is None or np.degrees(geodesic_distance(up, self.built)) > self.step:
-            self.reimage, _ = _reimager(self.args, self.cams, self.dst, level_rotation(up))
+            self.reimage, _ = _reimager(self.args, self.cams, self.dst, level_rotation(up), self.fixed)
             self.built, self.builds = up, self.builds + 1
         return self.reimage(images)
 

@@ -74,16 +74,21 @@ class RigReimager:
         cam_dst: the camera to see the scene through.
         blend: ``best`` or ``feather`` (:func:`blend_weights`).
         interpolation: ``bilinear`` or ``nearest``.
+        source_valid, target: each camera's readable pixels and ``cam_dst``'s
+            ``lens_normal_map()``, where the caller has them (:class:`Reimager`).
     """
 
     def __init__(self, cameras: Sequence[Camera] | Mapping[str, Camera], cam_dst: Camera,
-                 blend: str = "best", interpolation: str = "bilinear"):
+                 blend: str = "best", interpolation: str = "bilinear",
+                 source_valid: Sequence[np.ndarray] | None = None,
+                 target: tuple[np.ndarray, np.ndarray] | None = None):
         self._named = isinstance(cameras, Mapping)
         cams = list(cameras.values()) if self._named else list(cameras)
         self.names = list(cameras) if self._named else [f"cam{i}" for i in range(len(cams))]
         self.cam_dst = cam_dst
-        rays, valid = cam_dst.lens_normal_map()  # once for every camera
-        self._parts = [Reimager(c, cam_dst, interpolation, target=(rays, valid)) for c in cams]
+        rays, valid = cam_dst.lens_normal_map() if target is None else target  # once for all
+        ok = [None] * len(cams) if source_valid is None else list(source_valid)
+        self._parts = [Reimager(c, cam_dst, interpolation, v, target=(rays, valid)) for c, v in zip(cams, ok)]
         pos = np.where(valid[..., None], rays, 1.0).reshape(-1, 3)
         w, best = blend_weights(cams, pos, np.stack([r.seen.ravel() for r in self._parts]), blend)
         # each camera samples only the pixels it has a share of: with "best", each pixel once
