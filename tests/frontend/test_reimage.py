@@ -11,6 +11,7 @@ from scipy import ndimage
 from tests.helpers import FIXTURES
 from usf_graph import cameras
 from usf_graph.frontend import Reimager, RigReimager, blend_weights, render, render_rig
+from usf_graph.frontend.remap import Remap
 from usf_graph.geometry import rotation_from_axis_angle
 
 
@@ -78,6 +79,13 @@ def test_fast_path_and_exact_table_agree_with_scipy_on_new_cameras_and_masks(see
         assert np.abs(fast - exact).max() > 0  # not the table under another name
         # the pixels next to unreadable ones blend the readable ones, exactly as the table
         np.testing.assert_allclose(fast[r.seen & ~clean], exact[r.seen & ~clean], atol=1 / 32)
+        # a share of the pixels (a rig's camera's) as if built for them alone
+        keep = rng.random(r.seen.size) < 0.5
+        part = r.part(keep)
+        alone = Remap(src, r._uv, r._sees & keep, "bilinear", r._valid)
+        assert np.array_equal(part.reached, alone.reached) and part.reached.sum() > 0
+        a32 = img.astype(np.float32)
+        np.testing.assert_array_equal(part(a32), alone(a32))
 
 
 def test_one_reimager_serves_many_images_of_every_type():

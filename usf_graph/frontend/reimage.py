@@ -66,7 +66,7 @@ class Reimager:
     def part(self, keep: np.ndarray) -> Remap:
         """The ``cv2.remap`` path over the target pixels where ``keep`` (``[H' W']`` bool)
         alone: a rig's camera re-imaging its share of the pixels."""
-        return Remap(self.cam_src, self._uv, self._sees & keep, self.interpolation, self._valid)
+        return self._fast.restricted(np.asarray(keep, bool).ravel())
 
     def _entries(self):
         """The exact table ``(idx [P, K], w [P, K])``, built on first use."""

@@ -3,6 +3,7 @@ lifting (onto a grid) and of re-imaging (into another camera's pixels)."""
 
 from __future__ import annotations
 
+import copy
 import math
 
 import cv2
@@ -49,6 +50,7 @@ class Remap:
         self.maps = (mx.reshape(rows, _ROW), my.reshape(rows, _ROW))
         self.border_mode = cv2.BORDER_WRAP if camera.wraps_u else cv2.BORDER_CONSTANT
         self._flag = cv2.INTER_LINEAR if interpolation == "bilinear" else cv2.INTER_NEAREST
+        self._seen = seen
         self._unseen = np.flatnonzero(~seen) if camera.wraps_u else None
         self._valid = np.asarray(valid, bool)
         self._some_invalid = not self._valid.all()
@@ -70,6 +72,24 @@ class Remap:
         w = valid_entries(self.camera, idx, w, valid=self._valid)
         self.reached[rows] = w.sum(1) > 0
         return rows, idx, w
+
+    def restricted(self, keep: np.ndarray) -> Remap:
+        """This remap over the points where ``keep`` (``[M]`` bool) alone, the others
+        unseen: what building it with ``seen & keep`` gives, without finding the border
+        again."""
+        new = copy.copy(self)
+        drop = np.flatnonzero(self._seen & ~keep)
+        new.maps = tuple(m.copy() for m in self.maps)
+        for m in new.maps:
+            m.ravel()[drop] = _OUTSIDE
+        new._seen, new.reached = self._seen & keep, self.reached & keep
+        if self.camera.wraps_u:
+            new._unseen = np.flatnonzero(~new._seen)
+        if self._border is not None:
+            rows, idx, w = self._border
+            on = keep[rows]
+            new._border = (rows[on], idx[on], w[on]) if on.any() else None
+        return new
 
     @staticmethod
     def accepts(arr) -> bool:
