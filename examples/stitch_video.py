@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
-from usf_graph import cameras, scenes
+from usf_graph import cameras, scenes, videos
 from usf_graph.cameras.rig import rig_centre
 from usf_graph.cli import main as usf_graph
 from usf_graph.geometry import rotation_from_axis_angle
@@ -35,14 +35,7 @@ RIG = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "kalibr_rig.y
 
 
 def decoded(path) -> list:
-    cap, out = cv2.VideoCapture(str(path)), []
-    while True:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        out.append(bgr[..., ::-1])
-    cap.release()
-    return out
+    return [f for _, f in videos.frames(path)]
 
 
 def main(argv=None) -> dict:

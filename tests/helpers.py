@@ -69,15 +69,6 @@ def tiny_seg_checkpoint(path, **config):
 
 def decode_video(path):
     """Every frame of a video as OpenCV decodes it (RGB), and its frame rate."""
-    import cv2
+    from usf_graph import videos
 
-    cap, frames = cv2.VideoCapture(str(path)), []
-    while True:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        frames.append(bgr[..., ::-1])
-    fps = cap.get(cv2.CAP_PROP_FPS)
-    cap.release()
-    return frames, fps
-
+    return [f for _, f in videos.frames(path)], videos.info(path)[0]
