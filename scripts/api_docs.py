@@ -20,7 +20,7 @@ def modules() -> list[str]:
 
     for name in ("SphericalFrontend", "SphericalImage"):  # lazy: load them for pdoc to see
         getattr(usf_graph, name)
-    rest = [n for n in (*usf_graph._SUBPACKAGES, "bags") if n not in usf_graph.__all__]
+    rest = [n for n in (*usf_graph._SUBPACKAGES, "bags", "videos") if n not in usf_graph.__all__]
     return ["usf_graph"] + [f"usf_graph.{n}" for n in rest]
 
 
