@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import decode_video
 from usf_graph import grids
 from usf_graph.geometry import to_latlon
 from usf_graph.viz import mollweide, plot_sphere
@@ -72,9 +73,7 @@ def test_a_lifted_image_is_not_mirrored_in_its_preview():
     plt.close(fig)
 
 
-def test_frame_video_writes_what_it_is_given(tmp_path):
-    import cv2
-
+def test_frame_video_writes_what_it_is_given(tmp_path, capsys):
     from usf_graph.viz import FrameVideo
 
     v = FrameVideo(tmp_path / "a.avi", fps=4)
@@ -83,14 +82,9 @@ def test_frame_video_writes_what_it_is_given(tmp_path):
         v.add(f)
     v.add(np.zeros((62, 80, 3), np.uint8))  # another size: resized to the first's
     v.close()
-    cap = cv2.VideoCapture(str(tmp_path / "a.avi"))
-    got = []
-    while True:
-        ok, bgr = cap.read()
-        if not ok:
-            break
-        got.append(bgr[..., ::-1])
+    got, _ = decode_video(tmp_path / "a.avi")
     assert len(got) == 4 and got[0].shape == (32, 40, 3)  # even sizes for the codec
+    assert "frames of 40x31 resized to 40x32" in capsys.readouterr().out  # and it says so
     for g, f in zip(got, frames):  # Motion JPEG: colours to a few levels
         assert np.abs(g[4:-4, 4:-4].astype(int) - f[0, 0]).max() < 12
     assert got[3].max() < 12

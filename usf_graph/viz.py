@@ -374,6 +374,9 @@ class FrameVideo:
         if self._writer is None:
             h, w = rgb.shape[:2]
             self.size = (w + w % 2, h + h % 2)  # codecs want even sizes
+            if self.size != (w, h):
+                print(f"{self.path.name}: frames of {w}x{h} resized to {self.size[0]}x"
+                      f"{self.size[1]}, since video codecs want even sizes")
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(
                 *self.CODECS[self.path.suffix.lower()]), self.fps, self.size)
