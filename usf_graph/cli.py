@@ -238,7 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Re-image a picture through the sphere: each pixel of the "
                                    "target camera takes the source image's value on its ray "
                                    "(0 where the source does not see). E.g. a fisheye view of "
-                                   "a panorama, or a rig's images stitched into one.")
+                                   "a panorama, or a rig's images stitched into one; a video's "
+                                   "or a ROS bag's frames into a video.")
     r.add_argument("image", nargs="+", help="the source image; several: one per camera of the "
                    "--camera rig, in its order, stitched (e.g. two back-to-back fisheyes into "
                    "a panorama). Videos (" + ", ".join(VIDEO_SUFFIXES) + ") the same way, "
@@ -259,15 +260,15 @@ def build_parser() -> argparse.ArgumentParser:
                      "that the target sees a level scene (a panorama's horizon straight, a "
                      "pinhole upright)")
     rig_options(r, blend=True)
-    bag_options(r, "level each frame: the cameras turned so that the IMU's up at the frame's "
-                   "stamp is +z (the geometry rebuilt when up moves by over 0.05 degrees)")
+    bag_options(r, "the up each frame is leveled by: the cameras turned so that it is +z (the "
+                   "geometry rebuilt when it moves by over 0.05 degrees)")
     r.add_argument("--every", type=positive_int, default=1, metavar="N",
                    help="videos and bags: re-image every N-th frame")
     r.add_argument("--fps", type=at_least(0.0, float, above=True), default=None,
                    help="videos and bags: the output's frame rate (default: the source's, "
                         "over --every)")
     r.add_argument("--out", required=True, metavar="IMG",
-                   help="output image (.png, .jpg, .npy); for videos, .mp4 or .avi")
+                   help="output image (.png, .jpg, .npy); for videos and bags, .mp4 or .avi")
 
     sc = sub.add_parser("scenes", help="render procedural rooms through three lenses",
                         formatter_class=fmt,

@@ -31,9 +31,9 @@ def bag_options(p, imu_gives: str) -> None:
     p.add_argument("--max-skew", type=float, default=10.0, metavar="MS",
                    help="a rig's ROS bag: the most the cameras' stamps of one frame may differ")
     p.add_argument("--imu", default=None, metavar="TOPIC",
-                   help=f"ROS bags: {imu_gives} from this sensor_msgs/Imu topic's "
-                        "accelerometer, turned by --camera's camera-IMU extrinsics (Kalibr "
-                        "T_cam_imu, Basalt T_imu_cam, ORB-SLAM3 IMU.T_b_c1)")
+                   help="ROS bags: this sensor_msgs/Imu topic's accelerometer, turned by "
+                        "--camera's camera-IMU extrinsics (Kalibr T_cam_imu, Basalt T_imu_cam, "
+                        f"ORB-SLAM3 IMU.T_b_c1), gives {imu_gives}")
     p.add_argument("--imu-window", type=float, default=100.0, metavar="MS",
                    help="--imu: the readings averaged about each frame's stamp")
     p.add_argument("--imu-up", choices=("accel", "orientation"), default="accel",
