@@ -217,7 +217,10 @@ def _render_video(args) -> None:
     if Path(args.out).suffix.lower() not in FrameVideo.CODECS:
         raise ValueError(f"--out {args.out}: a video's frames go to a video, .mp4 or .avi")
     frames = _frames(args)
-    first = next(frames)
+    first = next(frames, None)
+    if first is None:  # a bag's topic without a message, or a rig's without one matched set
+        raise ValueError(f"{args.image[0]} gave no frame to re-image (with --every "
+                         f"{args.every}); check the topic with: usf-graph bag {args.image[0]}")
     second = next(frames, None)
     camera = None
     if args.camera is None:  # a bag's camera_info
