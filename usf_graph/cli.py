@@ -13,11 +13,11 @@ from .cli_images import cmd_lift, cmd_render
 from .cli_info import cmd_cache, cmd_info
 from .cli_inputs import (
     CAMERA_HELP,
-    VIDEO_SUFFIXES,
     camera_options,
     level_options,
     rig_options,
 )
+from .videos import VIDEO_SUFFIXES
 
 
 def cmd_scenes(args) -> int:

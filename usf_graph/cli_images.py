@@ -9,14 +9,13 @@ from pathlib import Path
 from .cli_inputs import (
     camera_from_spec,
     is_panorama_spec,
-    is_video,
     leveled,
     read_image,
     rig_from_spec,
-    split_frame,
-    video_frames,
-    video_info,
 )
+from .videos import frames as video_frames
+from .videos import info as video_info
+from .videos import is_video, split_frame
 
 
 def read_images(args) -> list:
@@ -191,12 +190,12 @@ def _bag_topics(args) -> list:
     return [None]
 
 
-def _frame_rate(args, first, second) -> float:
-    """``--fps``, else the source's: a video's header's, a bag's from its first two frames'
-    stamps; 30 where neither says (and it is said)."""
+def _frame_rate(args, header_fps: float, first, second) -> float:
+    """``--fps``, else the source's: a video's header's (``header_fps``; 0: none), a bag's
+    from its first two frames' stamps; 30 where neither says (and it is said)."""
     if args.fps:
         return args.fps
-    fps = video_info(args.image[0])[0] / args.every if is_video(args.image[0]) else 0.0
+    fps = header_fps / args.every
     if first[1] is not None and second is not None and second[1] > first[1]:
         fps = 1e9 / (second[1] - first[1])
     if fps <= 0:
@@ -237,8 +236,8 @@ def _render_video(args) -> None:
         one, what = _reimager(args, cams, dst)
         reimage = lambda images, stamp: one(images)  # noqa: E731
         print(what)
-    video = FrameVideo(args.out, _frame_rate(args, first, second))
-    count = 0 if is_bag(args.image[0]) else video_info(args.image[0])[1]
+    header_fps, count = (0.0, 0) if is_bag(args.image[0]) else video_info(args.image[0])
+    video = FrameVideo(args.out, _frame_rate(args, header_fps, first, second))
     total = -(-count // args.every) if count else None
     rest = chain([first], [] if second is None else [second], frames)
     try:

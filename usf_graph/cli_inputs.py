@@ -5,12 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .videos import VIDEO_SUFFIXES, is_video, split_frame
-from .videos import frames as video_frames
-from .videos import info as video_info
-
-__all__ = ["split_frame", "VIDEO_SUFFIXES", "is_video", "video_frames", "video_info"]
-
 CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, ORB-SLAM3 "
                "settings, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
@@ -128,7 +122,7 @@ def fit_to_image(cam, image_shape):
 
 def rig_options(p, blend: bool = False, split: bool = True) -> None:
     """``--distance``, for the commands that read a rig; with ``blend``, ``--blend``; with
-    ``split``, ``--split`` (:func:`split_frame`)."""
+    ``split``, ``--split`` (:func:`usf_graph.videos.split_frame`)."""
     if split:
         p.add_argument("--split", action="store_true",
                        help="rigs: each image (or video frame) holds the rig's cameras' images "

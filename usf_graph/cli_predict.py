@@ -13,17 +13,15 @@ from .bags import is_bag
 from .cli_bags import bag_camera, bag_options, imu_up, predict_rig_bag
 from .cli_inputs import (
     CAMERA_HELP,
-    VIDEO_SUFFIXES,
     alpha_masked,
     camera_from_spec,
     camera_options,
-    is_video,
     read_image,
     rig_from_spec,
     rig_options,
-    split_frame,
-    video_frames,
 )
+from .videos import VIDEO_SUFFIXES, is_video, split_frame
+from .videos import frames as video_frames
 
 
 def add_predict_parser(sub, fmt) -> None:
@@ -230,7 +228,7 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
 
 def _predict_split(run, model, names, out: Path, args) -> None:
     """``predict --rig --split``: each image or video frame cut into the rig's cameras'
-    images (:func:`~usf_graph.cli_inputs.split_frame`), one sphere each; the rig fitted to
+    images (:func:`~usf_graph.videos.split_frame`), one sphere each; the rig fitted to
     the first frame (``--distance auto``: chosen there) and kept for the rest."""
     from .cameras import load_rig
 
