@@ -7,6 +7,7 @@ import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
+import torch
 from tqdm.auto import tqdm
 
 from .. import videos
@@ -89,8 +90,6 @@ class VideoFrames(LiftedFrames):
         return [f"video_{self.video.stem}_{digest(key)}.pt"]
 
     def process(self):
-        import torch
-
         xs, stamps, index = [], [], []
         count = len(self.cameras)
         for i, rgb in tqdm(videos.frames(self.video, self.every), desc=f"lifting {self.video.name}",

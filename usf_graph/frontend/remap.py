@@ -17,6 +17,16 @@ _ROW = 1024  # cv2.remap maps must be narrower than SHRT_MAX, so fold M points i
 _OUTSIDE = -16.0  # unseen points sample far outside the image: 0 under BORDER_CONSTANT
 
 
+def round_to(values: np.ndarray, dtype) -> np.ndarray:
+    """``values`` in ``dtype``: rounded and clipped to its range for an integer type, as
+    ``cv2.remap`` gives integer images; cast as they are for a float one."""
+    dtype = np.dtype(dtype)
+    if dtype.kind not in "iu":
+        return values.astype(dtype, copy=False)
+    info = np.iinfo(dtype)
+    return np.clip(np.round(values), info.min, info.max).astype(dtype)
+
+
 class Remap:
     r"""Samples images of ``camera`` at ``M`` points with one ``cv2.remap``.
 
@@ -133,12 +143,10 @@ class Remap:
             rows, idx, w = self._border
             g = arr.reshape(-1, c)[idx].astype(np.float64)
             part = (np.where(w[..., None] > 0, g, 0.0) * w[..., None]).sum(1)  # unread pixels may hold NaN
-            if keep_dtype and arr.dtype.kind != "f":
-                part = np.clip(np.round(part), np.iinfo(arr.dtype).min, np.iinfo(arr.dtype).max)
-            out[rows] = part
+            out[rows] = round_to(part, arr.dtype) if keep_dtype else part
         if self._unseen is not None and len(self._unseen):
             out[self._unseen] = 0  # wrapped onto real pixels
         return out
 
 
-__all__ = ["Remap", "REMAP_DTYPES"]
+__all__ = ["Remap", "REMAP_DTYPES", "round_to"]

@@ -17,7 +17,7 @@ from .cache import GeometryCache
 from .frontend import SphericalFrontend, _as_image
 from .image import SphericalImage
 from .reimage import Reimager
-from .remap import Remap
+from .remap import Remap, round_to
 
 BLENDS = ("best", "feather")
 
@@ -44,6 +44,15 @@ def blend_weights(cameras: Sequence[Camera], pos: np.ndarray, seen: np.ndarray,
         w = np.where(tot > 0, w / np.where(tot > 0, tot, 1), (w == 0) & (ang == ang.min(0)))
         w = np.where(seen, w, 0.0)
     return w, np.where(seen.any(0), best, -1)
+
+
+def named_cameras(cameras: Sequence[Camera] | Mapping[str, Camera]) -> tuple[list[str], list[Camera]]:
+    """A rig's camera names and cameras: a mapping's own, or ``cam0``, ``cam1``, ... for a
+    sequence."""
+    if isinstance(cameras, Mapping):
+        return list(cameras), list(cameras.values())
+    cams = list(cameras)
+    return [f"cam{i}" for i in range(len(cams))], cams
 
 
 def ordered_images(names: Sequence[str], images) -> list:
@@ -83,8 +92,7 @@ class RigReimager:
                  source_valid: Sequence[np.ndarray] | None = None,
                  target: tuple[np.ndarray, np.ndarray] | None = None):
         self._named = isinstance(cameras, Mapping)
-        cams = list(cameras.values()) if self._named else list(cameras)
-        self.names = list(cameras) if self._named else [f"cam{i}" for i in range(len(cams))]
+        self.names, cams = named_cameras(cameras)
         self.cam_dst = cam_dst
         rays, valid = cam_dst.lens_normal_map() if target is None else target  # once for all
         ok = [None] * len(cams) if source_valid is None else list(source_valid)
@@ -122,7 +130,7 @@ class RigReimager:
                 a = a if a.dtype == np.float32 else a.astype(np.float32)
                 out += wk * (fast(a) if Remap.accepts(a) else r(a).reshape(n, c))
             if np.issubdtype(dtype, np.integer):  # as a Reimager keeps an integer image's type
-                out = np.clip(np.round(out), np.iinfo(dtype).min, np.iinfo(dtype).max).astype(dtype)
+                out = round_to(out, dtype)
         out = out.reshape(self.cam_dst.height, self.cam_dst.width, c)
         return out[..., 0] if np.ndim(images[0]) == 2 else out
 
@@ -172,11 +180,7 @@ class RigFrontend:
                  distance: float | None = None, centre="mean"):
         if blend not in BLENDS:  # before any table is built
             raise ValueError(f"blend must be one of {BLENDS}, got {blend!r}")
-        if isinstance(cameras, Mapping):
-            self.names, cams = list(cameras), list(cameras.values())
-        else:
-            cams = list(cameras)
-            self.names = [f"cam{i}" for i in range(len(cams))]
+        self.names, cams = named_cameras(cameras)
         if not cams:
             raise ValueError("a rig needs at least one camera")
         if distance is not None:
