@@ -123,5 +123,8 @@ def test_graticule_lies_where_the_sphere_frame_says():
     t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
     on = out[np.round(255.5 + (r - 1) * np.sin(t)).astype(int), np.round(255.5 + (r - 1) * np.cos(t)).astype(int)]
     assert (np.abs(on.astype(int) - VIEW_EDGE).max(1) < 60).mean() > 0.8
+    grey = np.random.default_rng(0).integers(0, 256, (512, 512, 3)).astype(np.uint8)
+    assert np.array_equal(draw_graticule(grey.astype(np.uint16) * 257, fish),  # 16-bit: its range
+                          draw_graticule(grey, fish))
     with pytest.raises(ValueError, match="the camera's"):
         draw_graticule(np.zeros((10, 10, 3), np.uint8), fish)

@@ -334,18 +334,13 @@ def _stacked(pictures: list, axis: int) -> np.ndarray:
 
 
 def _as_uint8(image: np.ndarray) -> np.ndarray:
-    """The RGB of an image that predict accepted, as uint8 for drawing on (uint16 scaled
-    down, float in [0, 1] scaled up)."""
+    """The RGB of an image that predict accepted, as uint8 for drawing on."""
+    from .frontend.image import to_uint8
     from .train.apply import rgb_channels
 
     with warnings.catch_warnings():  # said once already, when the image was read
         warnings.simplefilter("ignore")
-        rgb = np.ascontiguousarray(rgb_channels(image))
-    if rgb.dtype == np.uint8:
-        return rgb
-    if rgb.dtype == np.uint16:
-        return (rgb >> 8).astype(np.uint8)
-    return (np.clip(np.nan_to_num(rgb.astype(np.float64)), 0, 1) * 255).round().astype(np.uint8)
+        return np.ascontiguousarray(to_uint8(rgb_channels(image)))
 
 
 def _pandora(boxes) -> np.ndarray:

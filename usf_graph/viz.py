@@ -214,7 +214,7 @@ HORIZON, GRATICULE, VIEW_EDGE = (255, 220, 0), (255, 255, 255), (255, 60, 60)
 
 
 def draw_graticule(image: np.ndarray, camera, step: float = 15.0) -> np.ndarray:
-    """A copy of ``image [H, W(, 3)]`` (uint8, or floats in [0, 1]) with the parallels and
+    """A copy of ``image [H, W(, 3)]`` (uint8, uint16, or floats in [0, 1]) with the parallels and
     meridians of ``camera``'s sphere frame every ``step`` degrees (the horizon thicker, in
     yellow), the meridian straight ahead (x) labelled 0 and the edge of the camera's
     usable view in red: a check of a calibration and its mounting by eye. Through any lens
@@ -223,6 +223,7 @@ def draw_graticule(image: np.ndarray, camera, step: float = 15.0) -> np.ndarray:
     fisheye's red edge should lie on its image circle."""
     import cv2
 
+    from .frontend.image import to_uint8
     from .frontend.interpolation import valid_pixels
     from .geometry import from_latlon
 
@@ -230,8 +231,7 @@ def draw_graticule(image: np.ndarray, camera, step: float = 15.0) -> np.ndarray:
     if img.shape[:2] != (camera.height, camera.width):
         raise ValueError(f"the image is {img.shape[:2]} (H, W), the camera's "
                          f"{(camera.height, camera.width)}: give the image the camera took")
-    if img.dtype != np.uint8:
-        img = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+    img = to_uint8(img)
     out = np.ascontiguousarray(np.repeat(img[..., None], 3, -1) if img.ndim == 2 else img[..., :3])
     scale = max(1, round(512 / max(camera.width, camera.height)))  # small images: enlarged
     if scale != 1:

@@ -71,3 +71,18 @@ def unit_range(image) -> np.ndarray:
         raise ValueError(f"a float image must hold values in [0, 1], got [{a[seen].min():g}, "
                          f"{a[seen].max():g}]; divide by 255 (or the sensor's maximum) first")
     return a
+
+
+def to_uint8(image) -> np.ndarray:
+    """Pixel values as uint8 for showing or drawing on: uint8 as it is, uint16 / 257 (its
+    whole range, not its first 255), float in [0, 1] times 255 (clipped; NaN shown black);
+    other dtypes are refused."""
+    a = np.asarray(image)
+    if a.dtype == np.uint8:
+        return a
+    if a.dtype == np.uint16:
+        return np.round(a / 257.0).astype(np.uint8)
+    if a.dtype.kind != "f":
+        raise ValueError(f"image dtype {a.dtype} is not supported: give uint8, uint16 or "
+                         "float in [0, 1]")
+    return np.round(np.clip(np.nan_to_num(a.astype(np.float64)), 0, 1) * 255).astype(np.uint8)

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..cameras import DEFAULT_ROTATION, Camera, Pinhole
 from ..geometry import geodesic_distance, rotation_from_axis_angle
+from .image import to_uint8
 from .interpolation import valid_pixels
 from .reimage import render_seen
 
@@ -50,17 +51,13 @@ def _undistorted(camera: Camera):
 def _gray(image) -> np.ndarray:
     a = np.asarray(image)
     if a.ndim == 3:
-        a = a[..., :3].mean(-1) if a.shape[-1] >= 3 else a[..., 0]
-    if a.ndim != 2:
+        a = a[..., :3] if a.shape[-1] >= 3 else a[..., 0]
+    if a.ndim not in (2, 3):
         raise ValueError(f"image must be [H, W] or [H, W, C], got shape {np.asarray(image).shape}")
-    if not np.isfinite(a).all():
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
         raise ValueError("the image has NaN or inf pixels; fill or mask them before finding lines")
-    dtype = np.asarray(image).dtype
-    if not np.issubdtype(dtype, np.integer):
-        a = a * 255.0  # float images are in [0, 1], as the rest of the library reads them
-    elif dtype == np.uint16:  # 16-bit cameras: their whole range, not its first 255
-        a = a / 257.0
-    return np.clip(np.round(a), 0, 255).astype(np.uint8)
+    a = to_uint8(a)
+    return a if a.ndim == 2 else np.round(a.mean(-1)).astype(np.uint8)
 
 
 def _faces(camera: Camera) -> list[Pinhole]:
