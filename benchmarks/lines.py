@@ -11,6 +11,14 @@ panorama's own pixel density, and two re-imagings a face (the image, then its co
 each of which unprojects every source pixel again. Both then search the same Manhattan
 axes. Printed: seconds (best of ``reps``), the ratio, and each answer's error against the
 room's true up.
+
+    python benchmarks/lines.py --video 30 [--sizes 1024 2048]
+
+A video instead: a room filmed while the camera turns 3 degrees a frame and sways (up
+moving about a degree a frame, up to 12 degrees off level). ``UpTracker`` (the straight
+views built once, the search near the last frame's up) against ``lines_up`` on every
+frame; printed: seconds a frame (mean over the frames after the first), the ratio, and the
+mean and worst error of each.
 """
 
 from __future__ import annotations
@@ -57,14 +65,47 @@ def best(fn, reps: int, *args):
     return min(times), out
 
 
+def video(sizes, frames: int) -> None:
+    """The ``--video`` table."""
+    scene = make_room(seed=3, index=3, materials="by_kind")
+    pos, R0 = scene.viewpoint(0)
+    print("| panorama | frames | UpTracker (s/frame) | lines_up (s/frame) | ratio | "
+          "error: tracker mean / worst | lines_up mean / worst (deg) |")
+    print("|---|---|---|---|---|---|---|")
+    for w in sizes:
+        cam = Equirectangular(w, w // 2)
+        track, t_track, t_each, e_track, e_each = L.UpTracker(cam), [], [], [], []
+        for k in range(frames):
+            T = rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), math.radians(3 * k)) \
+                @ rotation_from_axis_angle(np.array([math.cos(k / 7), math.sin(k / 7), 0.0]),
+                                           math.radians(12 * math.sin(k / 5)))
+            img = render_room(scene, cam, pos, R0 @ T, boxes=False).rgb
+            truth = T.T @ np.array([0.0, 0.0, 1.0])
+            t, u = best(track, 1, img)
+            t_track.append(t)
+            e_track.append(math.degrees(geodesic_distance(u, truth)))
+            t, u = best(L.lines_up, 1, img, cam)
+            t_each.append(t)
+            e_each.append(math.degrees(geodesic_distance(u, truth)))
+        a, b = np.mean(t_track[1:]), np.mean(t_each[1:])
+        print(f"| {w}x{w // 2} | {frames} | {a:.3f} | {b:.3f} | {b / a:.1f}x | "
+              f"{np.mean(e_track):.2f} / {max(e_track):.2f} | {np.mean(e_each):.2f} / "
+              f"{max(e_each):.2f} |", flush=True)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--reps", type=int, default=2)
+    p.add_argument("--video", type=int, default=0, metavar="FRAMES",
+                   help="time a video of this many frames instead")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     cv2.setNumThreads(a.threads)
+    if a.video:
+        video(a.sizes, a.video)
+        return
     scene = make_room(seed=3, index=3, materials="by_kind")
     pos, R0 = scene.viewpoint(0)
     T = rotation_from_axis_angle(np.array([0.0, 1.0, 0.0]), math.radians(15)) \

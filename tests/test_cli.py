@@ -241,6 +241,45 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
         assert why in capsys.readouterr().err
 
 
+def test_render_level_each_holds_a_tilting_cameras_horizon(tmp_path, capsys):
+    """``render --level-each``: a panorama video of a room whose camera tilts by 4 to 19
+    degrees comes out level, each frame close to the room rendered level along its heading
+    (the same minimal turn), where the video as it is lies far from it."""
+    from tests.frontend.test_lines import _tilting_video
+    from usf_graph.frontend import render
+    from usf_graph.geometry import level_rotation
+
+    cam = cameras.Equirectangular(256, 128)
+    video = _tilting_video([cam])
+    writer = cv2.VideoWriter(str(tmp_path / "tilt.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 5, (256, 128))
+    for ims, _ in video:
+        writer.write(ims[0][..., ::-1].copy())
+    writer.release()
+    base = ["render", str(tmp_path / "tilt.avi"), "--camera", "equirectangular",
+            "--to", "equirectangular:256x128"]
+    assert main([*base, "--level-each", "--out", str(tmp_path / "level.avi")]) == 0
+    out = capsys.readouterr().out
+    assert "leveled by its own straight lines" in out and "built 6 times for 6 frames" in out
+    tilts = [math.degrees(math.acos(up[2])) for _, up in video]  # 4 to 19 degrees
+    lo, hi = map(float, re.search(r"up ([\d.]+) to ([\d.]+) degrees off level", out).groups())
+    assert abs(lo - min(tilts)) < 1.5 and abs(hi - max(tilts)) < 1.5
+    got, _ = decode_video(tmp_path / "level.avi")
+    off, tilted = [], []
+    for g, (ims, up) in zip(got, video):
+        truth = render(ims[0], cam.turned(level_rotation(up)), cam)  # leveled by the true up
+        off.append(np.abs(g.astype(float) - truth).mean())
+        tilted.append(np.abs(ims[0].astype(float) - truth).mean())
+    assert max(off) < 4.5  # Motion JPEG twice (3.2-3.4 here)
+    assert min(tilted[2:]) > 2.5 * max(off)  # the tilt (10 degrees and more) was there to remove
+    for extra, why in ((["--level"], "not with --level"), (["--imu", "/imu"], "not with")):
+        assert main([*base, "--level-each", *extra, "--out", str(tmp_path / "x.avi")]) == 2
+        assert why in capsys.readouterr().err
+    cv2.imwrite(str(tmp_path / "one.png"), video[0][0][0])
+    assert main(["render", str(tmp_path / "one.png"), "--camera", "equirectangular", "--to",
+                 "equirectangular", "--level-each", "--out", str(tmp_path / "x.png")]) == 2
+    assert "videos or a bag" in capsys.readouterr().err
+
+
 def test_camera_overlay_draws_the_graticule_on_the_cameras_image(tmp_path, capsys):
     from usf_graph.viz import draw_graticule
 

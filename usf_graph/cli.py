@@ -259,6 +259,12 @@ def build_parser() -> argparse.ArgumentParser:
     level_options(r, "the source camera turned so that gravity's up is the sphere's +z, so "
                      "that the target sees a level scene (a panorama's horizon straight, a "
                      "pinhole upright)")
+    r.add_argument("--level-each", action="store_true",
+                   help="videos and bags: level every frame by its own straight lines (a "
+                        "handheld or vehicle camera: the horizon held level through the "
+                        "video; a rig's cameras' lines read together); up searched within 10 "
+                        "degrees of the last frame's, the geometry rebuilt when it moves by "
+                        "over 0.05 degrees")
     rig_options(r, blend=True)
     bag_options(r, "the up each frame is leveled by: the cameras turned so that it is +z (the "
                    "geometry rebuilt when it moves by over 0.05 degrees)")

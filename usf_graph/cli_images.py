@@ -123,17 +123,16 @@ def _reimager(args, cams: dict, dst, turn=None, fixed: dict | None = None):
                                        f"{type(dst).__name__} {dst.width}x{dst.height}")
 
 
-class _LevelByImu:
-    """``render --imu``: each frame re-imaged with the cameras turned level by the IMU's up
-    at its stamp; the geometry rebuilt only when up moves by more than ``step`` degrees."""
+class _LevelEachFrame:
+    """``render --imu`` and ``--level-each``: each frame re-imaged with the cameras turned
+    level by its own up (``up_of(images, stamp)``, in the source's sphere frame); the
+    geometry rebuilt only when up moves by more than ``step`` degrees."""
 
-    def __init__(self, args, cams, dst, step: float = 0.05):
-        from .cli_bags import imu_up
+    def __init__(self, args, cams, dst, up_of, step: float = 0.05):
         from .frontend.interpolation import valid_pixels
 
-        self.up_at = imu_up(args, rig=len(cams) > 1)
-        self.args, self.cams, self.dst, self.step = args, cams, dst, step
-        self.built, self.builds, self.reimage = None, 0, None
+        self.args, self.cams, self.dst, self.up_of, self.step = args, cams, dst, up_of, step
+        self.built, self.builds, self.reimage, self.tilts = None, 0, None, []
         # what a turn does not change, found once: each camera's readable pixels, the target's rays
         self.fixed = {"source_valid": [valid_pixels(c) for c in cams.values()],
                       "target": dst.lens_normal_map()}
@@ -143,12 +142,31 @@ class _LevelByImu:
 
         from .geometry import geodesic_distance, level_rotation
 
-        up = np.asarray(self.up_at(self.args.image[0], stamp), np.float64)
+        up = np.asarray(self.up_of(images, stamp), np.float64)
         up = up / np.linalg.norm(up)
+        self.tilts.append(float(np.degrees(geodesic_distance(up, [0.0, 0.0, 1.0]))))
         if self.built is None or np.degrees(geodesic_distance(up, self.built)) > self.step:
             self.reimage, _ = _reimager(self.args, self.cams, self.dst, level_rotation(up), self.fixed)
             self.built, self.builds = up, self.builds + 1
         return self.reimage(images)
+
+
+def _level_each(args, cams, dst):
+    """The frame leveler of ``--imu`` or ``--level-each``, what it says of itself, and what
+    it says at the end."""
+    if args.imu is not None:
+        from .cli_bags import imu_up
+
+        up_at = imu_up(args, rig=len(cams) > 1)
+        level = _LevelEachFrame(args, cams, dst, lambda images, stamp: up_at(args.image[0], stamp))
+        return level, f"leveled by {args.imu}'s up", lambda: ""
+    from .frontend.lines import UpTracker
+
+    rig = len(cams) > 1
+    track = UpTracker(cams if rig else cams["camera"])
+    level = _LevelEachFrame(args, cams, dst, lambda images, stamp: track(images if rig else images[0]))
+    return level, "leveled by its own straight lines", lambda: (
+        f"; no up found in {track.missed} (each kept the frame before's)" if track.missed else "")
 
 
 def _frames(args):
@@ -227,11 +245,11 @@ def _render_video(args) -> None:
 
         camera = bag_camera(args.image[0], _bag_topics(args)[0], args)
     cams, dst = _sources(args, first[0], camera)
-    if args.imu is not None:
-        level = _LevelByImu(args, cams, dst)
+    if args.imu is not None or args.level_each:
+        level, how, missed = _level_each(args, cams, dst)
         reimage = level
         print(f"{', '.join(cams)} -> {type(dst).__name__} {dst.width}x{dst.height}, each frame "
-              f"leveled by {args.imu}'s up")
+              f"{how}")
     else:
         one, what = _reimager(args, cams, dst)
         reimage = lambda images, stamp: one(images)  # noqa: E731
@@ -245,9 +263,10 @@ def _render_video(args) -> None:
             video.add(reimage(images, stamp))
     finally:
         video.close()
-    if args.imu is not None:
-        print(f"the geometry built {level.builds} times for {video.frames} frames (up moved "
-              f"more than {level.step:g} degrees)")
+    if args.imu is not None or args.level_each:
+        print(f"up {min(level.tilts):.1f} to {max(level.tilts):.1f} degrees off level; the "
+              f"geometry built {level.builds} times for {video.frames} frames (up moved more "
+              f"than {level.step:g} degrees){missed()}")
     print(f"wrote {args.out} ({video.frames} frames at {video.fps:g} fps)")
 
 
@@ -274,6 +293,10 @@ def cmd_render(args) -> int:
     if args.imu is not None and (not bag or args.level or args.up is not None):
         raise ValueError("--imu levels each frame of a ROS bag by its IMU's up: a bag, and not "
                          "with --level or --up")
+    if args.level_each and (not (videos or bag) or args.level or args.up is not None
+                            or args.imu is not None):
+        raise ValueError("--level-each levels each frame of a video or a ROS bag by its own "
+                         "lines: videos or a bag, and not with --level, --up or --imu")
     if args.imu is None and args.imu_up != "accel":
         raise ValueError("--imu-up says how to read --imu's messages: give --imu TOPIC")
     if args.every != 1 and not (videos or bag):

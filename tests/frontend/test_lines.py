@@ -11,11 +11,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.helpers import FIXTURES
 from usf_graph.cameras import Equirectangular, Pinhole
 from usf_graph.frontend import render as reimage
 from usf_graph.frontend.lines import (
     LINE_TOLERANCE,
     MAX_TILT,
+    LineFinder,
+    UpTracker,
     image_up,
     line_normals,
     lines_up,
@@ -223,3 +226,64 @@ def test_only_small_images_are_enlarged_before_the_search():
         n, w = line_normals(img, cam)
         n2, w2 = line_normals(img, cam, upsample=times)
         assert len(n) > 5 and np.array_equal(n, n2) and np.array_equal(w, w2)
+
+
+def _tilting_video(cameras, frames: int = 6):
+    """A room filmed by ``cameras`` (one, or a rig's list) turning 10 degrees a frame while it
+    tilts by 4 + 3k degrees about an axis that turns by a radian a frame, so that up moves by
+    3 to 17 degrees from one frame to the next: each frame's images and its up."""
+    scene = make_room(seed=3, index=3, materials="by_kind")
+    pos, R0 = scene.viewpoint(0)
+    out = []
+    for k in range(frames):
+        T = rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), math.radians(10 * k)) \
+            @ rotation_from_axis_angle(np.array([math.cos(k), math.sin(k), 0.0]), math.radians(4 + 3 * k))
+        ims = [render(scene, c, pos, R0 @ T, boxes=False).rgb for c in cameras]
+        out.append((ims, T.T @ np.array([0.0, 0.0, 1.0])))
+    return out
+
+
+def test_a_line_finder_built_once_finds_what_a_fresh_one_finds():
+    """The straight views built once serve every frame: on two different frames of a
+    panorama and of a fisheye, the same segments as line_normals', which builds anew."""
+    for cam in (Equirectangular(256, 128), FISHEYE):
+        finder = LineFinder(cam)
+        for ims, _ in _tilting_video([cam], 2):
+            n, w = finder(ims[0])
+            n0, w0 = line_normals(ims[0], cam)
+            assert len(n) > 50 and np.array_equal(n, n0) and np.array_equal(w, w0)
+
+
+def test_up_tracker_follows_a_tilting_camera_through_a_video():
+    """Each frame's up within 1.5 degrees, also where up jumps out of the search window
+    (the axis found in it has few of up's lines: the whole search again); a blank frame
+    keeps the last up and is counted."""
+    cam = Equirectangular(256, 128)
+    video = _tilting_video([cam])
+    ups = [u for _, u in video]
+    moves = [math.degrees(np.arccos(np.clip(a @ b, -1, 1))) for a, b in zip(ups, ups[1:])]
+    assert max(moves) > 12 and min(moves) < 8  # both kinds of step
+    track = UpTracker(cam)
+    for k, (ims, up) in enumerate(video):
+        if k == 3:
+            before = track.up.copy()
+            assert np.array_equal(track(np.full((128, 256, 3), 90, np.uint8)), before)
+            assert track.missed == 1
+        got = track(ims[0])
+        assert np.degrees(np.arccos(min(1.0, got @ up))) < 1.5, k
+    assert track.frames == 7 and track.missed == 1
+    with pytest.raises(ValueError, match="one image per camera"):
+        UpTracker([cam, cam])([video[0][0][0]])
+
+
+def test_up_tracker_reads_a_rigs_cameras_together():
+    """Two back-to-back fisheyes: their lines, read together in the rig's frame, give up
+    through the video, as one camera's do."""
+    from usf_graph.cameras import load_rig
+
+    rig = {n: c.with_fov(190).resized(128, 128) for n, c in
+           load_rig(FIXTURES / "kalibr_rig.yaml").items()}
+    track = UpTracker(rig)
+    for ims, up in _tilting_video([c.with_position(None) for c in rig.values()], 3):
+        assert np.degrees(np.arccos(min(1.0, track(ims) @ up))) < 1.5
+    assert track.missed == 0
