@@ -243,5 +243,14 @@ def test_a_rigs_up_lines_read_every_cameras_lines_together():
     assert r["source"] == "lines" and np.isclose(np.abs(axes @ np.array(r["up"])).max(), 1.0, atol=1e-6)
     named = detect_image(det, dict(zip(reversed(list(rig)), reversed(images))), rig, up="lines")
     assert np.allclose(named["up"], r["up"])  # images by name, in any order
+    # the rig's line finder, built on the first frame, serves the next: another room's, tilted
+    other_room = make_room(seed=3, index=4, materials="by_kind")
+    p2, R2 = other_room.viewpoint(0)
+    R2 = R2 @ rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), np.radians(15))
+    other = [render(other_room, c, p2, R2, boxes=False).rgb for c in rig.values()]
+    axes2 = manhattan_axes(*rig_line_normals(other, rig.values()))
+    r2 = detect_image(det, other, rig, up="lines")
+    assert np.isclose(np.abs(axes2 @ np.array(r2["up"])).max(), 1.0, atol=1e-6)
+    assert np.degrees(np.arccos(np.abs(axes2 @ R2[2]).max())) < 1.0
     with pytest.raises(ValueError, match="1 images for 2 cameras"):
         rig_line_normals(images[:1], rig.values())

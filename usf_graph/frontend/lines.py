@@ -134,35 +134,53 @@ class LineFinder:
     (:func:`_faces`), and a line a face's border cuts counts as its two pieces, on one great
     circle. ``upsample``: each straight image is enlarged this many times first, so that
     short segments are found (OpenCV's LSD, default parameters); by default twice below 512
-    pixels a side, else not."""
+    pixels a side, else not.
 
-    def __init__(self, camera: Camera, upsample: int | None = None):
-        self.camera, self.upsample = camera, upsample
-        seen = valid_pixels(camera)
-        ideal = _undistorted(camera)
-        if ideal is not None and not camera.params().get("dist"):
-            self._views = [(None, _inner(seen), ideal)]
-        else:
-            self._views = []
-            for v in [ideal] if ideal is not None else _faces(camera):
-                r = Reimager(camera, v, source_valid=seen)
-                self._views.append((r, _inner(r.seen), v))
+    ``camera`` may be a rig's cameras (a sequence or a dict, mounted in the rig's frame):
+    each call then takes one image per camera, in order, and gives their lines together,
+    in the rig's sphere frame. Where lines point does not depend on where a camera sits, so
+    each camera's lines are read from its own centre (a position the rig's stitching gave
+    it is dropped)."""
+
+    def __init__(self, camera, upsample: int | None = None):
+        self.rig = not isinstance(camera, Camera)
+        cams = list(camera.values() if isinstance(camera, dict) else camera) if self.rig else [camera]
+        if not cams:
+            raise ValueError("no cameras to find lines for: give a camera or a rig's cameras")
+        self.cameras, self.upsample = [c.with_position(None) for c in cams], upsample
+        self._views = []  # per camera: (its re-imaging or None, where segments may lie, view)
+        for cam in self.cameras:
+            seen, ideal = valid_pixels(cam), _undistorted(cam)
+            if ideal is not None and not cam.params().get("dist"):
+                self._views.append([(None, _inner(seen), ideal)])
+                continue
+            views = []
+            for v in [ideal] if ideal is not None else _faces(cam):
+                r = Reimager(cam, v, source_valid=seen)
+                views.append((r, _inner(r.seen), v))
+            self._views.append(views)
 
     def __call__(self, image) -> tuple[np.ndarray, np.ndarray]:
         """``normals [L, 3]`` (unit, sphere frame) of the great circles through the segments
-        of ``image`` (``[H, W]`` or ``[H, W, C]``; uint8, uint16 or floats in [0, 1]), and
-        ``weights [L]``: their angular lengths (radians). Segments that touch pixels the
-        camera does not see are left out, so the border of its image mask is no line."""
-        h, w = self.camera.height, self.camera.width
-        if np.asarray(image).shape[:2] != (h, w):
-            raise ValueError(f"the image is {np.asarray(image).shape[:2]} (H, W), the camera's "
-                             f"{(h, w)}: give the image the camera was calibrated for")
-        gray = _gray(image)
+        of ``image`` (``[H, W]`` or ``[H, W, C]``; uint8, uint16 or floats in [0, 1]; a rig:
+        a list of one per camera), and ``weights [L]``: their angular lengths (radians).
+        Segments that touch pixels the camera does not see are left out, so the border of
+        its image mask is no line."""
+        images = list(image) if self.rig else [image]
+        if len(images) != len(self.cameras):
+            raise ValueError(f"{len(images)} images for {len(self.cameras)} cameras: give one "
+                             "image per camera, in order")
         found = []
-        for r, inner, v in self._views:
-            straight = gray if r is None else \
-                np.clip(np.round(r(gray.astype(np.float32))), 0, 255).astype(np.uint8)
-            found.append(_segment_normals(straight, inner, v, self.upsample))
+        for im, cam, views in zip(images, self.cameras, self._views):
+            if np.asarray(im).shape[:2] != (cam.height, cam.width):
+                raise ValueError(f"the image is {np.asarray(im).shape[:2]} (H, W), the camera's "
+                                 f"{(cam.height, cam.width)}: give the image the camera was "
+                                 "calibrated for")
+            gray = _gray(im)
+            for r, inner, v in views:
+                straight = gray if r is None else \
+                    np.clip(np.round(r(gray.astype(np.float32))), 0, 255).astype(np.uint8)
+                found.append(_segment_normals(straight, inner, v, self.upsample))
         return np.concatenate([n for n, _ in found]), np.concatenate([w for _, w in found])
 
 
@@ -174,15 +192,10 @@ def line_normals(image, camera: Camera, upsample: int | None = None) -> tuple[np
 
 
 def rig_line_normals(images, cameras) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`line_normals` of a rig's cameras (``cameras``, mounted in the rig's frame) on
-    their ``images`` (one each, in order), together, in the rig's sphere frame. Where lines
-    point does not depend on where a camera sits, so each camera's lines are read from
-    its own centre (a position the rig's stitching gave it is dropped)."""
-    images, cameras = list(images), list(cameras)
-    if len(images) != len(cameras):
-        raise ValueError(f"{len(images)} images for {len(cameras)} cameras: give one image per camera")
-    found = [line_normals(im, cam.with_position(None)) for im, cam in zip(images, cameras)]
-    return np.concatenate([n for n, _ in found]), np.concatenate([w for _, w in found])
+    """:func:`line_normals` of a rig's ``cameras`` (mounted in the rig's frame) on their
+    ``images`` (one each, in order), together, in the rig's sphere frame: a rig's
+    :class:`LineFinder` for one set of images."""
+    return LineFinder(list(cameras))(images)
 
 
 def _support(v: np.ndarray, normals: np.ndarray, weights: np.ndarray, tol: float) -> np.ndarray:
@@ -349,12 +362,8 @@ class UpTracker:
     on 2 cores, against 1 s for :func:`lines_up`."""
 
     def __init__(self, cameras, prior=None, step: float = 10.0, max_tilt: float = MAX_TILT):
-        self.rig = not isinstance(cameras, Camera)
-        cams = list(cameras.values() if isinstance(cameras, dict) else cameras) if self.rig else [cameras]
-        if not cams:
-            raise ValueError("no cameras to track up through: give a camera or a rig's cameras")
-        self._finders = [LineFinder(c.with_position(None)) for c in cams]
-        default = np.array([0.0, 0.0, 1.0]) if self.rig else image_up(cams[0])
+        self._lines = LineFinder(cameras)
+        default = np.array([0.0, 0.0, 1.0]) if self._lines.rig else image_up(self._lines.cameras[0])
         self.up = _prior(default if prior is None else prior)
         self.step, self.max_tilt = float(step), float(max_tilt)
         self.frames = self.missed = 0
@@ -363,13 +372,7 @@ class UpTracker:
     def __call__(self, images) -> np.ndarray:
         """Up ``[3]`` (unit, sphere frame) of the next frame: ``images``, one image, or a
         list of one per camera for a rig."""
-        images = list(images) if self.rig else [images]
-        if len(images) != len(self._finders):
-            raise ValueError(f"{len(images)} images for {len(self._finders)} cameras: give one "
-                             "image per camera, in order")
-        found = [f(im) for f, im in zip(self._finders, images)]
-        normals = np.concatenate([n for n, _ in found])
-        weights = np.concatenate([w for _, w in found])
+        normals, weights = self._lines(images)
         self.frames += 1
 
         def found(near: bool) -> bool:

@@ -198,21 +198,21 @@ def _lines_up(model, image, fe, x: torch.Tensor, mask) -> tuple[torch.Tensor | N
     """``up="lines"``: the model's up estimate picks among the Manhattan axes of the
     image's straight lines (:func:`~usf_graph.train.gravity.estimate_up` with ``axes``) ->
     ``([1, 3] or None, its info)``; ``None`` (the estimate as it is) when the image has too
-    few lines. Any camera (:func:`~usf_graph.frontend.lines.line_normals` straightens a
-    fisheye's or a panorama's lines through pinholes), and a rig (its cameras' lines
-    together, :func:`~usf_graph.frontend.lines.rig_line_normals`)."""
-    from ..frontend.lines import line_normals, manhattan_axes, rig_line_normals
+    few lines. Any camera (a :class:`~usf_graph.frontend.lines.LineFinder`, built once per
+    camera, straightens a fisheye's or a panorama's lines through pinholes), and a rig (its
+    cameras' lines together)."""
+    from ..frontend.lines import LineFinder, manhattan_axes
     from ..frontend.rig import ordered_images
     from ..models.gravity import UNSURE_MARGIN
     from .gravity import estimate_up, require_up_estimate
 
     require_up_estimate(model, "up='lines'")
     if isinstance(fe, SphericalFrontend):
-        lines = line_normals(rgb01(image, colour_model=False), fe.camera)  # warned at lift
+        cams, images = fe.camera, rgb01(image, colour_model=False)  # warned at lift
     else:  # a rig: its images in its cameras' order
-        lines = rig_line_normals([rgb01(im, colour_model=False) for im in ordered_images(fe.names, image)],
-                                 [f.camera for f in fe.frontends])
-    axes = manhattan_axes(*lines)
+        cams = [f.camera for f in fe.frontends]
+        images = [rgb01(im, colour_model=False) for im in ordered_images(fe.names, image)]
+    axes = manhattan_axes(*_per_camera("lines", cams, lambda: LineFinder(cams))(images))
     if axes is None:
         return None, {"lines": "too few straight lines: the estimate"}
     up, margin = estimate_up(model.gravity, x, mask, axes=torch.as_tensor(axes)[None])
