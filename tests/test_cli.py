@@ -202,6 +202,7 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     at the source's frame rate; one camera's video with ``--every`` and ``--fps``; mixed or
     misdirected inputs are refused."""
     from tests.frontend.test_rig import scene
+    from tests.test_videos import _spherical
     from usf_graph.frontend import render, render_rig
 
     rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
@@ -217,7 +218,8 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     split = ["--camera", str(FIXTURES / "kalibr_rig.yaml"), "--fov", "190", "--split"]
     assert main(["render", str(tmp_path / "dual.avi"), *split, "--to", "equirectangular:256x128",
                  "--out", str(tmp_path / "pano.avi")]) == 0
-    assert "wrote" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "wrote" in out and "an .avi holds no 360 video metadata" in out
     got, fps = decode_video(tmp_path / "pano.avi")
     frames, _ = decode_video(tmp_path / "dual.avi")
     assert len(got) == 3 and fps == 5
@@ -233,6 +235,8 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
                  "--out", str(tmp_path / "small.mp4")]) == 0
     small, fps = decode_video(tmp_path / "small.mp4")
     assert len(small) == 2 and fps == 7 and small[0].shape == (64, 128, 3)
+    assert "marked as a 360 video" in capsys.readouterr().out  # a whole panorama in an mp4
+    assert _spherical(tmp_path / "small.mp4")[0] == [0, 0]  # as FFmpeg reads it
     for argv, why in (([str(tmp_path / "pano.avi"), str(tmp_path / "cam0.png")], "not both"),
                       ([str(tmp_path / "cam0.png"), "--every", "2"], "none was given"),
                       ([str(tmp_path / "pano.avi"), "--out", str(tmp_path / "x.png")], ".mp4 or .avi")):

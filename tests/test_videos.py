@@ -15,3 +15,82 @@ def test_split_frame_cuts_side_by_side_cameras_in_order():
         split_frame(frame, 1, "rig.yaml")
     with pytest.raises(ValueError, match="6 pixels wide, which does not cut into 4"):
         split_frame(frame, 4, "rig.yaml")
+
+
+def _written_mp4(path, frames: int = 3, faststart: bool = False):
+    """An MPEG-4 video of ``frames`` different 128x64 frames: OpenCV's (its moov box after the
+    media data) or, with ``faststart``, FFmpeg's through PyAV with the moov box first."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    pictures = [cv2.GaussianBlur(rng.integers(0, 256, (64, 128, 3)).astype(np.uint8), (9, 9), 3)
+                for _ in range(frames)]
+    if not faststart:
+        w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (128, 64))
+        for p in pictures:
+            w.write(p)
+        w.release()
+        return
+    av = pytest.importorskip("av")
+    with av.open(str(path), "w", options={"movflags": "faststart"}) as out:
+        s = out.add_stream("mpeg4", rate=10)
+        s.width, s.height, s.pix_fmt = 128, 64, "yuv420p"
+        for p in pictures:
+            out.mux(s.encode(av.VideoFrame.from_ndarray(p, format="bgr24")))
+        out.mux(s.encode(None))
+
+
+def _spherical(path) -> list:
+    """What FFmpeg (through PyAV) reads of each frame's spherical side data: the projection
+    (0: equirectangular), or None where a frame has none; and the frames' pixels."""
+    av = pytest.importorskip("av")
+    found, pixels = [], []
+    with av.open(str(path)) as c:
+        for f in c.decode(video=0):
+            sd = [d for d in f.side_data if d.type.name == "SPHERICAL"]
+            found.append(int.from_bytes(bytes(sd[0])[:4], "little") if sd else None)
+            pixels.append(f.to_ndarray(format="rgb24"))
+    return found, pixels
+
+
+@pytest.mark.parametrize("faststart", [False, True], ids=["moov-last", "moov-first"])
+def test_mark_spherical_makes_ffmpeg_read_an_equirectangular_360_video(tmp_path, faststart):
+    """FFmpeg, not our reader, finds the Spherical Video metadata on every frame, and the
+    frames decode as before: also where the moov box precedes the media data, whose chunk
+    offsets then move. Marking again replaces the mark."""
+    from usf_graph.videos import SPHERICAL_UUID, mark_spherical
+
+    path = tmp_path / "pano.mp4"
+    _written_mp4(path, faststart=faststart)
+    plain, before = _spherical(path)
+    assert plain == [None] * 3
+    mark_spherical(path)
+    marked, after = _spherical(path)
+    assert marked == [0] * 3  # AV_SPHERICAL_EQUIRECTANGULAR
+    assert all(np.array_equal(a, b) for a, b in zip(before, after))
+    size = path.stat().st_size
+    mark_spherical(path, software="again")
+    data = path.read_bytes()
+    assert path.stat().st_size == size - 4 and data.count(SPHERICAL_UUID) == 1  # "again": 4 bytes shorter
+    assert b"<GSpherical:StitchingSoftware>again<" in data
+    assert _spherical(path)[0] == [0] * 3
+
+
+def test_mark_spherical_refuses_what_it_cannot_mark_and_keeps_the_file(tmp_path):
+    from usf_graph.videos import mark_spherical
+
+    path = tmp_path / "pano.mp4"
+    _written_mp4(path)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(data[:-100])  # the moov box at the end, cut short
+    with pytest.raises(ValueError, match="runs past its parent"):
+        mark_spherical(cut)
+    assert cut.read_bytes() == data[:-100]  # nothing written
+    (tmp_path / "x.avi").write_bytes(data)
+    with pytest.raises(ValueError, match="write .mp4"):
+        mark_spherical(tmp_path / "x.avi")
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"\0\0\0\x10free01234567")  # one box, no moov
+    with pytest.raises(ValueError, match="0 moov boxes"):
+        mark_spherical(junk)

@@ -268,6 +268,16 @@ def _render_video(args) -> None:
               f"geometry built {level.builds} times for {video.frames} frames (up moved more "
               f"than {level.step:g} degrees){missed()}")
     print(f"wrote {args.out} ({video.frames} frames at {video.fps:g} fps)")
+    if getattr(dst, "whole_sphere", False):
+        if Path(args.out).suffix.lower() == ".mp4":
+            from .videos import mark_spherical
+
+            mark_spherical(args.out)
+            print("marked as a 360 video (Spherical Video metadata): YouTube, VLC and other 360 "
+                  "players show it as a sphere")
+        else:
+            print("an .avi holds no 360 video metadata: write .mp4 for 360 players to show it "
+                  "as a sphere")
 
 
 def cmd_render(args) -> int:

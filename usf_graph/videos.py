@@ -1,5 +1,6 @@
-"""Video files: their frames decoded one at a time (OpenCV), their frame rate, and a frame
-that holds a rig's cameras side by side cut into their images."""
+"""Video files: their frames decoded one at a time (OpenCV), their frame rate, a frame that
+holds a rig's cameras side by side cut into their images, and an MP4 of equirectangular
+panoramas marked as a 360 video."""
 
 from __future__ import annotations
 
@@ -67,4 +68,140 @@ def split_frame(image, count: int, what: str) -> list:
     return [image[:, k * w // count:(k + 1) * w // count] for k in range(count)]
 
 
-__all__ = ["VIDEO_SUFFIXES", "is_video", "frames", "info", "split_frame"]
+
+
+
+#: The Spherical Video (V1) metadata box, ``moov.trak.uuid`` with this UUID, holding XML
+#: (google/spatial-media's RFC; what YouTube, VLC and FFmpeg read).
+SPHERICAL_UUID = bytes.fromhex("ffcc8263f8554a938814587a02521fdd")
+_SPHERICAL_XML = (
+    '<?xml version="1.0"?><rdf:SphericalVideo '
+    'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#" '
+    'xmlns:GSpherical="http://ns.google.com/videos/1.0/spherical/">'
+    "<GSpherical:Spherical>true</GSpherical:Spherical>"
+    "<GSpherical:Stitched>true</GSpherical:Stitched>"
+    "<GSpherical:StitchingSoftware>{software}</GSpherical:StitchingSoftware>"
+    "<GSpherical:ProjectionType>equirectangular</GSpherical:ProjectionType>"
+    "</rdf:SphericalVideo>")
+
+
+def _boxes(read, start: int, end: int, where) -> list:
+    """``[(offset, size, header size, type)]`` of the ISO BMFF boxes in bytes ``[start,
+    end)``, ``read(offset, n)`` giving the bytes (of a file or of memory)."""
+    out, i = [], start
+    while i < end:
+        h = read(i, 16)
+        size, kind, head = int.from_bytes(h[:4], "big"), h[4:8], 8
+        if size == 1 and len(h) == 16:
+            size, head = int.from_bytes(h[8:16], "big"), 16
+        elif size == 0:  # to the end of its parent
+            size = end - i
+        if len(h) < 8 or size < head or i + size > end:
+            raise ValueError(f"{where}: the box at byte {i} runs past its parent: the file is "
+                             "corrupt, cut short or not an MP4")
+        out.append((i, size, head, kind))
+        i += size
+    return out
+
+
+def _children(box: bytes, head: int, where) -> list:
+    """The child boxes of ``box`` (its header ``head`` bytes long): ``[(type, bytes, header
+    size)]``."""
+    return [(k, box[o:o + s], h) for o, s, h, k in
+            _boxes(lambda o, n: box[o:o + n], head, len(box), where)]
+
+
+def _rebuilt(box: bytes, head: int, children: list) -> bytes:
+    """``box``'s header, then ``children`` (as :func:`_children` gives them), sized anew."""
+    out = box[:head] + b"".join(b for _, b, _ in children)
+    if head == 16:
+        return out[:8] + len(out).to_bytes(8, "big") + out[16:]
+    if len(out) >= 1 << 32:
+        raise ValueError("a box outgrew a 32-bit size: the video is too large to mark")
+    return len(out).to_bytes(4, "big") + out[4:]
+
+
+def _is_video_track(trak: bytes, head: int, where) -> bool:
+    """Whether the ``trak`` box's handler (``mdia.hdlr``) is ``vide``."""
+    return any(k == b"hdlr" and b[h + 8:h + 12] == b"vide"  # after version and pre_defined
+               for kind, mdia, mh in _children(trak, head, where) if kind == b"mdia"
+               for k, b, h in _children(mdia, mh, where))
+
+
+def _shifted(box: bytes, head: int, after: int, delta: int, where) -> bytes:
+    """``box`` with every chunk offset under it (``stco``, ``co64``) at or past byte
+    ``after`` moved by ``delta``: the media data moves when a box before it grows."""
+    kind = box[4:8]
+    if kind in (b"stco", b"co64"):
+        width = 4 if kind == b"stco" else 8
+        n = int.from_bytes(box[head + 4:head + 8], "big")
+        end = head + 8 + n * width
+        if end > len(box):
+            raise ValueError(f"{where}: a chunk offset table is cut short: the file is corrupt")
+        offs = [int.from_bytes(box[k:k + width], "big") for k in range(head + 8, end, width)]
+        offs = [o + delta if o >= after else o for o in offs]
+        if width == 4 and max(offs, default=0) >= 1 << 32:
+            raise ValueError(f"{where}: the media data would move past 4 GiB: too large to mark")
+        return box[:head + 8] + b"".join(o.to_bytes(width, "big") for o in offs) + box[end:]
+    if kind in (b"moov", b"trak", b"mdia", b"minf", b"stbl"):
+        return _rebuilt(box, head, [(k, _shifted(b, h, after, delta, where), h)
+                                    for k, b, h in _children(box, head, where)])
+    return box
+
+
+def _copy(src, out, start: int, end: int) -> None:
+    """Bytes ``[start, end)`` of the open file ``src`` to ``out``, 16 MiB at a time."""
+    src.seek(start)
+    while start < end:
+        chunk = src.read(min(1 << 24, end - start))
+        if not chunk:
+            raise ValueError("the video was cut short while it was being marked")
+        out.write(chunk)
+        start += len(chunk)
+
+
+def mark_spherical(path, software: str = "usf-graph") -> None:
+    """Marks the MP4 video ``path``, whose frames are whole equirectangular panoramas, as a
+    360 video: the Spherical Video (V1) metadata, a ``uuid`` box in its video track, so that
+    YouTube, VLC and other 360 players show it as a sphere. Marking again replaces the
+    mark. The file is rewritten atomically; the frames are not touched."""
+    from .fileio import atomic_write
+
+    path = Path(path)
+    where = str(path)
+    if path.suffix.lower() not in (".mp4", ".m4v", ".mov"):
+        raise ValueError(f"{where}: only MP4 (and QuickTime) files hold 360 video metadata; "
+                         "write .mp4")
+    length = path.stat().st_size
+    with open(path, "rb") as f:
+        def read(o, n):
+            f.seek(o)
+            return f.read(n)
+
+        moovs = [b for b in _boxes(read, 0, length, where) if b[3] == b"moov"]
+        if len(moovs) != 1:
+            raise ValueError(f"{where}: {len(moovs)} moov boxes, not one: not a finished MP4")
+        start, size, head, _ = moovs[0]
+        moov = read(start, size)
+    xml = _SPHERICAL_XML.format(software=software).encode()
+    uuid = (24 + len(xml)).to_bytes(4, "big") + b"uuid" + SPHERICAL_UUID + xml
+    children = _children(moov, head, where)
+    video = [k == b"trak" and _is_video_track(b, h, where) for k, b, h in children]
+    if not any(video):
+        raise ValueError(f"{where}: no video track to mark")
+    for i in [i for i, v in enumerate(video) if v]:
+        _, trak, h = children[i]
+        kept = [c for c in _children(trak, h, where)
+                if not (c[0] == b"uuid" and c[1][c[2]:c[2] + 16] == SPHERICAL_UUID)]
+        children[i] = (b"trak", _rebuilt(trak, h, [*kept, (b"uuid", uuid, 8)]), h)
+    new = _rebuilt(moov, head, children)
+    if len(new) != size:  # the media data after the moov box moves
+        new = _shifted(new, head, start + size, len(new) - size, where)
+
+    def write(out):
+        with open(path, "rb") as f:
+            _copy(f, out, 0, start)
+            out.write(new)
+            _copy(f, out, start + size, length)
+
+    atomic_write(path, write)

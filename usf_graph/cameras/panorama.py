@@ -41,6 +41,11 @@ class Equirectangular(Camera):
         mid = from_latlon(0.5 * (a + b), 0.5 * (c + d))
         self.optical_axis = mid
 
+    @property
+    def whole_sphere(self) -> bool:
+        """Whether the panorama covers the whole sphere, 360 by 180 degrees (no crop)."""
+        return self.wraps_u and self.lat_range == (-math.pi / 2, math.pi / 2)
+
     def params(self) -> dict:
         return dict(width=self.width, height=self.height, lat_range=list(self.lat_range),
                     lon_range=list(self.lon_range))
