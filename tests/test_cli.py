@@ -157,6 +157,7 @@ def test_render_and_camera_save_commands(tmp_path, capsys):
 
 
 def test_render_stitches_a_rigs_images(tmp_path, capsys):
+    from tests.test_fileio import _gpano
     from usf_graph.frontend import render, render_rig
     from usf_graph.viz import labelled_panorama
 
@@ -179,6 +180,12 @@ def test_render_stitches_a_rigs_images(tmp_path, capsys):
     assert main(["render", str(tmp_path / "dual.png"), *split, "--to", "equirectangular:512x256",
                  "--blend", "feather", "--out", str(tmp_path / "pano2.png")]) == 0
     assert np.array_equal(cv2.imread(str(tmp_path / "pano2.png")), cv2.imread(str(tmp_path / "pano.png")))
+    assert "holds no 360 photo metadata" in capsys.readouterr().out  # a .png
+    # a whole panorama as a .jpg: a 360 photo, as Pillow reads its XMP
+    assert main(["render", str(tmp_path / "dual.png"), *split, "--to", "equirectangular:512x256",
+                 "--out", str(tmp_path / "pano.jpg")]) == 0
+    assert "marked as a 360 photo" in capsys.readouterr().out
+    assert _gpano(tmp_path / "pano.jpg")["FullPanoWidthPixels"] == "512"
     for name, argv in (("apart", [*paths, *split[:-1]]), ("dual", [str(tmp_path / "dual.png"), *split])):
         assert main(["lift", *argv, "--grid", "icosahedral:3", "--out", str(tmp_path / f"{name}.pt")]) == 0
     assert torch.equal(load_lifted(tmp_path / "apart.pt").x, load_lifted(tmp_path / "dual.pt").x)
@@ -219,7 +226,7 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     assert main(["render", str(tmp_path / "dual.avi"), *split, "--to", "equirectangular:256x128",
                  "--out", str(tmp_path / "pano.avi")]) == 0
     out = capsys.readouterr().out
-    assert "wrote" in out and "an .avi holds no 360 video metadata" in out
+    assert "wrote" in out and "holds no 360 video metadata" in out
     got, fps = decode_video(tmp_path / "pano.avi")
     frames, _ = decode_video(tmp_path / "dual.avi")
     assert len(got) == 3 and fps == 5

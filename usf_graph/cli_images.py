@@ -268,16 +268,7 @@ def _render_video(args) -> None:
               f"geometry built {level.builds} times for {video.frames} frames (up moved more "
               f"than {level.step:g} degrees){missed()}")
     print(f"wrote {args.out} ({video.frames} frames at {video.fps:g} fps)")
-    if getattr(dst, "whole_sphere", False):
-        if Path(args.out).suffix.lower() == ".mp4":
-            from .videos import mark_spherical
-
-            mark_spherical(args.out)
-            print("marked as a 360 video (Spherical Video metadata): YouTube, VLC and other 360 "
-                  "players show it as a sphere")
-        else:
-            print("an .avi holds no 360 video metadata: write .mp4 for 360 players to show it "
-                  "as a sphere")
+    _mark_360(args.out, dst, (".mp4",), "video")
 
 
 def cmd_render(args) -> int:
@@ -315,7 +306,8 @@ def cmd_render(args) -> int:
         _render_video(args)
         return 0
     images = read_images(args)
-    reimage, what = _reimager(args, *_sources(args, images))
+    cams, dst = _sources(args, images)
+    reimage, what = _reimager(args, cams, dst)
     out = reimage(images)
     print(what)
     if out.ndim == 3 and out.shape[2] in (3, 4):
@@ -325,4 +317,21 @@ def cmd_render(args) -> int:
     elif not cv2.imwrite(args.out, out):
         raise ValueError(f"cannot write {args.out}: use an image suffix OpenCV knows (.png, .jpg)")
     print(f"wrote {args.out}")
+    _mark_360(args.out, dst, (".jpg", ".jpeg"), "photo")
     return 0
+
+
+def _mark_360(out, dst, suffixes: tuple, what: str) -> None:
+    """Marks ``out`` as a 360 ``what`` (photo or video) where ``dst`` is a whole
+    equirectangular panorama and the file's suffix (one of ``suffixes``) can hold the mark."""
+    if not getattr(dst, "whole_sphere", False):
+        return
+    if Path(out).suffix.lower() not in suffixes:
+        print(f"a {Path(out).suffix} file holds no 360 {what} metadata that viewers read: write "
+              f"{suffixes[0]} for 360 viewers to show it as a sphere")
+        return
+    from .fileio import mark_360_photo
+    from .videos import mark_spherical
+
+    (mark_360_photo if what == "photo" else mark_spherical)(out)
+    print(f"marked as a 360 {what}: 360 viewers (YouTube, Google Photos, VLC, ...) show it as a sphere")

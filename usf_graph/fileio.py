@@ -1,5 +1,5 @@
 """Files: atomic writes (a temp file in the target's folder, then ``os.replace``),
-checksums, downloads and image decoding.
+checksums, downloads, image decoding, and a JPEG panorama marked as a 360 photo.
 
 Readers never see a partial file, concurrent writers of one path each leave a complete
 one, and a failed write removes its temp file.
@@ -94,3 +94,43 @@ def download(url: str, path, md5: str | None = None, progress: bool = True) -> P
         raise FileNotFoundError(f"could not download {url} ({getattr(e, 'reason', e)}). "
                                 f"Download it by hand and put it at {path}.") from None
     return path
+
+
+#: A JPEG's XMP segment (APP1) begins with this name.
+XMP_ID = b"http://ns.adobe.com/xap/1.0/\0"
+_GPANO = (
+    '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>'
+    '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF '
+    'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description rdf:about="" '
+    'xmlns:GPano="http://ns.google.com/photos/1.0/panorama/" '
+    'GPano:ProjectionType="equirectangular" GPano:UsePanoramaViewer="True" '
+    'GPano:CroppedAreaImageWidthPixels="{w}" GPano:CroppedAreaImageHeightPixels="{h}" '
+    'GPano:FullPanoWidthPixels="{w}" GPano:FullPanoHeightPixels="{h}" '
+    'GPano:CroppedAreaLeftPixels="0" GPano:CroppedAreaTopPixels="0" '
+    'GPano:StitchingSoftware="{software}"/></rdf:RDF></x:xmpmeta><?xpacket end="w"?>')
+
+
+def mark_360_photo(path, software: str = "usf-graph") -> None:
+    """Marks the JPEG ``path``, a whole equirectangular panorama, as a 360 photo: Google's
+    Photo Sphere XMP metadata (GPano), which Google Photos, Facebook and other 360 viewers
+    read. It goes after the file's leading application segments (JFIF, Exif); an XMP segment
+    already there is replaced. The file is rewritten atomically; the pixels are not touched."""
+    path = Path(path)
+    data = path.read_bytes()
+    if data[:2] != b"\xff\xd8":
+        raise ValueError(f"{path} is not a JPEG: 360 photo metadata goes into a .jpg")
+    i, kept = 2, []
+    while i + 4 <= len(data) and data[i] == 0xFF and (0xE0 <= data[i + 1] <= 0xEF or data[i + 1] == 0xFE):
+        end = i + 2 + int.from_bytes(data[i + 2:i + 4], "big")
+        if end > len(data):
+            raise ValueError(f"{path}: a JPEG segment runs past the file's end: the file is corrupt")
+        if not (data[i + 1] == 0xE1 and data[i + 4:i + 4 + len(XMP_ID)] == XMP_ID):
+            kept.append(data[i:end])
+        i = end
+    image = decode_image(path)
+    if image is None:
+        raise ValueError(f"{path}: OpenCV cannot decode this JPEG: the file is corrupt")
+    h, w = image.shape[:2]
+    xmp = XMP_ID + _GPANO.format(w=w, h=h, software=software).encode()
+    segment = b"\xff\xe1" + (len(xmp) + 2).to_bytes(2, "big") + xmp
+    atomic_write(path, lambda f: f.write(b"".join([data[:2], *kept, segment, data[i:]])))

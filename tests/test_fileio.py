@@ -1,0 +1,59 @@
+"""Files: a JPEG panorama marked as a 360 photo, as another reader (Pillow) sees it."""
+
+import xml.etree.ElementTree as ET
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from usf_graph.fileio import XMP_ID, mark_360_photo
+
+GPANO = "{http://ns.google.com/photos/1.0/panorama/}"
+
+
+def _gpano(path) -> dict:
+    """The GPano attributes of the XMP that Pillow finds in the JPEG ``path``."""
+    with Image.open(path) as im:
+        xmp = im.info.get("xmp")
+    if xmp is None:
+        return {}
+    desc = ET.fromstring(xmp).find(".//{http://www.w3.org/1999/02/22-rdf-syntax-ns#}Description")
+    return {k[len(GPANO):]: v for k, v in desc.attrib.items() if k.startswith(GPANO)}
+
+
+def test_mark_360_photo_writes_gpano_that_another_reader_finds(tmp_path):
+    """Pillow reads the Photo Sphere XMP (the whole panorama: cropped area = full size) from
+    the segment after JFIF; the pixels decode as before; marking again replaces the mark."""
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (90, 180, 3)).astype(np.uint8), (5, 5), 2)
+    path = tmp_path / "pano.jpg"
+    cv2.imwrite(str(path), img)
+    before = cv2.imread(str(path))
+    assert _gpano(path) == {}
+    mark_360_photo(path)
+    got = _gpano(path)
+    assert got["ProjectionType"] == "equirectangular" and got["UsePanoramaViewer"] == "True"
+    assert (got["FullPanoWidthPixels"], got["FullPanoHeightPixels"]) == ("180", "90")
+    assert (got["CroppedAreaImageWidthPixels"], got["CroppedAreaImageHeightPixels"]) == ("180", "90")
+    assert got["CroppedAreaLeftPixels"] == got["CroppedAreaTopPixels"] == "0"
+    assert np.array_equal(cv2.imread(str(path)), before)
+    data = path.read_bytes()
+    assert data[2:4] == b"\xff\xe0" and data.index(XMP_ID) > data.index(b"JFIF")  # after JFIF
+    mark_360_photo(path, software="again")
+    assert path.read_bytes().count(XMP_ID) == 1 and _gpano(path)["StitchingSoftware"] == "again"
+
+
+def test_mark_360_photo_refuses_what_is_no_jpeg_and_keeps_it(tmp_path):
+    png = tmp_path / "pano.png"
+    cv2.imwrite(str(png), np.zeros((8, 16, 3), np.uint8))
+    data = png.read_bytes()
+    with pytest.raises(ValueError, match="is not a JPEG"):
+        mark_360_photo(png)
+    jpg = tmp_path / "cut.jpg"
+    cv2.imwrite(str(jpg), np.zeros((8, 16, 3), np.uint8))
+    cut = jpg.read_bytes()[:10]  # inside the JFIF segment
+    jpg.write_bytes(cut)
+    with pytest.raises(ValueError, match="runs past the file's end"):
+        mark_360_photo(jpg)
+    assert png.read_bytes() == data and jpg.read_bytes() == cut
