@@ -135,6 +135,41 @@ def test_lift_cli_lifts_a_rig_onto_one_sphere(tmp_path, capsys):
     assert "does not reach past the rig: a camera is 0.05" in capsys.readouterr().err
 
 
+def test_render_into_and_out_of_cube_maps(tmp_path, capsys):
+    """``--to cubemap[:SIZE][:LAYOUT]`` (a face a quarter of the source's width by default)
+    is the frontend's render into a Cubemap; ``--camera cubemap`` reads the layout from the
+    image's shape; a cube map is a whole sphere but no equirectangular 360 photo."""
+    from usf_graph.frontend import render
+    from usf_graph.viz import labelled_panorama
+
+    pano = (255 * labelled_panorama(256, 128)).round().astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "pano.png"), pano[..., ::-1])
+    eq = cameras.Equirectangular(256, 128)
+    for to, cube in (("cubemap", cameras.Cubemap(64)), ("cubemap:40:dice", cameras.Cubemap(40, "dice"))):
+        assert main(["render", str(tmp_path / "pano.png"), "--camera", "equirectangular",
+                     "--to", to, "--out", str(tmp_path / "cube.png")]) == 0
+        assert f"Cubemap {cube.width}x{cube.height}" in capsys.readouterr().out
+        got = cv2.imread(str(tmp_path / "cube.png"))[..., ::-1]
+        assert np.array_equal(got, render(pano, eq, cube))
+    assert main(["render", str(tmp_path / "pano.png"), "--camera", "equirectangular",
+                 "--to", "cubemap", "--out", str(tmp_path / "cube.jpg")]) == 0
+    assert b"GPano" not in (tmp_path / "cube.jpg").read_bytes()  # no equirectangular 360 photo
+    cv2.imwrite(str(tmp_path / "dice.png"), render(pano, eq, cameras.Cubemap(40, "dice"))[..., ::-1])
+    assert main(["render", str(tmp_path / "dice.png"), "--camera", "cubemap", "--to",
+                 "equirectangular:256x128", "--out", str(tmp_path / "back.png")]) == 0
+    back = cv2.imread(str(tmp_path / "back.png"))[..., ::-1]
+    want = render(render(pano, eq, cameras.Cubemap(40, "dice")), cameras.Cubemap(40, "dice"), eq)
+    assert np.abs(back.astype(float) - want).max() <= 1
+    assert main(["camera", "cubemap:32:dice"]) == 0
+    assert "100.00% of the sphere" in capsys.readouterr().out
+    for spec, image, why in (("cubemap:big", "pano.png", "write cubemap[:SIZE][:LAYOUT]"),
+                             ("cubemap", "pano.png", "a cube map's is 6:1 (horizon) or 4:3 (dice)"),
+                             ("cubemap:horizon", "dice.png", "give its layout and face size")):
+        assert main(["render", str(tmp_path / image), "--camera", spec, "--to", "equirectangular",
+                     "--out", str(tmp_path / "x.png")]) == 2
+        assert why in capsys.readouterr().err
+
+
 def test_render_and_camera_save_commands(tmp_path, capsys):
     pano = np.zeros((64, 128, 3), np.uint8)
     pano[:, 40:64] = (255, 0, 0)  # red, left of the centre column (64): longitude > 0

@@ -46,7 +46,7 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     assert ns["h"].shape == (int(ns["img"].mask.sum()), 8)
     shell = re.findall(r"```bash\n(.*?)```", section, re.S)
     lines = [ln for block in shell for ln in block.splitlines() if ln.startswith("usf-graph ")]
-    assert len(lines) == 9
+    assert len(lines) == 11
     for ln in lines:
         argv = shlex.split(ln.split("#")[0].replace("icosahedral:6", "icosahedral:3"))[1:]
         assert main(argv) == 0, ln
@@ -58,6 +58,8 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     assert np.degrees(np.arccos(ns["up"] @ ns["tilt"][2])) < 1.0  # gravity, in the askew frame
     assert (tmp_path / "level.png").exists() and (tmp_path / "level_fisheye.png").exists()
     assert cv2.imread(str(tmp_path / "stitched.png")).shape == (512, 1024, 3)  # the rig, stitched
+    assert cv2.imread(str(tmp_path / "cube.png")).shape == (768, 1024, 3)  # a dice cube map
+    assert b"GPano" in (tmp_path / "pano_again.jpg").read_bytes()  # and back: a 360 photo
     video = cv2.VideoCapture(str(tmp_path / "stitched.mp4"))  # and its video, frame by frame
     assert video.get(cv2.CAP_PROP_FRAME_COUNT) == 8 and video.get(cv2.CAP_PROP_FPS) == 10
     ok, frame = video.read()

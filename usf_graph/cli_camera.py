@@ -6,7 +6,14 @@ import json
 import math
 
 from .cameras import with_fov_and_mask
-from .cli_inputs import camera_from_spec, fit_to_image, image_size, is_panorama_spec, read_image
+from .cli_inputs import (
+    camera_from_spec,
+    fit_to_image,
+    image_size,
+    is_cubemap_spec,
+    is_panorama_spec,
+    read_image,
+)
 
 
 def _vec(a) -> str:
@@ -25,7 +32,8 @@ def cmd_camera(args) -> int:
     if args.all:
         return _list_cameras(args)
     # a panorama without a size takes the overlaid image's
-    shape = read_image(args.overlay[0]).shape if args.overlay and is_panorama_spec(args.calib) else None
+    shape = read_image(args.overlay[0]).shape if args.overlay and (
+        is_panorama_spec(args.calib) or is_cubemap_spec(args.calib)) else None
     cam = camera_from_spec(args.calib, args.key, args.fov, image_shape=shape)
     if args.resize:
         cam = cam.resized(*image_size(args.resize, "--resize", "640x480"))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from .cli_inputs import (
     camera_from_spec,
+    is_cubemap_spec,
     is_panorama_spec,
     leveled,
     read_image,
@@ -81,6 +82,9 @@ def cmd_lift(args) -> int:
 def _target(args, image):
     """``--to``: the camera asked for, not fitted to the source image; a panorama without a
     size gets the source's width, at 2:1."""
+    if is_cubemap_spec(args.to) and not any(p.isdigit() for p in args.to.split(":")):
+        size = max(image.shape[1] // 4, 2)  # a face's 90 degrees, at the source's density
+        return camera_from_spec(f"{args.to}:{size}", args.to_key)
     return camera_from_spec(args.to, args.to_key, image_shape=(image.shape[1] // 2, image.shape[1])
                             if is_panorama_spec(args.to) else None)
 
@@ -89,9 +93,10 @@ def _sources(args, images, camera=None) -> tuple[dict, object]:
     """The source camera(s) fitted to the first frame (``images``: one, or one per camera of
     a rig; ``camera``: one camera's, where a ROS bag's camera_info gave it; leveled by
     ``--level``), ``{name: Camera}``, and the ``--to`` target."""
-    if len(images) > 1 and is_panorama_spec(args.to) and ":" not in args.to:
+    if len(images) > 1 and (is_panorama_spec(args.to) or is_cubemap_spec(args.to)) and \
+            not any(p[:1].isdigit() for p in args.to.split(":")):
         raise ValueError("a rig's images have no one width to take: give the panorama's size, "
-                         "--to equirectangular:WIDTHxHEIGHT")
+                         "--to equirectangular:WIDTHxHEIGHT or cubemap:SIZE")
     dst = _target(args, images[0])
     _check_one_or_rig(args, len(images) > 1)
     if len(images) > 1:
@@ -324,7 +329,7 @@ def cmd_render(args) -> int:
 def _mark_360(out, dst, suffixes: tuple, what: str) -> None:
     """Marks ``out`` as a 360 ``what`` (photo or video) where ``dst`` is a whole
     equirectangular panorama and the file's suffix (one of ``suffixes``) can hold the mark."""
-    if not getattr(dst, "whole_sphere", False):
+    if getattr(dst, "model", None) != "equirectangular" or not dst.whole_sphere:
         return
     if Path(out).suffix.lower() not in suffixes:
         print(f"a {Path(out).suffix} file holds no 360 {what} metadata that viewers read: write "

@@ -10,7 +10,9 @@ CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, ORB-
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
                "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML, COLMAP "
                "cameras.txt/.bin or a sparse model's folder; or "
-               "'equirectangular' (size from the image) / 'equirectangular:WxH'")
+               "'equirectangular' (size from the image) / 'equirectangular:WxH'; or "
+               "'cubemap' (a 6:1 horizon strip or a 4:3 dice cross, from the image) / "
+               "'cubemap:SIZE[:horizon|dice]' (six faces, SIZE pixels square)")
 
 
 def camera_options(p, mask: bool = True) -> None:
@@ -71,6 +73,35 @@ def is_panorama_spec(spec: str) -> bool:
     return spec.split(":")[0].lower() in ("equirectangular", "panorama")
 
 
+def is_cubemap_spec(spec: str) -> bool:
+    """``cubemap``, with or without ``:SIZE`` and ``:LAYOUT``."""
+    return spec.split(":")[0].lower() == "cubemap"
+
+
+def _cubemap(spec: str, image_shape):
+    """The :class:`~usf_graph.cameras.Cubemap` of ``cubemap[:SIZE][:LAYOUT]``; without a
+    size, the image's (``image_shape``: 6:1 a horizon strip, 4:3 a dice cross)."""
+    from .cameras import Cubemap
+    from .cameras.cubemap import LAYOUTS
+
+    parts = [p.lower() for p in spec.split(":")[1:] if p]
+    layouts, sizes = [p for p in parts if p in LAYOUTS], [p for p in parts if p not in LAYOUTS]
+    if len(layouts) > 1 or len(sizes) > 1 or (sizes and not sizes[0].isdigit()):
+        raise ValueError(f"{spec!r}: write cubemap[:SIZE][:LAYOUT], e.g. cubemap:512 or "
+                         f"cubemap:512:dice (layouts: {', '.join(LAYOUTS)})")
+    layout = layouts[0] if layouts else None
+    if sizes:
+        return Cubemap(int(sizes[0]), layout or "horizon")
+    if image_shape is None:
+        raise ValueError("give the cube map's face size: cubemap:SIZE")
+    h, w = image_shape[:2]
+    found = next((k for k, (_, (cols, rows)) in LAYOUTS.items() if w * rows == h * cols), None)
+    if found is None or (layout and layout != found):
+        raise ValueError(f"the image is {w}x{h}: a cube map's is 6:1 (horizon) or 4:3 (dice); "
+                         "give its layout and face size, cubemap:SIZE:LAYOUT")
+    return Cubemap(h // LAYOUTS[found][1][1], found)
+
+
 def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape=None):
     """A camera from a calibration file or ``equirectangular[:WxH]`` (size from the image).
     With ``image_shape``, a calibration made for another size of the same aspect ratio is
@@ -78,6 +109,11 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
     recorded or saved smaller than the calibration images."""
     from . import cameras
 
+    if is_cubemap_spec(spec):
+        if key is not None:
+            raise ValueError("--key picks a camera in a Kalibr, Basalt or COLMAP file; a cube "
+                             "map has none")
+        return cameras.with_fov_and_mask(_cubemap(spec, image_shape), fov, image_mask)
     if is_panorama_spec(spec):
         if key is not None:
             raise ValueError("--key picks a camera in a Kalibr, Basalt or COLMAP file; a "

@@ -143,6 +143,15 @@ class Camera:
         ok_u = np.isfinite(u) if self.wraps_u else (u >= -0.5) & (u <= self.width - 0.5)
         return ok_u & ok_v
 
+    def sample_positions(self, u, v):
+        """Where to sample the image for points at pixel coordinates ``(u, v)``: within half
+        a pixel of the image's border, the border pixel; a full panorama wraps in u. A
+        camera whose image holds several regions (a cube map's faces) keeps each point
+        within its own."""
+        v = np.clip(v, 0, self.height - 1)
+        u = np.mod(u, self.width) if self.wraps_u else np.clip(u, 0, self.width - 1)
+        return u, v
+
     def pixel_grid(self) -> np.ndarray:
         """Pixel centres ``[H, W, 2]`` as (u, v)."""
         v, u = np.meshgrid(np.arange(self.height, dtype=np.float64),

@@ -224,7 +224,7 @@ def colmap_entry(cam: Camera) -> tuple[str, list[float]]:
     pixel centres; a ValueError for a model COLMAP has no closed form of."""
     k = [cam.fx + 0.0, cam.fy + 0.0, cam.cx + HALF_PIXEL, cam.cy + HALF_PIXEL] \
         if hasattr(cam, "fy") else None
-    if isinstance(cam, Equirectangular) and cam.wraps_u and cam.lat_range == (-np.pi / 2, np.pi / 2):
+    if isinstance(cam, Equirectangular) and cam.whole_sphere:
         return "EQUIRECTANGULAR", [float(cam.width), float(cam.height)]
     if isinstance(cam, Pinhole) and not np.any(cam.dist[8:]):
         d = cam.dist.tolist()

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .base import FORMAT_TAG, Camera
+from .cubemap import Cubemap
 from .files import FORMATS, Src, plain_list, read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt
 from .omni import EUCM, DoubleSphere, Mei
@@ -17,7 +18,7 @@ from .pinhole import Division, Pinhole
 from .scaramuzza import Scaramuzza
 
 MODELS = {c.__name__: c for c in (Pinhole, Division, Fisheye, KannalaBrandt, FOV, Mei,
-                                  DoubleSphere, EUCM, Scaramuzza, Equirectangular)}
+                                  DoubleSphere, EUCM, Scaramuzza, Equirectangular, Cubemap)}
 _PINHOLE_DIST = ("plumb_bob", "rational_polynomial", "pinhole", "radtan")
 _FISHEYE_DIST = ("equidistant", "fisheye", "kannala-brandt", "kb4")
 

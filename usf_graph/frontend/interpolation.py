@@ -21,10 +21,8 @@ METHODS = ("bilinear", "nearest", "area", "rbf")
 
 def _wrap_or_clamp(cam: Camera, u: np.ndarray, v: np.ndarray):
     # Points within half a pixel of the border sample the border pixel (replicate);
-    # full panoramas wrap around in u.
-    v = np.clip(v, 0, cam.height - 1)
-    u = np.mod(u, cam.width) if cam.wraps_u else np.clip(u, 0, cam.width - 1)
-    return u, v
+    # full panoramas wrap around in u; a cube map's points stay on their faces.
+    return cam.sample_positions(u, v)
 
 
 def bilinear_entries(cam: Camera, uv: np.ndarray, seen: np.ndarray):

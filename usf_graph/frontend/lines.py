@@ -19,8 +19,8 @@ import math
 import cv2
 import numpy as np
 
-from ..cameras import DEFAULT_ROTATION, Camera, Pinhole
-from ..geometry import geodesic_distance, rotation_from_axis_angle
+from ..cameras import Camera, Pinhole, cube_faces
+from ..geometry import geodesic_distance
 from .image import to_uint8
 from .interpolation import valid_pixels
 from .reimage import Reimager
@@ -77,17 +77,9 @@ def _faces(camera: Camera) -> list[Pinhole]:
     # a face spans tan 45 = 1 each way; finer than MAX_FACE the lines gain little precision
     # and cost much time (a 4096-pixel panorama's faces would be 1,304 pixels a side)
     side = int(np.clip(math.ceil(2.0 / min(step)), 16, MAX_FACE))
-    f, c = side / 2, (side - 1) / 2
-    axes = (([0, 0, 1], 0.0), ([0, 0, 1], 0.5), ([0, 0, 1], 1.0), ([0, 0, 1], 1.5),
-            ([0, 1, 0], -0.5), ([0, 1, 0], 0.5))  # x turned to +x, +y, -x, -y, +z, -z
-    faces = []
-    for axis, turns in axes:
-        face = Pinhole(f, f, c, c, side, side,
-                       rotation=rotation_from_axis_angle(np.array(axis, float), turns * math.pi)
-                       @ DEFAULT_ROTATION)
-        if camera.sees(face.lens_normal_map()[0].reshape(-1, 3))[1].any():
-            faces.append(face)
-    return faces
+    cube = cube_faces(side)
+    return [cube[k] for k in ("front", "left", "back", "right", "up", "down")  # +x, +y, -x, -y, +z, -z
+            if camera.sees(cube[k].lens_normal_map()[0].reshape(-1, 3))[1].any()]
 
 
 def _inner(seen: np.ndarray) -> np.ndarray:
