@@ -119,3 +119,15 @@ def test_cube_maps_save_resize_and_refuse(tmp_path):
         Cubemap(8, "cross")
     with pytest.raises(ValueError, match="whole number of pixels"):
         Cubemap(7.5)
+
+
+@pytest.mark.parametrize("camera", [Cubemap(8, "horizon"), Cubemap(8, "dice"), Equirectangular(32, 16),
+                                    Equirectangular(32, 16, lat_range=(-1.0, 0.5), lon_range=(-2.0, 2.0)),
+                                    Cubemap(8, "dice").with_fov(200), Equirectangular(32, 16).with_fov(120)],
+                         ids=["horizon", "dice", "panorama", "crop", "dice-fov", "panorama-fov"])
+def test_pixels_with_rays_are_those_that_unproject(camera):
+    """The shortcut (no unprojection where every face's or the panorama's pixels have rays)
+    says what unprojecting every pixel says."""
+    want = camera.unproject(camera.pixel_grid())[1]
+    assert np.array_equal(camera.pixels_with_rays(), want) and (~want).any() == (
+        camera.fov_limit is not None or camera.model == "cubemap" and camera.layout == "dice")

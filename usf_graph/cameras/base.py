@@ -152,6 +152,11 @@ class Camera:
         u = np.mod(u, self.width) if self.wraps_u else np.clip(u, 0, self.width - 1)
         return u, v
 
+    def pixels_with_rays(self) -> np.ndarray:
+        """``[H, W]`` bool: the pixels that have a ray (in the lens model's domain and the
+        usable field of view); the :attr:`image_mask` is not applied."""
+        return self.unproject(self.pixel_grid())[1]
+
     def pixel_grid(self) -> np.ndarray:
         """Pixel centres ``[H, W, 2]`` as (u, v)."""
         v, u = np.meshgrid(np.arange(self.height, dtype=np.float64),

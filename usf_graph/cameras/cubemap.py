@@ -33,6 +33,11 @@ _TURNS = {"front": ((0.0, 0.0, 1.0), 0.0), "right": ((0.0, 0.0, 1.0), -0.5),
           "up": ((0.0, 1.0, 0.0), -0.5), "down": ((0.0, 1.0, 0.0), 0.5)}
 
 
+#: The face of the sphere frame's axis (x, y, z) and sign (negative, positive): -x back,
+#: +x front, -y right, +y left, -z down, +z up.
+_FACE_OF = np.array([[2, 0], [1, 3], [5, 4]])
+
+
 def face_rotation(face: str) -> np.ndarray:
     """``[3, 3]`` sphere <- optical frame of a cube face (:data:`FACES`): the front face
     turned by a quarter or half turn about z (the sides) or y (up and down)."""
@@ -98,9 +103,14 @@ class Cubemap(Camera):
         return Cubemap(width // cols, self.layout, self.rotation)
 
     def _project(self, rays):
-        local = np.einsum("...j,kji->...ki", normalize(rays), self._R)  # [..., 6, 3] optical
-        k = np.argmax(local[..., 2], -1)  # the face the ray points most towards
-        p = np.take_along_axis(local, k[..., None, None], -2)[..., 0, :]
+        # the face the ray points most towards: its largest coordinate and that one's sign
+        axis = np.argmax(np.abs(rays), -1)
+        positive = np.take_along_axis(rays, axis[..., None], -1)[..., 0] > 0
+        k = _FACE_OF[axis, positive.astype(np.int64)]
+        p = np.empty_like(rays)
+        for f in range(6):  # in each face's optical frame (a matrix product per face: fast)
+            on = k == f
+            p[on] = rays[on] @ self._R[f]
         half, c = self.size / 2, (self.size - 1) / 2
         uv = half * p[..., :2] / p[..., 2:] + c + self._cells[k] * self.size
         return uv, np.ones(uv.shape[:-1], bool)
@@ -113,10 +123,20 @@ class Cubemap(Camera):
         ok = inside & (k >= 0)
         k = np.where(ok, k, 0)
         half, c = self.size / 2, (self.size - 1) / 2
-        xy = (uv - self._cells[k] * self.size - c) / half
-        local = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], -1)
-        rays = normalize(np.einsum("...ij,...j->...i", self._R[k], local))
-        return rays, ok
+        local = np.ones(uv.shape[:-1] + (3,))
+        local[..., :2] = (uv - self._cells[k] * self.size - c) / half
+        rays = np.empty_like(local)
+        for f in range(6):
+            on = k == f
+            rays[on] = local[on] @ self._R[f].T
+        return normalize(rays), ok
+
+    def pixels_with_rays(self) -> np.ndarray:
+        """The faces' pixels (not the layout's empty cells), unless a field of view limits
+        them (computed then)."""
+        if self.fov_limit is not None:
+            return super().pixels_with_rays()
+        return np.repeat(np.repeat(self._face_at >= 0, self.size, 0), self.size, 1)
 
     def pixel_solid_angles(self) -> np.ndarray:
         """Solid angle (sr) of each pixel ``[H, W]``, each face's from its own corners (the

@@ -46,6 +46,12 @@ class Equirectangular(Camera):
         """Whether the panorama covers the whole sphere, 360 by 180 degrees (no crop)."""
         return self.wraps_u and self.lat_range == (-math.pi / 2, math.pi / 2)
 
+    def pixels_with_rays(self) -> np.ndarray:
+        """Every pixel has a ray, unless a field of view limits it (computed then)."""
+        if self.fov_limit is None:
+            return np.ones((self.height, self.width), bool)
+        return super().pixels_with_rays()
+
     def params(self) -> dict:
         return dict(width=self.width, height=self.height, lat_range=list(self.lat_range),
                     lon_range=list(self.lon_range))

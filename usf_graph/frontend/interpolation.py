@@ -116,7 +116,7 @@ def valid_pixels(cam: Camera, image_mask=None) -> np.ndarray:
     """``[H, W]`` bool: the pixels that have a ray (not past a fisheye's image circle or the
     usable field of view) and that neither the camera's :attr:`~Camera.image_mask` nor
     ``image_mask`` ignores. Every lift and re-imaging reads these pixels only."""
-    ok = cam.unproject(cam.pixel_grid())[1]
+    ok = cam.pixels_with_rays()
     for m in (cam.image_mask, image_mask):
         if m is not None:
             ok = ok & np.asarray(m, bool)
