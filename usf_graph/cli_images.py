@@ -33,11 +33,7 @@ def read_images(args) -> list:
 
 
 def _check_one_or_rig(args, rig: bool) -> None:
-    """``--level`` reads one camera's image; ``--distance`` stitches a rig's cameras."""
-    if rig and (args.level or args.up is not None):
-        raise ValueError("--level reads one camera's image; a rig's images are stitched as the "
-                         "rig is mounted (level its sphere from its IMU: usf-graph predict "
-                         "--rig --imu)")
+    """``--distance`` stitches a rig's cameras."""
     if not rig and args.distance is not None:
         raise ValueError("--distance stitches a rig's cameras; one image is seen from its own "
                          "camera's centre: give the rig's images to use it")
@@ -51,8 +47,8 @@ def cmd_lift(args) -> int:
     grid = grids.from_spec(args.grid)
     _check_one_or_rig(args, len(images) > 1)
     if len(images) > 1:
-        rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,
-                            images, grid)
+        rig = leveled(rig_from_spec(args.camera, args.fov, args.image_mask, args.key,
+                                    args.distance, images, grid), images, args)
         fe = RigFrontend(rig, grid, interpolation=args.interpolation, blend=args.blend,
                          radius=args.radius)
         x = fe.lift(images)
@@ -99,8 +95,9 @@ def _sources(args, images, camera=None) -> tuple[dict, object]:
                          "--to equirectangular:WIDTHxHEIGHT or cubemap:SIZE")
     dst = _target(args, images[0])
     _check_one_or_rig(args, len(images) > 1)
-    if len(images) > 1:
-        return rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance, images), dst
+    if len(images) > 1:  # mounted level too: up from all the rig's lines
+        return leveled(rig_from_spec(args.camera, args.fov, args.image_mask, args.key,
+                                     args.distance, images), images, args), dst
     src = camera if camera is not None else \
         camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
     return {"camera": leveled(src, images[0], args)}, dst  # mounted level: the target sees a level scene

@@ -39,17 +39,19 @@ def level_options(p, what: str) -> None:
                    help=f"level the view: {what}, keeping its heading. Up from the image's "
                         "straight lines (walls, doors, shelves: the camera held within 40 "
                         "degrees of upright; reliable on panoramas, less so through narrow "
-                        "views: check the result), or --up")
+                        "views: check the result; a rig's cameras' lines together), or --up")
     p.add_argument("--up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                   help="with --level: up in the source camera's sphere frame (x forward, "
-                        "y left, z up), e.g. from an IMU")
+                   help="with --level: up in the source camera's (or rig's) sphere frame "
+                        "(x forward, y left, z up), e.g. from an IMU")
 
 
 def leveled(cam, image, args):
     """``cam`` mounted in a level frame, where ``args.level``: turned by the smallest rotation
     that takes up (``args.up``, else from the straight lines of ``image``, which ``cam``
     took) to +z (:func:`usf_graph.geometry.level_rotation`), with what was found printed.
-    As it is otherwise (and ``--up`` alone refused)."""
+    A rig's cameras (a dict, ``image`` a list of their images) are turned together, up read
+    from all their lines, in the rig's frame. As it is otherwise (and ``--up`` alone
+    refused)."""
     if not args.level:
         if args.up is not None:
             raise ValueError("--up says where up is for --level: add --level")
@@ -62,10 +64,11 @@ def leveled(cam, image, args):
     u = lines_up(image, cam) if args.up is None else np.asarray(args.up, np.float64)
     R = level_rotation(u)
     u = u / np.linalg.norm(u)
+    rig = isinstance(cam, dict)
     print(f"up {'given' if args.up is not None else 'from the straight lines'}: "
-          f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) in the camera's sphere frame, which is "
-          f"{np.degrees(geodesic_distance(u, [0.0, 0.0, 1.0])):.1f} degrees off level")
-    return cam.turned(R)
+          f"({u[0]:.4f}, {u[1]:.4f}, {u[2]:.4f}) in the {'rig' if rig else 'camera'}'s sphere "
+          f"frame, which is {np.degrees(geodesic_distance(u, [0.0, 0.0, 1.0])):.1f} degrees off level")
+    return {n: c.turned(R) for n, c in cam.items()} if rig else cam.turned(R)
 
 
 def is_panorama_spec(spec: str) -> bool:

@@ -293,6 +293,11 @@ def image_up(camera: Camera) -> np.ndarray:
     return t / np.linalg.norm(t)
 
 
+def _image_up(finder: LineFinder) -> np.ndarray:
+    """Where up is looked for by default: :func:`image_up` of one camera, a rig's +z."""
+    return np.array([0.0, 0.0, 1.0]) if finder.rig else image_up(finder.cameras[0])
+
+
 def _prior(prior) -> np.ndarray:
     p = np.asarray(prior, np.float64).reshape(3)
     if not (np.isfinite(p).all() and np.linalg.norm(p) > 0):
@@ -316,18 +321,23 @@ def _axis_up(axes, count: int, prior: np.ndarray, max_tilt: float) -> np.ndarray
     return up
 
 
-def lines_up(image, camera: Camera, prior=None, max_tilt: float = MAX_TILT) -> np.ndarray:
+def lines_up(image, camera, prior=None, max_tilt: float = MAX_TILT) -> np.ndarray:
     """Up ``[3]`` in ``camera``'s sphere frame from the straight lines of ``image``: of the
     Manhattan axes they meet at (:func:`line_normals`, :func:`manhattan_axes`), the one
     nearest ``prior`` (default :func:`image_up`: the camera held roughly upright), signed
     towards it. No training, and no reliance on what the room looks like: walls, doors,
     shelves and windows give the lines. For a video's frames, :class:`UpTracker`.
 
+    ``camera`` may be a rig's cameras (a sequence or a dict, mounted in the rig's frame),
+    with ``image`` a list of their images in order: their lines are read together
+    (:class:`LineFinder`), up is in the rig's frame, and the default prior its +z.
+
     Raises where the image has too few straight lines, and where the nearest axis lies more
     than ``max_tilt`` degrees from ``prior``: past 45 degrees another axis is nearer, so
     which one is up is a guess (give a prior nearer up, e.g. from an IMU)."""
-    p = _prior(image_up(camera) if prior is None else prior)
-    normals, weights = line_normals(image, camera)
+    finder = LineFinder(camera)
+    p = _prior(_image_up(finder) if prior is None else prior)
+    normals, weights = finder(image)
     return _axis_up(manhattan_axes(normals, weights), len(normals), p, max_tilt)
 
 
@@ -355,8 +365,7 @@ class UpTracker:
 
     def __init__(self, cameras, prior=None, step: float = 10.0, max_tilt: float = MAX_TILT):
         self._lines = LineFinder(cameras)
-        default = np.array([0.0, 0.0, 1.0]) if self._lines.rig else image_up(self._lines.cameras[0])
-        self.up = _prior(default if prior is None else prior)
+        self.up = _prior(_image_up(self._lines) if prior is None else prior)
         self.step, self.max_tilt = float(step), float(max_tilt)
         self.frames = self.missed = 0
         self._found, self._share = False, 0.0
