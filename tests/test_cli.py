@@ -135,6 +135,36 @@ def test_lift_cli_lifts_a_rig_onto_one_sphere(tmp_path, capsys):
     assert "does not reach past the rig: a camera is 0.05" in capsys.readouterr().err
 
 
+def test_a_cropped_photo_sphere_is_read_as_its_crop(tmp_path, capsys):
+    """A phone's panorama that stops short of the poles: ``--camera equirectangular`` reads
+    its Photo Sphere XMP (written here by Pillow) and puts each pixel where it belongs in
+    the full sphere, with a note; read as a whole sphere it would be stretched."""
+    from PIL import Image
+
+    from tests.test_fileio import _photo_sphere_xmp
+    from usf_graph.viz import labelled_panorama
+
+    full = cv2.GaussianBlur((255 * labelled_panorama(720, 360)).round().astype(np.uint8), (0, 0), 2)
+    crop = full[60:240, 90:450]
+    gpano = {"ProjectionType": "equirectangular", "FullPanoWidthPixels": 720,
+             "FullPanoHeightPixels": 360, "CroppedAreaImageWidthPixels": 360,
+             "CroppedAreaImageHeightPixels": 180, "CroppedAreaLeftPixels": 90,
+             "CroppedAreaTopPixels": 60}
+    Image.fromarray(crop).save(tmp_path / "crop.jpg", quality=95, xmp=_photo_sphere_xmp(gpano, True))
+    Image.fromarray(crop).save(tmp_path / "plain.jpg", quality=95)
+    errors = []
+    for name in ("crop.jpg", "plain.jpg"):
+        assert main(["render", str(tmp_path / name), "--camera", "equirectangular", "--to",
+                     "equirectangular:720x360", "--out", str(tmp_path / "out.png")]) == 0
+        out = cv2.imread(str(tmp_path / "out.png"))[..., ::-1].astype(float)
+        errors.append(np.abs(out[70:230, 100:440] - full[70:230, 100:440]).mean())
+        if name == "crop.jpg":
+            assert "a Photo Sphere cropped to latitudes -30.0 to 60.0 and longitudes -45.0 to 135.0" \
+                in capsys.readouterr().out
+            assert out[:50].max() == 0 and out[250:].max() == 0  # nothing beyond the crop
+    assert errors[0] < 3 and errors[1] > 5 * errors[0]  # JPEG; the whole-sphere reading stretched
+
+
 def test_render_into_and_out_of_cube_maps(tmp_path, capsys):
     """``--to cubemap[:SIZE][:LAYOUT]`` (a face a quarter of the source's width by default)
     is the frontend's render into a Cubemap; ``--camera cubemap`` reads the layout from the

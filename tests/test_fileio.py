@@ -57,3 +57,33 @@ def test_mark_360_photo_refuses_what_is_no_jpeg_and_keeps_it(tmp_path):
     with pytest.raises(ValueError, match="runs past the file's end"):
         mark_360_photo(jpg)
     assert png.read_bytes() == data and jpg.read_bytes() == cut
+
+
+def _photo_sphere_xmp(fields: dict, as_elements: bool) -> bytes:
+    """An XMP packet with GPano ``fields``, as attributes or as elements (cameras write
+    both forms)."""
+    ns = 'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#" xmlns:GPano="http://ns.google.com/photos/1.0/panorama/"'
+    if as_elements:
+        body = "".join(f"<GPano:{k}>{v}</GPano:{k}>" for k, v in fields.items())
+        desc = f'<rdf:Description rdf:about="">{body}</rdf:Description>'
+    else:
+        desc = '<rdf:Description rdf:about="" ' + " ".join(f'GPano:{k}="{v}"' for k, v in fields.items()) + "/>"
+    return f'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF {ns}>{desc}</rdf:RDF></x:xmpmeta>'.encode()
+
+
+@pytest.mark.parametrize("as_elements", [False, True], ids=["attributes", "elements"])
+def test_read_photo_sphere_reads_what_pillow_wrote(tmp_path, as_elements):
+    from usf_graph.fileio import read_photo_sphere
+
+    fields = {"ProjectionType": "equirectangular", "FullPanoWidthPixels": "720",
+              "CroppedAreaTopPixels": "60"}
+    path = tmp_path / "sphere.jpg"
+    Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(path, xmp=_photo_sphere_xmp(fields, as_elements))
+    assert read_photo_sphere(path) == fields
+    Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(tmp_path / "plain.jpg")
+    Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(tmp_path / "bad.jpg", xmp=b"<x:xmpmeta")
+    cv2.imwrite(str(tmp_path / "p.png"), np.zeros((8, 16, 3), np.uint8))
+    for name in ("plain.jpg", "bad.jpg", "p.png"):  # none, not well-formed, no JPEG
+        assert read_photo_sphere(tmp_path / name) is None
+    mark_360_photo(tmp_path / "plain.jpg")  # and what we write
+    assert read_photo_sphere(tmp_path / "plain.jpg")["FullPanoWidthPixels"] == "16"

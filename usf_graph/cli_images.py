@@ -53,7 +53,8 @@ def cmd_lift(args) -> int:
                          radius=args.radius)
         x = fe.lift(images)
     else:
-        cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+        cam = camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape,
+                               args.image[0])
         cam = leveled(cam, images[0], args)
         fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
         x = fe.lift(images[0])
@@ -99,7 +100,8 @@ def _sources(args, images, camera=None) -> tuple[dict, object]:
         return leveled(rig_from_spec(args.camera, args.fov, args.image_mask, args.key,
                                      args.distance, images), images, args), dst
     src = camera if camera is not None else \
-        camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape)
+        camera_from_spec(args.camera, args.key, args.fov, args.image_mask, images[0].shape,
+                         args.image[0])
     return {"camera": leveled(src, images[0], args)}, dst  # mounted level: the target sees a level scene
 
 

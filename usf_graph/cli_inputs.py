@@ -105,11 +105,14 @@ def _cubemap(spec: str, image_shape):
     return Cubemap(h // LAYOUTS[found][1][1], found)
 
 
-def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape=None):
+def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape=None,
+                     image_path=None):
     """A camera from a calibration file or ``equirectangular[:WxH]`` (size from the image).
     With ``image_shape``, a calibration made for another size of the same aspect ratio is
     scaled to the image (:meth:`~usf_graph.cameras.Camera.resized`, with a note): a video
-    recorded or saved smaller than the calibration images."""
+    recorded or saved smaller than the calibration images. ``equirectangular`` without a
+    size, for a JPEG (``image_path``) whose Photo Sphere XMP says it is cropped (a phone's
+    panorama short of the poles), is that crop, with a note."""
     from . import cameras
 
     if is_cubemap_spec(spec):
@@ -126,11 +129,37 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
             w, h = image_size(size, "panorama size", "equirectangular:2048x1024")
         elif image_shape is not None:
             h, w = image_shape[:2]
+            crop = _photo_sphere_crop(image_path, w, h)
+            if crop is not None:
+                return cameras.with_fov_and_mask(crop, fov, image_mask)
         else:
             raise ValueError("give the panorama's size: equirectangular:WIDTHxHEIGHT")
         return cameras.with_fov_and_mask(cameras.Equirectangular(w, h), fov, image_mask)
     cam = fit_to_image(cameras.load(spec, key=key, fov_deg=fov), image_shape)
     return cameras.with_fov_and_mask(cam, None, image_mask)
+
+
+def _photo_sphere_crop(path, width: int, height: int):
+    """The cropped panorama that ``path``'s Photo Sphere XMP describes, said aloud; None
+    where it has none or describes the whole sphere."""
+    if path is None or Path(path).suffix.lower() not in (".jpg", ".jpeg"):
+        return None
+    import math
+
+    from .cameras import Equirectangular
+    from .fileio import read_photo_sphere
+
+    gpano = read_photo_sphere(path)
+    if not gpano or "FullPanoWidthPixels" not in gpano:
+        return None
+    cam = Equirectangular.from_photo_sphere(gpano, width, height)
+    if cam.whole_sphere:
+        return None
+    (a, b), (c, d) = cam.lat_range, cam.lon_range
+    print(f"{path}: a Photo Sphere cropped to latitudes {math.degrees(a):.1f} to "
+          f"{math.degrees(b):.1f} and longitudes {math.degrees(c):.1f} to {math.degrees(d):.1f} "
+          "degrees (its XMP); give equirectangular:WxH to read it as the whole sphere")
+    return cam
 
 
 def image_size(text: str, what: str = "image size", example: str = "640x480") -> tuple[int, int]:

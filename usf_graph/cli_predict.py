@@ -16,6 +16,7 @@ from .cli_inputs import (
     alpha_masked,
     camera_from_spec,
     camera_options,
+    is_panorama_spec,
     read_image,
     rig_from_spec,
     rig_options,
@@ -197,10 +198,12 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
         if several:
             print(f"== {source}")
         up = None if imu is None else imu(bag, stamp)
-        key = image.shape if args.camera is not None else bag
+        key = (image.shape, source if is_panorama_spec(args.camera) else None) \
+            if args.camera is not None else bag  # a panorama's crop may come from its file
         if key not in calibrated:
             calibrated[key] = bag_camera(bag, topic, args) if args.camera is None else \
-                camera_from_spec(args.camera, args.key, args.fov, args.image_mask, image.shape)
+                camera_from_spec(args.camera, args.key, args.fov, args.image_mask, image.shape,
+                                 source)
         cam = alpha_masked(calibrated[key], image, source)
         run(model, [stem], [source], [image], cam, names, out, args, up=up)
 

@@ -119,14 +119,8 @@ def mark_360_photo(path, software: str = "usf-graph") -> None:
     data = path.read_bytes()
     if data[:2] != b"\xff\xd8":
         raise ValueError(f"{path} is not a JPEG: 360 photo metadata goes into a .jpg")
-    i, kept = 2, []
-    while i + 4 <= len(data) and data[i] == 0xFF and (0xE0 <= data[i + 1] <= 0xEF or data[i + 1] == 0xFE):
-        end = i + 2 + int.from_bytes(data[i + 2:i + 4], "big")
-        if end > len(data):
-            raise ValueError(f"{path}: a JPEG segment runs past the file's end: the file is corrupt")
-        if not (data[i + 1] == 0xE1 and data[i + 4:i + 4 + len(XMP_ID)] == XMP_ID):
-            kept.append(data[i:end])
-        i = end
+    segments, i = _leading_segments(data, path)
+    kept = [data[a:b] for a, b in segments if not _is_xmp(data, a)]
     image = decode_image(path)
     if image is None:
         raise ValueError(f"{path}: OpenCV cannot decode this JPEG: the file is corrupt")
@@ -134,3 +128,47 @@ def mark_360_photo(path, software: str = "usf-graph") -> None:
     xmp = XMP_ID + _GPANO.format(w=w, h=h, software=software).encode()
     segment = b"\xff\xe1" + (len(xmp) + 2).to_bytes(2, "big") + xmp
     atomic_write(path, lambda f: f.write(b"".join([data[:2], *kept, segment, data[i:]])))
+
+
+_GPANO_NS = "{http://ns.google.com/photos/1.0/panorama/}"
+
+
+def read_photo_sphere(path) -> dict | None:
+    """The Photo Sphere (GPano) fields of the XMP in the JPEG ``path``, as strings by name
+    (``ProjectionType``, ``FullPanoWidthPixels``, ``CroppedAreaLeftPixels``, ...), whether
+    written as attributes or as elements; None where the file is no JPEG or has none."""
+    import xml.etree.ElementTree as ET
+
+    data = Path(path).read_bytes()
+    if data[:2] != b"\xff\xd8":
+        return None
+    found = {}
+    for a, b in _leading_segments(data, path)[0]:
+        if not _is_xmp(data, a):
+            continue
+        try:
+            root = ET.fromstring(data[a + 4 + len(XMP_ID):b].strip(b"\0 \n"))
+        except ET.ParseError:
+            continue  # not well-formed: no fields from it
+        for el in root.iter():
+            found.update({k[len(_GPANO_NS):]: v for k, v in el.attrib.items() if k.startswith(_GPANO_NS)})
+            if el.tag.startswith(_GPANO_NS) and el.text and el.text.strip():
+                found[el.tag[len(_GPANO_NS):]] = el.text.strip()
+    return found or None
+
+
+def _leading_segments(data: bytes, path) -> tuple[list, int]:
+    """A JPEG's application and comment segments right after its start, ``[(start, end)]``,
+    and the byte where they end."""
+    i, out = 2, []
+    while i + 4 <= len(data) and data[i] == 0xFF and (0xE0 <= data[i + 1] <= 0xEF or data[i + 1] == 0xFE):
+        end = i + 2 + int.from_bytes(data[i + 2:i + 4], "big")
+        if end > len(data):
+            raise ValueError(f"{path}: a JPEG segment runs past the file's end: the file is corrupt")
+        out.append((i, end))
+        i = end
+    return out, i
+
+
+def _is_xmp(data: bytes, start: int) -> bool:
+    return data[start + 1] == 0xE1 and data[start + 4:start + 4 + len(XMP_ID)] == XMP_ID

@@ -368,6 +368,41 @@ def test_equirectangular_crop_round_trip(lat0, dlat, lon0, dlon, seed):
                                               rel=1e-3)
 
 
+@settings(**SETTINGS)
+@given(st.integers(0, 300), st.integers(0, 150), st.integers(60, 420), st.integers(30, 210),
+       st.sampled_from([1.0, 0.5, 0.25]))
+def test_a_photo_sphere_crop_sees_what_its_place_in_the_full_panorama_sees(left, top, cw, ch, scale):
+    """A cropped Photo Sphere (its GPano cropped area, the image maybe resized since): each
+    pixel's ray is the ray of the full panorama's pixel it came from."""
+    fw, fh = 720, 360
+    cw, ch = min(cw, fw - left), min(ch, fh - top)
+    w, h = round(cw * scale), round(ch * scale)
+    gpano = {"ProjectionType": "equirectangular", "FullPanoWidthPixels": str(fw),
+             "FullPanoHeightPixels": str(fh), "CroppedAreaImageWidthPixels": str(cw),
+             "CroppedAreaImageHeightPixels": str(ch), "CroppedAreaLeftPixels": str(left),
+             "CroppedAreaTopPixels": str(top)}
+    if abs(w / cw - h / ch) > 0.01 * w / cw:
+        return  # rounding made another shape (refused: tested below)
+    cam = C.Equirectangular.from_photo_sphere(gpano, w, h)
+    uv = cam.pixel_grid().reshape(-1, 2)
+    full = np.stack([left + (uv[:, 0] + 0.5) * cw / w - 0.5, top + (uv[:, 1] + 0.5) * ch / h - 0.5], -1)
+    mine, ok = cam.unproject(uv)
+    want, ok_full = C.Equirectangular(fw, fh).unproject(full)
+    assert ok.all() and ok_full.all()
+    np.testing.assert_allclose(mine, want, atol=1e-9)
+    assert cam.whole_sphere == (cw == fw and ch == fh)
+
+
+def test_a_photo_sphere_with_metadata_it_cannot_use_is_refused():
+    full = {"FullPanoWidthPixels": "720", "FullPanoHeightPixels": "360"}
+    for extra, shape, why in (({"ProjectionType": "cylindrical"}, (720, 360), "only equirectangular"),
+                              ({"CroppedAreaLeftPixels": "100"}, (720, 360), "does not lie in"),
+                              ({"CroppedAreaImageWidthPixels": "x"}, (720, 360), "not a number"),
+                              ({}, (700, 360), "another shape")):
+        with pytest.raises(ValueError, match=why):
+            C.Equirectangular.from_photo_sphere({**full, **extra}, *shape)
+
+
 def test_scaramuzza_round_trip():
     cam = C.Scaramuzza(pol=[-250.0, 0.0, 1.2e-3, -2e-7, 3e-10], center=(480.2, 640.7),
                        affine=(1.0003, 1.2e-4, -2e-4), width=1280, height=960)

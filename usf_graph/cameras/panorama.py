@@ -41,6 +41,42 @@ class Equirectangular(Camera):
         mid = from_latlon(0.5 * (a + b), 0.5 * (c + d))
         self.optical_axis = mid
 
+    @classmethod
+    def from_photo_sphere(cls, gpano: dict, width: int, height: int) -> Equirectangular:
+        """The panorama that a Photo Sphere's XMP describes (``gpano``: its GPano fields,
+        :func:`usf_graph.fileio.read_photo_sphere`) for its image, ``width x height``: the
+        part of the full sphere its cropped area covers (a phone's panorama that stops short
+        of the poles, or of 360 degrees), scaled where the image was resized since."""
+        def number(key, default=None):
+            value = gpano.get(key, default)
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"the Photo Sphere metadata's {key} is {value!r}, not a number") from None
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"the Photo Sphere metadata's {key} is {value:g}")
+            return value
+
+        kind = str(gpano.get("ProjectionType", "equirectangular")).lower()
+        if kind != "equirectangular":
+            raise ValueError(f"the Photo Sphere metadata says projection {kind!r}; only "
+                             "equirectangular panoramas are read from it: give the camera")
+        fw, fh = number("FullPanoWidthPixels"), number("FullPanoHeightPixels")
+        cw = number("CroppedAreaImageWidthPixels", fw)
+        ch = number("CroppedAreaImageHeightPixels", fh)
+        left, top = number("CroppedAreaLeftPixels", 0), number("CroppedAreaTopPixels", 0)
+        if min(fw, fh, cw, ch) <= 0 or left + cw > fw + 0.5 or top + ch > fh + 0.5:
+            raise ValueError(f"the Photo Sphere metadata's cropped area ({cw:g}x{ch:g} at "
+                             f"{left:g}, {top:g}) does not lie in its full panorama "
+                             f"({fw:g}x{fh:g})")
+        if abs(width / cw - height / ch) > 0.01 * width / cw:
+            raise ValueError(f"the image is {width}x{height}, but its Photo Sphere metadata's "
+                             f"cropped area is {cw:g}x{ch:g}, another shape: give the camera")
+        lon1 = math.pi - 2 * math.pi * left / fw
+        lat1 = math.pi / 2 - math.pi * top / fh
+        return cls(width, height, (max(lat1 - math.pi * ch / fh, -math.pi / 2), lat1),
+                   (lon1 - 2 * math.pi * min(cw / fw, 1.0), lon1))
+
     @property
     def whole_sphere(self) -> bool:
         """Whether the panorama covers the whole sphere, 360 by 180 degrees (no crop)."""
