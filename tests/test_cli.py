@@ -274,6 +274,7 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     from tests.frontend.test_rig import scene
     from tests.test_videos import _spherical
     from usf_graph.frontend import render, render_rig
+    from usf_graph.videos import mark_spherical
 
     rig = {n: c.with_fov(190) for n, c in cameras.load_rig(FIXTURES / "kalibr_rig.yaml").items()}
     big = cameras.Equirectangular(512, 256)
@@ -307,6 +308,14 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
     assert len(small) == 2 and fps == 7 and small[0].shape == (64, 128, 3)
     assert "marked as a 360 video" in capsys.readouterr().out  # a whole panorama in an mp4
     assert _spherical(tmp_path / "small.mp4")[0] == [0, 0]  # as FFmpeg reads it
+    # a stereo 360 video (one panorama per eye in each frame) is not read as one panorama
+    mark_spherical(tmp_path / "small.mp4", stereo="top-bottom")
+    for argv in (["render", str(tmp_path / "small.mp4"), "--camera", "equirectangular", "--to",
+                  "equirectangular:64x32", "--out", str(tmp_path / "x.mp4")],
+                 ["predict", "seg", str(tmp_path / "none.pt"), str(tmp_path / "small.mp4"),
+                  "--camera", "equirectangular", "--out", str(tmp_path / "p")]):
+        assert main(argv) == 2
+        assert "stereo (top-bottom): each frame holds one panorama per eye" in capsys.readouterr().err
     for argv, why in (([str(tmp_path / "pano.avi"), str(tmp_path / "cam0.png")], "not both"),
                       ([str(tmp_path / "cam0.png"), "--every", "2"], "none was given"),
                       ([str(tmp_path / "pano.avi"), "--out", str(tmp_path / "x.png")], ".mp4 or .avi")):

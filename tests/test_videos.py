@@ -94,3 +94,79 @@ def test_mark_spherical_refuses_what_it_cannot_mark_and_keeps_the_file(tmp_path)
     junk.write_bytes(b"\0\0\0\x10free01234567")  # one box, no moov
     with pytest.raises(ValueError, match="0 moov boxes"):
         mark_spherical(junk)
+
+
+def _with_v2_boxes(path, stereo_mode: int, projection: bytes) -> None:
+    """Spherical Video V2 boxes put into the video's sample entry: ``st3d`` (a stereo mode)
+    and ``sv3d`` (header, then ``proj``: ``prhd`` and ``projection``'s box), the sizes of
+    every box above them grown (the moov box is OpenCV's, after the media data)."""
+    from usf_graph.videos import _children, _moov, _rebuilt
+
+    def full(kind: bytes, payload: bytes) -> bytes:
+        return (12 + len(payload)).to_bytes(4, "big") + kind + b"\0\0\0\0" + payload
+
+    def plain(kind: bytes, payload: bytes) -> bytes:
+        return (8 + len(payload)).to_bytes(4, "big") + kind + payload
+
+    st3d = full(b"st3d", bytes([stereo_mode]))
+    shape = bytes(8) if projection == b"cbmp" else bytes(16)  # layout, padding / bounds
+    sv3d = plain(b"sv3d", full(b"svhd", b"test\0") + plain(b"proj", full(b"prhd", bytes(12)) + full(projection, shape)))
+    start, size, head, moov = _moov(path)
+
+    def grown(box, h, route):
+        if box[4:8] == b"stsd":  # its version, flags and entry count, then the sample entries
+            (kind, entry, eh), *rest = _children(box, h + 8, "test")
+            return _rebuilt(box, h + 8, [(kind, grown(entry, eh, ()), eh), *rest])
+        if not route:  # the sample entry: its fields, its children, then the V2 boxes
+            return _rebuilt(box, h + 78, [*_children(box, h + 78, "test"), (b"st3d", st3d, 8),
+                                          (b"sv3d", sv3d, 8)])
+        return _rebuilt(box, h, [(k, grown(b, bh, route[1:]) if k == route[0] else b, bh)
+                                 for k, b, bh in _children(box, h, "test")])
+
+    new = grown(moov, head, (b"trak", b"mdia", b"minf", b"stbl", b"stsd"))
+    data = path.read_bytes()
+    path.write_bytes(data[:start] + new + data[start + size:])
+
+
+def _side_data(path) -> dict:
+    """What FFmpeg (through PyAV) attaches to the first decoded frame: the first int of its
+    spherical (projection) and stereo 3D (type) side data, by name."""
+    av = pytest.importorskip("av")
+    with av.open(str(path)) as c:
+        frame = next(c.decode(video=0))
+        return {d.type.name: int.from_bytes(bytes(d)[:4], "little") for d in frame.side_data
+                if d.type.name in ("SPHERICAL", "STEREO3D")}
+
+
+def test_spherical_metadata_reads_v1_and_v2_as_ffmpeg_does(tmp_path):
+    """V1 (our mark, with a stereo mode) and V2 boxes (written here): FFmpeg's reading of
+    each file says the same as ours; a stereo or cube map video is refused as one
+    equirectangular panorama, a plain or mono one passes."""
+    from usf_graph.videos import check_panorama_video, mark_spherical, spherical_metadata
+
+    plain = tmp_path / "plain.mp4"
+    _written_mp4(plain)
+    assert spherical_metadata(plain) is None and _side_data(plain) == {}
+    check_panorama_video(plain)
+    v1 = tmp_path / "v1.mp4"
+    v1.write_bytes(plain.read_bytes())
+    mark_spherical(v1, stereo="top-bottom")
+    assert spherical_metadata(v1) == {"projection": "equirectangular", "stereo": "top-bottom", "version": 1}
+    assert _side_data(v1) == {"SPHERICAL": 0, "STEREO3D": 2}  # equirectangular; AV_STEREO3D_TOPBOTTOM
+    with pytest.raises(ValueError, match=r"stereo \(top-bottom\).*one panorama per eye"):
+        check_panorama_video(v1)
+    mark_spherical(v1)  # mono again
+    check_panorama_video(v1)
+    for mode, proj, want, ffmpeg in ((0, b"equi", ("equirectangular", "mono"), {"SPHERICAL": 0, "STEREO3D": 0}),
+                                     (2, b"equi", ("equirectangular", "left-right"), {"SPHERICAL": 0, "STEREO3D": 1}),
+                                     (0, b"cbmp", ("cubemap", "mono"), {"SPHERICAL": 1, "STEREO3D": 0})):
+        v2 = tmp_path / f"v2_{mode}_{proj.decode()}.mp4"
+        v2.write_bytes(plain.read_bytes())
+        _with_v2_boxes(v2, mode, proj)
+        assert _side_data(v2) == ffmpeg, (mode, proj)
+        assert spherical_metadata(v2) == {"projection": want[0], "stereo": want[1], "version": 2}
+        if want == ("equirectangular", "mono"):
+            check_panorama_video(v2)
+        else:
+            with pytest.raises(ValueError, match="stereo" if mode else "projection cubemap"):
+                check_panorama_video(v2)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from .cli_inputs import (
     camera_from_spec,
+    check_panorama_videos,
     is_cubemap_spec,
     is_panorama_spec,
     leveled,
@@ -307,6 +308,7 @@ def cmd_render(args) -> int:
     if args.every != 1 and not (videos or bag):
         raise ValueError("--every picks a video's or a bag's frames; none was given")
     if videos or bag:
+        check_panorama_videos(args)
         _render_video(args)
         return 0
     images = read_images(args)

@@ -76,6 +76,18 @@ def is_panorama_spec(spec: str) -> bool:
     return spec.split(":")[0].lower() in ("equirectangular", "panorama")
 
 
+def check_panorama_videos(args) -> None:
+    """``--camera equirectangular`` on videos: refused where a video's 360 metadata says its
+    frames are no single equirectangular panorama (stereo, a cube map)."""
+    if args.camera is None or not is_panorama_spec(args.camera):
+        return
+    from .videos import check_panorama_video, is_video
+
+    for path in args.image:
+        if is_video(path):
+            check_panorama_video(path)
+
+
 def is_cubemap_spec(spec: str) -> bool:
     """``cubemap``, with or without ``:SIZE`` and ``:LAYOUT``."""
     return spec.split(":")[0].lower() == "cubemap"

@@ -16,6 +16,7 @@ from .cli_inputs import (
     alpha_masked,
     camera_from_spec,
     camera_options,
+    check_panorama_videos,
     is_panorama_spec,
     read_image,
     rig_from_spec,
@@ -154,6 +155,7 @@ def cmd_predict(args) -> int:
     if args.camera is None and args.key is not None:
         raise ValueError("--key picks a camera in --camera's file; a bag's camera_info holds one")
     _up_arg(args)  # its errors before anything loads
+    check_panorama_videos(args)
     if args.render and args.task != "seg":
         raise ValueError("--render is segmentation's: a detector's answer is boxes")
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)

@@ -82,6 +82,7 @@ _SPHERICAL_XML = (
     "<GSpherical:Stitched>true</GSpherical:Stitched>"
     "<GSpherical:StitchingSoftware>{software}</GSpherical:StitchingSoftware>"
     "<GSpherical:ProjectionType>equirectangular</GSpherical:ProjectionType>"
+    "<GSpherical:StereoMode>{stereo}</GSpherical:StereoMode>"
     "</rdf:SphericalVideo>")
 
 
@@ -112,9 +113,11 @@ def _children(box: bytes, head: int, where) -> list:
 
 
 def _rebuilt(box: bytes, head: int, children: list) -> bytes:
-    """``box``'s header, then ``children`` (as :func:`_children` gives them), sized anew."""
+    """``box``'s first ``head`` bytes (its header, and any fields before its children), then
+    ``children`` (as :func:`_children` gives them), its size set anew (32 or 64 bits, as it
+    was)."""
     out = box[:head] + b"".join(b for _, b, _ in children)
-    if head == 16:
+    if box[:4] == b"\0\0\0\x01":  # a 64-bit size after the type
         return out[:8] + len(out).to_bytes(8, "big") + out[16:]
     if len(out) >= 1 << 32:
         raise ValueError("a box outgrew a 32-bit size: the video is too large to mark")
@@ -160,11 +163,27 @@ def _copy(src, out, start: int, end: int) -> None:
         start += len(chunk)
 
 
-def mark_spherical(path, software: str = "usf-graph") -> None:
+def _moov(path) -> tuple[int, int, int, bytes]:
+    """The MP4 ``path``'s one ``moov`` box: ``(offset, size, header size, its bytes)``."""
+    length = Path(path).stat().st_size
+    with open(path, "rb") as f:
+        def read(o, n):
+            f.seek(o)
+            return f.read(n)
+
+        moovs = [b for b in _boxes(read, 0, length, str(path)) if b[3] == b"moov"]
+        if len(moovs) != 1:
+            raise ValueError(f"{path}: {len(moovs)} moov boxes, not one: not a finished MP4")
+        start, size, head, _ = moovs[0]
+        return start, size, head, read(start, size)
+
+
+def mark_spherical(path, software: str = "usf-graph", stereo: str = "mono") -> None:
     """Marks the MP4 video ``path``, whose frames are whole equirectangular panoramas, as a
     360 video: the Spherical Video (V1) metadata, a ``uuid`` box in its video track, so that
-    YouTube, VLC and other 360 players show it as a sphere. Marking again replaces the
-    mark. The file is rewritten atomically; the frames are not touched."""
+    YouTube, VLC and other 360 players show it as a sphere. ``stereo``: ``mono``, or
+    ``top-bottom`` / ``left-right`` for frames holding one panorama per eye. Marking again
+    replaces the mark. The file is rewritten atomically; the frames are not touched."""
     from .fileio import atomic_write
 
     path = Path(path)
@@ -172,18 +191,11 @@ def mark_spherical(path, software: str = "usf-graph") -> None:
     if path.suffix.lower() not in (".mp4", ".m4v", ".mov"):
         raise ValueError(f"{where}: only MP4 (and QuickTime) files hold 360 video metadata; "
                          "write .mp4")
+    start, size, head, moov = _moov(path)
     length = path.stat().st_size
-    with open(path, "rb") as f:
-        def read(o, n):
-            f.seek(o)
-            return f.read(n)
-
-        moovs = [b for b in _boxes(read, 0, length, where) if b[3] == b"moov"]
-        if len(moovs) != 1:
-            raise ValueError(f"{where}: {len(moovs)} moov boxes, not one: not a finished MP4")
-        start, size, head, _ = moovs[0]
-        moov = read(start, size)
-    xml = _SPHERICAL_XML.format(software=software).encode()
+    if stereo not in ("mono", "top-bottom", "left-right"):
+        raise ValueError(f"stereo must be mono, top-bottom or left-right, got {stereo!r}")
+    xml = _SPHERICAL_XML.format(software=software, stereo=stereo).encode()
     uuid = (24 + len(xml)).to_bytes(4, "big") + b"uuid" + SPHERICAL_UUID + xml
     children = _children(moov, head, where)
     video = [k == b"trak" and _is_video_track(b, h, where) for k, b, h in children]
@@ -205,3 +217,92 @@ def mark_spherical(path, software: str = "usf-graph") -> None:
             _copy(f, out, start + size, length)
 
     atomic_write(path, write)
+
+
+#: Spherical Video V2's ``st3d`` stereo modes.
+_STEREO_MODES = {0: "mono", 1: "top-bottom", 2: "left-right", 3: "stereo-custom", 4: "right-left"}
+_PROJECTIONS = {b"equi": "equirectangular", b"cbmp": "cubemap", b"mesh": "mesh"}
+_VISUAL_SAMPLE_ENTRY = 78  # bytes of a video sample entry's fields before its child boxes
+
+
+def _video_track(path) -> tuple[bytes, int] | None:
+    """The video ``trak`` box of the MP4 ``path`` and its header size, or None (no MP4, no
+    video track)."""
+    where = str(path)
+    try:
+        _, _, head, moov = _moov(path)
+    except ValueError:
+        return None
+    for kind, trak, h in _children(moov, head, where):
+        if kind == b"trak" and _is_video_track(trak, h, where):
+            return trak, h
+    return None
+
+
+def _find(box: bytes, head: int, path: tuple, where) -> list:
+    """The boxes at ``path`` (types, from ``box``'s children down) as ``(bytes, header)``."""
+    found = [(box, head)]
+    for kind in path:
+        found = [(b, h) for parent, ph in found for k, b, h in _children(parent, ph, where)
+                 if k == kind]
+    return found
+
+
+def spherical_metadata(path) -> dict | None:
+    """What the 360 video metadata of the MP4 ``path`` says of its video:
+    ``{"projection": ..., "stereo": ..., "version": 1 or 2}``, from the Spherical Video V2
+    boxes (``st3d``, ``sv3d``) or else the V1 XML (:func:`mark_spherical`); None where it
+    has none, or the file is no MP4."""
+    import xml.etree.ElementTree as ET
+
+    if Path(path).suffix.lower() not in (".mp4", ".m4v", ".mov"):
+        return None
+    found = _video_track(path)
+    if found is None:
+        return None
+    trak, head = found
+    where = str(path)
+    entries = _find(trak, head, (b"mdia", b"minf", b"stbl", b"stsd"), where)
+    for stsd, h in entries:  # its first sample entry's children: st3d, sv3d
+        entry = _children(stsd, h + 8, where)[:1]  # after the version, flags and entry count
+        for _, box, eh in entry:
+            kids = {k: (b, hh) for k, b, hh in _children(box, eh + _VISUAL_SAMPLE_ENTRY, where)}
+            if b"sv3d" in kids or b"st3d" in kids:
+                stereo = "mono"
+                if b"st3d" in kids:
+                    b, hh = kids[b"st3d"]
+                    stereo = _STEREO_MODES.get(b[hh + 4], f"mode {b[hh + 4]}")
+                projection = "equirectangular"
+                if b"sv3d" in kids:  # sv3d.proj: a header (prhd), then the projection's box
+                    kinds = [k for proj, ph in _find(*kids[b"sv3d"], (b"proj",), where)
+                             for k, _, _ in _children(proj, ph, where) if k != b"prhd"]
+                    projection = _PROJECTIONS.get(kinds[0], "unknown") if kinds else "unknown"
+                return {"projection": projection, "stereo": stereo, "version": 2}
+    for kind, box, h in _children(trak, head, where):
+        if kind == b"uuid" and box[h:h + 16] == SPHERICAL_UUID:
+            try:
+                root = ET.fromstring(box[h + 16:])
+            except ET.ParseError:
+                return None
+            ns = "{http://ns.google.com/videos/1.0/spherical/}"
+            get = {el.tag[len(ns):]: (el.text or "").strip() for el in root.iter() if el.tag.startswith(ns)}
+            return {"projection": get.get("ProjectionType", "equirectangular").lower(),
+                    "stereo": get.get("StereoMode", "mono").lower(), "version": 1}
+    return None
+
+
+def check_panorama_video(path) -> None:
+    """Raises where the 360 video metadata of ``path`` says that its frames are no single
+    equirectangular panorama (a stereo video's hold one per eye; a cube map's are faces),
+    so that reading them as one is refused rather than silently wrong."""
+    meta = spherical_metadata(path)
+    if meta is None:
+        return
+    if meta["projection"] != "equirectangular":
+        raise ValueError(f"{path}: its 360 video metadata (V{meta['version']}) says projection "
+                         f"{meta['projection']}, not equirectangular: re-encode it to an "
+                         "equirectangular panorama first (e.g. FFmpeg's v360 filter)")
+    if meta["stereo"] != "mono":
+        raise ValueError(f"{path}: its 360 video metadata (V{meta['version']}) says it is stereo "
+                         f"({meta['stereo']}): each frame holds one panorama per eye; cut one "
+                         "out first (e.g. FFmpeg's crop filter)")

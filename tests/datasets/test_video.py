@@ -101,3 +101,20 @@ def test_video_frames_refuses_what_it_cannot_read(tmp_path, world):
     (tmp_path / "broken.mp4").write_bytes(b"not a video")
     with pytest.raises(ValueError, match="cannot read video"):
         VideoFrames(tmp_path / "data", tmp_path / "broken.mp4", pano, grid="icosahedral:2", progress=False)
+
+
+def test_a_stereo_360_video_is_not_lifted_as_one_panorama(tmp_path, world):
+    """Its 360 metadata says each frame holds one panorama per eye: refused, not lifted."""
+    from usf_graph.videos import mark_spherical
+
+    pano, frames = world
+    w = cv2.VideoWriter(str(tmp_path / "vr.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 5, (256, 128))
+    for f in frames[:2]:
+        w.write(np.ascontiguousarray(f[..., ::-1]))
+    w.release()
+    mark_spherical(tmp_path / "vr.mp4", stereo="left-right")
+    with pytest.raises(ValueError, match=r"stereo \(left-right\)"):
+        VideoFrames(tmp_path / "data", tmp_path / "vr.mp4", pano, grid="icosahedral:2", progress=False)
+    mark_spherical(tmp_path / "vr.mp4")  # mono: lifted
+    assert len(VideoFrames(tmp_path / "data", tmp_path / "vr.mp4", pano, grid="icosahedral:2",
+                           progress=False)) == 2

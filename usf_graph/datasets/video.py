@@ -70,6 +70,8 @@ class VideoFrames(LiftedFrames):
                 raise ValueError("a rig's cameras are lifted from frames that hold them side by "
                                  "side: give split=True, or one camera")
             cam = camera if isinstance(camera, Camera) else load(camera)
+            if cam.model == "equirectangular":  # refused where its 360 metadata says stereo
+                videos.check_panorama_video(self.video)
             self.cameras = {"camera": cam.with_fov(fov_deg) if fov_deg is not None else cam}
             self.frontend = SphericalFrontend(self.cameras["camera"], self.grid,
                                               interpolation=interpolation)
