@@ -46,7 +46,7 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     assert ns["h"].shape == (int(ns["img"].mask.sum()), 8)
     shell = re.findall(r"```bash\n(.*?)```", section, re.S)
     lines = [ln for block in shell for ln in block.splitlines() if ln.startswith("usf-graph ")]
-    assert len(lines) == 11
+    assert len(lines) == 12
     for ln in lines:
         argv = shlex.split(ln.split("#")[0].replace("icosahedral:6", "icosahedral:3"))[1:]
         assert main(argv) == 0, ln
@@ -65,6 +65,9 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     ok, frame = video.read()
     video.release()
     assert ok and frame.shape == (512, 1024, 3)
+    leveled = cv2.VideoCapture(str(tmp_path / "level.mp4"))  # every frame leveled by its lines
+    assert leveled.get(cv2.CAP_PROP_FRAME_COUNT) == 8
+    leveled.release()
     clip = ns["clip"]  # the same video lifted, frame by frame, onto one sphere each
     assert len(clip) == 8 and clip[0].mask.all() and clip[7].frame.item() == 7
     assert (clip[0].x - clip[1].x).abs().mean() > 0.01  # the world turned between frames
