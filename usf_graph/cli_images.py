@@ -9,6 +9,7 @@ from pathlib import Path
 from .cli_inputs import (
     camera_from_spec,
     check_panorama_videos,
+    has_size,
     is_cubemap_spec,
     is_panorama_spec,
     leveled,
@@ -80,7 +81,7 @@ def cmd_lift(args) -> int:
 def _target(args, image):
     """``--to``: the camera asked for, not fitted to the source image; a panorama without a
     size gets the source's width, at 2:1."""
-    if is_cubemap_spec(args.to) and not any(p.isdigit() for p in args.to.split(":")):
+    if is_cubemap_spec(args.to) and not has_size(args.to):
         size = max(image.shape[1] // 4, 2)  # a face's 90 degrees, at the source's density
         return camera_from_spec(f"{args.to}:{size}", args.to_key)
     return camera_from_spec(args.to, args.to_key, image_shape=(image.shape[1] // 2, image.shape[1])
@@ -92,7 +93,7 @@ def _sources(args, images, camera=None) -> tuple[dict, object]:
     a rig; ``camera``: one camera's, where a ROS bag's camera_info gave it; leveled by
     ``--level``), ``{name: Camera}``, and the ``--to`` target."""
     if len(images) > 1 and (is_panorama_spec(args.to) or is_cubemap_spec(args.to)) and \
-            not any(p[:1].isdigit() for p in args.to.split(":")):
+            not has_size(args.to):
         raise ValueError("a rig's images have no one width to take: give the panorama's size, "
                          "--to equirectangular:WIDTHxHEIGHT or cubemap:SIZE")
     dst = _target(args, images[0])
@@ -250,7 +251,8 @@ def _render_video(args) -> None:
 
         camera = bag_camera(args.image[0], _bag_topics(args)[0], args)
     cams, dst = _sources(args, first[0], camera)
-    if args.imu is not None or args.level_each:
+    each = args.imu is not None or args.level_each
+    if each:
         level, how, missed = _level_each(args, cams, dst)
         reimage = level
         print(f"{', '.join(cams)} -> {type(dst).__name__} {dst.width}x{dst.height}, each frame "
@@ -268,7 +270,7 @@ def _render_video(args) -> None:
             video.add(reimage(images, stamp))
     finally:
         video.close()
-    if args.imu is not None or args.level_each:
+    if each:
         print(f"up {min(level.tilts):.1f} to {max(level.tilts):.1f} degrees off level; the "
               f"geometry built {level.builds} times for {video.frames} frames (up moved more "
               f"than {level.step:g} degrees){missed()}")

@@ -88,6 +88,11 @@ def check_panorama_videos(args) -> None:
             check_panorama_video(path)
 
 
+def has_size(spec: str) -> bool:
+    """Whether a panorama's or a cube map's spec gives its size (``:WxH``, ``:SIZE``)."""
+    return any(p[:1].isdigit() for p in spec.split(":")[1:])
+
+
 def is_cubemap_spec(spec: str) -> bool:
     """``cubemap``, with or without ``:SIZE`` and ``:LAYOUT``."""
     return spec.split(":")[0].lower() == "cubemap"
@@ -127,15 +132,13 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
     panorama short of the poles), is that crop, with a note."""
     from . import cameras
 
-    if is_cubemap_spec(spec):
-        if key is not None:
-            raise ValueError("--key picks a camera in a Kalibr, Basalt or COLMAP file; a cube "
-                             "map has none")
+    cube, pano = is_cubemap_spec(spec), is_panorama_spec(spec)
+    if (cube or pano) and key is not None:
+        raise ValueError("--key picks a camera in a Kalibr, Basalt or COLMAP file; a "
+                         f"{'cube map' if cube else 'panorama'} has none")
+    if cube:
         return cameras.with_fov_and_mask(_cubemap(spec, image_shape), fov, image_mask)
-    if is_panorama_spec(spec):
-        if key is not None:
-            raise ValueError("--key picks a camera in a Kalibr, Basalt or COLMAP file; a "
-                             "panorama has none")
+    if pano:
         size = spec.partition(":")[2]
         if size:
             w, h = image_size(size, "panorama size", "equirectangular:2048x1024")

@@ -130,31 +130,38 @@ def mark_360_photo(path, software: str = "usf-graph") -> None:
     atomic_write(path, lambda f: f.write(b"".join([data[:2], *kept, segment, data[i:]])))
 
 
-_GPANO_NS = "{http://ns.google.com/photos/1.0/panorama/}"
+_GPANO_NS = "http://ns.google.com/photos/1.0/panorama/"
 
 
 def read_photo_sphere(path) -> dict | None:
     """The Photo Sphere (GPano) fields of the XMP in the JPEG ``path``, as strings by name
     (``ProjectionType``, ``FullPanoWidthPixels``, ``CroppedAreaLeftPixels``, ...), whether
     written as attributes or as elements; None where the file is no JPEG or has none."""
-    import xml.etree.ElementTree as ET
-
     data = Path(path).read_bytes()
     if data[:2] != b"\xff\xd8":
         return None
     found = {}
     for a, b in _leading_segments(data, path)[0]:
-        if not _is_xmp(data, a):
-            continue
-        try:
-            root = ET.fromstring(data[a + 4 + len(XMP_ID):b].strip(b"\0 \n"))
-        except ET.ParseError:
-            continue  # not well-formed: no fields from it
-        for el in root.iter():
-            found.update({k[len(_GPANO_NS):]: v for k, v in el.attrib.items() if k.startswith(_GPANO_NS)})
-            if el.tag.startswith(_GPANO_NS) and el.text and el.text.strip():
-                found[el.tag[len(_GPANO_NS):]] = el.text.strip()
+        if _is_xmp(data, a):  # one not well-formed gives no fields
+            found.update(xml_fields(data[a + 4 + len(XMP_ID):b].strip(b"\0 \n"), _GPANO_NS) or {})
     return found or None
+
+
+def xml_fields(xml: bytes, namespace: str) -> dict | None:
+    """The fields of ``namespace`` in the XML ``xml``, as strings by name: its attributes
+    and its elements' text alike (XMP writes either); None where ``xml`` is not well-formed."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(xml)
+    except ET.ParseError:
+        return None
+    ns, found = "{" + namespace + "}", {}
+    for el in root.iter():
+        found.update({k[len(ns):]: v for k, v in el.attrib.items() if k.startswith(ns)})
+        if el.tag.startswith(ns) and el.text and el.text.strip():
+            found[el.tag[len(ns):]] = el.text.strip()
+    return found
 
 
 def _leading_segments(data: bytes, path) -> tuple[list, int]:

@@ -15,13 +15,20 @@ def is_video(path) -> bool:
     return Path(path).suffix.lower() in VIDEO_SUFFIXES
 
 
+def check_every(every) -> int:
+    """``every`` (keep every ``every``-th frame) as an int, where it is a positive whole
+    number."""
+    if int(every) != every or every < 1:
+        raise ValueError(f"every must be a positive whole number, got {every}")
+    return int(every)
+
+
 def frames(path, every: int = 1):
     """``(index, RGB frame [H, W, 3] uint8)`` of every ``every``-th frame of the video
     ``path``, decoded one at a time so that a long video never sits in memory."""
     import cv2
 
-    if int(every) != every or every < 1:
-        raise ValueError(f"every must be a positive whole number, got {every}")
+    check_every(every)
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise ValueError(f"cannot read video {path}: missing, or a codec OpenCV lacks; "
@@ -68,9 +75,8 @@ def split_frame(image, count: int, what: str) -> list:
     return [image[:, k * w // count:(k + 1) * w // count] for k in range(count)]
 
 
-
-
-
+#: The files that hold 360 video metadata: MP4 and QuickTime.
+_MP4_SUFFIXES = (".mp4", ".m4v", ".mov")
 #: The Spherical Video (V1) metadata box, ``moov.trak.uuid`` with this UUID, holding XML
 #: (google/spatial-media's RFC; what YouTube, VLC and FFmpeg read).
 SPHERICAL_UUID = bytes.fromhex("ffcc8263f8554a938814587a02521fdd")
@@ -126,9 +132,8 @@ def _rebuilt(box: bytes, head: int, children: list) -> bytes:
 
 def _is_video_track(trak: bytes, head: int, where) -> bool:
     """Whether the ``trak`` box's handler (``mdia.hdlr``) is ``vide``."""
-    return any(k == b"hdlr" and b[h + 8:h + 12] == b"vide"  # after version and pre_defined
-               for kind, mdia, mh in _children(trak, head, where) if kind == b"mdia"
-               for k, b, h in _children(mdia, mh, where))
+    return any(b[h + 8:h + 12] == b"vide"  # after version and pre_defined
+               for b, h in _find(trak, head, (b"mdia", b"hdlr"), where))
 
 
 def _shifted(box: bytes, head: int, after: int, delta: int, where) -> bytes:
@@ -188,13 +193,13 @@ def mark_spherical(path, software: str = "usf-graph", stereo: str = "mono") -> N
 
     path = Path(path)
     where = str(path)
-    if path.suffix.lower() not in (".mp4", ".m4v", ".mov"):
+    if path.suffix.lower() not in _MP4_SUFFIXES:
         raise ValueError(f"{where}: only MP4 (and QuickTime) files hold 360 video metadata; "
                          "write .mp4")
-    start, size, head, moov = _moov(path)
-    length = path.stat().st_size
     if stereo not in ("mono", "top-bottom", "left-right"):
         raise ValueError(f"stereo must be mono, top-bottom or left-right, got {stereo!r}")
+    start, size, head, moov = _moov(path)
+    length = path.stat().st_size
     xml = _SPHERICAL_XML.format(software=software, stereo=stereo).encode()
     uuid = (24 + len(xml)).to_bytes(4, "big") + b"uuid" + SPHERICAL_UUID + xml
     children = _children(moov, head, where)
@@ -253,9 +258,9 @@ def spherical_metadata(path) -> dict | None:
     ``{"projection": ..., "stereo": ..., "version": 1 or 2}``, from the Spherical Video V2
     boxes (``st3d``, ``sv3d``) or else the V1 XML (:func:`mark_spherical`); None where it
     has none, or the file is no MP4."""
-    import xml.etree.ElementTree as ET
+    from .fileio import xml_fields
 
-    if Path(path).suffix.lower() not in (".mp4", ".m4v", ".mov"):
+    if Path(path).suffix.lower() not in _MP4_SUFFIXES:
         return None
     found = _video_track(path)
     if found is None:
@@ -280,12 +285,9 @@ def spherical_metadata(path) -> dict | None:
                 return {"projection": projection, "stereo": stereo, "version": 2}
     for kind, box, h in _children(trak, head, where):
         if kind == b"uuid" and box[h:h + 16] == SPHERICAL_UUID:
-            try:
-                root = ET.fromstring(box[h + 16:])
-            except ET.ParseError:
+            get = xml_fields(box[h + 16:], "http://ns.google.com/videos/1.0/spherical/")
+            if get is None:
                 return None
-            ns = "{http://ns.google.com/videos/1.0/spherical/}"
-            get = {el.tag[len(ns):]: (el.text or "").strip() for el in root.iter() if el.tag.startswith(ns)}
             return {"projection": get.get("ProjectionType", "equirectangular").lower(),
                     "stereo": get.get("StereoMode", "mono").lower(), "version": 1}
     return None

@@ -33,11 +33,6 @@ _TURNS = {"front": ((0.0, 0.0, 1.0), 0.0), "right": ((0.0, 0.0, 1.0), -0.5),
           "up": ((0.0, 1.0, 0.0), -0.5), "down": ((0.0, 1.0, 0.0), 0.5)}
 
 
-#: The face of the sphere frame's axis (x, y, z) and sign (negative, positive): -x back,
-#: +x front, -y right, +y left, -z down, +z up.
-_FACE_OF = np.array([[2, 0], [1, 3], [5, 4]])
-
-
 def face_rotation(face: str) -> np.ndarray:
     """``[3, 3]`` sphere <- optical frame of a cube face (:data:`FACES`): the front face
     turned by a quarter or half turn about z (the sides) or y (up and down)."""
@@ -45,6 +40,26 @@ def face_rotation(face: str) -> np.ndarray:
         raise ValueError(f"unknown cube face {face!r}; the faces are {', '.join(FACES)}")
     axis, turns = _TURNS[face]
     return rotation_from_axis_angle(np.array(axis), turns * math.pi) @ DEFAULT_ROTATION
+
+
+def _face_of() -> np.ndarray:
+    """``[3, 2]``: the index in :data:`FACES` of the face looking along each axis of the
+    sphere frame (x, y, z), negative and positive: where its optical axis points."""
+    out = np.empty((3, 2), np.int64)
+    for k, face in enumerate(FACES):
+        z = face_rotation(face)[:, 2]
+        axis = int(np.argmax(np.abs(z)))
+        out[axis, int(z[axis] > 0)] = k
+    return out
+
+
+def _per_face(v: np.ndarray, k: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``v [..., 3] @ R[k]``, each vector by its face's matrix (one product per face)."""
+    out = np.empty_like(v)
+    for f in range(len(R)):
+        on = k == f
+        out[on] = v[on] @ R[f]
+    return out
 
 
 def cube_faces(size: int) -> dict[str, Pinhole]:
@@ -88,6 +103,7 @@ class Cubemap(Camera):
         self.layout = layout
         self._R = np.stack([face_rotation(k) for k in FACES])  # [6, 3, 3]
         self._cells = np.array(cells, np.int64)  # [6, 2] column, row
+        self._face_of = _face_of()
         self._face_at = np.full((rows, cols), -1, np.int64)
         for k, (col, row) in enumerate(cells):
             self._face_at[row, col] = k
@@ -106,11 +122,8 @@ class Cubemap(Camera):
         # the face the ray points most towards: its largest coordinate and that one's sign
         axis = np.argmax(np.abs(rays), -1)
         positive = np.take_along_axis(rays, axis[..., None], -1)[..., 0] > 0
-        k = _FACE_OF[axis, positive.astype(np.int64)]
-        p = np.empty_like(rays)
-        for f in range(6):  # in each face's optical frame (a matrix product per face: fast)
-            on = k == f
-            p[on] = rays[on] @ self._R[f]
+        k = self._face_of[axis, positive.astype(np.int64)]
+        p = _per_face(rays, k, self._R)  # in the face's optical frame
         half, c = self.size / 2, (self.size - 1) / 2
         uv = half * p[..., :2] / p[..., 2:] + c + self._cells[k] * self.size
         return uv, np.ones(uv.shape[:-1], bool)
@@ -125,11 +138,7 @@ class Cubemap(Camera):
         half, c = self.size / 2, (self.size - 1) / 2
         local = np.ones(uv.shape[:-1] + (3,))
         local[..., :2] = (uv - self._cells[k] * self.size - c) / half
-        rays = np.empty_like(local)
-        for f in range(6):
-            on = k == f
-            rays[on] = local[on] @ self._R[f].T
-        return normalize(rays), ok
+        return normalize(_per_face(local, k, self._R.transpose(0, 2, 1))), ok
 
     def pixels_with_rays(self) -> np.ndarray:
         """The faces' pixels (not the layout's empty cells), unless a field of view limits

@@ -19,6 +19,7 @@ from ..cameras import Camera, imu_rotation, imu_time_shift, load
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage, unit_range
 from ..grids import Grid, from_spec
+from ..videos import check_every
 from .frames import LiftedFrames, digest
 
 
@@ -56,10 +57,9 @@ class RosBagFrames(LiftedFrames):
                  imu_to_sphere=None, imu_window_ns: int = 10**8, imu_up: str = "accel",
                  imu_time_shift_ns: int | None = None, transform=None,
                  pre_transform=None, progress: bool = True):
-        if int(every) != every or every < 1:
-            raise ValueError(f"every must be a positive whole number, got {every}")
+        self.every = check_every(every)
         self.bag = self.source = Path(bag)
-        self.every, self.interpolation, self.progress = int(every), interpolation, progress
+        self.interpolation, self.progress = interpolation, progress
         if not bags.is_bag(self.bag) or not self.bag.exists():
             raise FileNotFoundError(f"{bag} is not a ROS bag (.bag, a ROS 2 bag's folder, .db3 "
                                     "or .mcap)" + ("" if self.bag.exists() else ": it does not exist"))

@@ -54,9 +54,8 @@ class VideoFrames(LiftedFrames):
             raise FileNotFoundError(f"video {video} does not exist")
         if not videos.is_video(self.video):
             raise ValueError(f"{video} is not named as a video ({', '.join(videos.VIDEO_SUFFIXES)})")
-        if int(every) != every or every < 1:
-            raise ValueError(f"every must be a positive whole number, got {every}")
-        self.every, self.interpolation, self.split, self.progress = int(every), interpolation, split, progress
+        self.every, self.interpolation, self.split, self.progress = \
+            videos.check_every(every), interpolation, split, progress
         self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
         if split:
             rig = camera if isinstance(camera, Mapping) else load_rig(camera)

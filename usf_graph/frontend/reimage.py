@@ -105,13 +105,4 @@ def render(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "biline
     return Reimager(cam_src, cam_dst, interpolation, source_valid)(image)
 
 
-def render_seen(image, cam_src: Camera, cam_dst: Camera, interpolation: str = "bilinear",
-                source_valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`render` of ``image`` (numpy) as float32, and where the source sees:
-    ``(out [H', W'(, C)], seen [H', W'] bool)``."""
-    r = Reimager(cam_src, cam_dst, interpolation, source_valid)
-    a = np.asarray(image)
-    return r(a if a.dtype == np.float32 else a.astype(np.float32)), r.seen
-
-
-__all__ = ["Reimager", "render", "render_seen"]
+__all__ = ["Reimager", "render"]
