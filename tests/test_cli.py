@@ -324,6 +324,42 @@ def test_render_re_images_videos_frame_by_frame(tmp_path, capsys):
         assert why in capsys.readouterr().err
 
 
+def test_render_reads_one_eye_of_a_stereo_360_video(tmp_path, capsys):
+    """``render --eye``: of a top-bottom stereo 360 video, the eye's panorama re-imaged (the
+    right eye's: the bottom half of each frame); an eye is refused on images and on a
+    video whose metadata says mono, before a model loads."""
+    from tests.frontend.test_rig import scene
+    from usf_graph.videos import mark_spherical
+
+    pano = cameras.Equirectangular(128, 64)
+    img = (255 * scene(pano.lens_normal_map()[0])).round().astype(np.uint8)
+    vr = tmp_path / "vr.mp4"
+    w = cv2.VideoWriter(str(vr), cv2.VideoWriter_fourcc(*"mp4v"), 5, (128, 128))
+    for k in range(2):  # the right eye's panorama turned by 32 pixels more
+        eyes = np.concatenate([np.roll(img, 8 * k, axis=1), np.roll(img, 8 * k + 32, axis=1)], 0)
+        w.write(np.ascontiguousarray(eyes[..., ::-1]))
+    w.release()
+    mark_spherical(vr, stereo="top-bottom")
+    assert main(["render", str(vr), "--camera", "equirectangular", "--eye", "right", "--to",
+                 "equirectangular:128x64", "--out", str(tmp_path / "right.mp4")]) == 0
+    assert "Equirectangular 128x64" in capsys.readouterr().out
+    got, source = decode_video(tmp_path / "right.mp4")[0], decode_video(vr)[0]
+    assert len(got) == 2
+    for g, f in zip(got, source):
+        assert np.abs(g.astype(float) - f[64:]).mean() < 3  # the same panorama, MPEG-4 twice
+        assert np.abs(g.astype(float) - f[:64]).mean() > 10  # not the left eye's
+    mark_spherical(vr)  # mono
+    cv2.imwrite(str(tmp_path / "pano.png"), img)
+    for argv, why in ((["render", str(vr), "--to", "equirectangular:64x32", "--out", str(tmp_path / "x.mp4")],
+                       "says mono: picking an eye (left)"),
+                      (["render", str(tmp_path / "pano.png"), "--to", "equirectangular:64x32", "--out",
+                        str(tmp_path / "x.png")], "--eye picks one eye of a stereo 360 video's frames"),
+                      (["predict", "seg", str(tmp_path / "none.pt"), str(vr), "--out", str(tmp_path / "p")],
+                       "says mono: picking an eye (left)")):
+        assert main([*argv, "--camera", "equirectangular", "--eye", "left"]) == 2
+        assert why in capsys.readouterr().err
+
+
 def test_render_level_each_holds_a_tilting_cameras_horizon(tmp_path, capsys):
     """``render --level-each``: a panorama video of a room whose camera tilts by 4 to 19
     degrees comes out level, each frame close to the room rendered level along its heading

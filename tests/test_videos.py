@@ -170,3 +170,66 @@ def test_spherical_metadata_reads_v1_and_v2_as_ffmpeg_does(tmp_path):
         else:
             with pytest.raises(ValueError, match="stereo" if mode else "projection cubemap"):
                 check_panorama_video(v2)
+
+
+def test_eye_image_is_the_half_its_layout_names():
+    from usf_graph.videos import eye_image
+
+    left, right = np.zeros((4, 6, 3)), np.ones((4, 6, 3))
+    for layout, frame, want in (("top-bottom", np.concatenate([left, right], 0), (left, right)),
+                                ("left-right", np.concatenate([left, right], 1), (left, right)),
+                                ("right-left", np.concatenate([right, left], 1), (left, right))):
+        assert np.array_equal(eye_image(frame, layout, "left"), want[0]), layout
+        assert np.array_equal(eye_image(frame, layout, "right"), want[1]), layout
+    for args, why in (((np.zeros((5, 6)), "top-bottom", "left"), "even height, got 5"),
+                      ((np.zeros((4, 7)), "left-right", "right"), "even width, got 7"),
+                      ((np.zeros((4, 6)), "stereo-custom", "left"), "cannot be cut"),
+                      ((np.zeros((4, 6)), "top-bottom", "both"), "'left' or 'right'")):
+        with pytest.raises(ValueError, match=why):
+            eye_image(*args)
+
+
+def test_frames_of_one_eye_are_where_ffmpeg_reads_that_eye(tmp_path):
+    """A stereo 360 video's ``frames(eye=)``: the half its metadata names, V1 and V2, as
+    FFmpeg reads the layout (its stereo 3D side data: top-bottom or side by side, and not
+    inverted, i.e. the left eye on top or on the left); a video without a stereo layout
+    is refused."""
+    from usf_graph.videos import check_panorama_video, frames, mark_spherical
+
+    plain = tmp_path / "plain.mp4"
+    _written_mp4(plain)  # 128x64 frames
+    whole = [f for _, f in frames(plain)]
+    av = pytest.importorskip("av")
+    v1 = tmp_path / "v1.mp4"
+    v1.write_bytes(plain.read_bytes())
+    mark_spherical(v1, stereo="top-bottom")
+    cases = [(v1, 2, (slice(0, 32), slice(None)), (slice(32, 64), slice(None)))]
+    for mode, ffmpeg, left, right in ((2, 1, (slice(None), slice(0, 64)), (slice(None), slice(64, 128))),
+                                      (4, None, (slice(None), slice(64, 128)), (slice(None), slice(0, 64)))):
+        v2 = tmp_path / f"v2_{mode}.mp4"
+        v2.write_bytes(plain.read_bytes())
+        _with_v2_boxes(v2, mode, b"equi")
+        cases.append((v2, ffmpeg, left, right))
+    for path, ffmpeg, left, right in cases:
+        check_panorama_video(path, "left")
+        for eye, where in (("left", left), ("right", right)):
+            got = [f for _, f in frames(path, eye=eye)]
+            assert len(got) == 3 and all(np.array_equal(g, w[where]) for g, w in zip(got, whole)), (path, eye)
+        if ffmpeg is not None:  # FFmpeg reads no right-left mode: only ours
+            with av.open(str(path)) as c:
+                sd = {d.type.name: bytes(d) for d in next(c.decode(video=0)).side_data}
+            assert int.from_bytes(sd["STEREO3D"][:4], "little") == ffmpeg  # its type
+            assert int.from_bytes(sd["STEREO3D"][4:8], "little") & 1 == 0  # AV_STEREO3D_FLAG_INVERT
+    for path, why in ((plain, "has no 360 video metadata: picking an eye"),
+                      (v1, "says mono: picking an eye")):
+        if path == v1:
+            mark_spherical(v1)
+        with pytest.raises(ValueError, match=why):
+            next(frames(path, eye="left"))
+        with pytest.raises(ValueError, match=why):
+            check_panorama_video(path, "left")
+    custom = tmp_path / "custom.mp4"
+    custom.write_bytes(plain.read_bytes())
+    _with_v2_boxes(custom, 3, b"equi")
+    with pytest.raises(ValueError, match="stereo layout stereo-custom, which cannot be cut"):
+        next(frames(custom, eye="right"))

@@ -14,6 +14,7 @@ from .cli_info import cmd_cache, cmd_info
 from .cli_inputs import (
     CAMERA_HELP,
     camera_options,
+    eye_option,
     level_options,
     rig_options,
 )
@@ -270,6 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "geometry rebuilt when it moves by over 0.05 degrees)")
     r.add_argument("--every", type=positive_int, default=1, metavar="N",
                    help="videos and bags: re-image every N-th frame")
+    eye_option(r)
     r.add_argument("--fps", type=at_least(0.0, float, above=True), default=None,
                    help="videos and bags: the output's frame rate (default: the source's, "
                         "over --every)")

@@ -192,7 +192,7 @@ def _frames(args):
             for f in frames(args.image[0], topics[0], args.every):
                 yield [f.image], f.stamp_ns
         return
-    streams = [video_frames(p, args.every) for p in args.image]
+    streams = [video_frames(p, args.every, args.eye) for p in args.image]
     count = len(load_rig(args.camera, key=args.key)) if args.split else None
     for frame in zip(*streams):
         images = [im for _, im in frame]
@@ -309,8 +309,8 @@ def cmd_render(args) -> int:
         raise ValueError("--imu-up says how to read --imu's messages: give --imu TOPIC")
     if args.every != 1 and not (videos or bag):
         raise ValueError("--every picks a video's or a bag's frames; none was given")
+    check_panorama_videos(args)
     if videos or bag:
-        check_panorama_videos(args)
         _render_video(args)
         return 0
     images = read_images(args)

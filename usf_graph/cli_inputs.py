@@ -76,16 +76,30 @@ def is_panorama_spec(spec: str) -> bool:
     return spec.split(":")[0].lower() in ("equirectangular", "panorama")
 
 
+def eye_option(p) -> None:
+    """``--eye``: one eye of a stereo 360 video (:func:`usf_graph.videos.eye_image`)."""
+    from .videos import EYES
+
+    p.add_argument("--eye", default=None, choices=EYES,
+                   help="stereo 360 videos: read this eye's panorama of each frame (where "
+                        "the video's 360 metadata says top-bottom or left-right)")
+
+
 def check_panorama_videos(args) -> None:
     """``--camera equirectangular`` on videos: refused where a video's 360 metadata says its
-    frames are no single equirectangular panorama (stereo, a cube map)."""
-    if args.camera is None or not is_panorama_spec(args.camera):
-        return
-    from .videos import check_panorama_video, is_video
+    frames are no single equirectangular panorama (a cube map; stereo, unless ``--eye``
+    picks one); ``--eye`` refused where a video's metadata says no stereo layout."""
+    from .videos import check_panorama_video, is_video, stereo_layout
 
-    for path in args.image:
-        if is_video(path):
-            check_panorama_video(path)
+    videos = [p for p in args.image if is_video(p)]
+    if args.eye is not None and len(videos) < len(args.image):
+        raise ValueError("--eye picks one eye of a stereo 360 video's frames: give videos")
+    panorama = args.camera is not None and is_panorama_spec(args.camera)
+    for path in videos:
+        if panorama:
+            check_panorama_video(path, args.eye)
+        elif args.eye is not None:
+            stereo_layout(path, args.eye)
 
 
 def has_size(spec: str) -> bool:

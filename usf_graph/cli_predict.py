@@ -17,6 +17,7 @@ from .cli_inputs import (
     camera_from_spec,
     camera_options,
     check_panorama_videos,
+    eye_option,
     is_panorama_spec,
     read_image,
     rig_from_spec,
@@ -52,6 +53,7 @@ def add_predict_parser(sub, fmt) -> None:
                         "default: the bag's only one. With --rig, once per camera in the rig's "
                         "order (default: a Kalibr camchain's rostopics)")
     bag_options(p, "each frame's up")
+    eye_option(p)
     p.add_argument("--camera", default=None,
                    help=CAMERA_HELP + "; for a ROS bag, default: its camera_info beside the "
                         "image topic")
@@ -196,7 +198,7 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
     calibrated = {}  # the calibration, read once per image size or bag (frames share it)
     topic = args.topic[0] if args.topic else None
     imu = imu_up(args)
-    for stem, source, image, bag, stamp in _inputs(args.image, args.every, topic):
+    for stem, source, image, bag, stamp in _inputs(args.image, args.every, topic, args.eye):
         if several:
             print(f"== {source}")
         up = None if imu is None else imu(bag, stamp)
@@ -210,9 +212,10 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
         run(model, [stem], [source], [image], cam, names, out, args, up=up)
 
 
-def _inputs(paths, every: int = 1, topic: str | None = None):
+def _inputs(paths, every: int = 1, topic: str | None = None, eye: str | None = None):
     """``(stem, source, RGB image, bag or None, stamp in ns or None)`` of every image, and of every ``every``-th
-    frame of every video (stem ``<video>_<frame index>``, source ``<video>#<frame index>``)
+    frame of every video (stem ``<video>_<frame index>``, source ``<video>#<frame index>``;
+    with ``eye``, that eye's panorama of a stereo 360 video's frames)
     and ROS bag (source ``<bag>#<topic>@<stamp in ns>``), read one at a time so that a long
     recording never sits in memory."""
     from .bags import frames
@@ -227,7 +230,7 @@ def _inputs(paths, every: int = 1, topic: str | None = None):
         if not is_video(path):
             yield Path(path).stem, str(path), read_image(path), None, None
             continue
-        for i, rgb in video_frames(path, every):
+        for i, rgb in video_frames(path, every, eye):
             yield f"{Path(path).stem}_{i:06d}", f"{path}#{i}", rgb, None, None
 
 
@@ -239,7 +242,7 @@ def _predict_split(run, model, names, out: Path, args) -> None:
 
     count = len(load_rig(args.camera, key=args.key))
     rig = None
-    for stem, source, image, _, _ in _inputs(args.image, args.every):
+    for stem, source, image, _, _ in _inputs(args.image, args.every, eye=args.eye):
         parts = split_frame(image, count, args.camera)
         if rig is None:
             rig = rig_from_spec(args.camera, args.fov, args.image_mask, args.key, args.distance,

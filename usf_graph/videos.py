@@ -1,6 +1,6 @@
 """Video files: their frames decoded one at a time (OpenCV), their frame rate, a frame that
-holds a rig's cameras side by side cut into their images, and an MP4 of equirectangular
-panoramas marked as a 360 video."""
+holds a rig's cameras side by side cut into their images, a stereo 360 video's frame cut
+into one eye's, and the 360 video metadata of an MP4 read and written."""
 
 from __future__ import annotations
 
@@ -23,12 +23,15 @@ def check_every(every) -> int:
     return int(every)
 
 
-def frames(path, every: int = 1):
+def frames(path, every: int = 1, eye: str | None = None):
     """``(index, RGB frame [H, W, 3] uint8)`` of every ``every``-th frame of the video
-    ``path``, decoded one at a time so that a long video never sits in memory."""
+    ``path``, decoded one at a time so that a long video never sits in memory; with ``eye``
+    (``"left"`` or ``"right"``), of a stereo 360 video, that eye's part of each frame
+    (:func:`eye_image`, the layout from its metadata: :func:`stereo_layout`)."""
     import cv2
 
     check_every(every)
+    layout = None if eye is None else stereo_layout(path, eye)
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise ValueError(f"cannot read video {path}: missing, or a codec OpenCV lacks; "
@@ -41,12 +44,38 @@ def frames(path, every: int = 1):
                 break
             if i % every == 0:
                 taken += 1
-                yield i, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                yield i, rgb if layout is None else eye_image(rgb, layout, eye)
             i += 1
     finally:
         cap.release()
     if not taken:
         raise ValueError(f"video {path} has no frames OpenCV can decode")
+
+
+#: Where each eye's panorama lies in a stereo frame, by the layout its metadata names:
+#: (the axis the frame is cut along, 0 rows or 1 columns; the left eye's half, 0 or 1).
+STEREO_LAYOUTS = {"top-bottom": (0, 0), "left-right": (1, 0), "right-left": (1, 1)}
+EYES = ("left", "right")
+
+
+def eye_image(image, layout: str, eye: str):
+    """One eye's half of a stereo frame ``image [H, W, ...]``: ``layout`` is
+    :data:`STEREO_LAYOUTS`' (``top-bottom``: the left eye on top, as the Spherical Video
+    RFC has it)."""
+    if eye not in EYES:
+        raise ValueError(f"eye must be 'left' or 'right', got {eye!r}")
+    if layout not in STEREO_LAYOUTS:
+        raise ValueError(f"stereo layout {layout!r} cannot be cut into its eyes: one of "
+                         f"{', '.join(STEREO_LAYOUTS)}")
+    axis, left = STEREO_LAYOUTS[layout]
+    n = image.shape[axis]
+    if n % 2:
+        raise ValueError(f"a {layout} stereo frame must have an even {'height' if axis == 0 else 'width'}, "
+                         f"got {n} pixels")
+    half = left if eye == "left" else 1 - left
+    cut = slice(half * n // 2, (half + 1) * n // 2)
+    return image[cut] if axis == 0 else image[:, cut]
 
 
 def info(path) -> tuple[float, int]:
@@ -293,18 +322,36 @@ def spherical_metadata(path) -> dict | None:
     return None
 
 
-def check_panorama_video(path) -> None:
-    """Raises where the 360 video metadata of ``path`` says that its frames are no single
-    equirectangular panorama (a stereo video's hold one per eye; a cube map's are faces),
-    so that reading them as one is refused rather than silently wrong."""
+def stereo_layout(path, eye: str) -> str:
+    """The stereo layout (:data:`STEREO_LAYOUTS`) that the 360 video metadata of ``path``
+    gives, for cutting out ``eye``; raises where it says none (mono, or no metadata)."""
+    if eye not in EYES:
+        raise ValueError(f"eye must be 'left' or 'right', got {eye!r}")
     meta = spherical_metadata(path)
-    if meta is None:
-        return
-    if meta["projection"] != "equirectangular":
+    if meta is None or meta["stereo"] == "mono":
+        said = "no 360 video metadata" if meta is None else "360 video metadata that says mono"
+        raise ValueError(f"{path} has {said}: picking an eye ({eye}) is for a stereo 360 "
+                         "video; leave it out, or for a stereo video written without metadata, "
+                         "cut the eye out first (e.g. FFmpeg's crop filter)")
+    if meta["stereo"] not in STEREO_LAYOUTS:
+        raise ValueError(f"{path}: its 360 video metadata says stereo layout {meta['stereo']}, "
+                         f"which cannot be cut into its eyes (known: {', '.join(STEREO_LAYOUTS)})")
+    return meta["stereo"]
+
+
+def check_panorama_video(path, eye: str | None = None) -> None:
+    """Raises where the 360 video metadata of ``path`` says that its frames are no single
+    equirectangular panorama (a cube map's are faces; a stereo video's hold one per eye,
+    unless ``eye`` picks one, as :func:`frames` cuts it), so that reading them as one is
+    refused rather than silently wrong."""
+    meta = spherical_metadata(path)
+    if meta is not None and meta["projection"] != "equirectangular":
         raise ValueError(f"{path}: its 360 video metadata (V{meta['version']}) says projection "
                          f"{meta['projection']}, not equirectangular: re-encode it to an "
                          "equirectangular panorama first (e.g. FFmpeg's v360 filter)")
-    if meta["stereo"] != "mono":
+    if eye is not None:
+        stereo_layout(path, eye)
+    elif meta is not None and meta["stereo"] != "mono":
         raise ValueError(f"{path}: its 360 video metadata (V{meta['version']}) says it is stereo "
-                         f"({meta['stereo']}): each frame holds one panorama per eye; cut one "
-                         "out first (e.g. FFmpeg's crop filter)")
+                         f"({meta['stereo']}): each frame holds one panorama per eye; pick one "
+                         "(the command line's --eye left or --eye right; in Python, eye=)")

@@ -103,18 +103,30 @@ def test_video_frames_refuses_what_it_cannot_read(tmp_path, world):
         VideoFrames(tmp_path / "data", tmp_path / "broken.mp4", pano, grid="icosahedral:2", progress=False)
 
 
-def test_a_stereo_360_video_is_not_lifted_as_one_panorama(tmp_path, world):
-    """Its 360 metadata says each frame holds one panorama per eye: refused, not lifted."""
+def test_a_stereo_360_video_is_lifted_one_eye_at_a_time(tmp_path, world):
+    """Its 360 metadata says each frame holds one panorama per eye (side by side): refused
+    as one panorama; with ``eye``, that eye's panorama is lifted, and a mono video's eye
+    is refused."""
     from usf_graph.videos import mark_spherical
 
     pano, frames = world
-    w = cv2.VideoWriter(str(tmp_path / "vr.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 5, (256, 128))
-    for f in frames[:2]:
-        w.write(np.ascontiguousarray(f[..., ::-1]))
+    w = cv2.VideoWriter(str(tmp_path / "vr.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 5, (512, 128))
+    for f in frames[:2]:  # the right eye's panorama turned by 64 pixels
+        w.write(np.ascontiguousarray(np.concatenate([f, np.roll(f, 64, axis=1)], 1)[..., ::-1]))
     w.release()
     mark_spherical(tmp_path / "vr.mp4", stereo="left-right")
-    with pytest.raises(ValueError, match=r"stereo \(left-right\)"):
+    with pytest.raises(ValueError, match=r"stereo \(left-right\).*--eye left or --eye right"):
         VideoFrames(tmp_path / "data", tmp_path / "vr.mp4", pano, grid="icosahedral:2", progress=False)
-    mark_spherical(tmp_path / "vr.mp4")  # mono: lifted
-    assert len(VideoFrames(tmp_path / "data", tmp_path / "vr.mp4", pano, grid="icosahedral:2",
-                           progress=False)) == 2
+    eyes = {e: VideoFrames(tmp_path / "data", tmp_path / "vr.mp4", pano, grid="icosahedral:3",
+                           eye=e, progress=False) for e in ("left", "right")}
+    fe = SphericalFrontend(pano, eyes["left"].grid)
+    for i, rgb in enumerate(decode_video(tmp_path / "vr.mp4")[0]):
+        for e, half in (("left", rgb[:, :256]), ("right", rgb[:, 256:])):
+            torch.testing.assert_close(eyes[e][i].x, fe.lift(half.astype(np.float32) / 255).to(torch.float16).float())
+    assert (eyes["left"].x - eyes["right"].x).abs().mean() > 0.05  # the eyes' panoramas differ
+    mark_spherical(tmp_path / "vr.mp4")  # mono: lifted whole, and no eye to pick
+    assert len(VideoFrames(tmp_path / "data", tmp_path / "vr.mp4", cameras.Equirectangular(512, 128),
+                           grid="icosahedral:2", progress=False)) == 2
+    with pytest.raises(ValueError, match="says mono: picking an eye"):
+        VideoFrames(tmp_path / "data", tmp_path / "vr.mp4", pano, grid="icosahedral:2", eye="left",
+                    progress=False)

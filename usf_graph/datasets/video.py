@@ -36,6 +36,8 @@ class VideoFrames(LiftedFrames):
         fov_deg: the usable field of view of every camera loaded from a file (a 190-degree
             fisheye calibrated as Kannala-Brandt may claim 270).
         blend, distance: how a rig's cameras are stitched (:class:`RigFrontend`).
+        eye: ``"left"`` or ``"right"``: of a stereo 360 video, that eye's panorama of each
+            frame (the layout from its 360 metadata, :func:`usf_graph.videos.stereo_layout`).
 
     A sample has ``x [N, C]`` (RGB in [0, 1]), ``pos``, ``area``, ``mask [N]`` (the points
     the camera sees), ``frame [1]`` (its index in the video) and ``stamp_ns [1]`` (its time
@@ -47,8 +49,8 @@ class VideoFrames(LiftedFrames):
 
     def __init__(self, root, video, camera, grid="icosahedral:5", every: int = 1,
                  interpolation: str = "bilinear", split: bool = False, fov_deg: float | None = None,
-                 blend: str = "best", distance: float | None = None, transform=None,
-                 pre_transform=None, progress: bool = True):
+                 blend: str = "best", distance: float | None = None, eye: str | None = None,
+                 transform=None, pre_transform=None, progress: bool = True):
         self.video = self.source = Path(video)
         if not self.video.is_file():
             raise FileNotFoundError(f"video {video} does not exist")
@@ -57,6 +59,9 @@ class VideoFrames(LiftedFrames):
         self.every, self.interpolation, self.split, self.progress = \
             videos.check_every(every), interpolation, split, progress
         self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
+        self.eye = eye
+        if eye is not None:  # refused now where the video has no stereo layout
+            videos.stereo_layout(self.video, eye)
         if split:
             rig = camera if isinstance(camera, Mapping) else load_rig(camera)
             if fov_deg is not None:
@@ -70,12 +75,13 @@ class VideoFrames(LiftedFrames):
                                  "side: give split=True, or one camera")
             cam = camera if isinstance(camera, Camera) else load(camera)
             if cam.model == "equirectangular":  # refused where its 360 metadata says stereo
-                videos.check_panorama_video(self.video)
+                videos.check_panorama_video(self.video, eye)
             self.cameras = {"camera": cam.with_fov(fov_deg) if fov_deg is not None else cam}
             self.frontend = SphericalFrontend(self.cameras["camera"], self.grid,
                                               interpolation=interpolation)
         self.fps = videos.info(self.video)[0]
-        self._options = {"blend": blend, "distance": distance}
+        # eye only where given, so that the mono videos' processed files keep their names
+        self._options = {"blend": blend, "distance": distance, **({"eye": eye} if eye else {})}
         super().__init__(str(root), transform, pre_transform, log=False)
         self.frame = self._load()["frame"]
 
@@ -93,7 +99,7 @@ class VideoFrames(LiftedFrames):
     def process(self):
         xs, stamps, index = [], [], []
         count = len(self.cameras)
-        for i, rgb in tqdm(videos.frames(self.video, self.every), desc=f"lifting {self.video.name}",
+        for i, rgb in tqdm(videos.frames(self.video, self.every, self.eye), desc=f"lifting {self.video.name}",
                            disable=not self.progress, leave=False):
             img = unit_range(rgb)
             if self.split:
