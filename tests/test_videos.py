@@ -76,6 +76,55 @@ def test_mark_spherical_makes_ffmpeg_read_an_equirectangular_360_video(tmp_path,
     assert _spherical(path)[0] == [0] * 3
 
 
+def _as_co64(path) -> None:
+    """The MP4 ``path`` (its moov box before the media data) with 64-bit chunk offsets: each
+    ``stco`` written as a ``co64``, the offsets moved by what the moov box grew, as a
+    recorder writing files past 4 GiB does."""
+    from usf_graph.videos import _children, _moov, _rebuilt
+
+    start, size, head, moov = _moov(path)
+    assert start + size < path.stat().st_size  # the media data after the moov box
+
+    def tables(box, h):
+        if box[4:8] == b"stco":
+            return [int.from_bytes(box[h + 4:h + 8], "big")]
+        return [n for k, b, bh in _children(box, h, "test")
+                if k in (b"trak", b"mdia", b"minf", b"stbl", b"stco") for n in tables(b, bh)]
+
+    grown = 4 * sum(tables(moov, head))
+
+    def wide(box, h):
+        if box[4:8] == b"stco":
+            n = int.from_bytes(box[h + 4:h + 8], "big")
+            offs = [int.from_bytes(box[h + 8 + 4 * k:h + 12 + 4 * k], "big") for k in range(n)]
+            body = box[h:h + 8] + b"".join((o + grown).to_bytes(8, "big") for o in offs)
+            return (8 + len(body)).to_bytes(4, "big") + b"co64" + body
+        if box[4:8] in (b"moov", b"trak", b"mdia", b"minf", b"stbl"):
+            return _rebuilt(box, h, [(k, wide(b, bh), bh) for k, b, bh in _children(box, h, "test")])
+        return box
+
+    data = path.read_bytes()
+    path.write_bytes(data[:start] + wide(moov, head) + data[start + size:])
+
+
+def test_mark_spherical_moves_64_bit_chunk_offsets(tmp_path):
+    """A long recording's MP4 has 64-bit chunk offsets (``co64``): with its moov box first,
+    marking moves them with the media data, and FFmpeg decodes the same frames, marked."""
+    from usf_graph.videos import mark_spherical
+
+    path = tmp_path / "long.mp4"
+    _written_mp4(path, faststart=True)
+    before = _spherical(path)[1]
+    _as_co64(path)
+    data = path.read_bytes()
+    assert b"co64" in data and b"stco" not in data
+    assert all(np.array_equal(a, b) for a, b in zip(before, _spherical(path)[1]))  # still the video
+    mark_spherical(path)
+    marked, after = _spherical(path)
+    assert marked == [0] * 3 and len(after) == 3
+    assert all(np.array_equal(a, b) for a, b in zip(before, after))
+
+
 def test_mark_spherical_refuses_what_it_cannot_mark_and_keeps_the_file(tmp_path):
     from usf_graph.videos import mark_spherical
 
