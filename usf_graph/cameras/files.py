@@ -16,7 +16,7 @@ FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.o
            "K/D/DIM (cv2.fisheye scripts)", "ROS camera_info", "USF sensor YAML",
            "OCamCalib calib_results.txt", "lens normal map .npy/.npz", "usf-graph YAML",
            "COLMAP cameras.txt/cameras.bin or a sparse model's folder", "Basalt calibration JSON",
-           "ORB-SLAM3 settings")
+           "ORB-SLAM3 settings", "nerfstudio/Instant-NGP transforms.json")
 
 
 class Src:

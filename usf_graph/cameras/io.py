@@ -25,6 +25,9 @@ Formats (detected from the content, not the file name):
   pinhole | pinhole-radtan8 | kb4 | ds | eucm | unified, mounted in the rig.
 - COLMAP's ``cameras.txt``/``cameras.bin``, or a sparse model's folder holding one
   (:mod:`.colmap`); ``key`` is the camera's id.
+- Nerfstudio's and Instant-NGP's ``transforms.json`` (:mod:`.nerfstudio`): OPENCV and
+  the pinholes, OPENCV_FISHEYE, EQUIRECTANGULAR; ``key`` is a frame's ``file_path`` where
+  the frames have intrinsics of their own.
 
 Every error names the file, the key and what would be accepted.
 """
@@ -43,6 +46,7 @@ from .colmap import CameraList, colmap_rig, in_folder, read_file, rig_file
 from .files import Src, read_document
 from .formats import _load_ocamcalib, _load_single, with_fov_and_mask
 from .kalibr import is_kalibr, kalibr_clock, kalibr_imu, kalibr_names, kalibr_pose, load_kalibr
+from .nerfstudio import is_transforms, read_transforms
 from .orbslam import is_orbslam, load_orbslam, orbslam_imu, orbslam_names, orbslam_pose
 from .rig import mount
 from .scaramuzza import Scaramuzza
@@ -234,7 +238,8 @@ def _document(path: Path):
         cams = read_file(path)
         if cams is not None:
             return cams
-    return read_document(path, _load_ocamcalib)
+    data = read_document(path, _load_ocamcalib)
+    return read_transforms(path, data) if is_transforms(data) else data
 
 
 def save(cam: Camera, path) -> None:

@@ -1,0 +1,98 @@
+"""Nerfstudio's and Instant-NGP's transforms.json, checked against pycolmap: nerfstudio
+copies COLMAP's parameters, principal point and pixel convention included."""
+
+import json
+import math
+
+import numpy as np
+import pycolmap
+import pytest
+
+from tests.helpers import FIXTURES
+from usf_graph import cameras as C
+from usf_graph.cameras.colmap import HALF_PIXEL
+from usf_graph.cli import main
+
+W, H = 640, 480
+FIXTURE = FIXTURES / "nerfstudio_transforms.json"  # as ns-process-data writes it
+_FISHEYE = json.loads(FIXTURE.read_text())
+# (transforms.json fields, the COLMAP model and parameters they hold)
+CASES = {
+    "opencv": ({"camera_model": "OPENCV", "fl_x": 520.3, "fl_y": 518.9, "cx": 321.7, "cy": 238.4,
+                "k1": -0.21, "k2": 0.05, "p1": 0.0012, "p2": -0.0008},
+               "OPENCV", [520.3, 518.9, 321.7, 238.4, -0.21, 0.05, 0.0012, -0.0008]),
+    "opencv_k3": ({"camera_model": "OPENCV", "fl_x": 410.0, "fl_y": 412.5, "cx": 318.2, "cy": 243.9,
+                   "k1": -0.12, "k2": 0.03, "k3": -0.004, "p1": 0.0005, "p2": 0.0002},
+                  "FULL_OPENCV", [410.0, 412.5, 318.2, 243.9, -0.12, 0.03, 0.0005, 0.0002, -0.004, 0, 0, 0]),
+    "pinhole": ({"camera_model": "PINHOLE", "fl_x": 600.0, "fl_y": 600.0, "cx": 320.0, "cy": 240.0},
+                "PINHOLE", [600.0, 600.0, 320.0, 240.0]),
+    "instant_ngp": ({"camera_angle_x": 1.2}, "PINHOLE",  # no model, no centre: a pinhole, centred
+                    [0.5 * W / math.tan(0.6)] * 2 + [W / 2, H / 2]),
+    "fisheye": ({k: _FISHEYE[k] for k in ("camera_model", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4")},
+                "OPENCV_FISHEYE", [_FISHEYE[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4")]),
+}
+
+
+def write(path, fields, frames=None):
+    frames = frames if frames is not None else [{"file_path": "images/a.jpg", "transform_matrix": np.eye(4).tolist()}]
+    path.write_text(json.dumps({"w": W, "h": H, **fields, "frames": frames}))
+    return path
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_transforms_cameras_project_as_pycolmap_reads_their_parameters(tmp_path, case):
+    fields, model, params = CASES[case]
+    cam = C.load(write(tmp_path / "transforms.json", fields))
+    assert type(cam) is (C.KannalaBrandt if "FISHEYE" in model else C.Pinhole)
+    ref = pycolmap.Camera.create_from_model_name(1, model, 1.0, W, H)
+    ref.params = params
+    rays = np.random.default_rng(0).normal(size=(4000, 3)) + [0, 0, 2.0]  # COLMAP's frame: z ahead
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    rays = rays[rays[:, 2] > 0.5]  # within 60 degrees: short of where the distortions fold
+    theirs = np.asarray(ref.img_from_cam(rays), np.float64)
+    ours, seen = cam.sees(rays @ C.DEFAULT_ROTATION.T)
+    inside = np.all((theirs >= 0) & (theirs <= [W, H]), -1)
+    assert inside.sum() > 1000 and seen[inside].all()
+    np.testing.assert_allclose(ours[inside] + HALF_PIXEL, theirs[inside], atol=1e-6, rtol=0)
+
+
+def test_the_fixture_reads_from_the_command_line_as_a_fisheye(capsys):
+    assert main(["camera", str(FIXTURE)]) == 0
+    out = capsys.readouterr().out
+    assert "KannalaBrandt" in out and "876 x 584" in out
+    assert main(["camera", str(FIXTURE), "--key", "images/DSC00001.JPG"]) == 2
+    assert "every frame has the file's camera; leave the key out" in capsys.readouterr().err
+    assert [(k, c.key()) for k, c in C.load_all(FIXTURE).items()] == [(None, C.load(FIXTURE).key())]
+
+
+def test_frames_with_their_own_intrinsics_are_picked_by_file_path(tmp_path):
+    top = {"camera_model": "OPENCV", "fl_x": 500.0, "cx": 320.0, "cy": 240.0}
+    frames = [{"file_path": "./images/a.jpg", "fl_x": 500.0, "fl_y": 500.0},
+              {"file_path": "./images/b.jpg", "fl_x": 450.0, "fl_y": 455.0, "k1": -0.1}]
+    path = write(tmp_path / "transforms.json", top, frames)
+    with pytest.raises(ValueError, match=r"intrinsics of their own \(2 frames.*choose one by its file_path"):
+        C.load(path)
+    b = C.load(path, key="images/b.jpg")  # with or without ./
+    assert (b.fx, b.fy, b.cx, b.cy) == (450.0, 455.0, 320.0 - HALF_PIXEL, 240.0 - HALF_PIXEL)
+    assert b.dist[0] == -0.1 and C.load(path, key="./images/a.jpg").fy == 500.0
+    assert sorted(C.load_all(path)) == ["./images/a.jpg", "./images/b.jpg"]
+    with pytest.raises(ValueError, match="no frame with file_path 'c.jpg'"):
+        C.load(path, key="c.jpg")
+
+
+def test_bad_transforms_get_errors_that_name_the_fix(tmp_path):
+    good = {"camera_model": "OPENCV", "fl_x": 500.0, "fl_y": 500.0, "cx": 320.0, "cy": 240.0}
+    for fields, why in (({**good, "k4": 0.01}, "k4=0.01: the r\\^8 term"),
+                        ({**good, "camera_model": "VR180_L"}, "camera_model 'VR180_L' is not read here"),
+                        ({**good, "camera_model": "OPENCV_FISHEYE", "p1": 0.1}, "no tangential terms"),
+                        ({"camera_model": "OPENCV"}, "give fl_x \\(pixels\\) or camera_angle_x"),
+                        ({"camera_angle_x": 3.5}, "between 0 and pi"),
+                        ({**good, "fl_x": float("nan")}, "'fl_x' must be finite")):
+        with pytest.raises(ValueError, match=why):
+            C.load(write(tmp_path / "transforms.json", fields))
+    path = tmp_path / "no_size.json"
+    path.write_text(json.dumps({**good, "frames": []}))
+    with pytest.raises(ValueError, match="missing key 'w'.*as w and h"):
+        C.load(path)
+    pano = C.load(write(tmp_path / "pano.json", {"camera_model": "EQUIRECTANGULAR"}))
+    assert type(pano) is C.Equirectangular and (pano.width, pano.height) == (W, H)
