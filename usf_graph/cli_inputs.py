@@ -143,7 +143,9 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
     scaled to the image (:meth:`~usf_graph.cameras.Camera.resized`, with a note): a video
     recorded or saved smaller than the calibration images. ``equirectangular`` without a
     size, for a JPEG (``image_path``) whose Photo Sphere XMP says it is cropped (a phone's
-    panorama short of the poles), is that crop, with a note."""
+    panorama short of the poles), is that crop, with a note. Without ``key``, a calibration
+    file whose frames have intrinsics of their own (a ``transforms.json``) gives the
+    camera of ``image_path``'s frame (:func:`~usf_graph.cameras.frame_key`)."""
     from . import cameras
 
     cube, pano = is_cubemap_spec(spec), is_panorama_spec(spec)
@@ -164,6 +166,8 @@ def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape
         else:
             raise ValueError("give the panorama's size: equirectangular:WIDTHxHEIGHT")
         return cameras.with_fov_and_mask(cameras.Equirectangular(w, h), fov, image_mask)
+    if key is None:  # a transforms.json whose frames have their own intrinsics: the image's
+        key = cameras.frame_key(spec, image_path)
     cam = fit_to_image(cameras.load(spec, key=key, fov_deg=fov), image_shape)
     return cameras.with_fov_and_mask(cam, None, image_mask)
 

@@ -194,6 +194,8 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
         run(model, [Path(p).stem for p in args.image], args.image, images,
             _rig_cameras(images, args.image, args), names, out, args)
         return
+    from .cameras import frame_key
+
     several = len(args.image) > 1 or bool(streams)
     calibrated = {}  # the calibration, read once per image size or bag (frames share it)
     topic = args.topic[0] if args.topic else None
@@ -202,8 +204,10 @@ def _predict_all(run, model, names, out: Path, args, rig_bag: bool, streams) -> 
         if several:
             print(f"== {source}")
         up = None if imu is None else imu(bag, stamp)
-        key = (image.shape, source if is_panorama_spec(args.camera) else None) \
-            if args.camera is not None else bag  # a panorama's crop may come from its file
+        # a panorama's crop may come from its file, a transforms.json frame's camera too
+        own = args.camera is not None and (is_panorama_spec(args.camera) or (
+            args.key is None and frame_key(args.camera, source) is not None))
+        key = (image.shape, source if own else None) if args.camera is not None else bag
         if key not in calibrated:
             calibrated[key] = bag_camera(bag, topic, args) if args.camera is None else \
                 camera_from_spec(args.camera, args.key, args.fov, args.image_mask, image.shape,

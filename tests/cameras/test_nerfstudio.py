@@ -96,3 +96,42 @@ def test_bad_transforms_get_errors_that_name_the_fix(tmp_path):
         C.load(path)
     pano = C.load(write(tmp_path / "pano.json", {"camera_model": "EQUIRECTANGULAR"}))
     assert type(pano) is C.Equirectangular and (pano.width, pano.height) == (W, H)
+
+
+def test_an_images_own_frame_picks_its_camera(tmp_path):
+    """Without a key, each image takes its transforms.json frame's camera: ``frame_key``,
+    ``render``, and ``predict`` on two frames of two cameras at once, each frame's labels
+    those of a run with its ``--key``."""
+    import cv2
+
+    from tests.helpers import tiny_seg_checkpoint
+
+    top = {"camera_model": "OPENCV", "cx": 32.0, "cy": 24.0}
+    frames = [{"file_path": "./images/a.png", "fl_x": 40.0, "fl_y": 40.0},
+              {"file_path": "images/b.png", "fl_x": 25.0, "fl_y": 25.0, "k1": -0.05}]
+    path = tmp_path / "transforms.json"
+    path.write_text(json.dumps({"w": 64, "h": 48, **top, "frames": frames}))
+    (tmp_path / "images").mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a", "b"):
+        cv2.imwrite(str(tmp_path / "images" / f"{name}.png"),
+                    cv2.GaussianBlur(rng.integers(0, 256, (48, 64, 3)).astype(np.uint8), (7, 7), 2))
+    a, b = (str(tmp_path / "images" / f"{n}.png") for n in "ab")
+    assert C.frame_key(path, b) == "images/b.png" and C.frame_key(path, a) == "./images/a.png"
+    assert C.frame_key(path, tmp_path / "other.png") is None and C.frame_key(FIXTURE, a) is None
+    outs = {}
+    for name, argv in (("auto", [b]), ("key", [b, "--key", "images/b.png"]), ("other", [b, "--key", "./images/a.png"])):
+        assert main(["render", *argv, "--camera", str(path), "--to", "equirectangular:64x32",
+                     "--out", str(tmp_path / f"{name}.png")]) == 0
+        outs[name] = cv2.imread(str(tmp_path / f"{name}.png"))
+    assert np.array_equal(outs["auto"], outs["key"]) and not np.array_equal(outs["auto"], outs["other"])
+    tiny_seg_checkpoint(tmp_path / "seg.pt", size=32)
+    labels = {}
+    for name, argv in (("both", [a, b]), ("a", [a, "--key", "./images/a.png"]), ("b", [b, "--key", "images/b.png"])):
+        assert main(["predict", "seg", str(tmp_path / "seg.pt"), *argv, "--camera", str(path),
+                     "--up", "0", "0", "1", "--out", str(tmp_path / name)]) == 0
+        labels.update({(name, p.name): cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+                       for p in (tmp_path / name).glob("*labels.png")})
+    assert len(labels) == 4
+    for n in "ab":
+        assert np.array_equal(labels[("both", f"{n}_labels.png")], labels[(n, f"{n}_labels.png")]), n

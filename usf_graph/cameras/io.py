@@ -46,7 +46,7 @@ from .colmap import CameraList, colmap_rig, in_folder, read_file, rig_file
 from .files import Src, read_document
 from .formats import _load_ocamcalib, _load_single, with_fov_and_mask
 from .kalibr import is_kalibr, kalibr_clock, kalibr_imu, kalibr_names, kalibr_pose, load_kalibr
-from .nerfstudio import is_transforms, read_transforms
+from .nerfstudio import TransformsCameras, is_transforms, read_transforms
 from .orbslam import is_orbslam, load_orbslam, orbslam_imu, orbslam_names, orbslam_pose
 from .rig import mount
 from .scaramuzza import Scaramuzza
@@ -121,6 +121,21 @@ def _mounted(path: Path, data: dict, chain, name: str, required: bool = False) -
     cam = chain.camera(Src(path, name), data, name)
     return cam if pose is None else mount(cam, pose)
 
+
+
+def frame_key(path, image) -> str | None:
+    """The key that picks the camera of the image file ``image`` in the calibration file
+    ``path`` where its frames have intrinsics of their own (a ``transforms.json`` frame
+    whose ``file_path``, from the file's folder, is ``image``); None for other files, and
+    for images it does not list."""
+    path = Path(path)
+    if image is None or path.suffix.lower() != ".json" or not path.is_file():
+        return None
+    data = _document(path)
+    if not isinstance(data, TransformsCameras) or list(data) == [None]:
+        return None
+    want = Path(image).resolve()
+    return next((k for k in data if (path.parent / k).resolve() == want), None)
 
 
 def rig_topics(path) -> list[str] | None:
