@@ -282,3 +282,16 @@ def test_frames_of_one_eye_are_where_ffmpeg_reads_that_eye(tmp_path):
     _with_v2_boxes(custom, 3, b"equi")
     with pytest.raises(ValueError, match="stereo layout stereo-custom, which cannot be cut"):
         next(frames(custom, eye="right"))
+
+
+def test_an_insta360_insv_is_read_as_the_mp4_it_is(tmp_path):
+    from usf_graph.videos import frames, is_video, mark_spherical, spherical_metadata
+
+    mp4, insv = tmp_path / "a.mp4", tmp_path / "VID_20260101_000000_00_001.insv"
+    _written_mp4(mp4)
+    insv.write_bytes(mp4.read_bytes())
+    assert is_video(insv)
+    got, want = [f for _, f in frames(insv)], [f for _, f in frames(mp4)]
+    assert len(got) == 3 and all(np.array_equal(g, w) for g, w in zip(got, want))
+    mark_spherical(insv, stereo="left-right")
+    assert spherical_metadata(insv) == {"projection": "equirectangular", "stereo": "left-right", "version": 1}

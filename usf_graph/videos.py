@@ -6,8 +6,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-#: Files read as videos, frame by frame.
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
+#: Files read as videos, frame by frame (``.insv``: an Insta360 camera's MP4, one lens or
+#: both side by side).
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".insv")
 
 
 def is_video(path) -> bool:
@@ -104,8 +105,8 @@ def split_frame(image, count: int, what: str) -> list:
     return [image[:, k * w // count:(k + 1) * w // count] for k in range(count)]
 
 
-#: The files that hold 360 video metadata: MP4 and QuickTime.
-_MP4_SUFFIXES = (".mp4", ".m4v", ".mov")
+#: The files that hold 360 video metadata: MP4 (Insta360's too) and QuickTime.
+_MP4_SUFFIXES = (".mp4", ".m4v", ".mov", ".insv")
 #: The Spherical Video (V1) metadata box, ``moov.trak.uuid`` with this UUID, holding XML
 #: (google/spatial-media's RFC; what YouTube, VLC and FFmpeg read).
 SPHERICAL_UUID = bytes.fromhex("ffcc8263f8554a938814587a02521fdd")
