@@ -126,8 +126,11 @@ def test_cube_maps_save_resize_and_refuse(tmp_path):
                                     Cubemap(8, "dice").with_fov(200), Equirectangular(32, 16).with_fov(120)],
                          ids=["horizon", "dice", "panorama", "crop", "dice-fov", "panorama-fov"])
 def test_pixels_with_rays_are_those_that_unproject(camera):
-    """The shortcut (no unprojection where every face's or the panorama's pixels have rays)
-    says what unprojecting every pixel says."""
-    want = camera.unproject(camera.pixel_grid())[1]
+    """The shortcuts (no unprojection where every face's or the panorama's pixels have rays;
+    one face's rays turned onto each face) say what unprojecting every pixel says."""
+    rays, want = camera.unproject(camera.pixel_grid())
     assert np.array_equal(camera.pixels_with_rays(), want) and (~want).any() == (
         camera.fov_limit is not None or camera.model == "cubemap" and camera.layout == "dice")
+    fast, valid = camera.pixel_rays()
+    assert np.array_equal(valid, want) and np.isnan(fast[~want]).all()
+    np.testing.assert_allclose(fast[want], rays[want], atol=1e-15, rtol=0)

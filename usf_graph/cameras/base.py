@@ -161,7 +161,12 @@ class Camera:
     def pixels_with_rays(self) -> np.ndarray:
         """``[H, W]`` bool: the pixels that have a ray (in the lens model's domain and the
         usable field of view); the :attr:`image_mask` is not applied."""
-        return self.unproject(self.pixel_grid())[1]
+        return self.pixel_rays()[1]
+
+    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`unproject` of every pixel centre: rays ``[H, W, 3]`` (optical frame) and
+        ``valid [H, W]``; a camera may compute it faster from its structure."""
+        return self.unproject(self.pixel_grid())
 
     def pixel_grid(self) -> np.ndarray:
         """Pixel centres ``[H, W, 2]`` as (u, v)."""
@@ -172,7 +177,7 @@ class Camera:
     def lens_normal_map(self):
         """Per-pixel unit rays in the sphere frame ``[H, W, 3]`` and ``valid [H, W]``
         (False also where :attr:`image_mask` is)."""
-        rays, valid = self.unproject(self.pixel_grid())
+        rays, valid = self.pixel_rays()
         if self.image_mask is not None:
             valid = valid & self.image_mask
             rays = np.where(valid[..., None], rays, np.nan)
@@ -217,7 +222,7 @@ class Camera:
     def max_incidence(self) -> float:
         """Largest angle (radians) between a visible ray and the optical axis (pixels the
         :attr:`image_mask` ignores do not count)."""
-        rays, valid = self.unproject(self.pixel_grid())
+        rays, valid = self.pixel_rays()
         if self.image_mask is not None:
             valid &= self.image_mask
         if not valid.any():
