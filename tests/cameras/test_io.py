@@ -283,3 +283,32 @@ def test_bad_files_raise_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="fx must be a positive"):
         C.load(p)
     assert math.isfinite(C.load(FIX / "ros_plumb_bob.yaml").fov_deg)
+
+
+def test_vins_fusions_camodocal_files_project_as_opencv_does():
+    """VINS-Mono's and VINS-Fusion's camera files (CamOdoCal's FileStorage YAML): its
+    KANNALA_BRANDT is ``cv2.fisheye`` with k2..k5 and mu mv u0 v0, its PINHOLE is
+    ``cv2.projectPoints`` with k1 k2 p1 p2."""
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(3000, 3)) + [0, 0, 2.5]  # ahead of the camera (optical frame)
+    pts = pts[pts[:, 2] > 0.6 * np.linalg.norm(pts, axis=-1)]  # within 53 degrees
+    for name, kind in (("vins_kannala_brandt.yaml", C.KannalaBrandt), ("vins_pinhole.yaml", C.Pinhole)):
+        fs = cv2.FileStorage(str(FIX / name), cv2.FILE_STORAGE_READ)
+        p = fs.getNode("projection_parameters")
+        cam = C.load(FIX / name)
+        assert type(cam) is kind and (cam.width, cam.height) == (int(fs.getNode("image_width").real()),
+                                                                   int(fs.getNode("image_height").real()))
+        if kind is C.KannalaBrandt:
+            K = np.array([[p.getNode("mu").real(), 0, p.getNode("u0").real()],
+                          [0, p.getNode("mv").real(), p.getNode("v0").real()], [0, 0, 1]])
+            D = np.array([p.getNode(k).real() for k in ("k2", "k3", "k4", "k5")])
+            want = cv2.fisheye.projectPoints(pts[:, None], np.zeros(3), np.zeros(3), K, D)[0][:, 0]
+        else:
+            d = fs.getNode("distortion_parameters")
+            K = np.array([[p.getNode("fx").real(), 0, p.getNode("cx").real()],
+                          [0, p.getNode("fy").real(), p.getNode("cy").real()], [0, 0, 1]])
+            D = np.array([d.getNode(k).real() for k in ("k1", "k2", "p1", "p2")])
+            want = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, D)[0][:, 0]
+        got, valid = cam.project(pts)
+        assert valid.all(), name
+        np.testing.assert_allclose(got, want, atol=1e-6, rtol=0, err_msg=name)

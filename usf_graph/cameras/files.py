@@ -13,7 +13,8 @@ from .base import Camera, check_finite, check_rotation, mask_from_image, plain
 from .panorama import LensNormalMap
 
 FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.omnidir xi)",
-           "K/D/DIM (cv2.fisheye scripts)", "ROS camera_info", "USF sensor YAML",
+           "K/D/DIM (cv2.fisheye scripts)", "ROS camera_info",
+           "USF sensor or CamOdoCal/VINS-Fusion YAML",
            "OCamCalib calib_results.txt", "lens normal map .npy/.npz", "usf-graph YAML",
            "COLMAP cameras.txt/cameras.bin or a sparse model's folder", "Basalt calibration JSON",
            "ORB-SLAM3 settings", "nerfstudio/Instant-NGP transforms.json")

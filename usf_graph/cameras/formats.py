@@ -156,7 +156,12 @@ def _load_kdd(src: Src, data: dict) -> Camera:
                     f"{', '.join(_PINHOLE_DIST + _FISHEYE_DIST)}")
 
 
-_USF_MODELS = {0: "pinhole", 1: "mei", "pinhole": "pinhole", "mei": "mei"}
+_USF_MODELS = {0: "pinhole", 1: "mei", "pinhole": "pinhole", "mei": "mei",
+               "kannala_brandt": "kannala_brandt"}
+#: The parameter names of each model_type: CamOdoCal's (VINS-Mono, VINS-Fusion), whose
+#: Kannala-Brandt is OpenCV's fisheye: k2..k5 its k1..k4, mu mv u0 v0 its fx fy cx cy.
+_USF_PROJECTION = {"pinhole": ("fx", "fy", "cx", "cy"), "mei": ("gamma1", "gamma2", "u0", "v0"),
+                   "kannala_brandt": ("mu", "mv", "u0", "v0")}
 
 
 def _load_usf(src: Src, data: dict) -> Camera:
@@ -166,15 +171,19 @@ def _load_usf(src: Src, data: dict) -> Camera:
     mt = src.need(intr, "model_type", where)
     model = _USF_MODELS.get(mt.lower() if isinstance(mt, str) else mt)
     if model is None:
-        raise src.error(f"unknown model_type {mt!r}; supported: 0 (pinhole), 1 (Mei)")
+        raise src.error(f"unknown model_type {mt!r}; supported: 0 or PINHOLE, 1 or MEI, "
+                        "KANNALA_BRANDT (CamOdoCal's SCARAMUZZA: give OCamCalib's "
+                        "calib_results.txt instead)")
     dp = intr.get("distortion_parameters") or {}
     dist = [src.number(src.need(dp, k, "distortion_parameters"), k) for k in ("k1", "k2", "p1", "p2")] \
         if dp else [0.0] * 4
     pp = src.need(intr, "projection_parameters", where)
-    names = ("fx", "fy", "cx", "cy") if model == "pinhole" else ("gamma1", "gamma2", "u0", "v0")
-    f = [src.number(src.need(pp, k, "projection_parameters"), k) for k in names]
+    f = [src.number(src.need(pp, k, "projection_parameters"), k) for k in _USF_PROJECTION[model]]
     K = dict(zip(("fx", "fy", "cx", "cy"), f))
-    if model == "pinhole":
+    if model == "kannala_brandt":
+        k = [src.number(src.need(pp, n, "projection_parameters"), n) for n in ("k2", "k3", "k4", "k5")]
+        cam = src.build(KannalaBrandt, **K, width=w, height=h, k=k)
+    elif model == "pinhole":
         cam = src.build(Pinhole, **K, width=w, height=h, dist=dist)
     else:
         mp = src.need(intr, "mirror_parameters", where)

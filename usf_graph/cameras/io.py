@@ -16,7 +16,8 @@ Formats (detected from the content, not the file name):
   ``intrinsic.model_type`` (0 pinhole, 1 Mei), ``intrinsic.mirror_parameters.xi``,
   ``intrinsic.distortion_parameters`` (k1 k2 p1 p2), ``intrinsic.projection_parameters``
   (fx fy cx cy, or gamma1 gamma2 u0 v0), optional ``mask`` (image) and ``lens_normal_map``
-  (``.npy``), paths relative to the file. CamOdoCal's flat form (``model_type: MEI``) too.
+  (``.npy``), paths relative to the file. CamOdoCal's flat form (VINS-Mono, VINS-Fusion:
+  ``model_type`` PINHOLE, MEI or KANNALA_BRANDT) too.
 - OCamCalib ``calib_results.txt``; lens normal maps ``.npy``/``.npz`` (``rays``, ``valid``).
 - usf-graph's own YAML (:meth:`Camera.save`), with optional ``fov_deg`` and ``image_mask``.
 - ORB-SLAM3's settings (FileStorage): ``Camera.type`` PinHole | KannalaBrandt8 | Rectified,
