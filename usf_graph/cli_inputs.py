@@ -7,9 +7,9 @@ from pathlib import Path
 
 CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, ORB-SLAM3 "
                "settings, OpenCV FileStorage (incl. fisheye_model "
-               "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor YAML, OCamCalib "
-               "calib_results.txt, lens normal map .npy/.npz, usf-graph YAML, COLMAP "
-               "cameras.txt/.bin or a sparse model's folder; or "
+               "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor or VINS-Fusion YAML, "
+               "OCamCalib calib_results.txt, lens normal map .npy/.npz, usf-graph YAML, COLMAP "
+               "cameras.txt/.bin or a sparse model's folder, nerfstudio transforms.json; or "
                "'equirectangular' (size from the image) / 'equirectangular:WxH'; or "
                "'cubemap' (a 6:1 horizon strip or a 4:3 dice cross, from the image) / "
                "'cubemap:SIZE[:horizon|dice]' (six faces, SIZE pixels square)")

@@ -1,5 +1,5 @@
 """The calibration formats that hold one camera: usf-graph's own YAML, OpenCV
-FileStorage and ROS ``camera_info``, ``K``/``D``/``DIM``, the USF sensor YAML and
+FileStorage and ROS ``camera_info``, ``K``/``D``/``DIM``, the USF sensor and CamOdoCal YAML and
 OCamCalib (:mod:`.io` recognizes a file's format and reads rigs)."""
 
 from __future__ import annotations
