@@ -70,7 +70,7 @@ def test_frames_with_their_own_intrinsics_are_picked_by_file_path(tmp_path):
     frames = [{"file_path": "./images/a.jpg", "fl_x": 500.0, "fl_y": 500.0},
               {"file_path": "./images/b.jpg", "fl_x": 450.0, "fl_y": 455.0, "k1": -0.1}]
     path = write(tmp_path / "transforms.json", top, frames)
-    with pytest.raises(ValueError, match=r"intrinsics of their own \(2 frames.*choose one by its file_path"):
+    with pytest.raises(ValueError, match=r"cameras of their own \(intrinsics or masks; 2 frames.*choose one by its file_path"):
         C.load(path)
     b = C.load(path, key="images/b.jpg")  # with or without ./
     assert (b.fx, b.fy, b.cx, b.cy) == (450.0, 455.0, 320.0 - HALF_PIXEL, 240.0 - HALF_PIXEL)
@@ -135,3 +135,23 @@ def test_an_images_own_frame_picks_its_camera(tmp_path):
     assert len(labels) == 4
     for n in "ab":
         assert np.array_equal(labels[("both", f"{n}_labels.png")], labels[(n, f"{n}_labels.png")]), n
+
+
+def test_a_frames_mask_is_its_cameras_image_mask(tmp_path):
+    """nerfstudio's per-frame ``mask_path`` (zero: ignored), from the file's folder: the
+    frame's camera ignores those pixels; a mask of another size is refused."""
+    import cv2
+
+    mask = np.full((H, W), 255, np.uint8)
+    mask[:100, :200] = 0
+    (tmp_path / "masks").mkdir()
+    cv2.imwrite(str(tmp_path / "masks" / "a.png"), mask)
+    frames = [{"file_path": "images/a.jpg", "mask_path": "masks/a.png"}, {"file_path": "images/b.jpg"}]
+    path = write(tmp_path / "transforms.json", CASES["fisheye"][0], frames)
+    a, b = C.load(path, key="images/a.jpg"), C.load(path, key="images/b.jpg")
+    assert np.array_equal(a.image_mask, mask > 0) and b.image_mask is None
+    assert a.lens_normal_map()[1][:100, :200].sum() == 0 and b.lens_normal_map()[1][:100, :200].any()
+    assert C.frame_key(path, tmp_path / "images" / "a.jpg") == "images/a.jpg"
+    cv2.imwrite(str(tmp_path / "masks" / "a.png"), mask[:50])
+    with pytest.raises(ValueError, match=r"transforms.json \[images/a.jpg\]: mask_path 'masks/a.png': image mask has shape \(50, 640\)"):
+        C.load(path, key="images/a.jpg")

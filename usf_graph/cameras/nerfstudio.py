@@ -4,7 +4,8 @@ a NeRF or Gaussian-splatting capture, given once for every frame or per frame.
 Its intrinsics are COLMAP's, written as nerfstudio's ``ns-process-data`` copies them
 (``fl_x fl_y cx cy``, ``k1 k2 k3 k4 p1 p2``, ``camera_model``), principal point included, so
 they are read through :func:`~usf_graph.cameras.colmap.colmap_camera` and its half-pixel
-convention. ``file_path`` names a frame (the key of a file with per-frame intrinsics).
+convention. ``file_path`` names a frame (the key of a file with per-frame intrinsics or
+masks), ``mask_path`` its image mask (ScanNet++'s DSLR frames have them).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from .base import Camera
 from .colmap import CameraList, colmap_camera
-from .files import Src
+from .files import Src, read_mask
 
 #: nerfstudio's perspective models (its ``CAMERA_MODEL_TO_TYPE``), read as OpenCV's pinhole.
 PERSPECTIVE = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -24,6 +25,8 @@ MODELS = (*PERSPECTIVE, "OPENCV_FISHEYE", "EQUIRECTANGULAR")
 #: What the frames may carry of their own.
 _INTRINSICS = ("camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4",
                "p1", "p2", "camera_angle_x", "camera_angle_y", "is_fisheye")
+#: ... and their image masks (zero: ignored), from the file's folder.
+_OWN = (*_INTRINSICS, "mask_path")
 
 
 def is_transforms(data) -> bool:
@@ -47,7 +50,8 @@ class TransformsCameras(CameraList):
                                  f"key out (got {key!r})")
             return transforms_camera(Src(self.path), self[None])
         if key is None:
-            raise ValueError(f"{self.path}: its frames have intrinsics of their own ({len(keys)} "
+            raise ValueError(f"{self.path}: its frames have cameras of their own (intrinsics or "
+                             f"masks; {len(keys)} "
                              f"frames, e.g. {keys[0]!r}); choose one by its file_path with key= "
                              "(--key on the command line)")
         found = [k for k in keys if k is not None and Path(k) == Path(str(key))]  # ./ or not
@@ -61,7 +65,7 @@ def read_transforms(path: Path, data: dict) -> TransformsCameras:
     """The cameras of the ``transforms.json`` ``path`` (``data``, its JSON)."""
     top = {k: data[k] for k in _INTRINSICS if k in data}
     frames = [f if isinstance(f, dict) else {} for f in data["frames"]]
-    entries = {str(f.get("file_path", f"frame {i}")): {**top, **{k: f[k] for k in _INTRINSICS if k in f}}
+    entries = {str(f.get("file_path", f"frame {i}")): {**top, **{k: f[k] for k in _OWN if k in f}}
                for i, f in enumerate(frames)}
     if len({repr(sorted(v.items())) for v in entries.values()}) <= 1:  # one camera for all
         entries = {None: next(iter(entries.values()), top)}
@@ -69,9 +73,19 @@ def read_transforms(path: Path, data: dict) -> TransformsCameras:
 
 
 def transforms_camera(src: Src, f: dict) -> Camera:
-    """One camera of a ``transforms.json`` from its fields (nerfstudio's names); a focal
-    length may be Instant-NGP's ``camera_angle_x`` (radians), the principal point its
-    default, the image's centre."""
+    """One camera of a ``transforms.json`` from its fields (nerfstudio's names), with its
+    frame's ``mask_path`` as its image mask; a focal length may be Instant-NGP's
+    ``camera_angle_x`` (radians), the principal point its default, the image's centre."""
+    cam = _intrinsics(src, f)
+    if f.get("mask_path"):
+        try:
+            cam = cam.with_image_mask(read_mask(src.path.parent / str(f["mask_path"])))
+        except ValueError as e:
+            raise src.error(f"mask_path {f['mask_path']!r}: {e}") from None
+    return cam
+
+
+def _intrinsics(src: Src, f: dict) -> Camera:
     hint = "nerfstudio writes the image size as w and h"
     w, h = (int(src.finite(src.need(f, k, hint=hint), k)) for k in ("w", "h"))
     model = f.get("camera_model") or ("OPENCV_FISHEYE" if f.get("is_fisheye") else "OPENCV")
