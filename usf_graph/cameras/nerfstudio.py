@@ -53,7 +53,8 @@ class TransformsCameras(CameraList):
             raise ValueError(f"{self.path}: its frames have cameras of their own (intrinsics or "
                              f"masks; {len(keys)} "
                              f"frames, e.g. {keys[0]!r}); choose one by its file_path with key= "
-                             "(--key on the command line)")
+                             "(--key on the command line), or list them with cameras.load_all "
+                             "(usf-graph camera --all)")
         found = [k for k in keys if k is not None and Path(k) == Path(str(key))]  # ./ or not
         if not found:
             raise ValueError(f"{self.path}: no frame with file_path {key!r} (e.g. {keys[0]!r}); "
