@@ -519,6 +519,31 @@ def test_every_command_and_option_has_help(capsys):
     for word in ("icosahedral:L", "healpix:NSIDE", "bilinear", "Kalibr", "equirectangular",
                  "(default: icosahedral:6)", "--image-mask", "--fov"):
         assert word in text, word
+
+
+def test_a_command_builds_only_its_own_options_and_help_imports_no_torch():
+    """``usf-graph COMMAND ...`` parses as the whole parser does, its command's options
+    only; ``usf-graph --help`` imports neither torch nor PyG (0.2 s, not 4.6)."""
+    import subprocess
+    import sys
+
+    def options(parser):
+        subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        return {n: sorted((a.dest, tuple(a.option_strings), repr(a.default)) for a in p._actions)
+                for n, p in subs.choices.items()}
+
+    whole = options(build_parser())
+    for name in whole:
+        alone = options(build_parser(name))
+        assert alone[name] == whole[name], name
+        assert all(alone[n] == [("help", ("-h", "--help"), repr(argparse.SUPPRESS))] for n in alone if n != name)
+    code = ("import sys\nfrom usf_graph.cli import main\ntry:\n    main(['--help'])\n"
+            "except SystemExit as e:\n    assert e.code == 0\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torch_geometric')))")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    assert out.strip().splitlines()[-1] == "[]" and "COMMAND" in out
+
+
 def test_a_calibration_is_scaled_to_an_image_resized_as_a_whole(tmp_path, capsys):
     """A half-size frame of a calibrated camera lifts through the calibration scaled to it
     (with a note); a frame of another aspect ratio (a crop) is refused as before."""

