@@ -44,7 +44,8 @@ def cmd_camera(args) -> int:
     om = cam.solid_angle()
     print(f"model          {type(cam).__name__} ({cam.model})")
     print(f"image          {cam.width} x {cam.height}")
-    print(f"field of view  {cam.fov_deg:.2f} deg (max incidence {math.degrees(cam.max_incidence):.2f} deg)")
+    inc = math.degrees(cam.max_incidence)  # fov_deg is twice it: every ray's angle, once
+    print(f"field of view  {2 * inc:.2f} deg (max incidence {inc:.2f} deg)")
     print(f"solid angle    {om:.4f} sr = {om / (4 * math.pi):.2%} of the sphere")
     print(f"parameters     {json.dumps(cam.key()['params'])}")
     print(f"optical axis   {_axis(cam)} in the sphere frame (x forward, y left, z up)")
