@@ -295,3 +295,43 @@ def test_an_insta360_insv_is_read_as_the_mp4_it_is(tmp_path):
     assert len(got) == 3 and all(np.array_equal(g, w) for g, w in zip(got, want))
     mark_spherical(insv, stereo="left-right")
     assert spherical_metadata(insv) == {"projection": "equirectangular", "stereo": "left-right", "version": 1}
+    # the trailer Insta360 writes after the boxes (records, then the footer: 32 reserved
+    # bytes, the trailer's size from its start, a version, the magic text) is no box
+    records = bytes(range(256)) * 3
+    footer = bytes(32) + (len(records) + 72).to_bytes(4, "little") + (3).to_bytes(4, "little")
+    insv.write_bytes(insv.read_bytes() + records + footer + b"8db42d694ccc418790edff439fe026bf")
+    assert spherical_metadata(insv)["stereo"] == "left-right"
+    mark_spherical(insv)  # mono again; the trailer kept, as it was, at the end
+    assert spherical_metadata(insv)["stereo"] == "mono"
+    assert insv.read_bytes().endswith(records + footer + b"8db42d694ccc418790edff439fe026bf")
+    assert all(np.array_equal(g, w) for g, w in zip(_spherical(insv)[1], _spherical(mp4)[1]))
+
+
+def test_a_second_video_track_is_said_not_dropped(tmp_path):
+    """An MP4 with a video track per lens (as some Insta360 files): OpenCV decodes the
+    first, and reading it warns that there are more, with how to copy one out."""
+    import warnings
+
+    from usf_graph.videos import frames, video_track_count
+
+    av = pytest.importorskip("av")
+    path = tmp_path / "two.mp4"
+    with av.open(str(path), "w") as out:
+        streams = [out.add_stream("mpeg4", rate=10) for _ in range(2)]
+        for s in streams:
+            s.width, s.height, s.pix_fmt = 64, 64, "yuv420p"
+        for k in range(3):
+            for j, s in enumerate(streams):
+                img = np.full((64, 64, 3), 60 * j + 20 * k, np.uint8)
+                out.mux(s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")))
+        for s in streams:
+            out.mux(s.encode(None))
+    assert video_track_count(path) == 2
+    with pytest.warns(UserWarning, match=r"holds 2 video tracks.*-map 0:v:1"):
+        got = [f for _, f in frames(path)]
+    assert len(got) == 3
+    single = tmp_path / "one.mp4"
+    _written_mp4(single)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert video_track_count(single) == 1 and len(list(frames(single))) == 3

@@ -4,6 +4,7 @@ into one eye's, and the 360 video metadata of an MP4 read and written."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 #: Files read as videos, frame by frame (``.insv``: an Insta360 camera's MP4, one lens or
@@ -33,6 +34,11 @@ def frames(path, every: int = 1, eye: str | None = None):
 
     check_every(every)
     layout = None if eye is None else stereo_layout(path, eye)
+    tracks = video_track_count(path)
+    if tracks > 1:  # rather than read one lens of several without a word
+        warnings.warn(f"{path} holds {tracks} video tracks (an Insta360 file: one per lens); "
+                      "OpenCV decodes the first only. To read another, copy it out: ffmpeg "
+                      f"-i {path} -map 0:v:1 -c copy track1.mp4", stacklevel=2)
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise ValueError(f"cannot read video {path}: missing, or a codec OpenCV lacks; "
@@ -198,6 +204,20 @@ def _copy(src, out, start: int, end: int) -> None:
         start += len(chunk)
 
 
+#: The text an Insta360 file ends with: its trailer (IMU, exposure, lens data) follows the
+#: boxes, its footer (72 bytes: 32 reserved, the trailer's size from its start to the end
+#: as a little-endian u32, a u32 version, then this) at the very end.
+INSTA360_MAGIC = b"8db42d694ccc418790edff439fe026bf"
+
+
+def _boxes_end(read, length: int) -> int:
+    """Where the MP4's boxes end: before an Insta360 trailer, else at ``length``."""
+    if length < 72 or read(length - 32, 32) != INSTA360_MAGIC:
+        return length
+    size = int.from_bytes(read(length - 40, 4), "little")
+    return length - size if 72 <= size <= length else length
+
+
 def _moov(path) -> tuple[int, int, int, bytes]:
     """The MP4 ``path``'s one ``moov`` box: ``(offset, size, header size, its bytes)``."""
     length = Path(path).stat().st_size
@@ -206,7 +226,8 @@ def _moov(path) -> tuple[int, int, int, bytes]:
             f.seek(o)
             return f.read(n)
 
-        moovs = [b for b in _boxes(read, 0, length, str(path)) if b[3] == b"moov"]
+        end = _boxes_end(read, length)
+        moovs = [b for b in _boxes(read, 0, end, str(path)) if b[3] == b"moov"]
         if len(moovs) != 1:
             raise ValueError(f"{path}: {len(moovs)} moov boxes, not one: not a finished MP4")
         start, size, head, _ = moovs[0]
@@ -260,18 +281,29 @@ _PROJECTIONS = {b"equi": "equirectangular", b"cbmp": "cubemap", b"mesh": "mesh"}
 _VISUAL_SAMPLE_ENTRY = 78  # bytes of a video sample entry's fields before its child boxes
 
 
-def _video_track(path) -> tuple[bytes, int] | None:
-    """The video ``trak`` box of the MP4 ``path`` and its header size, or None (no MP4, no
-    video track)."""
+def _video_tracks(path) -> list:
+    """The video ``trak`` boxes of the MP4 ``path`` with their header sizes; ``[]`` where
+    it is no MP4 (or not one this reader follows)."""
     where = str(path)
     try:
         _, _, head, moov = _moov(path)
     except ValueError:
-        return None
-    for kind, trak, h in _children(moov, head, where):
-        if kind == b"trak" and _is_video_track(trak, h, where):
-            return trak, h
-    return None
+        return []
+    return [(trak, h) for kind, trak, h in _children(moov, head, where)
+            if kind == b"trak" and _is_video_track(trak, h, where)]
+
+
+def _video_track(path) -> tuple[bytes, int] | None:
+    """The first video ``trak`` box of the MP4 ``path`` and its header size, or None."""
+    return next(iter(_video_tracks(path)), None)
+
+
+def video_track_count(path) -> int:
+    """How many video tracks the MP4 ``path`` holds (0 where it is no MP4): an Insta360
+    file may hold one per lens, of which OpenCV decodes the first."""
+    if Path(path).suffix.lower() not in _MP4_SUFFIXES:
+        return 0
+    return len(_video_tracks(path))
 
 
 def _find(box: bytes, head: int, path: tuple, where) -> list:
