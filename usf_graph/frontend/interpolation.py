@@ -19,15 +19,9 @@ from ..geometry import chord_to_geodesic, geodesic_to_chord
 METHODS = ("bilinear", "nearest", "area", "rbf")
 
 
-def _wrap_or_clamp(cam: Camera, u: np.ndarray, v: np.ndarray):
-    # Points within half a pixel of the border sample the border pixel (replicate);
-    # full panoramas wrap around in u; a cube map's points stay on their faces.
-    return cam.sample_positions(u, v)
-
-
 def bilinear_entries(cam: Camera, uv: np.ndarray, seen: np.ndarray):
     """Four (pixel index, weight) pairs per point; zero weights where not seen."""
-    u, v = _wrap_or_clamp(cam, np.where(seen, uv[:, 0], 0), np.where(seen, uv[:, 1], 0))
+    u, v = cam.sample_positions(np.where(seen, uv[:, 0], 0), np.where(seen, uv[:, 1], 0))
     j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
     fu, fv = u - j0, v - i0
     i1 = np.minimum(i0 + 1, cam.height - 1)
@@ -39,7 +33,7 @@ def bilinear_entries(cam: Camera, uv: np.ndarray, seen: np.ndarray):
 
 
 def nearest_entries(cam: Camera, uv: np.ndarray, seen: np.ndarray):
-    u, v = _wrap_or_clamp(cam, np.where(seen, uv[:, 0], 0), np.where(seen, uv[:, 1], 0))
+    u, v = cam.sample_positions(np.where(seen, uv[:, 0], 0), np.where(seen, uv[:, 1], 0))
     j = np.mod(np.floor(u + 0.5).astype(np.int64), cam.width) if cam.wraps_u else \
         np.clip(np.floor(u + 0.5).astype(np.int64), 0, cam.width - 1)
     i = np.clip(np.floor(v + 0.5).astype(np.int64), 0, cam.height - 1)

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from ..cameras import Camera
-from .interpolation import _wrap_or_clamp, bilinear_entries, valid_entries
+from .interpolation import bilinear_entries, valid_entries
 
 REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32)
 _ROW = 1024  # cv2.remap maps must be narrower than SHRT_MAX, so fold M points into rows
@@ -53,7 +53,7 @@ class Remap:
         seen = np.asarray(seen, bool)
         self.num_points = n = len(seen)
         rows = max(1, math.ceil(n / _ROW))
-        u, v = _wrap_or_clamp(camera, np.asarray(uv[:, 0], np.float64), np.asarray(uv[:, 1], np.float64))
+        u, v = camera.sample_positions(np.asarray(uv[:, 0], np.float64), np.asarray(uv[:, 1], np.float64))
         mx = np.full(rows * _ROW, _OUTSIDE, np.float32)
         my = np.full(rows * _ROW, _OUTSIDE, np.float32)
         mx[:n], my[:n] = np.where(seen, u, _OUTSIDE), np.where(seen, v, _OUTSIDE)
