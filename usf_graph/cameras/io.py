@@ -35,6 +35,7 @@ Every error names the file, the key and what would be accepted.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -132,11 +133,21 @@ def frame_key(path, image) -> str | None:
     path = Path(path)
     if image is None or path.suffix.lower() != ".json" or not path.is_file():
         return None
-    data = _document(path)
+    st = path.stat()  # predict asks for every frame: the file is read once while it stays
+    return _frame_keys(str(path.resolve()), st.st_mtime_ns, st.st_size).get(Path(image).resolve())
+
+
+@functools.lru_cache(maxsize=8)
+def _frame_keys(path: str, mtime_ns: int, size: int) -> dict:
+    """``{image path, resolved: key}`` of a ``transforms.json`` whose frames have cameras of
+    their own, ``{}`` for any other file (``mtime_ns`` and ``size``: the cache's key only)."""
+    data = _document(Path(path))
     if not isinstance(data, TransformsCameras) or list(data) == [None]:
-        return None
-    want = Path(image).resolve()
-    return next((k for k in data if (path.parent / k).resolve() == want), None)
+        return {}
+    found: dict = {}
+    for k in data:  # the first frame listing an image keeps it
+        found.setdefault((Path(path).parent / k).resolve(), k)
+    return found
 
 
 def rig_topics(path) -> list[str] | None:
