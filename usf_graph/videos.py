@@ -70,8 +70,7 @@ def eye_image(image, layout: str, eye: str):
     """One eye's half of a stereo frame ``image [H, W, ...]``: ``layout`` is
     :data:`STEREO_LAYOUTS`' (``top-bottom``: the left eye on top, as the Spherical Video
     RFC has it)."""
-    if eye not in EYES:
-        raise ValueError(f"eye must be 'left' or 'right', got {eye!r}")
+    _check_eye(eye)
     if layout not in STEREO_LAYOUTS:
         raise ValueError(f"stereo layout {layout!r} cannot be cut into its eyes: one of "
                          f"{', '.join(STEREO_LAYOUTS)}")
@@ -358,9 +357,18 @@ def spherical_metadata(path) -> dict | None:
 def stereo_layout(path, eye: str) -> str:
     """The stereo layout (:data:`STEREO_LAYOUTS`) that the 360 video metadata of ``path``
     gives, for cutting out ``eye``; raises where it says none (mono, or no metadata)."""
+    _check_eye(eye)  # before the file is read
+    return _stereo_layout(path, eye, spherical_metadata(path))
+
+
+def _check_eye(eye: str) -> None:
     if eye not in EYES:
         raise ValueError(f"eye must be 'left' or 'right', got {eye!r}")
-    meta = spherical_metadata(path)
+
+
+def _stereo_layout(path, eye: str, meta: dict | None) -> str:
+    """:func:`stereo_layout` from the metadata already read (``meta``)."""
+    _check_eye(eye)
     if meta is None or meta["stereo"] == "mono":
         said = "no 360 video metadata" if meta is None else "360 video metadata that says mono"
         raise ValueError(f"{path} has {said}: picking an eye ({eye}) is for a stereo 360 "
@@ -383,7 +391,7 @@ def check_panorama_video(path, eye: str | None = None) -> None:
                          f"{meta['projection']}, not equirectangular: re-encode it to an "
                          "equirectangular panorama first (e.g. FFmpeg's v360 filter)")
     if eye is not None:
-        stereo_layout(path, eye)
+        _stereo_layout(path, eye, meta)
     elif meta is not None and meta["stereo"] != "mono":
         raise ValueError(f"{path}: its 360 video metadata (V{meta['version']}) says it is stereo "
                          f"({meta['stereo']}): each frame holds one panorama per eye; pick one "
