@@ -145,9 +145,8 @@ class Cubemap(Camera):
         pixel), unless a field of view limits them."""
         if self.fov_limit is not None:
             return super().pixel_rays()
-        s, c = self.size, (self.size - 1) / 2
-        v, u = np.meshgrid(np.arange(s, dtype=np.float64), np.arange(s, dtype=np.float64), indexing="ij")
-        local = normalize(np.stack([(u - c) / (s / 2), (v - c) / (s / 2), np.ones_like(u)], -1))
+        s = self.size
+        local = cube_faces(s)["front"].pixel_rays()[0]  # a face's rays in its optical frame
         rays = np.full((self.height, self.width, 3), np.nan)
         for k, (col, row) in enumerate(self._cells):
             rays[row * s:(row + 1) * s, col * s:(col + 1) * s] = local @ self._R[k].T
