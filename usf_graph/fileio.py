@@ -38,14 +38,14 @@ def atomic_torch_save(obj, path) -> None:
 
 
 def decode_image(path, flags: int | None = None):
-    """The image in file ``path`` as OpenCV decodes it (``flags``: default
-    ``IMREAD_UNCHANGED``), or None when the file is empty or not an image OpenCV reads.
-    Decoded from memory: unlike ``cv2.imread``, nothing is printed on stderr, and any path
-    the OS accepts works. A missing file raises ``FileNotFoundError``."""
+    """The image in file ``path`` (or in its bytes, already read) as OpenCV decodes it
+    (``flags``: default ``IMREAD_UNCHANGED``), or None when the file is empty or not an
+    image OpenCV reads. Decoded from memory: unlike ``cv2.imread``, nothing is printed on
+    stderr, and any path the OS accepts works. A missing file raises ``FileNotFoundError``."""
     import cv2
     import numpy as np
 
-    data = np.fromfile(Path(path), np.uint8)
+    data = np.frombuffer(path, np.uint8) if isinstance(path, bytes) else np.fromfile(Path(path), np.uint8)
     flags = cv2.IMREAD_UNCHANGED if flags is None else flags
     return cv2.imdecode(data, flags) if data.size else None
 
@@ -121,7 +121,7 @@ def mark_360_photo(path, software: str = "usf-graph") -> None:
         raise ValueError(f"{path} is not a JPEG: 360 photo metadata goes into a .jpg")
     segments, i = _leading_segments(data, path)
     kept = [data[a:b] for a, b in segments if not _is_xmp(data, a)]
-    image = decode_image(path)
+    image = decode_image(data)
     if image is None:
         raise ValueError(f"{path}: OpenCV cannot decode this JPEG: the file is corrupt")
     h, w = image.shape[:2]
