@@ -6,6 +6,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,6 +25,8 @@ def test_quick_tour_runs(monkeypatch):
     assert ns["rot"].x.shape == ns["img"].x.shape and bool(ns["valid"].all())
     assert ns["yb"].shape == (2, N, 16) and ns["g_feat"].shape == (2, 16)
     assert ns["err"] < 1e-10
+    data, why = ns["data"], ns["why"]  # the explainer credits only the edges into point 0
+    assert torch.equal(why.edge_mask > 0, data.edge_index[1] == 0)
 
 
 def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):

@@ -524,6 +524,75 @@ def test_pyg_conventions_sequential_repr_reset_compile():
     torch.testing.assert_close(compiled(x, ei, ew, g.area), y)
 
 
+def _masked_pairs(ei, m, n):
+    """The edge mask ``m [E]`` as a dense ``[N_i, N_j]`` matrix (1 off the graph)."""
+    M = torch.ones(n, n, dtype=m.dtype)
+    M[ei[1], ei[0]] = m
+    return M
+
+
+@pytest.mark.parametrize("normalize", ["area", "mean", None])
+def test_explain_mode_scales_each_message_by_its_edge_mask_on_every_path(normalize):
+    """PyG's explainers scale messages by an edge mask; the sparse fast path has no messages,
+    so explain mode must take the per-edge one: against the dense formula with each pair's
+    coefficients times its mask, PyG form and bound, with the mask's gradient."""
+    from torch_geometric.explain.algorithm.utils import clear_masks, set_masks
+
+    pos = random_sphere(80, 5)
+    ei, ew, area = graph(pos, 0.6)
+    keep = torch.rand(80, generator=torch.Generator().manual_seed(1)) > 0.2
+    x = torch.randn(3, 80, 4, generator=torch.Generator().manual_seed(2))
+    conv = SphericalConv(4, 5, 0.6, num_basis=3, normalize=normalize)
+    m = torch.rand(ei.shape[1], generator=torch.Generator().manual_seed(3)).requires_grad_()
+    a = dense_coefficients(pos, conv, area, keep) * _masked_pairs(ei, m, 80)[..., None]
+    W = conv.weight.view(3, 4, 5)
+    ref = torch.einsum("ijk,...jc,kco->...io", a, x, W) + conv.bias
+    (g_ref,) = torch.autograd.grad(ref.square().sum(), m)
+    set_masks(conv, m, ei, apply_sigmoid=False)
+    y = conv(x, ei, ew, node_weight=area, mask=keep)
+    torch.testing.assert_close(y, ref, atol=1e-12, rtol=0)
+    (g,) = torch.autograd.grad(y.square().sum(), m)
+    torch.testing.assert_close(g, g_ref, atol=1e-10, rtol=1e-10)
+    torch.testing.assert_close(conv(x[1], ei, ew, node_weight=area, mask=keep), ref[1],
+                               atol=1e-12, rtol=0)
+    conv.bind(ei, ew, node_weight=area, mask=keep)
+    torch.testing.assert_close(conv(x), ref, atol=1e-12, rtol=0)
+    clear_masks(conv)  # and back to the plain layer
+    torch.testing.assert_close(conv(x), dense_reference(x, pos, conv, area, keep),
+                               atol=1e-12, rtol=0)
+    set_masks(conv, m[:-1], ei[:, :-1], apply_sigmoid=False)
+    with pytest.raises(ValueError, match="edge mask has .* entries"):
+        conv(x)
+
+
+def test_gnn_explainer_finds_exactly_the_receptive_field():
+    """``torch_geometric.explain.Explainer`` with ``GNNExplainer`` on two layers: the edges
+    it can credit for a point's output are those into the point and into its neighbours."""
+    from torch_geometric.explain import Explainer, GNNExplainer
+
+    g = grids.icosahedral(2)
+    ei, ew = geodesic_radius_graph(g.pos, 0.35)
+    c1, c2 = SphericalConv(3, 6, 0.35), SphericalConv(6, 2, 0.35)
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.c1, self.c2 = c1, c2
+
+        def forward(self, x, edge_index, edge_weight):
+            return self.c2(self.c1(x, edge_index, edge_weight).tanh(), edge_index, edge_weight)
+
+    explainer = Explainer(Net(), GNNExplainer(epochs=3), explanation_type="model",
+                          edge_mask_type="object", node_mask_type=None,
+                          model_config=dict(mode="multiclass_classification", task_level="node",
+                                            return_type="raw"))
+    x = torch.randn(len(g), 3, generator=torch.Generator().manual_seed(0))
+    e = explainer(x, ei, edge_weight=ew, index=7)
+    near = torch.zeros(len(g), dtype=torch.bool)
+    near[ei[0, ei[1] == 7]] = True  # point 7 and its neighbours (self-loops included)
+    assert torch.equal(e.edge_mask > 0, near[ei[1]])
+
+
 def test_bad_inputs_name_the_problem():
     with pytest.raises(ValueError, match="normalize"):
         SphericalConv(1, 1, 0.1, normalize="sum")

@@ -58,7 +58,8 @@ class DistanceConv(GeometryModule, MessagePassing):
     weights and the coefficients, hence ``edge_weight``, ``node_weight`` and a learnable
     basis. ``kernel="mlp"`` makes a per-edge :math:`C_{in} \times C_{out}` weight from an MLP
     of the distance (slower; for expressivity studies), by message passing, as does
-    ``fast=False`` (the plain per-edge reference).
+    ``fast=False`` (the plain per-edge reference) and PyG's explain mode, so that
+    ``torch_geometric.explain`` (e.g. ``GNNExplainer``) masks and scores this layer's edges.
 
     **Initialization.** Entries of :math:`\mathbf{W}` are uniform with variance
     :math:`1/(K C_{in})` and the bias is 0. For any fixed input, the output's second
@@ -283,7 +284,7 @@ class DistanceConv(GeometryModule, MessagePassing):
             plan = None
             coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask) \
                 .to(accumulate_in(x.dtype))
-        if self.kernel_type == "mlp" or not fast:
+        if self.kernel_type == "mlp" or not fast or self.explain:
             out = self._propagate(x, edge_index, coef.to(x.dtype), N)
         else:
             plan = plan if plan is not None else self._plan_of(edge_index, N)
@@ -306,7 +307,13 @@ class DistanceConv(GeometryModule, MessagePassing):
         return plan
 
     def _propagate(self, x, edge_index, coef, N):
-        """Plain per-edge message passing: the reference path (and the mlp kernel)."""
+        """Plain per-edge message passing: the reference path, the mlp kernel, and PyG's
+        explain mode (its edge mask scales each message)."""
+        if self.explain and getattr(self, "_edge_mask", None) is not None and \
+                self._edge_mask.numel() != edge_index.shape[1]:
+            raise ValueError(f"the explainer's edge mask has {self._edge_mask.numel()} entries, "
+                             f"this layer's graph {edge_index.shape[1]} edges: explain the model "
+                             "with the edge_index its layers use (a bound layer: its bound one)")
         batched = x.dim() == 3
         xs = x.transpose(0, 1) if batched else x  # [N, (B,) C]
         out = self.propagate(edge_index, x=xs, coef=coef, size=(N, N))
