@@ -565,6 +565,27 @@ def test_explain_mode_scales_each_message_by_its_edge_mask_on_every_path(normali
         conv(x)
 
 
+def test_pyg_message_hooks_see_the_messages_that_make_the_output():
+    """A hook on ``message`` (PyG's ``register_message_forward_hook``) is called on the bound
+    fast path too, and what it sees, summed into each centre and weighted, is the output."""
+    pos = random_sphere(60, 6)
+    ei, ew, area = graph(pos, 0.7)
+    x = torch.randn(2, 60, 3, generator=torch.Generator().manual_seed(4))
+    conv = SphericalConv(3, 4, 0.7, num_basis=3).bind(ei, ew, node_weight=area)
+    seen = []
+    handle = conv.register_message_forward_hook(lambda m, inputs, out: seen.append(out))
+    y = conv(x)
+    handle.remove()
+    (msg,) = seen  # [E, K, B, C]
+    agg = torch.zeros(60, *msg.shape[1:]).index_add_(0, ei[1], msg)
+    W = conv.weight.view(3, 3, 4)
+    torch.testing.assert_close(torch.einsum("nkbc,kco->bno", agg, W) + conv.bias, y,
+                               atol=1e-12, rtol=0)
+    torch.testing.assert_close(y, dense_reference(x, pos, conv, area), atol=1e-12, rtol=0)
+    conv(x)
+    assert len(seen) == 1  # removed: the fast path again
+
+
 def test_gnn_explainer_finds_exactly_the_receptive_field():
     """``torch_geometric.explain.Explainer`` with ``GNNExplainer`` on two layers: the edges
     it can credit for a point's output are those into the point and into its neighbours."""

@@ -58,8 +58,11 @@ class DistanceConv(GeometryModule, MessagePassing):
     weights and the coefficients, hence ``edge_weight``, ``node_weight`` and a learnable
     basis. ``kernel="mlp"`` makes a per-edge :math:`C_{in} \times C_{out}` weight from an MLP
     of the distance (slower; for expressivity studies), by message passing, as does
-    ``fast=False`` (the plain per-edge reference) and PyG's explain mode, so that
-    ``torch_geometric.explain`` (e.g. ``GNNExplainer``) masks and scores this layer's edges.
+    ``fast=False`` (the plain per-edge reference), PyG's explain mode (so that
+    ``torch_geometric.explain``, e.g. ``GNNExplainer``, masks and scores this layer's edges)
+    and a layer with PyG's ``propagate``, ``message`` or ``aggregate`` hooks registered
+    (the messages they see are ``[E, K, (B,) C_in]``: each neighbour's features times its
+    basis coefficients, before the weights).
 
     **Initialization.** Entries of :math:`\mathbf{W}` are uniform with variance
     :math:`1/(K C_{in})` and the bias is 0. For any fixed input, the output's second
@@ -284,7 +287,7 @@ class DistanceConv(GeometryModule, MessagePassing):
             plan = None
             coef = self._edge_coefficients(edge_index, edge_weight, N, node_weight, mask) \
                 .to(accumulate_in(x.dtype))
-        if self.kernel_type == "mlp" or not fast or self.explain:
+        if self.kernel_type == "mlp" or not fast or self._wants_messages():
             out = self._propagate(x, edge_index, coef.to(x.dtype), N)
         else:
             plan = plan if plan is not None else self._plan_of(edge_index, N)
@@ -305,6 +308,14 @@ class DistanceConv(GeometryModule, MessagePassing):
                 not plan.matches(edge_index, N):
             plan = self._plans["last"] = EdgePlan(edge_index.clone(), N)
         return plan
+
+    def _wants_messages(self) -> bool:
+        """Whether PyG's machinery needs the per-edge messages: its explain mode, or hooks
+        registered on ``propagate``, ``message`` or ``aggregate``."""
+        return bool(self.explain) or any(map(bool, (
+            self._propagate_forward_pre_hooks, self._propagate_forward_hooks,
+            self._message_forward_pre_hooks, self._message_forward_hooks,
+            self._aggregate_forward_pre_hooks, self._aggregate_forward_hooks)))
 
     def _propagate(self, x, edge_index, coef, N):
         """Plain per-edge message passing: the reference path, the mlp kernel, and PyG's
