@@ -1,4 +1,5 @@
-"""Pixel values: unit_range (what the models read) and to_uint8 (what is shown) agree."""
+"""Pixel values: unit_range (what the models read) and to_uint8 (what is shown) agree;
+SphericalImages save and load as PyG's own data."""
 
 import numpy as np
 import pytest
@@ -26,3 +27,32 @@ def test_to_uint8_floats_and_refusals():
     assert to_uint8(np.array([65535, 257, 128], np.uint16)).tolist() == [255, 1, 0]
     with pytest.raises(ValueError, match="uint8, uint16 or float"):
         to_uint8(np.zeros(3, np.int32))
+
+
+def test_an_in_memory_dataset_of_spherical_images_loads_safely(tmp_path):
+    """PyG's ``InMemoryDataset`` saves and loads a list of SphericalImages with
+    ``torch.load(weights_only=True)``, as it does its own ``Data``, not by falling back to
+    unsafe unpickling (PyG warns when it does)."""
+    import warnings
+
+    import torch
+    from torch_geometric.data import InMemoryDataset
+
+    from usf_graph import SphericalFrontend, SphericalImage, cameras, grids
+
+    fe = SphericalFrontend(cameras.Equirectangular(32, 16), grids.icosahedral(1))
+    rng = np.random.default_rng(0)
+    imgs = [fe(rng.random((16, 32, 3), np.float32)) for _ in range(2)]
+
+    class Lifted(InMemoryDataset):
+        def __init__(self):
+            super().__init__(str(tmp_path / "root"))
+            self.load(str(tmp_path / "set.pt"))
+
+    InMemoryDataset.save(imgs, str(tmp_path / "set.pt"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = Lifted()
+    assert type(ds[1]) is SphericalImage and len(ds) == 2
+    assert torch.equal(ds[1].x, imgs[1].x) and torch.equal(ds[1].mask, imgs[1].mask)
+    assert torch.equal(ds[0].edge_dist, imgs[0].edge_dist)

@@ -29,7 +29,9 @@ class SphericalImage(Data):
     for layers that do not take a mask. Our convolutions take ``edge_attr`` directly:
     ``conv(img.x, img.edge_index, img.edge_attr, node_weight=img.area, mask=img.mask)``.
 
-    Batches from PyG's ``DataLoader`` concatenate nodes and offset ``edge_index``.
+    Batches from PyG's ``DataLoader`` concatenate nodes and offset ``edge_index``. The class is
+    a safe global for ``torch.load(..., weights_only=True)``, as PyG's ``Data`` is, so an
+    ``InMemoryDataset`` of them saves and loads as safely as PyG's own.
     """
 
     @classmethod
@@ -54,6 +56,10 @@ class SphericalImage(Data):
     def lon(self) -> torch.Tensor:
         """Longitude of each point in radians, [-pi, pi)."""
         return to_latlon(self.pos)[1]
+
+
+# As PyG does for Data: its datasets and checkpoints load with torch.load(weights_only=True).
+torch.serialization.add_safe_globals([SphericalImage])
 
 
 def unit_range(image) -> np.ndarray:
