@@ -638,11 +638,13 @@ def test_bad_inputs_name_the_problem():
             f()
 
 
-def upright_reference(x, up, pos, conv, node_weight=None, mask=None):
+def upright_reference(x, up, pos, conv, node_weight=None, mask=None, pairs=None):
     """UprightConv's formula, dense: the direction from p_i to p_j written as
     ``(p_i x p_j) x p_i``, normalized (0 for i = j), read along and across up, less its
-    mean over what each basis sees."""
-    a = dense_coefficients(pos, conv, node_weight, mask)
+    mean over what each basis sees; ``pairs [N_i, N_j]`` scales each pair's term (an
+    explainer's edge mask; the means stay the layer's)."""
+    a0 = dense_coefficients(pos, conv, node_weight, mask)
+    a = a0 if pairs is None else a0 * pairs[..., None]
     n = pos[:, None].expand(-1, len(pos), -1)
     u = torch.linalg.cross(torch.linalg.cross(n, pos[None].expand_as(n), dim=-1), n, dim=-1)
     u = u / u.norm(dim=-1, keepdim=True) * ~torch.eye(len(pos), dtype=torch.bool)[..., None]
@@ -651,7 +653,8 @@ def upright_reference(x, up, pos, conv, node_weight=None, mask=None):
     y = torch.einsum("ijk,bjc,kco->bio", a, x, W[0])
     for part, v in ((1, u), (2, torch.linalg.cross(n, u, dim=-1))):
         s = torch.einsum("ijc,bc->bij", v, up)
-        centred = s[..., None] - (a * s[..., None]).sum(2, keepdim=True) / a.sum(1)[None, :, None]
+        centred = s[..., None] - (a0 * s[..., None]).sum(2, keepdim=True) / \
+            a0.sum(1).clamp_min(1e-12)[None, :, None]  # a centre that sees nothing: 0
         y = y + torch.einsum("ijk,bijk,bjc,kco->bio", a, centred, x, W[part])
     return y + conv.bias
 
@@ -691,6 +694,34 @@ def test_upright_conv_equals_its_dense_reference_with_gradients_on_fresh_masks()
         iso.weight.view(3, -1, 5)[1:] = 0  # the isotropic part alone
     iso.bind(ei, ew, node_weight=area, mask=mask, pos=pos)
     assert (conv(one, up) - iso(one, up)).abs().max() < 1e-12
+
+
+def test_upright_conv_in_explain_mode_scales_each_message_by_its_edge_mask():
+    """PyG's explain mode on UprightConv: each pair's term times its edge's mask (through
+    a sigmoid, as ``GNNExplainer`` sets it), both forms, with the mask's gradient."""
+    from torch_geometric.explain.algorithm.utils import clear_masks, set_masks
+
+    pos = random_sphere(70, 8, dtype=torch.float64)
+    ei, ew, area = graph(pos, 0.6)
+    gen = torch.Generator().manual_seed(9)
+    conv = UprightConv(3, 4, 0.6, num_basis=2).double()
+    keep = torch.rand(70, generator=gen) > 0.25
+    x = torch.randn(2, 70, 3, generator=gen, dtype=torch.float64)
+    up = _unit(torch.randn(2, 3, generator=gen, dtype=torch.float64))
+    logits = torch.randn(ei.shape[1], generator=gen, dtype=torch.float64).requires_grad_()
+    ref = upright_reference(x, up, pos, conv, area, keep, _masked_pairs(ei, logits.sigmoid(), 70))
+    (g_ref,) = torch.autograd.grad(ref.square().sum(), logits)
+    set_masks(conv, logits, ei, apply_sigmoid=True)
+    conv.bind(ei, ew, node_weight=area, mask=keep, pos=pos)
+    y = conv(x, up)
+    torch.testing.assert_close(y, ref, atol=1e-12, rtol=0)
+    (g,) = torch.autograd.grad(y.square().sum(), logits)
+    torch.testing.assert_close(g, g_ref, atol=1e-10, rtol=1e-10)
+    one = conv(x[1], up[1:], ei, ew, area, keep, pos=pos)  # PyG's form
+    torch.testing.assert_close(one, ref[1], atol=1e-12, rtol=0)
+    clear_masks(conv)
+    torch.testing.assert_close(conv(x, up), upright_reference(x, up, pos, conv, area, keep),
+                               atol=1e-12, rtol=0)
 
 
 def test_upright_conv_follows_in_place_edits_of_its_bound_mask_and_weights():

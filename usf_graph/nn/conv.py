@@ -317,14 +317,25 @@ class DistanceConv(GeometryModule, MessagePassing):
             self._message_forward_pre_hooks, self._message_forward_hooks,
             self._aggregate_forward_pre_hooks, self._aggregate_forward_hooks)))
 
+    def _explain_mask(self, num_edges: int) -> torch.Tensor | None:
+        """In PyG's explain mode, the explainer's edge mask ``[E]`` as it scales each
+        message (its sigmoid where the explainer asks for one); else None."""
+        if not self.explain:
+            return None
+        m = getattr(self, "_edge_mask", None)
+        if m is None:
+            raise ValueError("explain mode without an edge mask: let an Explainer set one, or "
+                             "torch_geometric.explain.algorithm.utils.set_masks")
+        if m.numel() != num_edges:
+            raise ValueError(f"the explainer's edge mask has {m.numel()} entries, this layer's "
+                             f"graph {num_edges} edges: explain the model with the edge_index "
+                             "its layers use (a bound layer: its bound one)")
+        return m.sigmoid() if self._apply_sigmoid else m
+
     def _propagate(self, x, edge_index, coef, N):
         """Plain per-edge message passing: the reference path, the mlp kernel, and PyG's
         explain mode (its edge mask scales each message)."""
-        if self.explain and getattr(self, "_edge_mask", None) is not None and \
-                self._edge_mask.numel() != edge_index.shape[1]:
-            raise ValueError(f"the explainer's edge mask has {self._edge_mask.numel()} entries, "
-                             f"this layer's graph {edge_index.shape[1]} edges: explain the model "
-                             "with the edge_index its layers use (a bound layer: its bound one)")
+        self._explain_mask(edge_index.shape[1])  # checked; PyG's propagate applies it
         batched = x.dim() == 3
         xs = x.transpose(0, 1) if batched else x  # [N, (B,) C]
         out = self.propagate(edge_index, x=xs, coef=coef, size=(N, N))

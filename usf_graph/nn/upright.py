@@ -48,7 +48,9 @@ class UprightConv(SphericalConv):
     per sample on the CPU where :class:`~usf_graph.nn.SphericalConv` costs K (one per batch on a GPU); or
     PyG's ``conv(x, up, edge_index, edge_weight, node_weight, mask, pos=pos, batch=batch)``
     for a batch of different graphs,
-    with one up per graph (the geometry computed in the call).
+    with one up per graph (the geometry computed in the call). In PyG's explain mode
+    (``torch_geometric.explain``) the explainer's edge mask scales each edge's coefficients,
+    hence its message.
 
     Shapes: ``x [B, N, C_in]`` and ``up [B, 3]`` (unit), or ``x [sum N_i, C_in]`` and ``up
     [G, 3]``; ``pos [N, 3]``; output ``[B, N, C_out]`` or ``[sum N_i, C_out]``.
@@ -104,6 +106,7 @@ class UprightConv(SphericalConv):
         ang = (basis.reshape(-1, 3) @ up.to(acc).t()).view(len(coef), -1, len(x))  # [E, 2K, B]
         w = self.weight.view(3 * self.num_basis, self.in_channels, self.out_channels).to(acc)
         full = torch.cat([coef.expand(len(x), -1, -1), ang.permute(2, 0, 1)], 2)  # [B, E, 3K]
+        full = self._explained(full)
         out = basis_aggregate(x.contiguous(), w, full, self.plan)
         return out if self.bias is None else out + self.bias
 
@@ -126,6 +129,13 @@ class UprightConv(SphericalConv):
             self._oriented[slot] = (coef, basis)
         return basis
 
+    def _explained(self, full: torch.Tensor) -> torch.Tensor:
+        """The coefficients ``full [..., E, 3K]``, in PyG's explain mode scaled by the
+        explainer's edge mask: a message is linear in its edge's coefficients, so this is
+        the mask scaling each message, as PyG's explainers do."""
+        m = self._explain_mask(full.shape[-2])
+        return full if m is None else full * m.to(full.dtype)[:, None]
+
     def _general(self, x, up, edge_index, edge_weight, node_weight, mask, pos, batch):
         """PyG's form: a batch of different graphs is one graph of disjoint parts, each edge
         reading its own graph's up, so the sparse kernel of the bound form serves it too."""
@@ -147,7 +157,7 @@ class UprightConv(SphericalConv):
         i = edge_index[1]
         g = up.to(acc)[0 if batch is None else batch[i]].expand(len(i), 3)
         side = torch.einsum("emc,ec->em", _edge_directions(edge_index, pos).to(acc), g)
-        full = torch.cat([coef, oriented_basis(coef, side, i, N)], 1)  # [E, 3K]
+        full = self._explained(torch.cat([coef, oriented_basis(coef, side, i, N)], 1))  # [E, 3K]
         w = self.weight.view(len(full[0]), self.in_channels, self.out_channels).to(acc)
         out = basis_aggregate(x[None].contiguous(), w, full, self._plan_of(edge_index, N))[0]
         return out if self.bias is None else out + self.bias
