@@ -245,7 +245,7 @@ def _add_lift(sub, fmt, full: bool = True) -> None:
                                     "COLMAP rig) onto one grid.")
     if not full:
         return
-    from .frontend.interpolation import METHODS
+    from .frontend.choices import METHODS
 
     li.add_argument("image", nargs="+",
                     help="image file(s) (any format OpenCV reads, or .npy); several: one per "

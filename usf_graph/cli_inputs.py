@@ -230,7 +230,7 @@ def rig_options(p, blend: bool = False, split: bool = True) -> None:
                             "side by side, in its order, of equal widths (a dual-fisheye 360 "
                             "camera's frame)")
     if blend:
-        from .frontend.rig import BLENDS
+        from .frontend.choices import BLENDS
 
         p.add_argument("--blend", default="best", choices=BLENDS,
                        help="rigs: where cameras overlap, the one looking closest (best) or a "

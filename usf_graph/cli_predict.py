@@ -37,7 +37,7 @@ def add_predict_parser(sub, fmt, full: bool = True) -> None:
     if not full:
         return
     from .cli_det import add_device_option, estimate_options, positive_int, share
-    from .frontend.interpolation import METHODS
+    from .frontend.choices import METHODS
 
     p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
     p.add_argument("checkpoint", help="a spherical checkpoint of 'usf-graph train seg|det'")

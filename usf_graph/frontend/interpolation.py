@@ -15,8 +15,7 @@ from scipy.spatial import ConvexHull, cKDTree
 
 from ..cameras import Camera
 from ..geometry import chord_to_geodesic, geodesic_to_chord
-
-METHODS = ("bilinear", "nearest", "area", "rbf")
+from .choices import METHODS
 
 
 def bilinear_entries(cam: Camera, uv: np.ndarray, seen: np.ndarray):

@@ -14,12 +14,11 @@ from ..cameras.base import angle_to
 from ..cameras.rig import rig_centre
 from ..grids import Grid
 from .cache import GeometryCache
+from .choices import BLENDS
 from .frontend import SphericalFrontend, _as_image
 from .image import SphericalImage
 from .reimage import Reimager
 from .remap import Remap, round_to
-
-BLENDS = ("best", "feather")
 
 
 def blend_weights(cameras: Sequence[Camera], pos: np.ndarray, seen: np.ndarray,
