@@ -12,10 +12,10 @@ import weakref
 
 import torch
 from torch import nn
-from torch.autograd.function import once_differentiable
 
-from ..sparse import kept, padded_rows, padded_values, quiet_sparse, row_pointers, version
+from ..sparse import kept, padded_rows, quiet_sparse, row_pointers, version
 from ..tracing import plain_forms, require_eager
+from .plain import differentiable_backward, plain_aggregate
 from .precision import accumulate_in
 from .wide import wide_aggregate
 
@@ -223,23 +223,6 @@ def basis_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,
     return _BasisAggregate.apply(x, weight, coef, plan)
 
 
-def plain_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,
-                    plan: EdgePlan) -> torch.Tensor:
-    """:func:`basis_aggregate` in its plain form (:func:`usf_graph.tracing.plain_forms`):
-    each centre's neighbours gathered into a row padded to the most, one batched product
-    with the coefficients, one with the weights. No sparse tensors and fixed shapes, so
-    ``torch.export`` and ONNX take it; differentiable through autograd."""
-    cols, slot = plan.padded()
-    K, c_in, c_out = weight.shape
-    B, N = x.shape[:2]
-    if coef.dim() == 3:
-        return torch.cat([plain_aggregate(x[b:b + 1], weight, coef[b], plan) for b in range(B)])
-    a = padded_values(coef.to(x.dtype), slot).transpose(1, 2)  # [N, K, D]
-    g = x.transpose(0, 1).index_select(0, cols.view(-1)).view(N, cols.shape[1], B * c_in)  # [N, D, B C_in]
-    agg = (a @ g).view(N, K, B, c_in).permute(2, 0, 1, 3)  # [B, N, K, C_in]
-    return agg.reshape(B, N, K * c_in) @ weight.reshape(K * c_in, c_out)
-
-
 class _BasisAggregate(torch.autograd.Function):
     r"""One (sample, tile, basis) block at a time, so temporaries stay small (the stacked
     ``[N*K, N]`` form cost more in page faults and copies than in arithmetic). The sparse
@@ -280,8 +263,9 @@ class _BasisAggregate(torch.autograd.Function):
         return out
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, grad):
+        if torch.is_grad_enabled():  # create_graph=True: a gradient to differentiate again
+            return differentiable_backward(ctx, grad)
         x, weight, coef = ctx.saved_tensors
         plan = ctx.plan
         tiles = plan.tiles(coef, transpose=True)

@@ -56,7 +56,8 @@ class DistanceConv(GeometryModule, MessagePassing):
     sample on the CPU, and one of each for the whole batch on a GPU
     (:func:`~usf_graph.nn.aggregate.basis_aggregate`); gradients reach ``x``, the
     weights and the coefficients, hence ``edge_weight``, ``node_weight`` and a learnable
-    basis. ``kernel="mlp"`` makes a per-edge :math:`C_{in} \times C_{out}` weight from an MLP
+    basis, and with ``create_graph=True`` they can be differentiated again (gradient
+    penalties, Hessian-vector products). ``kernel="mlp"`` makes a per-edge :math:`C_{in} \times C_{out}` weight from an MLP
     of the distance (slower; for expressivity studies), by message passing, as does
     ``fast=False`` (the plain per-edge reference), PyG's explain mode (so that
     ``torch_geometric.explain``, e.g. ``GNNExplainer``, masks and scores this layer's edges)

@@ -22,9 +22,9 @@ as on the blockwise path. The coefficients' gradient is a sampled product
 from __future__ import annotations
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from ..sparse import kept, quiet_sparse, row_pointers
+from .plain import differentiable_backward
 
 #: Index counts below this take int32 indices (half the memory); larger ones int64.
 INT32_LIMIT = 2 ** 31
@@ -112,8 +112,9 @@ class _WideAggregate(torch.autograd.Function):
         return y.view(B, N, c_out)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, grad):
+        if torch.is_grad_enabled():  # create_graph=True: a gradient to differentiate again
+            return differentiable_backward(ctx, grad)
         x, weight, coef = ctx.saved_tensors
         plan = ctx.plan
         B, N, c_in = x.shape
