@@ -64,3 +64,36 @@ def test_plain_forms_give_the_fast_forms_outputs_and_gradients(cls, kw):
                         for t in o if t.requires_grad) for o in outs]
             ga, gb = (torch.autograd.grad(l_, xi) for l_, xi in zip(loss, xs))
             assert (ga[0] - gb[0]).abs().max() < 1e-9 * (1 + gb[0].abs().max())
+
+
+def test_jets_and_pools_under_torch_func_and_forward_mode_give_autograds_answers():
+    """Under ``torch.func`` and forward-mode AD the jet and the pool take their plain forms
+    (sparse tensors serve neither): ``jacrev``, ``vmap`` and ``jvp`` give the Jacobian
+    that ordinary autograd builds through the sparse form, and its products."""
+    import torch.autograd.forward_ad as fwAD
+    from torch.autograd.functional import jacobian
+    from torch.func import jacrev, jvp, vmap
+
+    from usf_graph import grids
+    from usf_graph.frontend import grid_graph
+    from usf_graph.nn import GaussianPool, LocalJet
+
+    g = grids.icosahedral(1)
+    coarse, _ = g.coarsen()
+    ei, ew = grid_graph(g, 3.5 * g.spacing)
+    jet = LocalJet(g.pos, ei, ew, g.spacing).double()
+    pool = GaussianPool(g.pos, coarse.pos, 0.5 * coarse.spacing, area=g.area).double()
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(1, len(g), 2, dtype=torch.float64, generator=gen)
+    v = torch.randn(x.shape, dtype=torch.float64, generator=gen)
+    for f in (jet, lambda t: pool(t)[0]):
+        assert not tracing.plain_forms(x)
+        J = jacobian(f, x)  # the sparse form's autograd
+        torch.testing.assert_close(jacrev(f)(x), J, atol=1e-12, rtol=0)
+        Jv = torch.einsum("...ijk,ijk->...", J, v)
+        torch.testing.assert_close(jvp(f, (x,), (v,))[1], Jv, atol=1e-12, rtol=0)
+        with fwAD.dual_level():
+            tangent = fwAD.unpack_dual(f(fwAD.make_dual(x, v))).tangent
+        torch.testing.assert_close(tangent, Jv, atol=1e-12, rtol=0)
+        xs = torch.cat([x, v])
+        torch.testing.assert_close(vmap(f)(xs[:, None]), f(xs)[:, None], atol=1e-12, rtol=0)

@@ -32,8 +32,12 @@ def kept():
     """For values a layer keeps from call to call (coefficients, tiles, converted
     buffers): made without autograd history and never as inference tensors, even inside
     ``torch.inference_mode()``. An inference tensor has no version counter to check a
-    cache against, and a later training call could not save it for backward."""
-    with torch.inference_mode(False), torch.no_grad():
+    cache against, and a later training call could not save it for backward. Nor, under a
+    ``torch.func`` transform, as the transform's wrappers: they would outlive it in the
+    caches (an exported program could not save them as constants)."""
+    with torch.inference_mode(False), torch.no_grad(), contextlib.ExitStack() as stack:
+        if torch._C._are_functorch_transforms_active():
+            stack.enter_context(torch._C._DisableFuncTorch())
         yield
 
 

@@ -19,6 +19,7 @@ import contextlib
 
 import numpy as np
 import torch
+from torch.autograd import forward_ad
 
 _FIELDS: list[dict] = []  # the fields of view, by size, of the recording or export in progress
 _PLAIN = [0]  # depth of plain() contexts
@@ -57,9 +58,15 @@ def plain():
         _PLAIN[0] -= 1
 
 
-def plain_forms() -> bool:
-    """Whether layers take their plain forms: while exporting, or inside :func:`plain`."""
-    return _PLAIN[0] > 0 or exporting()
+def plain_forms(*tensors: torch.Tensor) -> bool:
+    """Whether layers take their plain forms: while exporting, inside :func:`plain`, under
+    a ``torch.func`` transform (``grad``, ``vmap``, ``jacrev``, ...), or where any of
+    ``tensors`` (the call's inputs) carries a forward-mode tangent
+    (``torch.autograd.forward_ad``). Sparse tensors and the fast forms' hand-written
+    backward serve none of these; the plain forms are autograd's own, in every mode."""
+    if _PLAIN[0] > 0 or exporting() or torch._C._are_functorch_transforms_active():
+        return True
+    return any(forward_ad.unpack_dual(t).tangent is not None for t in tensors)
 
 
 def field_of(mask: torch.Tensor) -> np.ndarray:
@@ -74,6 +81,10 @@ def field_of(mask: torch.Tensor) -> np.ndarray:
                                "exported inside tracing.fixed_fields(record), after an eager "
                                "call recorded its fields (usf_graph.train.export does this)")
         return state["fields"][n]
+    if torch._C._are_functorch_transforms_active():  # its tensors' values cannot be read
+        raise RuntimeError("a model's field of view (its mask) cannot be read under a "
+                           "torch.func transform: call it there with mask=None (every point "
+                           "seen), or take gradients with ordinary autograd")
     m = mask.detach().cpu().numpy().astype(bool, copy=False)
     if state is not None and state["recording"]:
         seen = state["fields"].setdefault(n, m.copy())
@@ -101,5 +112,7 @@ def require_eager(what: str) -> None:
 
 def check_values() -> bool:
     """Whether checks that read values (NaN, empty fields of view) can run: not while
-    exporting. An exported model checks its own inputs (:mod:`usf_graph.train.export`)."""
-    return not exporting()
+    exporting (an exported model checks its own inputs, :mod:`usf_graph.train.export`),
+    nor under a ``torch.func`` transform, whose ``vmap`` cannot branch on values (a NaN
+    input then shows as NaN outputs instead of an error)."""
+    return not exporting() and not torch._C._are_functorch_transforms_active()

@@ -158,3 +158,43 @@ def test_on_a_gpu_autocast_float16_follows_float32(build):
     x, up, seen = (t.cuda() for t in _inputs(3))
     (ref, g32), (low, g16) = _autocast_pair(model, x, up, seen, torch.float16)
     assert _rel(low, ref) < 0.01 and _rel(g16, g32) < 0.05 and torch.isfinite(g16).all()
+
+
+@MODELS
+def test_per_sample_gradients_through_torch_func(build):
+    """``vmap(grad)`` (per-sample gradients, as DP-SGD takes them) through a whole protocol
+    model in evaluation mode, with an up per sample: each sample's gradient is the one
+    ordinary autograd gives that sample alone (float64). A field of view, which the model
+    reads by value, is refused there with a message that says so."""
+    from torch.func import functional_call, grad, vmap
+
+    torch.manual_seed(0)
+    model = build().double().eval()
+    n = len(grids.icosahedral(3))
+    gen = torch.Generator().manual_seed(2)
+    x = torch.rand(3, n, 3, generator=gen, dtype=torch.float64)
+    up = torch.nn.functional.normalize(torch.randn(3, 3, generator=gen, dtype=torch.float64), dim=-1)
+    seen = torch.rand(n, generator=gen) > 0.3
+    params = {k: v.detach() for k, v in model.named_parameters()}
+    buffers = dict(model.named_buffers())
+
+    def loss(p, xb, ub):
+        out = functional_call(model, (p, buffers), (xb[None],), {"mask": mask, "up": ub[None]})
+        return _flat(out).square().mean()
+
+    mask = seen
+    with pytest.raises(RuntimeError, match="field of view .* cannot be read under a torch.func"):
+        vmap(grad(loss), in_dims=(None, 0, 0))(params, x, up)
+    mask = None
+    per = vmap(grad(loss), in_dims=(None, 0, 0))(params, x, up)
+    for b in (0, 2):
+        want = torch.autograd.grad(loss(dict(model.named_parameters()), x[b], up[b]),
+                                   list(model.parameters()), allow_unused=True)
+        for (name, _), w in zip(model.named_parameters(), want):
+            got = per[name][b]
+            torch.testing.assert_close(got, torch.zeros_like(got) if w is None else w,
+                                       rtol=1e-9, atol=1e-12, msg=name)
+    # what the layers kept from calls under the transform (tables, coefficients) is plain
+    # tensors, not the transform's wrappers, which outlive it and no export can save
+    for t in model.buffers():
+        t.untyped_storage()  # a wrapper raises here

@@ -614,6 +614,50 @@ def test_gnn_explainer_finds_exactly_the_receptive_field():
     assert torch.equal(e.edge_mask > 0, near[ei[1]])
 
 
+def test_torch_func_transforms_and_forward_mode_through_both_layers():
+    """``torch.func`` (per-sample gradients as ``vmap(grad)``, ``jacrev``, ``jvp``) and
+    forward-mode AD, which the sparse kernel's hand-written backward cannot serve: they
+    take the plain form and give what ordinary autograd and the layer's linearity give."""
+    import torch.autograd.forward_ad as fwAD
+    from torch.func import functional_call, grad, jacrev, jvp, vmap
+
+    g = grids.icosahedral(1)
+    ei, ew = geodesic_radius_graph(g.pos, 0.7)
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(4, len(g), 3, generator=gen)
+    up = _unit(torch.randn(4, 3, generator=gen))
+    for conv, extra in ((SphericalConv(3, 2, 0.7).bind(ei, ew, node_weight=g.area), ()),
+                        (UprightConv(3, 2, 0.7).bind(ei, ew, node_weight=g.area, pos=g.pos), (up,))):
+        params = {k: v.detach() for k, v in conv.named_parameters()}
+
+        def loss(p, xb, *u, conv=conv):
+            return functional_call(conv, p, (xb[None], *(t[None] for t in u))).square().sum()
+
+        per = vmap(grad(loss), in_dims=(None, 0) + (0,) * len(extra))(params, x, *extra)
+        for b in range(4):
+            y = conv(x[b:b + 1], *(t[b:b + 1] for t in extra)).square().sum()
+            torch.testing.assert_close(per["weight"][b], torch.autograd.grad(y, conv.weight)[0],
+                                       atol=1e-12, rtol=1e-12)
+        lin = lambda t, conv=conv, extra=extra: conv(t, *(e[:len(t)] for e in extra)) - conv.bias  # noqa: E731
+        v = torch.randn(x.shape, generator=gen)
+        torch.testing.assert_close(jvp(lin, (x,), (v,))[1], lin(v), atol=1e-12, rtol=0)
+        with fwAD.dual_level():
+            tangent = fwAD.unpack_dual(lin(fwAD.make_dual(x, v))).tangent
+        torch.testing.assert_close(tangent, lin(v), atol=1e-12, rtol=0)
+        J = jacrev(lin)(x[:1])  # [1, N, 2, 1, N, 3]: the operator itself
+        torch.testing.assert_close(torch.einsum("aibcjd,cjd->aib", J, v[:1]), lin(v[:1]),
+                                   atol=1e-12, rtol=0)
+    pyg = SphericalConv(3, 2, 0.7)  # PyG's form: the plan it keeps is built under grad
+
+    def total(t, fast=True):
+        return pyg(t, ei, ew, node_weight=g.area, fast=fast).sum()
+
+    torch.testing.assert_close(grad(total)(x), grad(functools.partial(total, fast=False))(x),
+                               atol=1e-12, rtol=0)
+    for t in pyg._plans["last"].buffers():  # plain tensors, not the transform's wrappers
+        t.untyped_storage()
+
+
 def test_bad_inputs_name_the_problem():
     with pytest.raises(ValueError, match="normalize"):
         SphericalConv(1, 1, 0.1, normalize="sum")

@@ -213,7 +213,7 @@ def basis_aggregate(x: torch.Tensor, weight: torch.Tensor, coef: torch.Tensor,
     acc = accumulate_in(x.dtype)
     if acc != x.dtype:
         return basis_aggregate(x.to(acc), weight.to(acc), coef.to(acc), plan).to(x.dtype)
-    if plain_forms():
+    if plain_forms(x, weight, coef):
         return plain_aggregate(x, weight, coef, plan)
     if WIDE or (WIDE is None and x.device.type != "cpu"):
         return wide_aggregate(x, weight, coef, plan)

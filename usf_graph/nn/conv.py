@@ -307,7 +307,8 @@ class DistanceConv(GeometryModule, MessagePassing):
         plan = self._plans.get("last")
         if plan is None or plan.edge_index.device != edge_index.device or \
                 not plan.matches(edge_index, N):
-            plan = self._plans["last"] = EdgePlan(edge_index.clone(), N)
+            with kept():  # kept for later calls: no transform's wrappers
+                plan = self._plans["last"] = EdgePlan(edge_index.clone(), N)
         return plan
 
     def _wants_messages(self) -> bool:

@@ -131,7 +131,7 @@ class _Derivatives(GeometryModule):
         n, r = self.num_nodes, self._rows
         acc = accumulate_in(xs.dtype)
         flat = xs.permute(1, 0, 2).reshape(n, -1).to(acc)  # [N, B*C]
-        if plain_forms():
+        if plain_forms(flat):
             y = padded_product(*padded_operator(self, "op", acc, r), flat)
             return y.view(n, r, -1).to(xs.dtype), xs, form
         op = self._operator("op", acc, (r * n, n))

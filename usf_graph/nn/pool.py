@@ -138,7 +138,7 @@ class GaussianPool(GeometryModule):
         acc = accumulate_in(xs.dtype)
         xf = xs.transpose(0, 1).to(acc)  # [N, B, C]
         m = torch.ones(N, B, dtype=acc, device=xs.device) if ms is None else ms.t().to(acc)
-        if plain_forms():
+        if plain_forms(xf):
             op = padded_operator(self, "", acc)
             den = padded_product(*op, m)  # [M, B]
             num = padded_product(*op, xf * m[..., None])
