@@ -256,6 +256,7 @@ def test_double_sphere_220_degree_lens():
     C.EUCM(300, 300, 320.2, 240.7, 640, 480, alpha=0.6, beta=1.3),
     C.FOV(300, 300, 320.2, 240.7, 640, 480, omega=0.9),
     C.Division(300, 300, 320.2, 240.7, 640, 480, k=-0.3),
+    C.RadialPoly([330.0, -24.0, 42.0, -6.5], 320.2, 240.7, 640, 480, aspect_ratio=0.97),
 ])
 def test_principal_point_is_the_optical_axis(cam):
     # the iterative inverses must stay at an exact root instead of bisecting away from it

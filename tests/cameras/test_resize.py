@@ -17,6 +17,8 @@ def models():
         "kannala_brandt": cameras.KannalaBrandt(250, 251, 320.2, 240.7, 640, 480,
                                                 k=(0.01, -0.005, 0.001, 0.0)),
         "fov": cameras.FOV(300, 300, 320, 240, 640, 480, omega=0.9),
+        "radial_poly": cameras.RadialPoly([170.0, -12.0, 21.0, -3.2], 320.4, 239.1, 640, 480,
+                                          aspect_ratio=1.05),
         "mei": cameras.Mei(500, 505, 320, 240, 640, 480, xi=0.9, dist=(0.01, 0, 0.001, 0),
                            skew=0.5),
         "double_sphere": cameras.DoubleSphere(300, 300, 320, 240, 640, 480, xi=-0.2, alpha=0.6),

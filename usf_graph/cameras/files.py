@@ -17,7 +17,8 @@ FORMATS = ("Kalibr camchain", "OpenCV FileStorage (pinhole, fisheye_model, cv2.o
            "USF sensor or CamOdoCal/VINS-Fusion YAML",
            "OCamCalib calib_results.txt", "lens normal map .npy/.npz", "usf-graph YAML",
            "COLMAP cameras.txt/cameras.bin or a sparse model's folder", "Basalt calibration JSON",
-           "ORB-SLAM3 settings", "nerfstudio/Instant-NGP transforms.json")
+           "ORB-SLAM3 settings", "nerfstudio/Instant-NGP transforms.json",
+           "WoodScape calibration JSON")
 
 
 class Src:

@@ -1,5 +1,5 @@
-"""Fisheye lenses: the four classic projections, Kannala-Brandt (``cv2.fisheye``) and the
-field-of-view model."""
+"""Fisheye lenses: the four classic projections, Kannala-Brandt (``cv2.fisheye``), the
+field-of-view model and WoodScape's radial polynomial."""
 
 from __future__ import annotations
 
@@ -176,4 +176,73 @@ class FOV(Camera):
         a = np.hypot(mx, my) * self.omega
         ok = a < math.pi / 2
         theta = np.arctan(np.tan(np.where(ok, a, 0.0)) / self._t)
+        return from_incidence(theta, mx, my), ok
+
+
+class RadialPoly(Camera):
+    """WoodScape's fisheye (Valeo's ``radial_poly``): the image radius is a polynomial of
+    the incidence angle in pixels, ``rho(theta) = k1 theta + k2 theta^2 + ... + kn
+    theta^n``, and ``u = cx + rho x / |(x, y)|``, ``v = cy + a rho y / |(x, y)|`` with the
+    aspect ratio ``a``. Unlike Kannala-Brandt the polynomial has even powers too. Its
+    inverse is found by Newton's method where ``rho`` increases, up to ``fov_deg / 2``
+    when given. :func:`usf_graph.cameras.load` reads WoodScape's calibration JSON into it.
+    """
+
+    model = "radial-poly"
+
+    def __init__(self, k, cx, cy, width, height, aspect_ratio=1.0, fov_deg=None, rotation=None):
+        super().__init__(width, height, rotation)
+        self.k = check_finite("k", k).ravel()
+        if self.k.size < 1 or not self.k[0] > 0:
+            raise ValueError(f"RadialPoly needs k1 > 0 (pixels per radian at the centre), got "
+                             f"k={self.k.tolist()}")
+        self.cx, self.cy = check_finite("cx", cx).item(), check_finite("cy", cy).item()
+        self.aspect_ratio = check_positive("aspect_ratio", aspect_ratio,
+                                           "It is the vertical over the horizontal pixel scale.")
+        self.fov = fov_deg
+        mono = monotone_limit(self._rho, math.pi)
+        claimed = _fov_limit(fov_deg, math.pi)
+        if fov_deg is not None and mono < claimed - 1e-9:
+            raise ValueError(f"RadialPoly k={self.k.tolist()} is not increasing over the claimed "
+                             f"fov_deg={fov_deg}: rho stops increasing at "
+                             f"{math.degrees(2 * mono):.1f} degrees of field of view. Check the "
+                             "coefficients or lower fov_deg.")
+        self.theta_max = min(mono, claimed)
+
+    def _rho(self, t):
+        """``rho(theta)`` by Horner's rule."""
+        t = np.asarray(t, np.float64)
+        acc = np.zeros_like(t)
+        for c in self.k[::-1]:
+            acc = (acc + c) * t
+        return acc
+
+    def _drho(self, t):
+        t = np.asarray(t, np.float64)
+        acc = np.zeros_like(t)
+        for n in range(self.k.size, 0, -1):
+            acc = acc * t + n * self.k[n - 1]
+        return acc
+
+    def params(self) -> dict:
+        return dict(k=self.k.tolist(), cx=self.cx, cy=self.cy, width=self.width,
+                    height=self.height, aspect_ratio=self.aspect_ratio, fov_deg=self.fov)
+
+    def _resized(self, width, height, sx, sy) -> RadialPoly:
+        return RadialPoly(self.k * sx, float(moved(self.cx, sx)), float(moved(self.cy, sy)),
+                          width, height, self.aspect_ratio * sy / sx, self.fov, self.rotation)
+
+    def _project(self, rays):
+        theta = incidence(rays)
+        rho = self._rho(theta)
+        n = np.hypot(rays[..., 0], rays[..., 1])
+        n = np.where(n > 0, n, 1.0)
+        uv = np.stack([self.cx + rho * rays[..., 0] / n,
+                       self.cy + self.aspect_ratio * rho * rays[..., 1] / n], -1)
+        return uv, theta <= self.theta_max * (1 + 1e-12)
+
+    def _unproject(self, uv):
+        mx, my = uv[..., 0] - self.cx, (uv[..., 1] - self.cy) / self.aspect_ratio
+        theta, ok = solve_monotone(self._rho, self._drho, np.hypot(mx, my), self.theta_max,
+                                   t0=np.hypot(mx, my) / self.k[0])
         return from_incidence(theta, mx, my), ok

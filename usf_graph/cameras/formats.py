@@ -11,14 +11,16 @@ import numpy as np
 from .base import FORMAT_TAG, Camera
 from .cubemap import Cubemap
 from .files import FORMATS, Src, plain_list, read_mask
-from .fisheye import FOV, Fisheye, KannalaBrandt
+from .fisheye import FOV, Fisheye, KannalaBrandt, RadialPoly
 from .omni import EUCM, DoubleSphere, Mei
 from .panorama import Equirectangular, LensNormalMap
 from .pinhole import Division, Pinhole
 from .scaramuzza import Scaramuzza
+from .woodscape import is_woodscape, load_woodscape
 
 MODELS = {c.__name__: c for c in (Pinhole, Division, Fisheye, KannalaBrandt, FOV, Mei,
-                                  DoubleSphere, EUCM, Scaramuzza, Equirectangular, Cubemap)}
+                                  DoubleSphere, EUCM, Scaramuzza, Equirectangular, Cubemap,
+                                  RadialPoly)}
 _PINHOLE_DIST = ("plumb_bob", "rational_polynomial", "pinhole", "radtan")
 _FISHEYE_DIST = ("equidistant", "fisheye", "kannala-brandt", "kb4")
 
@@ -39,6 +41,8 @@ def _load_single(path: Path, data: dict):
     src = Src(path)
     if FORMAT_TAG in data:
         return "usf-graph", _load_own(src, data)
+    if is_woodscape(data):
+        return "WoodScape", load_woodscape(src, data)
     if "intrinsic" in data or ("model_type" in data and "projection_parameters" in data):
         return "USF sensor", _load_usf(src, data)
     if "camera_matrix" in data:

@@ -1,0 +1,128 @@
+"""WoodScape's radial polynomial fisheye and its calibration JSON: the projection against
+the formula written out here and against ``cv2.fisheye`` where the polynomial is odd, the
+inverse, resizing, the mounting against SciPy's reading of the quaternion, and the errors."""
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from tests.helpers import FIXTURES
+from usf_graph import cameras
+from usf_graph.cameras import RadialPoly
+
+RV = FIXTURES / "woodscape_rv.json"
+
+
+def _formula(rays, k, cx, cy, aspect):
+    """WoodScape's projection from its definition: rho = sum k_i theta^i pixels along the
+    ray's azimuth, the vertical scaled by the aspect ratio."""
+    x, y, z = rays.T
+    chi = np.hypot(x, y)
+    theta = np.arctan2(chi, z)
+    rho = sum(c * theta ** (i + 1) for i, c in enumerate(k))
+    return np.stack([cx + rho * x / chi, cy + aspect * rho * y / chi], 1)
+
+
+def _rays(n, seed, max_deg):
+    rng = np.random.default_rng(seed)
+    theta = np.radians(rng.uniform(0.5, max_deg, n))
+    phi = rng.uniform(-np.pi, np.pi, n)
+    return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
+
+
+def test_the_calibration_file_reads_as_woodscape_defines_it():
+    doc = json.loads(RV.read_text())
+    intr, ext = doc["intrinsic"], doc["extrinsic"]
+    cam = cameras.load(RV)
+    assert isinstance(cam, RadialPoly) and (cam.width, cam.height) == (1280, 966)
+    assert cam.cx == pytest.approx(640 + intr["cx_offset"] - 0.5)
+    assert cam.cy == pytest.approx(483 + intr["cy_offset"] - 0.5)
+    rays = _rays(500, 0, 110)
+    uv, ok = cam.project(rays)  # rays in the optical frame
+    k = [intr[f"k{i}"] for i in range(1, 5)]
+    np.testing.assert_allclose(uv, _formula(rays, k, cam.cx, cam.cy, 1.0), atol=1e-9)
+    assert ok.all()
+    # the optical frame into the vehicle's (x forward, y left, z up) as SciPy reads the
+    # quaternion (x, y, z, w), and the translation as the position: a rear camera looking
+    # back and 28 degrees down, its image's right on the car's left
+    np.testing.assert_allclose(cam.rotation, Rotation.from_quat(ext["quaternion"]).as_matrix(),
+                               atol=1e-12)
+    np.testing.assert_allclose(cam.rotation[:, 2], [-math.cos(math.radians(28)), 0,
+                                                    -math.sin(math.radians(28))], atol=1e-9)
+    np.testing.assert_allclose(cam.rotation[:, 0], [0, 1, 0], atol=1e-9)
+    np.testing.assert_allclose(cam.position, ext["translation"])
+    assert 185 < cam.fov_deg < 240  # WoodScape's lenses see about 190 degrees across
+
+
+@pytest.mark.parametrize("aspect", [1.0, 1.07])
+def test_an_odd_polynomial_projects_as_cv2_fisheye(aspect):
+    """With k2 = k4 = 0 the polynomial is Kannala-Brandt's: OpenCV's fisheye projection with
+    f = k1 and D = (k3 / k1, 0, 0, 0), the vertical focal length times the aspect ratio."""
+    k1, k3, cx, cy = 320.0, 40.0, 650.2, 470.9
+    cam = RadialPoly([k1, 0.0, k3, 0.0], cx, cy, 1280, 966, aspect_ratio=aspect)
+    rays = _rays(300, 1, 85)
+    uv, ok = cam.project(rays)
+    K = np.array([[k1, 0, cx], [0, aspect * k1, cy], [0, 0, 1]])
+    ref, _ = cv2.fisheye.projectPoints(rays[None], np.zeros(3), np.zeros(3), K,
+                                       np.array([k3 / k1, 0, 0, 0]))
+    np.testing.assert_allclose(uv, ref[0], atol=1e-8)
+    assert ok.all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(u=st.floats(0, 1279), v=st.floats(0, 965), scale=st.sampled_from([0.5, 1.0, 1.5]))
+def test_pixels_unproject_and_project_back_at_any_size(u, v, scale):
+    cam = cameras.load(RV)
+    if scale != 1.0:
+        small = cam.resized(round(1280 * scale), round(966 * scale))
+        # the same ray lands where cv2.resize moves the pixel
+        ray, ok = cam.unproject(np.array([[u, v]]))
+        uv, _ = small.project(ray)
+        np.testing.assert_allclose(uv[0], [(u + 0.5) * scale - 0.5, (v + 0.5) * scale - 0.5],
+                                   atol=1e-8)
+        cam = small
+        u, v = (u + 0.5) * scale - 0.5, (v + 0.5) * scale - 0.5
+    ray, ok = cam.unproject(np.array([[u, v]]))
+    assert ok.all() and abs(np.linalg.norm(ray) - 1) < 1e-12
+    back, ok2 = cam.project(ray)
+    assert ok2.all() and np.abs(back[0] - [u, v]).max() < 1e-8
+
+
+def test_it_saves_and_loads_in_usf_graphs_yaml(tmp_path):
+    cam = cameras.load(RV)
+    cam.save(tmp_path / "rv.yaml")
+    back = cameras.load(tmp_path / "rv.yaml")
+    rays = _rays(50, 2, 100)
+    np.testing.assert_allclose(back.project(rays)[0], cam.project(rays)[0], atol=1e-9)
+    np.testing.assert_allclose(back.rotation, cam.rotation, atol=1e-12)
+    np.testing.assert_allclose(back.position, cam.position)
+
+
+def test_bad_calibrations_name_the_problem(tmp_path):
+    doc = json.loads(RV.read_text())
+
+    def load(change):
+        d = json.loads(json.dumps(doc))
+        change(d)
+        (tmp_path / "c.json").write_text(json.dumps(d))
+        return cameras.load(tmp_path / "c.json")
+
+    with pytest.raises(ValueError, match="missing key 'k3' in 'intrinsic'"):
+        load(lambda d: d["intrinsic"].pop("k3"))
+    with pytest.raises(ValueError, match="model 'kb' is not supported"):
+        load(lambda d: d["intrinsic"].update(model="kb"))
+    with pytest.raises(ValueError, match="k1 > 0"):
+        load(lambda d: d["intrinsic"].update(k1=-3.0))
+    with pytest.raises(ValueError, match="quaternion' has norm 2"):
+        load(lambda d: d["extrinsic"].update(quaternion=[2.0, 0, 0, 0]))
+    with pytest.raises(ValueError, match="'k2' must be finite"):
+        load(lambda d: d["intrinsic"].update(k2=float("nan")))
+    with pytest.raises(ValueError, match="not increasing over the claimed fov_deg=200"):
+        RadialPoly([300.0, 0, -200.0], 640, 480, 1280, 966, fov_deg=200)
+    assert load(lambda d: d.pop("extrinsic")).position is None  # the intrinsics alone
