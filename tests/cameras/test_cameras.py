@@ -504,3 +504,24 @@ def test_a_tangential_fold_inside_the_radial_limit_ends_the_domain(make):
     assert (mb < cam.r_max).all()
     uv2, ok2 = cam.project(back[ok])
     assert ok2.all() and np.abs(uv2 - pix[ok]).max() < 1e-6
+
+
+@pytest.mark.parametrize("cam", [
+    C.KannalaBrandt(40, 40, 63.5, 47.5, 128, 96, k=(0.01, 0, 0, 0)),
+    C.Fisheye(40, 63.5, 47.5, 128, 96, model="equidistant"),
+    C.Fisheye(40, 63.5, 47.5, 128, 96, model="stereographic"),
+    C.RadialPoly([40.0, -1.0, 0.5], 63.5, 47.5, 128, 96),
+], ids=["kannala_brandt", "equidistant", "stereographic", "radial_poly"])
+def test_the_ray_straight_behind_a_lens_lands_nowhere(cam):
+    """A lens whose mapping reaches 180 degrees images the ray straight behind it as a whole
+    circle, not a point: it has no azimuth. It used to land on the principal point as
+    valid, so the grid point opposite the optical axis (a vertex of the icosahedral grids
+    under the default mounting) took the centre pixel's value."""
+    from usf_graph import SphericalFrontend, grids
+
+    uv, ok = cam.project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
+    assert ok.tolist() == [False, True] and np.allclose(uv[1], [63.5, 47.5])
+    g = grids.icosahedral(3)
+    behind = int(np.argmin(g.pos.numpy() @ (cam.rotation @ [0.0, 0.0, 1.0])))
+    assert g.pos[behind].numpy() @ (cam.rotation @ [0.0, 0.0, 1.0]) < -1 + 1e-12
+    assert not SphericalFrontend(cam, g).mask[behind]

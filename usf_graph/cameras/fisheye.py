@@ -13,7 +13,7 @@ from .base import (
     check_positive,
     set_intrinsics,
 )
-from .radial import from_incidence, incidence, monotone_limit, solve_monotone
+from .radial import azimuth, from_incidence, incidence, monotone_limit, solve_monotone
 from .resize import moved, one_factor
 
 # r / f as a function of the incidence angle theta, its inverse, and the largest theta.
@@ -67,10 +67,9 @@ class Fisheye(Camera):
     def _project(self, rays):
         theta = incidence(rays)
         r = self.f * self._g(theta)
-        n = np.hypot(rays[..., 0], rays[..., 1])
-        n = np.where(n > 0, n, 1.0)
-        uv = np.stack([self.cx + r * rays[..., 0] / n, self.cy + r * rays[..., 1] / n], -1)
-        return uv, theta <= self.theta_max * (1 + 1e-12)
+        c, s, ok = azimuth(rays)
+        uv = np.stack([self.cx + r * c, self.cy + r * s], -1)
+        return uv, ok & (theta <= self.theta_max * (1 + 1e-12))
 
     def _unproject(self, uv):
         mx, my = uv[..., 0] - self.cx, uv[..., 1] - self.cy
@@ -125,11 +124,9 @@ class KannalaBrandt(Camera):
     def _project(self, rays):
         theta = incidence(rays)
         td = self._theta_d(theta)
-        n = np.hypot(rays[..., 0], rays[..., 1])
-        n = np.where(n > 0, n, 1.0)
-        uv = np.stack([self.fx * td * rays[..., 0] / n + self.cx,
-                       self.fy * td * rays[..., 1] / n + self.cy], -1)
-        return uv, theta <= self.theta_max * (1 + 1e-12)
+        c, s, ok = azimuth(rays)
+        uv = np.stack([self.fx * td * c + self.cx, self.fy * td * s + self.cy], -1)
+        return uv, ok & (theta <= self.theta_max * (1 + 1e-12))
 
     def _unproject(self, uv):
         mx = (uv[..., 0] - self.cx) / self.fx
@@ -165,10 +162,8 @@ class FOV(Camera):
         theta = incidence(rays)
         ok = theta < math.pi / 2
         rd = np.arctan(self._t * np.tan(np.where(ok, theta, 0.0))) / self.omega
-        n = np.hypot(rays[..., 0], rays[..., 1])
-        n = np.where(n > 0, n, 1.0)
-        return np.stack([self.fx * rd * rays[..., 0] / n + self.cx,
-                         self.fy * rd * rays[..., 1] / n + self.cy], -1), ok
+        c, s, _ = azimuth(rays)  # nothing behind the lens: theta < 90 degrees
+        return np.stack([self.fx * rd * c + self.cx, self.fy * rd * s + self.cy], -1), ok
 
     def _unproject(self, uv):
         mx = (uv[..., 0] - self.cx) / self.fx
@@ -235,11 +230,9 @@ class RadialPoly(Camera):
     def _project(self, rays):
         theta = incidence(rays)
         rho = self._rho(theta)
-        n = np.hypot(rays[..., 0], rays[..., 1])
-        n = np.where(n > 0, n, 1.0)
-        uv = np.stack([self.cx + rho * rays[..., 0] / n,
-                       self.cy + self.aspect_ratio * rho * rays[..., 1] / n], -1)
-        return uv, theta <= self.theta_max * (1 + 1e-12)
+        c, s, ok = azimuth(rays)
+        uv = np.stack([self.cx + rho * c, self.cy + self.aspect_ratio * rho * s], -1)
+        return uv, ok & (theta <= self.theta_max * (1 + 1e-12))
 
     def _unproject(self, uv):
         mx, my = uv[..., 0] - self.cx, (uv[..., 1] - self.cy) / self.aspect_ratio

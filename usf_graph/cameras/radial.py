@@ -11,6 +11,16 @@ def incidence(rays: np.ndarray) -> np.ndarray:
     return np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
 
 
+def azimuth(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(cos, sin, ok)``: the unit direction in the image plane of each ray's azimuth, and
+    whether the ray has a place in the image. A ray along the optical axis has no azimuth
+    but lands on the centre (0, 0 here); one straight behind the lens (180 degrees) has
+    none and lands nowhere: a lens that sees that far images it as a whole circle."""
+    n = np.hypot(rays[..., 0], rays[..., 1])
+    safe = np.where(n > 0, n, 1.0)
+    return rays[..., 0] / safe, rays[..., 1] / safe, (n > 0) | (rays[..., 2] > 0)
+
+
 def from_incidence(theta: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     """Unit ray with incidence ``theta`` in the azimuth of the image vector (mx, my)."""
     r = np.hypot(mx, my)

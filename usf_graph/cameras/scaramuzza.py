@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import Camera, check_finite
-from .radial import incidence, monotone_limit, solve_monotone
+from .radial import azimuth, incidence, monotone_limit, solve_monotone
 from .resize import moved, one_factor
 
 
@@ -78,10 +78,9 @@ class Scaramuzza(Camera):
         theta = incidence(rays)
         rho, ok = solve_monotone(self._theta, self._dtheta, theta, self.rho_max,
                                  t0=theta * (self.rho_max / self._theta(self.rho_max)))
-        n = np.hypot(rays[..., 0], rays[..., 1])
-        n = np.where(n > 0, n, 1.0)
-        xp, yp = rho * rays[..., 1] / n, rho * rays[..., 0] / n
+        cos, sin, seen = azimuth(rays)
+        xp, yp = rho * sin, rho * cos
         c, d, e = self.affine
         row = c * xp + d * yp + self.center[0]
         col = e * xp + yp + self.center[1]
-        return np.stack([col, row], -1), ok
+        return np.stack([col, row], -1), ok & seen

@@ -24,8 +24,8 @@ from ..sparse import kept
 # Part of every key: bump it whenever cached geometry changes meaning, so tables written by
 # an older convention are never read again (2: panoramas no longer mirrored; 3: pixels
 # without a ray no longer blend into their neighbours; 4: a lens normal map sees its
-# image's outer half pixel).
-GEOMETRY_VERSION = 4
+# image's outer half pixel; 5: a fisheye no longer sees the direction straight behind it).
+GEOMETRY_VERSION = 5
 
 
 def default_cache_dir() -> Path | None:

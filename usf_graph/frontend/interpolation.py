@@ -51,6 +51,14 @@ def _pixel_rays(cam: Camera):
     return lnm.reshape(-1, 3)[flat], flat
 
 
+def choose_interpolation(camera: Camera, grid) -> str:
+    """``area`` when the camera's median pixel is under half the grid's spacing (the grid
+    would skip pixels: aliasing), else ``bilinear`` (what the protocols lift with)."""
+    om = camera.pixel_solid_angles()
+    pixel = math.sqrt(float(np.median(om[om > 0])))
+    return "area" if pixel < grid.spacing / 2 else "bilinear"
+
+
 def check_method(method: str) -> None:
     if method not in METHODS:
         raise ValueError(f"unknown interpolation {method!r}; use one of {METHODS}")

@@ -12,7 +12,6 @@ alias into what the model never saw.
 from __future__ import annotations
 
 import json
-import math
 import warnings
 from collections.abc import Mapping
 from contextlib import contextmanager
@@ -22,7 +21,7 @@ import torch
 
 from ..frontend import SphericalFrontend
 from ..frontend.image import unit_range
-from ..frontend.interpolation import valid_pixels
+from ..frontend.interpolation import choose_interpolation, valid_pixels
 from ..grids import from_spec
 from .devices import model_device
 
@@ -64,14 +63,6 @@ def input_grid(model):
         raise ValueError(f"{type(model).__name__} is planar: it reads equirectangular images of "
                          "its training size only; predict with a spherical checkpoint")
     return from_spec(spec)
-
-
-def choose_interpolation(camera, grid) -> str:
-    """``area`` when the camera's median pixel is under half the grid's spacing (the grid
-    would skip pixels: aliasing), else ``bilinear`` (what the protocols lift with)."""
-    om = camera.pixel_solid_angles()
-    pixel = math.sqrt(float(np.median(om[om > 0])))
-    return "area" if pixel < grid.spacing / 2 else "bilinear"
 
 
 def _auto(camera, grid) -> str:
