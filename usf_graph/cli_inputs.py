@@ -9,7 +9,8 @@ CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, ORB-
                "settings, OpenCV FileStorage (incl. fisheye_model "
                "and cv2.omnidir), K/D/DIM, ROS camera_info, USF sensor or VINS-Fusion YAML, "
                "OCamCalib calib_results.txt, lens normal map .npy/.npz, usf-graph YAML, COLMAP "
-               "cameras.txt/.bin or a sparse model's folder, nerfstudio transforms.json; or "
+               "cameras.txt/.bin or a sparse model's folder, nerfstudio transforms.json, "
+               "WoodScape calibration JSON (a rig: its cameras' files, comma-separated); or "
                "'equirectangular' (size from the image) / 'equirectangular:WxH'; or "
                "'cubemap' (a 6:1 horizon strip or a 4:3 dice cross, from the image) / "
                "'cubemap:SIZE[:horizon|dice]' (six faces, SIZE pixels square)")
@@ -258,15 +259,15 @@ def _distance(text: str):
 
 def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None, images=None,
                   grid=None) -> dict:
-    """Every camera of a rig's file (:func:`usf_graph.cameras.load_rig`; ``key``: a COLMAP
-    rig's id), mounted in the rig, each scaled to its image in ``images`` where that is the
+    """Every camera of a rig's file, or of comma-separated files of one posed camera each
+    (:func:`usf_graph.cameras.load_rig`; ``key``: a COLMAP rig's id), mounted in the rig, each scaled to its image in ``images`` where that is the
     frame resized as a whole (:func:`fit_to_image`), with the usable field of view and
     image mask given, stitched at ``distance`` (:func:`usf_graph.cameras.stitch_at`) where
     given; ``"auto"``: where ``images`` agree best on ``grid`` (icosahedral:5 by default;
     :func:`usf_graph.frontend.choose_distance`)."""
     from . import cameras
 
-    rig = cameras.load_rig(spec, key=key)
+    rig = cameras.load_rig(spec.split(",") if "," in spec else spec, key=key)
     if images is not None and len(images) == len(rig):  # frames resized as a whole
         rig = {n: fit_to_image(c, im.shape) for (n, c), im in zip(rig.items(), images)}
     rig = {n: cameras.with_fov_and_mask(c, fov, image_mask) for n, c in rig.items()}

@@ -126,3 +126,33 @@ def test_bad_calibrations_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match="not increasing over the claimed fov_deg=200"):
         RadialPoly([300.0, 0, -200.0], 640, 480, 1280, 966, fov_deg=200)
     assert load(lambda d: d.pop("extrinsic")).position is None  # the intrinsics alone
+
+
+def test_a_cars_four_cameras_stitch_into_one_panorama(tmp_path):
+    """``usf-graph render`` of the four cameras' images, each through its own calibration
+    (``--camera FV.json,RV.json,...``, posed in the vehicle frame), into one panorama: every
+    direction shows the colour its ray was given, whichever camera saw it (a camera mounted
+    on the wrong side, or mirrored, would show another)."""
+    from tests.datasets.test_woodscape import _calibration, _write
+    from usf_graph.cli import main
+
+    sides = {"00001_FV": 0, "00001_RV": 180, "00001_MVL": 90, "00001_MVR": -90}
+    for name, yaw in sides.items():
+        _write(tmp_path, name, _calibration(yaw))
+    calib = tmp_path / "calibration_data" / "calibration"
+    rig = cameras.load_rig([calib / f"{n}.json" for n in sides])
+    assert list(rig) == list(sides)
+    images = [str(tmp_path / "rgb_images" / f"{n}.png") for n in sides]
+    out = tmp_path / "car.png"
+    assert main(["render", *images, "--camera", ",".join(str(calib / f"{n}.json") for n in sides),
+                 "--to", "equirectangular:256x128", "--out", str(out)]) == 0
+    pano = cv2.imread(str(out))[..., ::-1].astype(np.float64) / 255
+    rays, _ = cameras.Equirectangular(256, 128).lens_normal_map()
+    seen = pano.sum(-1) > 0
+    band = np.abs(rays[..., 2]) < 0.5  # the horizon, all around the car: every camera's
+    assert seen[band].all()
+    want = (np.stack([rays[..., 2], rays[..., 0], rays[..., 1]], -1) + 1) / 2
+    err = np.abs(pano - want)[seen]
+    assert np.median(err) < 0.01 and np.percentile(err, 99) < 0.05
+    with pytest.raises(ValueError, match="no pose in the rig"):
+        cameras.load_rig([calib / "00001_FV.json", FIXTURES / "opencv_pinhole.yaml"])

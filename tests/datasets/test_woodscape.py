@@ -33,7 +33,7 @@ def _calibration(axis_yaw_deg: float) -> dict:
 
 def _write(root, name, calib):
     """The image's colour encodes each pixel's ray in the vehicle frame ((z + 1) / 2 in red,
-    (x + 1) / 2 in green); its labels are road (1) below -15 degrees, vehicles (6) above,
+    (x + 1) / 2 in green, (y + 1) / 2 in blue); its labels are road (1) below -15 degrees, vehicles (6) above,
     and 12 (past the classes: void) in a corner."""
     (root / "calibration_data" / "calibration").mkdir(parents=True, exist_ok=True)
     (root / "calibration_data" / "calibration" / f"{name}.json").write_text(json.dumps(calib))
@@ -42,6 +42,7 @@ def _write(root, name, calib):
     rgb = np.zeros((H, W, 3), np.uint8)
     rgb[..., 0] = np.round((rays[..., 2] + 1) / 2 * 255)
     rgb[..., 1] = np.round((rays[..., 0] + 1) / 2 * 255)
+    rgb[..., 2] = np.round((rays[..., 1] + 1) / 2 * 255)
     label = np.where(rays[..., 2] < -np.sin(np.radians(15)), 1, 6).astype(np.uint8)
     label[:4, :4] = 12
     for folder, img in (("rgb_images", rgb[..., ::-1]), ("semantic_annotations/gtLabels", label)):

@@ -210,7 +210,13 @@ def load_rig(path, key=None) -> dict[str, Camera]:
 
     A COLMAP model's folder with ``rigs.txt``/``rigs.bin`` (COLMAP 3.12 on), or that file:
     the rig ``key`` (its id; needed when there are several), its cameras named by their
-    ids and mounted by their ``sensor_from_rig`` poses."""
+    ids and mounted by their ``sensor_from_rig`` poses.
+
+    A list of files of one camera each, every one with its pose in one common frame (a
+    ``position``: WoodScape's calibrations, a car's cameras in its vehicle frame, or
+    usf-graph YAMLs saved from a rig): those cameras, named by the files' stems."""
+    if isinstance(path, (list, tuple)):
+        return _rig_of_files([Path(p) for p in path], key)
     path = Path(path)
     if rig_file(path) is not None:
         return colmap_rig(path, key)
@@ -225,6 +231,27 @@ def load_rig(path, key=None) -> dict[str, Camera]:
                          "(Stereo.T_c1_c2) or a COLMAP model with rigs.txt; this file is none, "
                          "so read its cameras one by one with cameras.load")
     return {name: _mounted(path, data, chain, name, required=True) for name in chain.names(data)}
+
+
+def _rig_of_files(paths: list, key) -> dict[str, Camera]:
+    """:func:`load_rig` of one file per camera, each posed in one frame."""
+    if key is not None:
+        raise ValueError(f"key={key!r} (--key) picks a rig in a COLMAP model; a rig of "
+                         "separate files uses every file: leave the key out")
+    names = [p.stem for p in paths]
+    if len(paths) < 2 or len(set(names)) != len(names):
+        raise ValueError(f"a rig of separate calibration files needs two or more, with "
+                         f"different names, got {[str(p) for p in paths]}")
+    rig = {}
+    for name, p in zip(names, paths):
+        cam = load(p)
+        if cam.position is None:
+            raise ValueError(f"{p}: the camera has no pose in the rig (no position), so it "
+                             "cannot join others from separate files; give a file with its "
+                             "extrinsics (WoodScape's calibration, a usf-graph YAML saved from "
+                             "a rig) or one rig file (a Kalibr camchain, ...)")
+        rig[name] = cam
+    return rig
 
 
 class _Chain(NamedTuple):
