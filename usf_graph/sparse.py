@@ -9,7 +9,7 @@ import weakref
 
 import torch
 
-from .tracing import exporting, require_eager
+from .tracing import exporting, require_eager, transforming
 
 
 @contextlib.contextmanager
@@ -36,7 +36,7 @@ def kept():
     ``torch.func`` transform, as the transform's wrappers: they would outlive it in the
     caches (an exported program could not save them as constants)."""
     with torch.inference_mode(False), torch.no_grad(), contextlib.ExitStack() as stack:
-        if torch._C._are_functorch_transforms_active():
+        if transforming():
             stack.enter_context(torch._C._DisableFuncTorch())
         yield
 

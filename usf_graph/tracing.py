@@ -58,14 +58,22 @@ def plain():
         _PLAIN[0] -= 1
 
 
+def transforming() -> bool:
+    """Whether a ``torch.func`` transform (``grad``, ``vmap``, ...) is active; never inside
+    ``torch.compile``'s trace, which would break its graph on the question."""
+    return not torch.compiler.is_compiling() and torch._C._are_functorch_transforms_active()
+
+
 def plain_forms(*tensors: torch.Tensor) -> bool:
     """Whether layers take their plain forms: while exporting, inside :func:`plain`, under
     a ``torch.func`` transform (``grad``, ``vmap``, ``jacrev``, ...), or where any of
     ``tensors`` (the call's inputs) carries a forward-mode tangent
     (``torch.autograd.forward_ad``). Sparse tensors and the fast forms' hand-written
     backward serve none of these; the plain forms are autograd's own, in every mode."""
-    if _PLAIN[0] > 0 or exporting() or torch._C._are_functorch_transforms_active():
+    if _PLAIN[0] > 0 or exporting() or transforming():
         return True
+    if torch.compiler.is_compiling():
+        return False
     return any(forward_ad.unpack_dual(t).tangent is not None for t in tensors)
 
 
@@ -81,7 +89,7 @@ def field_of(mask: torch.Tensor) -> np.ndarray:
                                "exported inside tracing.fixed_fields(record), after an eager "
                                "call recorded its fields (usf_graph.train.export does this)")
         return state["fields"][n]
-    if torch._C._are_functorch_transforms_active():  # its tensors' values cannot be read
+    if transforming():  # its tensors' values cannot be read
         raise RuntimeError("a model's field of view (its mask) cannot be read under a "
                            "torch.func transform: call it there with mask=None (every point "
                            "seen), or take gradients with ordinary autograd")
@@ -115,4 +123,4 @@ def check_values() -> bool:
     exporting (an exported model checks its own inputs, :mod:`usf_graph.train.export`),
     nor under a ``torch.func`` transform, whose ``vmap`` cannot branch on values (a NaN
     input then shows as NaN outputs instead of an error)."""
-    return not exporting() and not torch._C._are_functorch_transforms_active()
+    return not exporting() and not transforming()
