@@ -128,7 +128,7 @@ def test_bad_calibrations_name_the_problem(tmp_path):
     assert load(lambda d: d.pop("extrinsic")).position is None  # the intrinsics alone
 
 
-def test_a_cars_four_cameras_stitch_into_one_panorama(tmp_path):
+def test_a_cars_four_cameras_stitch_into_one_panorama(tmp_path, capsys):
     """``usf-graph render`` of the four cameras' images, each through its own calibration
     (``--camera FV.json,RV.json,...``, posed in the vehicle frame), into one panorama: every
     direction shows the colour its ray was given, whichever camera saw it (a camera mounted
@@ -156,3 +156,11 @@ def test_a_cars_four_cameras_stitch_into_one_panorama(tmp_path):
     assert np.median(err) < 0.01 and np.percentile(err, 99) < 0.05
     with pytest.raises(ValueError, match="no pose in the rig"):
         cameras.load_rig([calib / "00001_FV.json", FIXTURES / "opencv_pinhole.yaml"])
+    listed = ",".join(str(calib / f"{n}.json") for n in sides)
+    capsys.readouterr()
+    assert main(["camera", listed, "--all"]) == 0
+    rows = capsys.readouterr().out.splitlines()[1:]
+    assert [r.split()[0] for r in rows] == list(sides) and "(-1.0000, +0.0000" in rows[1]
+    assert main(["camera", listed]) == 2
+    assert "names several files (a rig of posed cameras): list them with --all" in \
+        capsys.readouterr().err

@@ -96,7 +96,9 @@ def load_all(path) -> dict:
     """Every camera of a calibration file, by the key :func:`load` takes for it: a Kalibr
     camchain's, Basalt calibration's or ORB-SLAM3 stereo pair's names (each mounted in the
     rig where the file says how), a COLMAP list's ids; ``{None: camera}`` for a file that
-    holds one camera."""
+    holds one camera; a list of files of one posed camera each: :func:`load_rig`'s."""
+    if isinstance(path, (list, tuple)):
+        return _rig_of_files([Path(p) for p in path], None)
     path = Path(path)
     data = _document(path)
     if isinstance(data, CameraList):
