@@ -584,6 +584,10 @@ def test_pyg_message_hooks_see_the_messages_that_make_the_output():
     torch.testing.assert_close(y, dense_reference(x, pos, conv, area), atol=1e-12, rtol=0)
     conv(x)
     assert len(seen) == 1  # removed: the fast path again
+    upright = UprightConv(3, 4, 0.7).bind(ei, ew, node_weight=area, pos=pos)
+    upright.register_message_forward_hook(lambda m, inputs, out: None)
+    with pytest.raises(ValueError, match="hooks are never called on it"):
+        upright(x, _unit(torch.randn(2, 3)))
 
 
 def test_gnn_explainer_finds_exactly_the_receptive_field():

@@ -314,7 +314,11 @@ class DistanceConv(GeometryModule, MessagePassing):
     def _wants_messages(self) -> bool:
         """Whether PyG's machinery needs the per-edge messages: its explain mode, or hooks
         registered on ``propagate``, ``message`` or ``aggregate``."""
-        return bool(self.explain) or any(map(bool, (
+        return bool(self.explain) or self._message_hooks()
+
+    def _message_hooks(self) -> bool:
+        """Whether PyG's ``propagate``, ``message`` or ``aggregate`` hooks are registered."""
+        return any(map(bool, (
             self._propagate_forward_pre_hooks, self._propagate_forward_hooks,
             self._message_forward_pre_hooks, self._message_forward_hooks,
             self._aggregate_forward_pre_hooks, self._aggregate_forward_hooks)))

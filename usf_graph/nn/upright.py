@@ -87,6 +87,10 @@ class UprightConv(SphericalConv):
         """The bound graph: ``conv(x [B, N, C], up [B, 3], mask=None)``. PyG's form, any
         graphs: ``conv(x [N, C], up [G, 3], edge_index, edge_weight, node_weight, mask,
         pos=pos, batch=batch)``, one up per graph (``batch``: each point's graph)."""
+        if self._message_hooks():  # rather than never call them without a word
+            raise ValueError("UprightConv passes no per-edge messages, so PyG's propagate, "
+                             "message and aggregate hooks are never called on it; use torch's "
+                             "register_forward_hook on the layer instead")
         if edge_index is not None:
             return self._general(x, up, edge_index, edge_weight, node_weight, mask, pos, batch)
         if self.directions is None:
