@@ -6,6 +6,7 @@ import json
 import math
 
 from .cli_inputs import (
+    calibration_files,
     camera_from_spec,
     fit_to_image,
     image_size,
@@ -32,7 +33,7 @@ def cmd_camera(args) -> int:
 
     if args.all:
         return _list_cameras(args)
-    if "," in args.calib:
+    if isinstance(calibration_files(args.calib), list):
         raise ValueError(f"{args.calib!r} names several files (a rig of posed cameras): list "
                          "them with --all, or describe one file at a time")
     # a panorama without a size takes the overlaid image's
@@ -91,7 +92,7 @@ def _list_cameras(args) -> int:
                          "--overlay, --save and --resize (then pick one with --key)")
     print(f"{'key':<10} {'model':<16} {'image':>11} {'fov (deg)':>10}  {'optical axis (sphere frame)':<29} "
           "optical centre")
-    found = cameras.load_all(args.calib.split(",") if "," in args.calib else args.calib)
+    found = cameras.load_all(calibration_files(args.calib))
     for key, cam in found.items():
         cam = cameras.with_fov_and_mask(cam, args.fov, args.image_mask)
         size = f"{cam.width}x{cam.height}"

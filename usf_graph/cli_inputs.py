@@ -257,6 +257,12 @@ def _distance(text: str):
                                          f"got {text!r}") from None
 
 
+def calibration_files(spec: str):
+    """``--camera`` as :func:`usf_graph.cameras.load_rig` takes it: comma-separated files of
+    one posed camera each as a list, one file as it is."""
+    return spec.split(",") if "," in spec else spec
+
+
 def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None, images=None,
                   grid=None) -> dict:
     """Every camera of a rig's file, or of comma-separated files of one posed camera each
@@ -267,7 +273,7 @@ def rig_from_spec(spec: str, fov=None, image_mask=None, key=None, distance=None,
     :func:`usf_graph.frontend.choose_distance`)."""
     from . import cameras
 
-    rig = cameras.load_rig(spec.split(",") if "," in spec else spec, key=key)
+    rig = cameras.load_rig(calibration_files(spec), key=key)
     if images is not None and len(images) == len(rig):  # frames resized as a whole
         rig = {n: fit_to_image(c, im.shape) for (n, c), im in zip(rig.items(), images)}
     rig = {n: cameras.with_fov_and_mask(c, fov, image_mask) for n, c in rig.items()}

@@ -35,6 +35,20 @@ def _fov_limit(fov_deg, model_limit: float) -> float:
     return math.radians(fov) / 2
 
 
+def _increasing_up_to(g, fov_deg, claim: str, name: str) -> float:
+    """The largest incidence angle of a lens whose image radius ``g(theta)`` (``name``)
+    increases up to there: its monotone limit, or ``fov_deg / 2`` where given and reached;
+    a ``g`` that folds back before the claimed field of view raises (``claim``: the lens
+    and what it is not)."""
+    mono = monotone_limit(g, math.pi)
+    claimed = _fov_limit(fov_deg, math.pi)
+    if fov_deg is not None and mono < claimed - 1e-9:
+        raise ValueError(f"{claim} over the claimed fov_deg={fov_deg}: {name} stops increasing at "
+                         f"{math.degrees(2 * mono):.1f} degrees of field of view. Check the "
+                         "coefficients or lower fov_deg.")
+    return min(mono, claimed)
+
+
 class Fisheye(Camera):
     """Ideal fisheye with radius ``r = f * g(theta)`` about the centre (cx, cy).
 
@@ -98,14 +112,9 @@ class KannalaBrandt(Camera):
         if self.k.shape != (4,):
             raise ValueError(f"k must hold the 4 coefficients k1..k4, got {self.k.tolist()}")
         self.fov = fov_deg
-        mono = monotone_limit(self._theta_d, math.pi)
-        claimed = _fov_limit(fov_deg, math.pi)
-        if fov_deg is not None and mono < claimed - 1e-9:
-            raise ValueError(
-                f"KannalaBrandt k={self.k.tolist()} is not monotonic over the claimed "
-                f"fov_deg={fov_deg}: theta_d stops increasing at {math.degrees(2 * mono):.1f} "
-                "degrees of field of view. Check the coefficients or lower fov_deg.")
-        self.theta_max = min(mono, claimed)
+        self.theta_max = _increasing_up_to(self._theta_d, fov_deg,
+                                           f"KannalaBrandt k={self.k.tolist()} is not monotonic",
+                                           "theta_d")
 
     def _theta_d(self, t):
         t2 = t * t
@@ -195,14 +204,8 @@ class RadialPoly(Camera):
         self.aspect_ratio = check_positive("aspect_ratio", aspect_ratio,
                                            "It is the vertical over the horizontal pixel scale.")
         self.fov = fov_deg
-        mono = monotone_limit(self._rho, math.pi)
-        claimed = _fov_limit(fov_deg, math.pi)
-        if fov_deg is not None and mono < claimed - 1e-9:
-            raise ValueError(f"RadialPoly k={self.k.tolist()} is not increasing over the claimed "
-                             f"fov_deg={fov_deg}: rho stops increasing at "
-                             f"{math.degrees(2 * mono):.1f} degrees of field of view. Check the "
-                             "coefficients or lower fov_deg.")
-        self.theta_max = min(mono, claimed)
+        self.theta_max = _increasing_up_to(self._rho, fov_deg,
+                                           f"RadialPoly k={self.k.tolist()} is not increasing", "rho")
 
     def _rho(self, t):
         """``rho(theta)`` by Horner's rule."""

@@ -98,7 +98,7 @@ def load_all(path) -> dict:
     rig where the file says how), a COLMAP list's ids; ``{None: camera}`` for a file that
     holds one camera; a list of files of one posed camera each: :func:`load_rig`'s."""
     if isinstance(path, (list, tuple)):
-        return _rig_of_files([Path(p) for p in path], None)
+        return _rig_of_files(path, None)
     path = Path(path)
     data = _document(path)
     if isinstance(data, CameraList):
@@ -218,7 +218,7 @@ def load_rig(path, key=None) -> dict[str, Camera]:
     ``position``: WoodScape's calibrations, a car's cameras in its vehicle frame, or
     usf-graph YAMLs saved from a rig): those cameras, named by the files' stems."""
     if isinstance(path, (list, tuple)):
-        return _rig_of_files([Path(p) for p in path], key)
+        return _rig_of_files(path, key)
     path = Path(path)
     if rig_file(path) is not None:
         return colmap_rig(path, key)
@@ -237,6 +237,7 @@ def load_rig(path, key=None) -> dict[str, Camera]:
 
 def _rig_of_files(paths: list, key) -> dict[str, Camera]:
     """:func:`load_rig` of one file per camera, each posed in one frame."""
+    paths = [Path(p) for p in paths]
     if key is not None:
         raise ValueError(f"key={key!r} (--key) picks a rig in a COLMAP model; a rig of "
                          "separate files uses every file: leave the key out")

@@ -1,12 +1,16 @@
 """What the datasets stored as one ``[S, ...]`` tensor per field share: PyG ``pre_transform``
-on them, loading, boxes, and the gravity of panoramas released upright."""
+on them, loading, reading a release's images, boxes, and the gravity of panoramas released
+upright."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from pathlib import Path
 
 import torch
 from torch_geometric.data import Data
+
+from ..fileio import decode_image
 
 
 def pre_transform_stacked(pre_transform: Callable[[Data], Data], samples: Iterable[Data],
@@ -55,6 +59,18 @@ def load_or_rebuild(path, process: Callable[[], None], required: tuple[str, ...]
         process()
         blob = torch.load(path, weights_only=True)
     return blob
+
+
+def read_release_image(path, flags, get_it: str):
+    """An image of a dataset's release as OpenCV decodes it (``flags``); a missing file
+    raises with ``get_it`` (where to get the data), one that does not decode names it."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing. " + get_it)
+    img = decode_image(path, flags)
+    if img is None:
+        raise ValueError(f"{path} is not a readable PNG (corrupt or truncated); download it again")
+    return img
 
 
 def pack_boxes(boxes, classes) -> dict:

@@ -26,13 +26,13 @@ from torch_geometric.data import Dataset
 from tqdm.auto import tqdm
 
 from ..cameras import Equirectangular
-from ..fileio import atomic_torch_save, decode_image
+from ..fileio import atomic_torch_save
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from ..scenes.export import STANFORD_AREAS, STANFORD_MISSING
-from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked
+from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked, read_release_image
 
 AREAS = STANFORD_AREAS
 #: The three area-disjoint folds: (train areas, test areas).
@@ -72,13 +72,6 @@ def decode_semantic(rgb: np.ndarray, table: np.ndarray) -> np.ndarray:
     out[ok] = table[idx[ok]]
     out[idx == MISSING] = IGNORE
     return out
-
-
-def _read(path: Path, flags) -> np.ndarray:
-    img = decode_image(path, flags)
-    if img is None:
-        raise ValueError(f"{path} is not a readable PNG (corrupt or truncated); download it again")
-    return img
 
 
 def panoramas(root, areas) -> list[tuple[Path, Path]]:
@@ -168,8 +161,9 @@ class Stanford2D3DS(UprightAsReleased, Dataset):
         for rgb_path, sem_path in tqdm(panoramas(self.root, self.areas),
                                        desc=f"lifting Stanford 2D-3D-S fold {self.fold} {self.split}",
                                        disable=not self.progress, leave=False):
-            rgb = _read(rgb_path, cv2.IMREAD_COLOR)[..., ::-1]  # drops an alpha channel
-            sem = _read(sem_path, cv2.IMREAD_COLOR)[..., ::-1]
+            get_it = GET_IT.format(root=self.root)
+            rgb = read_release_image(rgb_path, cv2.IMREAD_COLOR, get_it)[..., ::-1]  # no alpha
+            sem = read_release_image(sem_path, cv2.IMREAD_COLOR, get_it)[..., ::-1]
             if rgb.shape != sem.shape or rgb.shape[1] != 2 * rgb.shape[0]:
                 raise ValueError(f"{rgb_path.name} is {rgb.shape[1]}x{rgb.shape[0]} and its semantic "
                                  f"image {sem.shape[1]}x{sem.shape[0]}; both must be the same 2:1 "

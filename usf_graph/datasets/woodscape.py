@@ -26,13 +26,13 @@ from torch_geometric.data import Dataset
 from tqdm.auto import tqdm
 
 from .. import cameras
-from ..fileio import atomic_torch_save, decode_image
+from ..fileio import atomic_torch_save
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage
 from ..frontend.interpolation import choose_interpolation
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE
-from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked
+from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked, read_release_image
 
 CLASSES = ("void", "road", "lanemarks", "curb", "person", "rider", "vehicles", "bicycle",
            "motorcycle", "traffic_sign")
@@ -70,15 +70,6 @@ def _calibration(root: Path, name: str) -> Path:
             return folder / f"{name}.json"
     raise FileNotFoundError(f"no calibration for {name} (calibration_data/calibration/{name}.json). "
                             + GET_IT.format(root=root))
-
-
-def _read(path: Path, flags) -> np.ndarray:
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing. " + GET_IT.format(root=path.parents[1]))
-    img = decode_image(path, flags)
-    if img is None:
-        raise ValueError(f"{path} is not a readable PNG (corrupt or truncated); download it again")
-    return img
 
 
 class WoodScape(UprightAsReleased, Dataset):
@@ -150,9 +141,11 @@ class WoodScape(UprightAsReleased, Dataset):
                                   SphericalFrontend(cam, self.grid, interpolation="nearest"), full)
             fe, labels_fe, full = frontends[key]
             size = (fe.camera.width, fe.camera.height)
-            rgb = _read(root / "rgb_images" / f"{name}.png", cv2.IMREAD_COLOR)[..., ::-1]
-            label = _read(root / "semantic_annotations" / "gtLabels" / f"{name}.png",
-                          cv2.IMREAD_GRAYSCALE)
+            get_it = GET_IT.format(root=root)
+            rgb = read_release_image(root / "rgb_images" / f"{name}.png", cv2.IMREAD_COLOR,
+                                     get_it)[..., ::-1]
+            label = read_release_image(root / "semantic_annotations" / "gtLabels" / f"{name}.png",
+                                       cv2.IMREAD_GRAYSCALE, get_it)
             if rgb.shape[:2] != label.shape[:2]:
                 raise ValueError(f"{name}: the image is {rgb.shape[1]}x{rgb.shape[0]} and its "
                                  f"labels {label.shape[1]}x{label.shape[0]}; they must match")

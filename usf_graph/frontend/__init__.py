@@ -14,9 +14,7 @@ _WHERE = {"GeometryCache": "cache", "default_cache": "cache",
           "RigFrontend": "rig", "RigReimager": "rig", "blend_weights": "rig",
           "choose_distance": "rig", "render_rig": "rig"}
 
-__all__ = ["SphericalFrontend", "RigFrontend", "Reimager", "RigReimager", "choose_distance",
-           "render_rig", "blend_weights", "GeometryCache", "default_cache", "default_radius",
-           "grid_graph", "render", "save_lifted", "load_lifted", "read_lifted"]
+__all__ = list(_WHERE)
 
 
 def __getattr__(name: str):
