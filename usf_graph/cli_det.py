@@ -40,15 +40,18 @@ def add_train_options(t) -> None:
     """Options of ``train det`` and ``train seg`` (their defaults: those of
     :func:`usf_graph.train.det.run` and :func:`usf_graph.train.seg.run`)."""
     g = t.add_argument_group("det and seg (the protocols on procedural rooms, or real data)")
-    g.add_argument("--dataset", default="rooms", choices=["rooms", "pandora", "stanford2d3ds"],
-                   help="procedural rooms (rendered here), or the real data: PANDORA (det) or "
-                        "Stanford 2D-3D-S (seg); download those first")
+    g.add_argument("--dataset", default="rooms", choices=["rooms", "pandora", "stanford2d3ds", "woodscape"],
+                   help="procedural rooms (rendered here), or the real data: PANDORA (det), "
+                        "Stanford 2D-3D-S or WoodScape's fisheyes (seg); download those first")
     g.add_argument("--size", type=positive_int, default=None,
                    help="panorama height (width 2x; fisheye and pinhole size x size); default: "
                         "det 128, seg 96 (stanford2d3ds: 256)")
     g.add_argument("--num-train", type=positive_int, default=None, help="rooms: training views (det 200, seg 400)")
     g.add_argument("--num-test", type=positive_int, default=None, help="rooms: views per test (50)")
     g.add_argument("--lr", type=at_least(0.0, float, above=True), default=None, help="AdamW learning rate (det 2e-3, seg 3e-3)")
+    g.add_argument("--scale", type=at_least(0.0, float, above=True, most=1.0), default=None,
+                   help="woodscape: the images resized by this factor before lifting (0.5: "
+                        "640 x 483)")
     g.add_argument("--fold", default="1", choices=["1", "2", "3", "all"],
                    help="stanford2d3ds: the area-disjoint fold, or all three")
     g.add_argument("--models", nargs="+", default=None,
@@ -93,10 +96,10 @@ def add_device_option(p, what: str = "the model runs") -> None:
 
 def add_eval_options(e) -> None:
     """Options of ``eval det`` and ``eval seg``: which tests, which views, which up."""
-    e.add_argument("--dataset", default=None, choices=["rooms", "stanford2d3ds", "pandora"],
+    e.add_argument("--dataset", default=None, choices=["rooms", "stanford2d3ds", "woodscape", "pandora"],
                    help="det, seg: the test data (default: what the checkpoint was trained on; "
                         "rooms for checkpoints that do not say). stanford2d3ds: the fold's test "
-                        "areas; pandora: the test split")
+                        "areas; woodscape: the val list; pandora: the test split")
     e.add_argument("--fold", type=int, default=None, choices=[1, 2, 3],
                    help="stanford2d3ds: whose test areas (default: the checkpoint's fold)")
     e.add_argument("--test", nargs="+", choices=["a", "b", "c", "d", "e"], default=None,
@@ -175,6 +178,9 @@ def rooms_only_options(args) -> None:
     if args.dataset != "rooms" and args.materials is not None:
         raise ValueError(f"--materials is an option of the procedural rooms; {args.dataset}'s "
                          f"images are photographs")
+    if args.dataset != "woodscape" and getattr(args, "scale", None) is not None:
+        raise ValueError("--scale resizes WoodScape's images; give --dataset woodscape, or "
+                         "--size for the others")
 
 
 def rooms_kind(results: dict) -> str:
@@ -236,8 +242,8 @@ def cmd_train_det(args) -> int:
     from .train.det import format_table, run
     from .train.real import run_pandora
 
-    if args.dataset == "stanford2d3ds":
-        raise ValueError("Stanford 2D-3D-S is a segmentation dataset: use 'usf-graph train seg'")
+    if args.dataset in ("stanford2d3ds", "woodscape"):
+        raise ValueError(f"{args.dataset} is a segmentation dataset here: use 'usf-graph train seg'")
     kw = run_kwargs(args, run)
     rooms_only_options(args)
     if args.dataset == "pandora":
@@ -263,29 +269,34 @@ def cmd_train_det(args) -> int:
     return 0
 
 
-REAL_DATA = {"seg": "stanford2d3ds", "det": "pandora"}
+REAL_DATA = {"seg": ("stanford2d3ds", "woodscape"), "det": ("pandora",)}
 
 
 def eval_data(ckpt, args) -> str:
     """What ``eval seg|det`` scores ``ckpt`` on: ``--dataset``, else the data it was trained
     on. A clear error for the other task's data, for options only the rooms protocols read,
     and for a model whose classes are not the data's."""
+    from .datasets.woodscape import CLASSES as WOODSCAPE_CLASSES
     from .scenes import DETECTION_CLASSES, PANDORA_CLASSES, SEMANTIC_CLASSES
 
     data, real = args.dataset or ckpt.dataset, REAL_DATA[ckpt.task]
-    if data not in ("rooms", real):
+    if data not in ("rooms", *real):
         raise ValueError(f"{data} is not {ckpt.task} data: 'usf-graph eval {ckpt.task}' scores "
-                         f"rooms or {real}")
+                         f"rooms or {' or '.join(real)}")
     if data != "rooms":
         rooms_only = given(args, "test", "num_test", "camera", "figure",
                            *(("size",) if data == "pandora" else ()))
         if rooms_only:
             raise ValueError(f"{', '.join(rooms_only)}: rooms options; {data} is scored on its "
                              "own test data as released")
+    if data == "woodscape" and (ckpt.planar or ckpt.dataset != "woodscape"):
+        raise ValueError(f"{ckpt.path} was not trained on WoodScape; its classes are not "
+                         "WoodScape's 10")
     if args.fold is not None and data != "stanford2d3ds":
         raise ValueError("--fold picks Stanford 2D-3D-S's test areas; give --dataset stanford2d3ds")
     classes = {"rooms": SEMANTIC_CLASSES if ckpt.task == "seg" else DETECTION_CLASSES,
-               "stanford2d3ds": SEMANTIC_CLASSES, "pandora": PANDORA_CLASSES}[data]
+               "stanford2d3ds": SEMANTIC_CLASSES, "pandora": PANDORA_CLASSES,
+               "woodscape": WOODSCAPE_CLASSES}[data]
     n = ckpt.model.config["num_classes"]
     if n != len(classes):
         raise ValueError(f"{ckpt.path} predicts {n} classes (trained on "

@@ -19,7 +19,7 @@ from .cli_inputs import camera_test
 
 def cmd_train_seg(args) -> int:
     from .train import teardown_distributed
-    from .train.real import run_stanford
+    from .train.real import run_stanford, run_woodscape
     from .train.seg import MODELS, format_table, run
 
     if args.dataset == "pandora":
@@ -31,6 +31,12 @@ def cmd_train_seg(args) -> int:
         res = run_stanford(root=args.root or "data/stanford2d3ds", out=args.out or "runs/seg_stanford",
                            folds=folds, models=tuple(args.models or ("spherical_unet",)),
                            **given_or_default(args, run_stanford, ("size",)), **kw)
+    elif args.dataset == "woodscape":
+        if args.size is not None:
+            raise ValueError("--size: WoodScape's images keep their shape; --scale resizes them")
+        res = run_woodscape(root=args.root or "data/woodscape", out=args.out or "runs/seg_woodscape",
+                            models=tuple(args.models or ("spherical_deeplab",)),
+                            **given_or_default(args, run_woodscape, ("scale",)), **kw)
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/seg",
                   models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw,
@@ -43,6 +49,13 @@ def cmd_train_seg(args) -> int:
         print(json.dumps({m: res[m]["mean"] for m in res if isinstance(res[m], dict) and "mean" in res[m]},
                          indent=1))
         return 0
+    if args.dataset == "woodscape":
+        print(f"\nWoodScape val ({res['samples']['test']} images; trained on "
+              f"{res['samples']['train']} from {res['fields_of_view']} fields of view; {res['seconds']} s)")
+        for m in ("spherical_unet", "spherical_deeplab"):
+            if m in res:
+                print(format_woodscape(m, res[m]))
+        return 0
     print(f"\nSegmentation on procedural {rooms_kind(res)}, trained on upright panoramas ({res['samples']['train']} "
           f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
     for metric in ("mIoU", "mAcc"):
@@ -51,6 +64,14 @@ def cmd_train_seg(args) -> int:
     if "figure" in res:
         print(f"figure: {res['figure']}")
     return 0
+
+
+def format_woodscape(name: str, r: dict) -> str:
+    """A WoodScape score (:func:`~usf_graph.train.seg.evaluate_fields`) in two lines."""
+    cams = ", ".join(f"{c} {100 * v:.2f}" for c, v in r["cameras"].items())
+    return (f"{name}: mIoU {100 * r['mIoU']:.2f}, mAcc {100 * r['mAcc']:.2f}, sphere_mIoU "
+            f"{100 * r['sphere_mIoU']:.2f}, per_image_mIoU {100 * r['per_image_mIoU']:.2f}\n"
+            f"{name} per camera: mIoU {cams}")
 
 
 def cmd_eval_seg(args) -> int:
@@ -66,7 +87,19 @@ def cmd_eval_seg(args) -> int:
         raise ValueError("--render soft blends a spherical model's probabilities on its grid; "
                          "a planar model labels the panorama's pixels itself")
     level = ckpt.config.get("level", 5)
-    if eval_data(ckpt, args) == "stanford2d3ds":
+    data = eval_data(ckpt, args)
+    if data == "woodscape":
+        from .datasets import WoodScape
+        from .datasets.woodscape import CLASSES
+        from .train.seg import evaluate_fields
+
+        test = WoodScape(args.root or "data/woodscape", "val", grid=f"icosahedral:{level}",
+                         scale=ckpt.scale or 0.5)
+        r = evaluate_fields(model, test, args.known_up, desc=f"{name} val", render=render,
+                            names=CLASSES)
+        print(format_woodscape(name, r))
+        return 0
+    if data == "stanford2d3ds":
         from .datasets import Stanford2D3DS
 
         fold = args.fold or ckpt.fold or 1

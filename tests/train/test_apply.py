@@ -164,6 +164,7 @@ def test_auto_interpolation_averages_where_the_image_is_finer_than_the_grid():
 def test_class_names():
     assert class_names("seg", 13)[3] == "ceiling" and len(class_names("det", 12)) == 12
     assert len(class_names("det", 47)) == 47 and class_names("det", 5)[4] == "class 4"
+    assert class_names("seg", 10)[1] == "road" and class_names("seg", 10)[9] == "traffic_sign"
 
 
 def test_a_rig_is_one_sphere_and_answers_in_each_camera(views):

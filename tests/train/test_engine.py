@@ -7,8 +7,11 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from usf_graph.models import SphericalClassifier
 from usf_graph.train.engine import load_checkpoint, save_checkpoint
@@ -340,3 +343,71 @@ def test_on_a_gpu_detection_training_and_prediction_follow_the_cpu(tmp_path):
     assert len(found[0]) == len(found[1]) == 2
     for a, b in zip(*found):
         assert abs(a["scores"][0] - b["scores"][0]) < 1e-3
+
+
+@settings(max_examples=40, deadline=None)
+@given(groups=st.lists(st.integers(0, 3), min_size=1, max_size=30),
+       batch_size=st.integers(1, 5), seed=st.integers(0, 5), epoch=st.integers(0, 3))
+def test_group_batches_take_every_sample_once_and_never_mix_groups(groups, batch_size, seed, epoch):
+    from usf_graph.train import group_batches
+
+    batches = group_batches(groups, batch_size, seed, epoch)
+    assert sorted(i for b in batches for i in b) == list(range(len(groups)))
+    assert all(1 <= len(b) <= batch_size and len({groups[i] for i in b}) == 1 for b in batches)
+    # as few batches as the groups allow, and the same draw for the same seed and epoch
+    sizes = np.bincount(groups)
+    assert len(batches) == sum(-(-n // batch_size) for n in sizes)
+    assert group_batches(groups, batch_size, seed, epoch) == batches
+    plain = group_batches(groups, batch_size, shuffle=False)
+    assert [i for b in plain for i in b] == sorted(range(len(groups)), key=lambda i: (
+        list(dict.fromkeys(groups)).index(groups[i]), i))
+
+
+def test_field_groups_name_equal_masks_alike_and_batches_share_one_field(monkeypatch):
+    from usf_graph.train import engine, field_groups
+
+    a, b = torch.tensor([1, 1, 0, 0], dtype=torch.bool), torch.tensor([0, 1, 1, 0], dtype=torch.bool)
+    g = field_groups(torch.stack([a, b, a, a, b]))
+    assert g[0] == g[2] == g[3] != g[1] == g[4]
+    with pytest.raises(ValueError, match=r"mask must be \[S, N\]"):
+        field_groups(a)
+    # under torchrun each process takes its share of every batch; one of a single sample
+    # is repeated so that no process gets none (DDP would wait for it forever)
+    monkeypatch.setattr(engine, "is_distributed", lambda: True)
+    monkeypatch.setattr(engine.dist, "get_world_size", lambda: 2)
+    shares = []
+    for rank in (0, 1):
+        monkeypatch.setattr(engine.dist, "get_rank", lambda r=rank: r)
+        loader = engine._batches(list(range(5)), 2, True, 0, 0, collate_fn=list, groups=[0, 1, 0, 0, 1][:5])
+        shares.append(list(loader))
+    whole = engine.group_batches([0, 1, 0, 0, 1], 2, 0, 0)
+    for k, batch in enumerate(whole):
+        got = shares[0][k] + shares[1][k]
+        assert len(shares[0][k]) >= 1 and len(shares[1][k]) >= 1
+        assert sorted(set(got)) == sorted(batch)
+
+
+def test_fit_in_groups_batches_one_field_and_schedules_every_step(tmp_path):
+    """Every batch of a grouped fit comes from one group; the cosine schedule counts the
+    groups' batches (halfway through, the learning rate is half the initial one)."""
+    from usf_graph.train.engine import fit
+
+    groups = [0, 1, 2, 3, 4, 5, 0, 1]  # 6 batches of at most 2 an epoch, not 8 / 2
+    seen = []
+
+    class Tiny(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(()))
+
+    def step(model, batch):
+        seen.append(batch)
+        return model.w ** 2 + model.w * 0, {}, len(batch)
+
+    fit(Tiny(), list(range(8)), epochs=2, batch_size=2, lr=0.1, log_dir=tmp_path, progress=False,
+        step=step, collate_fn=list, groups=groups)
+    assert len(seen) == 12 and all(len({groups[i] for i in b}) == 1 for b in seen)
+    rows = load_checkpoint(tmp_path / "last.pt")["metrics"]["history"]
+    assert rows[0]["lr"] == pytest.approx(0.05, abs=1e-12) and rows[1]["lr"] == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ValueError, match="groups has 3 entries for 9 samples"):
+        fit(Tiny(), list(range(9)), epochs=1, progress=False, step=step, collate_fn=list, groups=[0, 1, 2])

@@ -6,7 +6,9 @@ import re
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pytest
 import torch
 
 from tests.datasets.test_stanford import NAMES, _write_pano
@@ -81,4 +83,93 @@ def test_pandora_command_on_the_fixture(tmp_path, capsys):
                          "predicts 12 classes .* pandora has 47"),
                         ([str(ckpt), "--size", "64"], "--size: rooms options")):
         assert main(["eval", "det", *argv, "--root", str(root)]) == 2
+        assert re.search(match, capsys.readouterr().err), match
+
+
+def _woodscape(root):
+    from tests.datasets.test_woodscape import _calibration, _write
+
+    for name, yaw in (("00001_FV", 0), ("00002_RV", 180), ("00004_FV", 0), ("00003_MVL", 90),
+                      ("00005_MVR", -90)):
+        _write(root, name, _calibration(yaw))
+    (root / "train.txt").write_text("00001_FV.png\n00002_RV.png\n00004_FV.png\n")
+    (root / "val.txt").write_text("00003_MVL.png\n00005_MVR.png\n")
+    return root
+
+
+class _Constant(torch.nn.Module):
+    """Predicts class ``c`` everywhere, and checks that every batch shares one field of
+    view, the one each of its samples was lifted with."""
+
+    def __init__(self, ds, c):
+        super().__init__()
+        self.ds, self.c, self.w = ds, c, torch.nn.Parameter(torch.zeros(()))
+        self.config = {"num_classes": 10}
+
+    def forward(self, x, mask, up=None):
+        for row in x:
+            i = next(i for i in range(len(self.ds)) if torch.equal(self.ds.x[i].float(), row))
+            assert torch.equal(self.ds.mask[i], torch.ones_like(self.ds.mask[i]) if mask is None else mask)
+        assert up is not None and torch.equal(up, torch.tensor([[0.0, 0.0, 1.0]] * len(x)))
+        out = torch.zeros(*x.shape[:2], 10)
+        out[..., self.c] = 1
+        return out
+
+
+def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
+    """A model that says "road" everywhere, scored by hand from the label PNGs: road's IoU
+    is the road pixels' share of the pixels with a ray, every other class 0."""
+    from usf_graph.datasets import WoodScape
+    from usf_graph.datasets.woodscape import CLASSES
+    from usf_graph.frontend.interpolation import valid_pixels
+    from usf_graph.train.seg import evaluate_fields
+
+    root = _woodscape(tmp_path / "ws")
+    ds = WoodScape(root, "val", grid="icosahedral:3", scale=0.5, progress=False)
+    r = evaluate_fields(_Constant(ds, 1), ds, known_up=True, batch_size=2, progress=False,
+                        names=CLASSES)
+    truth, cams = [], {}
+    for i, name in enumerate(ds.names):
+        label = cv2.imread(str(root / "semantic_annotations" / "gtLabels" / f"{name}.png"), 0)
+        label = cv2.resize(np.where(label < 10, label, 0).astype(np.uint8), (64, 48),
+                           interpolation=cv2.INTER_NEAREST)
+        t = label[valid_pixels(ds.frontend(i).camera)]
+        truth.append(t)
+        cams[ds.camera_names[i]] = (t == 1).mean() / len(set(t.tolist()) | {1})
+    t = np.concatenate(truth)
+    present = set(t.tolist()) | {1}
+    assert r["IoU"]["road"] == pytest.approx((t == 1).mean(), abs=1e-12)
+    assert r["mIoU"] == pytest.approx((t == 1).mean() / len(present), abs=1e-12)
+    assert r["mAcc"] == pytest.approx(1 / len(set(t.tolist())), abs=1e-12)
+    assert r["cameras"] == pytest.approx(cams, abs=1e-12) and list(r["cameras"]) == ["MVL", "MVR"]
+    y, area = ds.y.numpy(), ds.grid.area.numpy()
+    seen = y != 255
+    road = (area * ((y == 1) & seen)).sum() / (area * seen).sum()
+    assert r["sphere_mIoU"] == pytest.approx(road / len(set(y[seen].tolist()) | {1}), rel=1e-9)
+
+
+def test_woodscape_command_trains_on_four_cameras_and_eval_scores_it_again(tmp_path, capsys):
+    root = _woodscape(tmp_path / "ws")
+    out = tmp_path / "out"
+    assert main(["train", "seg", "--dataset", "woodscape", "--root", str(root), "--out", str(out),
+                 "--models", "spherical_unet", "--epochs", "1", "--batch-size", "2"]) == 0
+    printed = capsys.readouterr().out
+    res = json.loads((out / "results.json").read_text())
+    assert res["samples"] == {"train": 3, "test": 2} and res["fields_of_view"] == 2
+    r = res["spherical_unet"]
+    assert np.isfinite(r["mIoU"]) and set(r["cameras"]) == {"MVL", "MVR"}
+    assert f"mIoU {100 * r['mIoU']:.2f}," in printed
+    ckpt = load_protocol_model(out / "spherical_unet.pt")
+    assert (ckpt.dataset, ckpt.scale, ckpt.model.config["num_classes"]) == ("woodscape", 0.5, 10)
+    # eval reads the vehicle frame's up with --known-up, as training scored it
+    assert main(["eval", "seg", str(out / "spherical_unet.pt"), "--root", str(root), "--known-up"]) == 0
+    assert f"spherical_unet: mIoU {100 * r['mIoU']:.2f}," in capsys.readouterr().out
+    for argv, match in ((["train", "seg", "--dataset", "woodscape", "--models", "planar_unet"],
+                         "spherical models .* not \\['planar_unet'\\]"),
+                        (["train", "seg", "--scale", "0.5"], "--scale resizes WoodScape"),
+                        (["train", "det", "--dataset", "woodscape"], "segmentation dataset"),
+                        (["eval", "seg", str(out / "spherical_unet.pt"), "--dataset", "stanford2d3ds"],
+                         "predicts 10 classes")):
+        assert main([*argv, "--root", str(root), "--out", str(tmp_path / "x")]
+                    if argv[0] == "train" else [*argv, "--root", str(root)]) == 2
         assert re.search(match, capsys.readouterr().err), match

@@ -29,7 +29,7 @@ from .. import cameras
 from ..fileio import atomic_torch_save
 from ..frontend import SphericalFrontend
 from ..frontend.image import SphericalImage
-from ..frontend.interpolation import choose_interpolation
+from ..frontend.interpolation import choose_interpolation, valid_pixels
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE
 from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked, read_release_image
@@ -86,8 +86,11 @@ class WoodScape(UprightAsReleased, Dataset):
     A sample has ``x [N, 3]`` (RGB in [0, 1], 0 where unseen), ``y [N]`` (0..9, 255 where
     the camera does not see), ``mask [N]`` (its camera's field of view), ``pos``,
     ``area`` and its camera's name ``camera`` (FV, RV, MVL, MVR). The split in static form:
-    ``dataset.x``, ``.y``, ``.mask``, ``.names``, ``.camera_names``; ``dataset.gravity`` is
-    +z (the vehicle frame's up, for ``usf-graph eval --known-up``).
+    ``dataset.x``, ``.y``, ``.mask``, ``.names``, ``.camera_names``, ``.calibrations`` (each
+    sample's calibration file, relative to ``root``); ``dataset.gravity`` is +z (the
+    vehicle frame's up, for ``usf-graph eval --known-up``). :meth:`frontend` and
+    :meth:`label_image` give a sample's camera and its labels in that camera's pixels, for
+    scoring on the images (:func:`usf_graph.train.real.run_woodscape`).
     """
 
     def __init__(self, root, split: str = "train", grid="icosahedral:5", scale: float = 0.5,
@@ -97,10 +100,11 @@ class WoodScape(UprightAsReleased, Dataset):
         if not 0 < scale <= 1:
             raise ValueError(f"scale must be in (0, 1], got {scale}")
         self.split, self.scale, self.progress = split, float(scale), progress
+        self._cache: dict = {}
         self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
         super().__init__(str(root), transform, pre_transform, log=False)
         blob = load_or_rebuild(self.processed_paths[0], self.process,
-                               ("x", "y", "mask", "names", "camera_names"))
+                               ("x", "y", "mask", "names", "camera_names", "calibrations"))
         for k, v in blob.items():
             setattr(self, k, v)
 
@@ -121,53 +125,81 @@ class WoodScape(UprightAsReleased, Dataset):
     def download(self):
         raise FileNotFoundError(GET_IT.format(root=self.root))
 
-    def process(self):
+    def _frontends(self, calibration: Path) -> tuple:
+        """The lifting and label frontends of a calibration file at this dataset's scale, and
+        the release's image size; one per distinct calibration (the files repeat per camera)."""
+        key = calibration.read_bytes()
+        if key not in self._cache:
+            cam = cameras.load(calibration)
+            full = (cam.width, cam.height)
+            size = (round(cam.width * self.scale), round(cam.height * self.scale))
+            cam = cam.resized(*size) if size != full else cam
+            self._cache[key] = (SphericalFrontend(cam, self.grid,
+                                                  interpolation=choose_interpolation(cam, self.grid)),
+                                SphericalFrontend(cam, self.grid, interpolation="nearest"), full)
+        return self._cache[key]
+
+    def _read(self, name: str, size: tuple, full: tuple, rgb: bool = True):
+        """Image ``name``'s RGB (``None`` unless ``rgb``) and labels (void for any label past
+        the classes, as OmniDet), checked against its calibration and resized to ``size``."""
         import cv2
 
+        root, get_it = Path(self.root), GET_IT.format(root=self.root)
+        label = read_release_image(root / "semantic_annotations" / "gtLabels" / f"{name}.png",
+                                   cv2.IMREAD_GRAYSCALE, get_it)
+        shapes = {"its calibration": full, "its labels": (label.shape[1], label.shape[0])}
+        if rgb:
+            rgb = read_release_image(root / "rgb_images" / f"{name}.png", cv2.IMREAD_COLOR,
+                                     get_it)[..., ::-1]
+            shapes["the image"] = (rgb.shape[1], rgb.shape[0])
+        else:
+            rgb = None
+        if len(set(shapes.values())) > 1:
+            raise ValueError(f"{name}: " + ", ".join(f"{k} is {w}x{h}" for k, (w, h) in shapes.items())
+                             + "; they must match")
+        label = np.where(label < len(CLASSES), label, 0).astype(np.uint8)
+        if size != full:
+            label = cv2.resize(label, size, interpolation=cv2.INTER_NEAREST)
+            if rgb is not None:
+                rgb = cv2.resize(np.ascontiguousarray(rgb), size, interpolation=cv2.INTER_AREA)
+        return (rgb if rgb is None else np.ascontiguousarray(rgb)), label
+
+    def process(self):
         root = Path(self.root)
-        frontends: dict = {}  # one per distinct calibration: the files repeat per camera
-        xs, ys, masks, names, cams = [], [], [], [], []
+        xs, ys, masks, names, cams, calibs = [], [], [], [], [], []
         for name in tqdm(woodscape_images(root, self.split), desc=f"lifting WoodScape {self.split}",
                          disable=not self.progress, leave=False):
             calib = _calibration(root, name)
-            key = calib.read_bytes()
-            if key not in frontends:
-                cam = cameras.load(calib)
-                full = (cam.width, cam.height)
-                size = (round(cam.width * self.scale), round(cam.height * self.scale))
-                cam = cam.resized(*size) if size != full else cam
-                frontends[key] = (SphericalFrontend(cam, self.grid,
-                                                    interpolation=choose_interpolation(cam, self.grid)),
-                                  SphericalFrontend(cam, self.grid, interpolation="nearest"), full)
-            fe, labels_fe, full = frontends[key]
-            size = (fe.camera.width, fe.camera.height)
-            get_it = GET_IT.format(root=root)
-            rgb = read_release_image(root / "rgb_images" / f"{name}.png", cv2.IMREAD_COLOR,
-                                     get_it)[..., ::-1]
-            label = read_release_image(root / "semantic_annotations" / "gtLabels" / f"{name}.png",
-                                       cv2.IMREAD_GRAYSCALE, get_it)
-            if rgb.shape[:2] != label.shape[:2]:
-                raise ValueError(f"{name}: the image is {rgb.shape[1]}x{rgb.shape[0]} and its "
-                                 f"labels {label.shape[1]}x{label.shape[0]}; they must match")
-            if (rgb.shape[1], rgb.shape[0]) != full:
-                raise ValueError(f"{name}: the image is {rgb.shape[1]}x{rgb.shape[0]}, its "
-                                 f"calibration {full[0]}x{full[1]}; they must match")
-            label = np.where(label < len(CLASSES), label, 0).astype(np.uint8)  # as OmniDet
-            if size != full:
-                rgb = cv2.resize(np.ascontiguousarray(rgb), size, interpolation=cv2.INTER_AREA)
-                label = cv2.resize(label, size, interpolation=cv2.INTER_NEAREST)
-            xs.append(fe.lift(np.ascontiguousarray(rgb).astype(np.float32) / 255))
+            fe, labels_fe, full = self._frontends(calib)
+            rgb, label = self._read(name, (fe.camera.width, fe.camera.height), full)
+            xs.append(fe.lift(rgb.astype(np.float32) / 255))
             ys.append(labels_fe.lift(label)[:, 0].round().long().masked_fill(~fe.mask, IGNORE))
             masks.append(fe.mask)
             names.append(name)
             cams.append(name.rsplit("_", 1)[-1])
+            calibs.append(calib.relative_to(root).as_posix())
         x, y, mask = torch.stack(xs), torch.stack(ys).to(torch.uint8), torch.stack(masks)
         if self.pre_transform is not None:
             x = pre_transform_stacked(self.pre_transform,
                                       (self._sample(x[i], y[i], mask[i]) for i in range(len(x))),
                                       "x", fixed=("pos",))
         atomic_torch_save({"x": x.to(torch.float16), "y": y, "mask": mask, "names": names,
-                           "camera_names": cams}, self.processed_paths[0])
+                           "camera_names": cams, "calibrations": calibs}, self.processed_paths[0])
+
+    def frontend(self, idx: int) -> SphericalFrontend:
+        """Sample ``idx``'s camera (at the dataset's scale) and grid: its field of view is
+        ``mask[idx]``, and :meth:`~usf_graph.frontend.SphericalFrontend.to_labels` renders
+        per-point predictions into its pixels."""
+        return self._frontends(Path(self.root) / self.calibrations[idx])[0]
+
+    def label_image(self, idx: int) -> np.ndarray:
+        """Sample ``idx``'s labels ``[H, W]`` (uint8) in its camera's pixels at the dataset's
+        scale, read from the release: the classes 0..9, and 255 (ignored) on the pixels
+        without a ray (past the image circle)."""
+        fe, _, full = self._frontends(Path(self.root) / self.calibrations[idx])
+        cam = fe.camera
+        label = self._read(self.names[idx], (cam.width, cam.height), full, rgb=False)[1]
+        return np.where(valid_pixels(cam), label, IGNORE).astype(np.uint8)
 
     def len(self) -> int:
         return len(self.x)

@@ -10,14 +10,16 @@ from .devices import (
 from .engine import (
            defaults,
            evaluate,
+           field_groups,
            fit,
            freeze_norms,
+           group_batches,
            load_checkpoint,
            save_checkpoint,
            scaled_channels,
            seed_everything,
 )
 
-__all__ = ["defaults", "fit", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint",
+__all__ = ["defaults", "fit", "group_batches", "field_groups", "freeze_norms", "evaluate", "save_checkpoint", "load_checkpoint",
            "scaled_channels", "seed_everything", "setup_distributed", "teardown_distributed",
            "resolve_device", "model_device", "to_device"]

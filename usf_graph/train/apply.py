@@ -44,11 +44,13 @@ def _per_camera(what: str, camera, build, extra=None):
 
 
 def class_names(task: str, num_classes: int) -> list[str]:
-    """The class names of a protocol model: the 13 Stanford 2D-3D-S classes (seg), the
-    rooms' 12 or PANDORA's 47 (det, told apart by their number), else ``class k``."""
+    """The class names of a protocol model: the 13 Stanford 2D-3D-S classes or WoodScape's
+    10 (seg), the rooms' 12 or PANDORA's 47 (det), told apart by their number, else
+    ``class k``."""
+    from ..datasets.woodscape import CLASSES as WOODSCAPE_CLASSES
     from ..scenes import DETECTION_CLASSES, PANDORA_CLASSES, SEMANTIC_CLASSES
 
-    known = [SEMANTIC_CLASSES] if task == "seg" else [DETECTION_CLASSES, PANDORA_CLASSES]
+    known = [SEMANTIC_CLASSES, WOODSCAPE_CLASSES] if task == "seg" else [DETECTION_CLASSES, PANDORA_CLASSES]
     for names in known:
         if len(names) == num_classes:
             return list(names)

@@ -24,7 +24,8 @@ class ProtocolCheckpoint:
     (hand it back to :func:`~usf_graph.train.save_checkpoint` to save a model of the same
     kind); ``size``: the panorama height it was trained at (the saved one, else the
     task's protocol default); ``metrics``: the metrics saved with it; ``dataset``: what it
-    was trained on, ``rooms``, ``stanford2d3ds`` (with its ``fold``) or ``pandora``; ``seed``:
+    was trained on, ``rooms``, ``stanford2d3ds`` (with its ``fold``), ``woodscape`` (with its
+    images' ``scale``) or ``pandora``; ``seed``:
     a rooms run's seed (None where the checkpoint predates recording it); ``materials``: its
     rooms' (:mod:`usf_graph.scenes.materials`; ``"random"`` where not recorded);
     ``provenance``: the code and command that made it
@@ -42,6 +43,7 @@ class ProtocolCheckpoint:
     seed: int | None = None
     materials: str = "random"
     provenance: dict | None = None
+    scale: float | None = None
 
     @property
     def planar(self) -> bool:
@@ -106,4 +108,5 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
         dataset = "pandora" if task == "det" and model.num_classes == len(PANDORA_CLASSES) else "rooms"
     return ProtocolCheckpoint(str(path), task, name, model, blob["config"],
                               size or _default_size(task), blob.get("metrics", {}), dataset, fold,
-                              seed, data.get("materials", "random"), blob.get("provenance"))
+                              seed, data.get("materials", "random"), blob.get("provenance"),
+                              data.get("scale"))

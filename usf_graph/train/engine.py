@@ -108,8 +108,42 @@ def load_checkpoint(path, model: nn.Module | None = None) -> dict:
     return blob
 
 
+def group_batches(groups, batch_size: int, seed: int = 0, epoch: int = 0,
+                  shuffle: bool = True) -> list[list[int]]:
+    """One epoch's batches of sample indices, each within one group: ``groups [S]`` gives
+    every sample's group (e.g. its field of view: the samples of a batch must share one,
+    :func:`field_groups`). Every sample comes once; with ``shuffle`` the samples and the
+    batches' order are drawn from ``seed + epoch`` (the same on every process)."""
+    groups = np.asarray(groups).reshape(-1)
+    if not (isinstance(batch_size, numbers.Integral) and batch_size >= 1):
+        raise ValueError(f"batch_size must be a whole number of at least 1, got {batch_size}")
+    g = torch.Generator().manual_seed(seed + epoch)
+    order = torch.randperm(len(groups), generator=g).tolist() if shuffle else range(len(groups))
+    members: dict = {}
+    for i in order:
+        members.setdefault(groups[i].item(), []).append(i)
+    batches = [m[j:j + batch_size] for m in members.values() for j in range(0, len(m), batch_size)]
+    if shuffle:
+        batches = [batches[i] for i in torch.randperm(len(batches), generator=g).tolist()]
+    return batches
+
+
+def field_groups(mask: torch.Tensor) -> np.ndarray:
+    """``[S]`` group ids of samples by field of view (``mask [S, N]``): equal masks, one
+    id; for :func:`fit`'s ``groups``, when a dataset's samples come from several cameras."""
+    if mask.dim() != 2:
+        raise ValueError(f"mask must be [S, N], got {tuple(mask.shape)}")
+    return torch.unique(mask.bool(), dim=0, return_inverse=True)[1].numpy()
+
+
 def _batches(dataset: Dataset, batch_size: int, shuffle: bool, seed: int, epoch: int,
-             collate_fn=None):
+             collate_fn=None, groups=None):
+    if groups is not None:
+        batches = group_batches(groups, batch_size, seed, epoch, shuffle)
+        if is_distributed():  # each process its share of every batch, none empty
+            rank, world = dist.get_rank(), dist.get_world_size()
+            batches = [(b * math.ceil(world / len(b)))[rank::world] for b in batches]
+        return _loader(dataset, 1, collate_fn, batch_sampler=batches)
     sampler = None
     if is_distributed():
         sampler = DistributedSampler(dataset, shuffle=shuffle, seed=seed, drop_last=False)
@@ -190,7 +224,7 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         log_dir=None, config: dict | None = None, resume: bool = False, progress: bool = True,
         name: str = "model", on_epoch: Callable[[int, dict], None] | None = None,
         step: Step = classification_step, collate_fn=None, frozen_norms: bool = False,
-        device: str | torch.device | None = None) -> dict:
+        device: str | torch.device | None = None, groups=None) -> dict:
     """Train a model with AdamW and a cosine schedule; ``step(model, batch) -> (loss,
     stats, n)`` says what a batch's loss is (default: :func:`classification_step`), and
     ``collate_fn`` how samples make a batch (the DataLoader's; PyG datasets are batched
@@ -208,6 +242,10 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     takes its share of every global batch of ``batch_size``. ``frozen_norms``: batch
     normalizations keep their running statistics (:func:`freeze_norms`).
 
+    ``groups [S]``: every batch is drawn from one group's samples
+    (:func:`group_batches`), e.g. of one field of view (:func:`field_groups`) for a
+    dataset of several cameras, whose batches must each share one.
+
     ``device`` (:func:`resolve_device`; ``None``: where the model is) moves the model there
     and each batch after the ``collate_fn``; the protocols' steps draw only from the CPU's
     generators (the known up's jitter, the fields of view), so a GPU run draws what a CPU
@@ -221,6 +259,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         raise ValueError(f"{name}: the learning rate must be a finite number above 0, got {lr}")
     if not len(train):
         raise ValueError(f"{name}: the training set is empty")
+    if groups is not None and len(groups) != len(train):
+        raise ValueError(f"{name}: groups has {len(groups)} entries for {len(train)} samples")
     rank, world = setup_distributed()
     seed_everything(seed)
     dev = model_device(model) if device is None else resolve_device(device)
@@ -229,7 +269,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         model = nn.parallel.DistributedDataParallel(
             model, device_ids=None if dev.type == "cpu" else [dev.index])
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
-    steps = epochs * math.ceil(len(train) / batch_size)
+    steps = epochs * (math.ceil(len(train) / batch_size) if groups is None
+                      else len(group_batches(groups, batch_size, shuffle=False)))
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, steps) / max(steps, 1))))
     log_dir = Path(log_dir) if log_dir is not None else None
@@ -256,7 +297,7 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         model.train()
         if frozen_norms:
             freeze_norms(model)
-        bar = tqdm(_batches(train, batch_size, True, seed, epoch, collate_fn), leave=False,
+        bar = tqdm(_batches(train, batch_size, True, seed, epoch, collate_fn, groups), leave=False,
                    desc=f"{name} epoch {epoch + 1}/{epochs}", disable=not progress or rank != 0)
         mean = _Mean()
         for i, batch in enumerate(bar):

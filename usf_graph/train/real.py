@@ -2,7 +2,8 @@
 folds of Stanford 2D-3D-S (segmentation, :func:`run_stanford`) and PANDORA (detection,
 :func:`run_pandora`), each model trained by the rooms protocols' recipe. ``usf-graph
 scenes --layout stanford2d3ds|pandora`` writes procedural rooms in their layouts, on which
-these run offline."""
+these run offline. WoodScape's fisheyes (segmentation, :func:`run_woodscape`) train on
+fixtures in its layout in the tests."""
 
 from __future__ import annotations
 
@@ -64,6 +65,60 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
         results[name]["mean"] = {m: float(np.mean([r[m] for r in per]))
                                  for m in ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU")
                                  if all(m in r for r in per)}
+    return write_results(out, results, t0)
+
+
+def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
+                  models=("spherical_deeplab",), level: int = 5, scale: float = 0.5,
+                  epochs: int = 12, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
+                  progress: bool = True, balance: float = 0.5, upright: bool = True,
+                  known_up: bool = True, resume: bool = False, device: str | None = None,
+                  gray: bool = False) -> dict:
+    """Train on WoodScape's ``train`` list (OmniDet's) and score its ``val`` list: every image
+    lifted through its own calibration (:class:`~usf_graph.datasets.WoodScape`, images
+    resized by ``scale``), the four cameras' images in one training set, each batch from one
+    field of view (:func:`~usf_graph.train.engine.field_groups`). Scores are on each image's
+    own pixels (:func:`~usf_graph.train.seg.evaluate_fields`): mIoU and mAcc over the
+    split's confusion matrix on the 10 classes, void included, as OmniDet counts them, the
+    sphere's area-weighted mIoU, and each camera's mIoU. Spherical models only (a planar
+    one would train on the fisheye images; WoodScape's own baselines do that).
+
+    The up estimate trains with the segmenter (``up_epochs=0`` of
+    :func:`~usf_graph.train.seg.train_model`; there are no panoramas to pretrain it on).
+    ``known_up``: at test, the models read the vehicle frame's up (+z, the road's slope
+    aside), where every calibration places its camera, as they would read an IMU; else
+    their estimate. Writes ``results.json`` and ``<model>.pt`` under ``out``; ``resume``,
+    ``device`` and ``gray`` as :func:`~usf_graph.train.seg.run`'s."""
+    from ..datasets import WoodScape
+    from ..datasets.woodscape import CLASSES
+    from .engine import field_groups
+
+    if planar := [m for m in models if m not in ("spherical_unet", "spherical_deeplab")]:
+        raise ValueError(f"WoodScape trains the spherical models (spherical_unet, "
+                         f"spherical_deeplab), not {planar}")
+    dev = resolve_device(device)
+    rank, _ = setup_distributed()
+    seed_everything(seed)
+    out, t0 = Path(out), time.time()
+    kw = dict(grid=f"icosahedral:{level}", scale=scale, progress=progress)
+    train, test = WoodScape(root, "train", **kw), WoodScape(root, "val", **kw)
+    groups = field_groups(train.mask)
+    results = {"samples": {"train": len(train), "test": len(test)}, "fields_of_view": int(groups.max()) + 1,
+               "level": level, "scale": scale, "epochs": epochs, "balance": balance,
+               "upright": upright, "known_up": known_up, "gray": gray}
+    for name in models:
+        seed_everything(seed)
+        net = seg.make_model(name, level, upright, gray=gray, num_classes=len(CLASSES)).to(dev)
+        seg.train_model(net, train, out, name, epochs, batch_size, lr, seed, progress, balance,
+                        0, {}, resume=resume, groups=groups)
+        if rank != 0:
+            continue
+        results[name] = r = seg.evaluate_fields(net, test, known_up, progress=progress,
+                                                desc=f"{name} val", names=CLASSES)
+        save_checkpoint(out / f"{name}.pt", net, {"model": name, **net.config}, r,
+                        extra={"data": {"dataset": "woodscape", "scale": scale}})
+    if rank != 0:
+        return {}
     return write_results(out, results, t0)
 
 

@@ -41,7 +41,9 @@ from ..scenes.materials import check_materials
 from .devices import is_planar, model_device, resolve_device, setup_distributed
 from .engine import (
     check_channel_scale,
+    field_groups,
     fit,
+    group_batches,
     save_checkpoint,
     scaled_channels,
     seed_everything,
@@ -59,7 +61,7 @@ from .gravity import (
     up_views,
     views_up,
 )
-from .seg_metrics import median_frequency_weights, score
+from .seg_metrics import confusion_matrix, median_frequency_weights, score, score_confusions, scores
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
             "c": ("fisheye190", "none", 0), "d": ("pinhole90", "none", 0),
@@ -105,13 +107,17 @@ def segmentation_loss(logits: torch.Tensor, target: torch.Tensor, ignore_index: 
 
 def split_batch(batch):
     """A PyG batch of :class:`~usf_graph.datasets.RoomsSegmentation` samples ->
-    ``(x [B, N, C], y [B, N], mask [N] or None, image [B, 3, H, W], label_image [B, H, W])``."""
+    ``(x [B, N, C], y [B, N], mask [N] or None, image [B, 3, H, W], label_image [B, H, W])``
+    (the last two ``None`` for samples without images, e.g. :class:`~usf_graph.datasets.WoodScape`'s)."""
     B = batch.num_graphs
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "segmentation batch")
     y = batch.y.view(B, -1)
     mask = batch.mask.view(B, -1)
     if not (mask == mask[0]).all():
-        raise ValueError("the samples of a batch have different fields of view; batch one camera")
+        raise ValueError("the samples of a batch have different fields of view; batch one camera "
+                         "(fit's groups=field_groups(dataset.mask))")
+    if getattr(batch, "image", None) is None:
+        return x, y, None if mask[0].all() else mask[0], None, None
     image = batch.image.permute(0, 3, 1, 2).float() / 255
     return x, y, None if mask[0].all() else mask[0], image, batch.label_image.long()
 
@@ -160,6 +166,9 @@ def segmentation_step(model, batch, class_weight: torch.Tensor | None = None):
     x, y, mask, image, label = split_batch(batch)
     planar, stats, aux = is_planar(model), {}, 0.0
     net = getattr(model, "module", model)
+    if planar and image is None:
+        raise ValueError("a planar model trains on images, and these samples have none: train a "
+                         "spherical model")
     if planar:
         logits, target = model(image), label
     elif trains_up(model):
@@ -242,7 +251,8 @@ def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
 
 
 def make_model(name: str, level: int = 5, upright: bool = True,
-               channel_scale: float = 1.0, gray: bool = False) -> nn.Module:
+               channel_scale: float = 1.0, gray: bool = False,
+               num_classes: int = len(SEMANTIC_CLASSES)) -> nn.Module:
     """A protocol model by name (:data:`MODELS`), spherical ones on ``icosahedral:level``
     with their up estimate (``gravity=True``: trained on the views' known gravity, it
     gives the network each point's height, which a planar network reads from its rows)
@@ -252,10 +262,11 @@ def make_model(name: str, level: int = 5, upright: bool = True,
     (:class:`~usf_graph.nn.UprightConv`, ``upright_convs=level - 1``). ``channel_scale``:
     every channel count times this (:func:`~usf_graph.train.engine.scaled_channels`; the
     up estimate keeps its own). ``gray``: the model reads only its input's luma (for mono
-    cameras; :class:`~usf_graph.models.upnet.WithUp`)."""
+    cameras; :class:`~usf_graph.models.upnet.WithUp`). ``num_classes``: the rooms' 13 by
+    default."""
     if name not in MODELS:
         raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
-    C = len(SEMANTIC_CLASSES)
+    C = num_classes
     widths = scaled_channels(MODELS[name], channel_scale)
     if name == "planar_unet":
         return PlanarUNet(C, gray=gray, **widths)
@@ -302,6 +313,44 @@ def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
     return r, pix
 
 
+@torch.no_grad()
+def evaluate_fields(model, ds, known_up: bool = True, batch_size: int = PREDICT_BATCH,
+                    progress: bool = True, desc: str = "segment", render: str = "nearest",
+                    names=None) -> dict:
+    """Scores of a spherical model on a split whose samples have cameras of their own
+    (``ds.x [S, N, C]``, ``ds.y``, ``ds.mask [S, N]``, ``ds.frontend(i)`` and
+    ``ds.label_image(i)``, e.g. :class:`~usf_graph.datasets.WoodScape`): batched by field
+    of view (:func:`~usf_graph.train.engine.field_groups`), each sample's predictions
+    rendered into its own camera's pixels (``render``: as :func:`predict`'s) and scored there
+    (:func:`~usf_graph.train.seg_metrics.score_confusions`: mIoU and mAcc over the split,
+    USF's per-image mean, the sphere's area-weighted mIoU), with the mIoU of each camera
+    (``ds.camera_names``) under ``"cameras"``. ``known_up``: the model reads the views'
+    gravity (``ds.gravity``), else its estimate. ``names``: the classes (default: their
+    indices)."""
+    if is_planar(model):
+        raise ValueError("evaluate_fields scores spherical models; a planar one has no grid")
+    model.eval()
+    dev, C = model_device(model), model.config["num_classes"]
+    up, area = (views_up(ds) if known_up else None), ds.grid.area.numpy()[None]
+    confs, sphere = [None] * len(ds), np.zeros((C, C))
+    batches = group_batches(field_groups(ds.mask), batch_size, shuffle=False)
+    for b in tqdm(batches, desc=desc, leave=False, disable=not progress):
+        x, mask = ds.x[b].to(dev).float(), ds.mask[b[0]]
+        mask = None if mask.all() else mask.to(dev)
+        logits = model(x, mask, **({} if up is None else {"up": up[b].to(dev, x.dtype)})).cpu()
+        for i, lg in zip(b, logits):
+            sphere += confusion_matrix(lg.argmax(-1).numpy()[None], ds.y[i].numpy()[None], C,
+                                       weight=area)
+            pixels = ds.frontend(i).to_labels(lg.softmax(-1) if render == "soft" else lg, render)
+            confs[i] = confusion_matrix(pixels.numpy(), ds.label_image(i), C)
+    names = list(names) if names is not None else [str(c) for c in range(C)]
+    res = score_confusions(confs, names, sphere)
+    cams = list(getattr(ds, "camera_names", ["all"] * len(ds)))
+    res["cameras"] = {c: scores(sum(f for f, k in zip(confs, cams) if k == c), names)["mIoU"]
+                      for c in dict.fromkeys(cams)}
+    return res
+
+
 def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_CLASSES)):
     """Class weights from a training set's labels: median-frequency balancing
     (:func:`median_frequency_weights`) raised to ``power`` (0: none, 1: full); ``None``
@@ -316,7 +365,7 @@ def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_
 def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, lr: float,
                 seed: int, progress: bool, balance: float, up_epochs: int, shared: dict,
                 label: str | None = None, up_kw: dict | None = None, fov_epochs: int = 0,
-                fov_share: float = FOV_SHARE, resume: bool = False) -> None:
+                fov_share: float = FOV_SHARE, resume: bool = False, groups=None) -> None:
     """The protocols' recipe for one model on ``train``, logging under ``out / name``:
     class weights ``balance`` (:func:`balanced_weights`); for a spherical model first the up
     estimate, trained alone for ``up_epochs`` on the first use (under ``out /
@@ -333,7 +382,12 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
     view to cut, on the whole panoramas, so that every model trains as long.
 
     ``resume``: every stage continues from its ``last.pt``
-    (:func:`~usf_graph.train.engine.fit`)."""
+    (:func:`~usf_graph.train.engine.fit`). ``groups``: batch within them (as ``fit``'s; a
+    split of several cameras' fields of view, with ``up_epochs=0`` and no ``fov_epochs``,
+    which cut one field per batch)."""
+    if groups is not None and ((getattr(net, "gravity", None) is not None and up_epochs) or fov_epochs):
+        raise ValueError("batches grouped by field of view train the up estimate with the "
+                         "segmenter (up_epochs=0) and have no second phase (fov_epochs=0)")
     if getattr(net, "gravity", None) is not None and up_epochs:
         if "up" not in shared:
             pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
@@ -341,10 +395,11 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
             shared["up"] = net.gravity.state_dict()
         net.gravity.load_state_dict(shared["up"])
         net.gravity.requires_grad_(False)
-    step = partial(segmentation_step, class_weight=balanced_weights(train, balance))
+    weights = balanced_weights(train, balance, net.config.get("num_classes", len(SEMANTIC_CLASSES)))
+    step = partial(segmentation_step, class_weight=weights)
     fit(net, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
         log_dir=out / name, config=net.config, progress=progress, name=label or name, step=step,
-        resume=resume)
+        resume=resume, groups=groups)
     if fov_epochs:
         cut = None if is_planar(net) else ThroughRandomFields(train.grid.pos, fov_share, seed)
         second_phase(net, train, fov_epochs, out / name, label or name, cut=cut,

@@ -79,11 +79,19 @@ def score(pixels: np.ndarray, ds, points: np.ndarray | None = None) -> dict:
     (``per_image_mIoU``, on pixels)."""
     C = len(SEMANTIC_CLASSES)
     truth = ds.label_image.numpy()
-    confs = [confusion_matrix(p, t, C) for p, t in zip(pixels, truth)]
-    res = scores(sum(confs), SEMANTIC_CLASSES)
-    res["per_image_mIoU"] = per_image_miou(confs)
-    if points is not None:
-        sphere = confusion_matrix(points, ds.y.numpy(), C, weight=ds.grid.area.numpy()[None])
+    sphere = None if points is None else \
+        confusion_matrix(points, ds.y.numpy(), C, weight=ds.grid.area.numpy()[None])
+    return score_confusions([confusion_matrix(p, t, C) for p, t in zip(pixels, truth)],
+                            SEMANTIC_CLASSES, sphere)
+
+
+def score_confusions(confusions, names, sphere: np.ndarray | None = None) -> dict:
+    """:func:`scores` of the images' summed confusion matrices (``confusions``, one per
+    image, on pixels), with USF's per-image mean (``per_image_mIoU``) and, given the
+    area-weighted confusion on the grid ``sphere``, its mIoU (``sphere_mIoU``)."""
+    res = scores(sum(confusions), names)
+    res["per_image_mIoU"] = per_image_miou(confusions)
+    if sphere is not None:
         res["sphere_mIoU"] = scores(sphere)["mIoU"]
     return res
 
@@ -99,4 +107,4 @@ def median_frequency_weights(counts) -> torch.Tensor:
     return torch.where(seen, med / f.clamp_min(1e-300), torch.zeros_like(f)).float()
 
 
-__all__ = ["confusion_matrix", "scores", "score", "per_image_miou", "median_frequency_weights"]
+__all__ = ["confusion_matrix", "scores", "score", "score_confusions", "per_image_miou", "median_frequency_weights"]
