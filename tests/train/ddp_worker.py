@@ -32,7 +32,10 @@ if __name__ == "__main__":
     x = torch.randn(8, 162, 1)
     y = torch.arange(8) % 10
     model = NoNorm()
-    fit(model, TensorDataset(x, y), epochs=1, batch_size=8, progress=False)
+    # "groups": two batches of 4, each from one group (as of one field of view)
+    groups = [0, 1, 1, 0, 1, 0, 0, 1] if sys.argv[2:] == ["groups"] else None
+    fit(model, TensorDataset(x, y), epochs=1, batch_size=4 if groups else 8, progress=False,
+        groups=groups)
     import torch.distributed as dist
 
     if not dist.is_initialized() or dist.get_rank() == 0:

@@ -50,17 +50,20 @@ def _free_port():
         return s.getsockname()[1]
 
 
-def test_two_process_ddp_step_equals_one_process(tmp_path):
+@pytest.mark.parametrize("grouped", [False, True])
+def test_two_process_ddp_step_equals_one_process(tmp_path, grouped):
+    """Each process takes its share of every batch, also of batches drawn by group."""
     torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
     worker = os.path.join(os.path.dirname(__file__), "ddp_worker.py")
     # loopback only: the sandbox's other interfaces may not route between processes
     env = {**os.environ, "OMP_NUM_THREADS": "1", "USF_GRAPH_CACHE": "off",
            "GLOO_SOCKET_IFNAME": "lo"}
-    subprocess.run([sys.executable, worker, str(tmp_path / "one.pt")], check=True, env=env,
+    more = ["groups"] if grouped else []
+    subprocess.run([sys.executable, worker, str(tmp_path / "one.pt"), *more], check=True, env=env,
                    timeout=300)
     subprocess.run([torchrun, "--nproc_per_node=2", "--master_addr=127.0.0.1",
                     f"--master_port={_free_port()}", worker,
-                    str(tmp_path / "two.pt")], check=True, env=env, timeout=300)
+                    str(tmp_path / "two.pt"), *more], check=True, env=env, timeout=300)
     one = torch.load(tmp_path / "one.pt", weights_only=True)
     two = torch.load(tmp_path / "two.pt", weights_only=True)
     from tests.train.ddp_worker import NoNorm
