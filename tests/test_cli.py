@@ -730,10 +730,14 @@ def test_eval_scores_a_checkpoint_on_rooms_of_its_own_materials(task, tmp_path, 
     assert seen == ["by_kind", "random", "random"]  # not recorded: saved before materials existed
 
 
-@pytest.mark.parametrize("task, dataset", [("det", "pandora"), ("seg", "stanford2d3ds")])
+@pytest.mark.parametrize("task, dataset", [("det", "pandora"), ("seg", "stanford2d3ds"),
+                                           ("seg", "woodscape")])
 @pytest.mark.parametrize("option, value, said", [
     ("--channel-scale", "0.5", "--channel-scale is an option of the rooms protocols; on {}"),
-    ("--materials", "random", "--materials is an option of the procedural rooms; {}'s")])
+    ("--materials", "random", "--materials is an option of the procedural rooms; {}'s"),
+    ("--up-extra", "10", "--up-extra: options of the rooms protocols; {} trains on its own"),
+    ("--num-train", "10", "--num-train: options of the rooms protocols; {} trains on its own"),
+    ("--fov-epochs", "2", "--fov-epochs: options of the rooms protocols; {} trains on its own")])
 def test_rooms_options_are_refused_on_real_data(task, dataset, option, value, said, capsys):
     assert main(["train", task, "--dataset", dataset, option, value]) == 2
     assert said.format(dataset) in capsys.readouterr().err

@@ -368,7 +368,7 @@ def _add_train(sub, fmt, full: bool = True) -> None:
     t.add_argument("task", choices=TASKS,
                    help="mnist: Spherical MNIST; det: spherical-box detection; seg: semantic segmentation")
     t.add_argument("--root", default=None,
-                   help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds)")
+                   help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds, data/woodscape)")
     t.add_argument("--out", default=None, help="logs, checkpoints, figure (default: runs/<task>)")
     t.add_argument("--level", type=count, default=d["level"],
                    help="icosahedral level of the first conv")
@@ -403,7 +403,7 @@ def _add_eval(sub, fmt, full: bool = True) -> None:
 
     e.add_argument("task", choices=TASKS, help="the checkpoint's task")
     e.add_argument("checkpoint", help="a checkpoint .pt from train")
-    e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds)")
+    e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds, data/woodscape)")
     add_eval_options(e)
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
                    "rotations: none, one per digit (so3), one per 500 (chunk500)")

@@ -57,7 +57,7 @@ def add_train_options(t) -> None:
     g.add_argument("--models", nargs="+", default=None,
                    choices=["spherical_unet", "spherical_deeplab", "planar_unet"],
                    help="seg: models to train (default: all three on rooms, the spherical U-Net "
-                        "on stanford2d3ds)")
+                        "on stanford2d3ds, the spherical DeepLab on woodscape)")
     g.add_argument("--fov-epochs", type=count, default=None,
                    help="rooms: epochs of the second phase at a lower learning rate, the "
                         "spherical models' with half their batches through random fields of "
@@ -181,6 +181,12 @@ def rooms_only_options(args) -> None:
     if args.dataset != "woodscape" and getattr(args, "scale", None) is not None:
         raise ValueError("--scale resizes WoodScape's images; give --dataset woodscape, or "
                          "--size for the others")
+    rooms_only = given(args, "num_train", "num_test", "fov_epochs", "up_extra", "up_caps", "up_sign",
+                       *(("up_epochs",) if args.dataset == "woodscape" else ()))
+    if args.dataset != "rooms" and rooms_only:
+        raise ValueError(f"{', '.join(rooms_only)}: options of the rooms protocols; {args.dataset} "
+                         "trains on its own training split" + (
+                             ", its up estimate with the segmenter" if "--up-epochs" in rooms_only else ""))
 
 
 def rooms_kind(results: dict) -> str:
@@ -247,7 +253,8 @@ def cmd_train_det(args) -> int:
     kw = run_kwargs(args, run)
     rooms_only_options(args)
     if args.dataset == "pandora":
-        res = run_pandora(root=args.root or "data/pandora", out=args.out or "runs/det_pandora", **kw)
+        res = run_pandora(root=args.root or "data/pandora", out=args.out or "runs/det_pandora",
+                          **given_or_default(args, run_pandora, ("up_epochs",)), **kw)
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/det",
                   planar=not args.no_planar, **up_kwargs(args, run), **kw,

@@ -30,7 +30,7 @@ def cmd_train_seg(args) -> int:
         folds = (1, 2, 3) if args.fold == "all" else (int(args.fold),)
         res = run_stanford(root=args.root or "data/stanford2d3ds", out=args.out or "runs/seg_stanford",
                            folds=folds, models=tuple(args.models or ("spherical_unet",)),
-                           **given_or_default(args, run_stanford, ("size",)), **kw)
+                           **given_or_default(args, run_stanford, ("size", "up_epochs")), **kw)
     elif args.dataset == "woodscape":
         if args.size is not None:
             raise ValueError("--size: WoodScape's images keep their shape; --scale resizes them")

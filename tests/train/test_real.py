@@ -167,6 +167,8 @@ def test_woodscape_command_trains_on_four_cameras_and_eval_scores_it_again(tmp_p
     for argv, match in ((["train", "seg", "--dataset", "woodscape", "--models", "planar_unet"],
                          "spherical models .* not \\['planar_unet'\\]"),
                         (["train", "seg", "--scale", "0.5"], "--scale resizes WoodScape"),
+                        (["train", "seg", "--dataset", "woodscape", "--up-epochs", "3"],
+                         "--up-epochs: options of the rooms .* with the segmenter"),
                         (["train", "det", "--dataset", "woodscape"], "segmentation dataset"),
                         (["eval", "seg", str(out / "spherical_unet.pt"), "--dataset", "stanford2d3ds"],
                          "predicts 10 classes")):
