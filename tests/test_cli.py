@@ -185,6 +185,17 @@ def test_render_into_and_out_of_cube_maps(tmp_path, capsys):
                  "--to", "cubemap", "--out", str(tmp_path / "cube.jpg")]) == 0
     assert b"GPano" not in (tmp_path / "cube.jpg").read_bytes()  # no equirectangular 360 photo
     cv2.imwrite(str(tmp_path / "dice.png"), render(pano, eq, cameras.Cubemap(40, "dice"))[..., ::-1])
+    # YouTube's equi-angular cube map, its size from the image (3:2, as FFmpeg's c3x2 cube
+    # map: a plain "cubemap" asks which)
+    assert main(["render", str(tmp_path / "pano.png"), "--camera", "equirectangular", "--to", "eac",
+                 "--out", str(tmp_path / "eac.png")]) == 0
+    eac = cv2.imread(str(tmp_path / "eac.png"))[..., ::-1]
+    assert eac.shape[:2] == (2 * (pano.shape[1] // 4), 3 * (pano.shape[1] // 4))
+    assert main(["render", str(tmp_path / "eac.png"), "--camera", "eac", "--to",
+                 "equirectangular:256x128", "--out", str(tmp_path / "back.png")]) == 0
+    back = cv2.imread(str(tmp_path / "back.png"))[..., ::-1]
+    cam = cameras.EquiAngularCubemap(eac.shape[1], eac.shape[0])
+    assert np.abs(back.astype(float) - render(eac, cam, eq)).max() <= 1
     assert main(["render", str(tmp_path / "dice.png"), "--camera", "cubemap", "--to",
                  "equirectangular:256x128", "--out", str(tmp_path / "back.png")]) == 0
     back = cv2.imread(str(tmp_path / "back.png"))[..., ::-1]
@@ -193,8 +204,9 @@ def test_render_into_and_out_of_cube_maps(tmp_path, capsys):
     assert main(["camera", "cubemap:32:dice"]) == 0
     assert "100.00% of the sphere" in capsys.readouterr().out
     for spec, image, why in (("cubemap:big", "pano.png", "write cubemap[:SIZE][:LAYOUT]"),
-                             ("cubemap", "pano.png", "a cube map's is 6:1 (horizon) or 4:3 (dice)"),
-                             ("cubemap:horizon", "dice.png", "give its layout and face size")):
+                             ("cubemap", "pano.png", "a cube map's is 6:1 (horizon, c6x1), 4:3 (dice)"),
+                             ("cubemap:horizon", "dice.png", "give its layout and face size"),
+                             ("cubemap", "eac.png", "3:2: name its kind, cubemap:c3x2")):
         assert main(["render", str(tmp_path / image), "--camera", spec, "--to", "equirectangular",
                      "--out", str(tmp_path / "x.png")]) == 2
         assert why in capsys.readouterr().err

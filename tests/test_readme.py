@@ -49,7 +49,7 @@ def test_your_camera_section_runs_python_and_shell(tmp_path, monkeypatch):
     assert ns["h"].shape == (int(ns["img"].mask.sum()), 8)
     shell = re.findall(r"```bash\n(.*?)```", section, re.S)
     lines = [ln for block in shell for ln in block.splitlines() if ln.startswith("usf-graph ")]
-    assert len(lines) == 14
+    assert len(lines) == 16
     for ln in lines:
         argv = shlex.split(ln.split("#")[0].replace("icosahedral:6", "icosahedral:3"))[1:]
         assert main(argv) == 0, ln

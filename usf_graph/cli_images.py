@@ -83,7 +83,9 @@ def _target(args, image):
     size gets the source's width, at 2:1."""
     if is_cubemap_spec(args.to) and not has_size(args.to):
         size = max(image.shape[1] // 4, 2)  # a face's 90 degrees, at the source's density
-        return camera_from_spec(f"{args.to}:{size}", args.to_key)
+        eac = args.to.split(":")[0].lower() == "eac"
+        return camera_from_spec(f"{args.to}:{3 * size}x{2 * size}" if eac else f"{args.to}:{size}",
+                                args.to_key)
     return camera_from_spec(args.to, args.to_key, image_shape=(image.shape[1] // 2, image.shape[1])
                             if is_panorama_spec(args.to) else None)
 

@@ -13,7 +13,8 @@ CAMERA_HELP = ("calibration file: Kalibr camchain, Basalt calibration JSON, ORB-
                "WoodScape calibration JSON (a rig: its cameras' files, comma-separated); or "
                "'equirectangular' (size from the image) / 'equirectangular:WxH'; or "
                "'cubemap' (a 6:1 horizon strip or a 4:3 dice cross, from the image) / "
-               "'cubemap:SIZE[:horizon|dice]' (six faces, SIZE pixels square)")
+               "'cubemap:SIZE[:horizon|dice|c6x1|c3x2]' (six faces, SIZE pixels square); or "
+               "'eac' / 'eac:WxH' (YouTube's equi-angular cube map, as FFmpeg's v360 eac)")
 
 
 def camera_options(p, mask: bool = True) -> None:
@@ -109,16 +110,25 @@ def has_size(spec: str) -> bool:
 
 
 def is_cubemap_spec(spec: str) -> bool:
-    """``cubemap``, with or without ``:SIZE`` and ``:LAYOUT``."""
-    return spec.split(":")[0].lower() == "cubemap"
+    """``cubemap``, with or without ``:SIZE`` and ``:LAYOUT``, or ``eac`` with or without
+    ``:WxH``."""
+    return spec.split(":")[0].lower() in ("cubemap", "eac")
 
 
 def _cubemap(spec: str, image_shape):
     """The :class:`~usf_graph.cameras.Cubemap` of ``cubemap[:SIZE][:LAYOUT]``; without a
-    size, the image's (``image_shape``: 6:1 a horizon strip, 4:3 a dice cross)."""
-    from .cameras import Cubemap
+    size, the image's (``image_shape``: 6:1 a horizon strip, 4:3 a dice cross; other
+    layouts of those shapes, and the 3:2 ones, by name)."""
+    from .cameras import Cubemap, EquiAngularCubemap
     from .cameras.cubemap import LAYOUTS
 
+    if spec.split(":")[0].lower() == "eac":
+        size = spec.partition(":")[2]
+        if size:
+            return EquiAngularCubemap(*image_size(size, "EAC image size", "eac:3072x2048"))
+        if image_shape is None:
+            raise ValueError("give the equi-angular cube map's size: eac:WIDTHxHEIGHT")
+        return EquiAngularCubemap(image_shape[1], image_shape[0])
     parts = [p.lower() for p in spec.split(":")[1:] if p]
     layouts, sizes = [p for p in parts if p in LAYOUTS], [p for p in parts if p not in LAYOUTS]
     if len(layouts) > 1 or len(sizes) > 1 or (sizes and not sizes[0].isdigit()):
@@ -130,11 +140,16 @@ def _cubemap(spec: str, image_shape):
     if image_shape is None:
         raise ValueError("give the cube map's face size: cubemap:SIZE")
     h, w = image_shape[:2]
-    found = next((k for k, (_, (cols, rows)) in LAYOUTS.items() if w * rows == h * cols), None)
-    if found is None or (layout and layout != found):
-        raise ValueError(f"the image is {w}x{h}: a cube map's is 6:1 (horizon) or 4:3 (dice); "
-                         "give its layout and face size, cubemap:SIZE:LAYOUT")
-    return Cubemap(h // LAYOUTS[found][1][1], found)
+    fits = [k for k, v in LAYOUTS.items() if w * v.shape[1] == h * v.shape[0]]
+    if layout is None and fits == ["c3x2"]:  # 3:2: FFmpeg's cube map or YouTube's EAC
+        raise ValueError(f"the image is {w}x{h}, 3:2: name its kind, cubemap:c3x2 (FFmpeg's "
+                         "cube map) or eac (YouTube's equi-angular one)")
+    found = layout if layout in fits else fits[0] if fits and layout is None else None
+    if found is None:
+        raise ValueError(f"the image is {w}x{h}: a cube map's is 6:1 (horizon, c6x1), 4:3 "
+                         "(dice) or 3:2 (c3x2); give its layout and face size, "
+                         "cubemap:SIZE:LAYOUT")
+    return Cubemap(h // LAYOUTS[found].shape[1], found)
 
 
 def camera_from_spec(spec: str, key=None, fov=None, image_mask=None, image_shape=None,

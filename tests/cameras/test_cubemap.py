@@ -1,7 +1,9 @@
-"""Cube maps: py360convert's faces, order and layouts; each face the pinhole it is; points
-sampled on their own face; the whole sphere once."""
+"""Cube maps: py360convert's faces, order and layouts, FFmpeg's (its v360 filter's c6x1,
+c3x2 and YouTube's equi-angular eac); each face the pinhole it is; points sampled on their
+own face; the whole sphere once."""
 
 import math
+from fractions import Fraction
 
 import cv2
 import numpy as np
@@ -10,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from usf_graph import cameras, grids
-from usf_graph.cameras import Cubemap, Equirectangular, cube_faces
-from usf_graph.cameras.cubemap import FACES, LAYOUTS
+from usf_graph.cameras import Cubemap, EquiAngularCubemap, Equirectangular, cube_faces
+from usf_graph.cameras.cubemap import EAC_CELLS, FACES, LAYOUTS, face_rotation
 from usf_graph.frontend import SphericalFrontend, render
 from usf_graph.viz import labelled_panorama
 
@@ -21,28 +23,125 @@ def _smooth_panorama(w: int = 1024) -> np.ndarray:
     return cv2.GaussianBlur((255 * labelled_panorama(w, w // 2)).astype(np.float64), (0, 0), 4)
 
 
-@pytest.mark.parametrize("layout", list(LAYOUTS))
+def _faces_agree(ours, theirs, cells, size, tol, corners=None):
+    """Each face of ``ours`` (in ``cells``, ``size`` pixels square; or ``size`` square
+    crops at the pixels ``corners``) is ``theirs``' within ``tol`` grey levels on average,
+    10 times farther from every other face and its mirror images, 5 times from its turns (a
+    face of the test picture can look much like itself upside down)."""
+    corners = corners or [(c * size, r * size) for c, r in cells]
+
+    def face(a, k):
+        u, v = corners[k]
+        return a[v:v + size, u:u + size]
+
+    for k in range(6):
+        mine, same = face(ours, k), np.abs(face(ours, k) - face(theirs, k)).mean()
+        others = [np.abs(mine - face(theirs, j)).mean() for j in range(6) if j != k]
+        flips = [np.abs(mine - f).mean() for f in (face(theirs, k)[::-1], face(theirs, k)[:, ::-1])]
+        turns = [np.abs(mine - np.rot90(face(theirs, k), q)).mean() for q in (1, 2, 3)]
+        assert same < tol and min(others + flips) > 10 * same and min(turns) > 5 * same, \
+            (FACES[k], same, others, flips, turns)
+
+
+@pytest.mark.parametrize("layout", ["horizon", "dice"])
 def test_faces_order_and_layout_are_py360converts(layout):
     """The panorama re-imaged into our cube map and py360convert's e2c agree face by face
-    (its faces' pixels sit edge to edge, ours at half-pixel offsets: a 1/128 scale apart),
-    and each face is far from every other face and from its own mirror images."""
+    (its faces' pixels sit edge to edge, ours at half-pixel offsets: a 1/128 scale apart)."""
     py360convert = pytest.importorskip("py360convert")
     img = _smooth_panorama()
     cube = Cubemap(128, layout)
     ours = render(img, Equirectangular(1024, 512), cube)
     theirs = py360convert.e2c(img, face_w=128, mode="bilinear", cube_format=layout)
     assert ours.shape == theirs.shape == (cube.height, cube.width, 3)
-    cells, _ = LAYOUTS[layout]
+    _faces_agree(ours, theirs, LAYOUTS[layout].cells, 128, 2.5)
 
-    def face(a, k):
-        col, row = cells[k]
-        return a[row * 128:(row + 1) * 128, col * 128:(col + 1) * 128]
 
-    for k in range(6):
-        same = np.abs(face(ours, k) - face(theirs, k)).mean()
-        others = [np.abs(face(ours, k) - face(theirs, j)).mean() for j in range(6) if j != k]
-        flips = [np.abs(face(ours, k) - f).mean() for f in (face(theirs, k)[::-1], face(theirs, k)[:, ::-1])]
-        assert same < 2.5 and min(others + flips) > 10 * same, (FACES[k], same, others, flips)
+def _ffmpeg_v360(img: np.ndarray, args: str) -> np.ndarray:
+    """FFmpeg's v360 filter (through PyAV) on an RGB uint8 image."""
+    av = pytest.importorskip("av")
+    graph = av.filter.Graph()
+    src = graph.add_buffer(width=img.shape[1], height=img.shape[0], format="rgb24",
+                           time_base=Fraction(1, 25))
+    v360, sink = graph.add("v360", args), graph.add("buffersink")
+    src.link_to(v360)
+    v360.link_to(sink)
+    graph.configure()
+    frame = av.VideoFrame.from_ndarray(img, format="rgb24")
+    frame.pts = 0
+    src.push(frame)
+    return sink.pull().to_ndarray(format="rgb24")
+
+
+@pytest.mark.parametrize("layout", ["c6x1", "c3x2"])
+def test_ffmpeg_layouts_are_ffmpegs_both_ways(layout):
+    """FFmpeg's v360 filter (the tool 360 video is converted with) and ours agree, face by
+    face, from a panorama into its layout and back from ours: faces, order, orientation."""
+    img = np.clip(_smooth_panorama(), 0, 255).astype(np.uint8)
+    cube = Cubemap(128, layout)
+    ours = render(img, Equirectangular(1024, 512), cube)
+    theirs = _ffmpeg_v360(img, f"input=e:output={layout}:interp=linear:w={cube.width}:h={cube.height}")
+    _faces_agree(ours, theirs.astype(np.float64), LAYOUTS[layout].cells, 128, 2.5)
+    back = _ffmpeg_v360(np.clip(ours, 0, 255).astype(np.uint8), f"input={layout}:output=e:interp=linear:w=1024:h=512")
+    assert np.abs(back.astype(np.float64) - img)[32:-32].mean() < 3  # the poles' rows: a point each
+
+
+@pytest.mark.parametrize("size", [(384, 256), (1155, 770)])
+def test_equiangular_cubemap_is_ffmpegs_eac_both_ways(size):
+    """YouTube's EAC as FFmpeg's v360 reads and writes it: its faces, their turns, the
+    padding and the equi-angular spacing, pixel by pixel on the faces (the padding's
+    pixels have no ray here), from a panorama and back, at whole and fractional face sizes."""
+    img = np.clip(_smooth_panorama(), 0, 255).astype(np.uint8)
+    eac = EquiAngularCubemap(*size)
+    ours = render(img, Equirectangular(1024, 512), eac).astype(np.float64)
+    theirs = _ffmpeg_v360(img, f"input=e:output=eac:interp=linear:w={eac.width}:h={eac.height}").astype(np.float64)
+    faces = eac.pixels_with_rays()
+    assert 0.9 < faces.mean() < 1 and not faces[:, :2].any() and not faces[:2].any()
+    err = np.abs(ours - theirs)[faces].mean()
+    assert err < 1.5, err
+    # each cell is that face, turned as FFmpeg turns it (on whole-pixel crops of the cells)
+    fw, fh = eac.face_shape
+    crops = [(int(math.ceil(2 + c * fw)), int(math.ceil(r * eac.height / 2 + 2))) for c, r in EAC_CELLS]
+    n = int(min(fw, fh)) - 2
+    _faces_agree(ours, theirs, None, n, 2.5, corners=crops)
+    back = _ffmpeg_v360(np.clip(ours, 0, 255).astype(np.uint8), "input=eac:output=e:interp=linear:w=1024:h=512")
+    assert np.abs(back.astype(np.float64) - img)[32:-32].mean() < 3  # the poles' rows: a point each
+    # FFmpeg's EAC image read back by each: the same panorama
+    theirs = theirs.astype(np.uint8)
+    read = render(theirs, eac, Equirectangular(1024, 512)).astype(np.float64)
+    assert np.abs(read - _ffmpeg_v360(theirs, "input=eac:output=e:interp=linear:w=1024:h=512"))[32:-32].mean() < 2
+
+
+def test_equiangular_cubemap_faces_are_even_in_angle():
+    """Across an EAC face, equal steps in pixels are equal steps in angle; across a plain
+    cube face, equal steps in the angle's tangent."""
+    eac = EquiAngularCubemap(3 * 90 + 4, 2 * 90 + 8)  # faces 90 pixels square
+    rays, _ = eac.pixel_rays()
+    row = rays[2 + 45, 2 + 90:2 + 180] @ face_rotation("front")  # the front face's middle row
+    np.testing.assert_allclose(np.arctan2(row[:, 0], row[:, 2]), np.radians(np.arange(90) - 44.5), atol=1e-12)
+    rays, _ = Cubemap(90, "c3x2").pixel_rays()
+    row = rays[90 + 45, 90:180] @ face_rotation("front")
+    np.testing.assert_allclose(row[:, 0] / row[:, 2], (np.arange(90) - 44.5) / 45, atol=1e-12)
+
+
+def test_equiangular_cubemap_rays_round_trip_and_cover_the_sphere(tmp_path):
+    rng = np.random.default_rng(0)
+    rays = rng.normal(size=(2000, 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    for eac in (EquiAngularCubemap(1155, 770), EquiAngularCubemap(96, 64, padding=0)):
+        uv, ok = eac.project(rays)
+        back, ok2 = eac.unproject(uv)
+        assert ok.all() and ok2.all()
+        np.testing.assert_allclose(back, rays, atol=1e-12)
+        assert math.isclose(eac.solid_angle(), 4 * math.pi, rel_tol=1e-3)
+    cameras.save(EquiAngularCubemap(1155, 770), tmp_path / "eac.yaml")
+    loaded = cameras.load(tmp_path / "eac.yaml")
+    assert isinstance(loaded, EquiAngularCubemap)
+    assert loaded.params() == {"width": 1155, "height": 770, "padding": 2.0}
+    assert EquiAngularCubemap(1155, 770).resized(578, 385).padding == pytest.approx(2 * 578 / 1155)
+    with pytest.raises(ValueError, match="one factor both ways"):
+        EquiAngularCubemap(1155, 770).resized(578, 770)
+    with pytest.raises(ValueError, match="padding must be"):
+        EquiAngularCubemap(30, 20, padding=3)
 
 
 @settings(max_examples=25, deadline=None)
@@ -121,16 +220,18 @@ def test_cube_maps_save_resize_and_refuse(tmp_path):
         Cubemap(7.5)
 
 
-@pytest.mark.parametrize("camera", [Cubemap(8, "horizon"), Cubemap(8, "dice"), Equirectangular(32, 16),
+@pytest.mark.parametrize("camera", [Cubemap(8, "horizon"), Cubemap(8, "dice"), EquiAngularCubemap(40, 30),
+                                    Equirectangular(32, 16),
                                     Equirectangular(32, 16, lat_range=(-1.0, 0.5), lon_range=(-2.0, 2.0)),
                                     Cubemap(8, "dice").with_fov(200), Equirectangular(32, 16).with_fov(120)],
-                         ids=["horizon", "dice", "panorama", "crop", "dice-fov", "panorama-fov"])
+                         ids=["horizon", "dice", "eac", "panorama", "crop", "dice-fov", "panorama-fov"])
 def test_pixels_with_rays_are_those_that_unproject(camera):
     """The shortcuts (no unprojection where every face's or the panorama's pixels have rays;
     one face's rays turned onto each face) say what unprojecting every pixel says."""
     rays, want = camera.unproject(camera.pixel_grid())
     assert np.array_equal(camera.pixels_with_rays(), want) and (~want).any() == (
-        camera.fov_limit is not None or camera.model == "cubemap" and camera.layout == "dice")
+        camera.fov_limit is not None or camera.model == "eac" or  # its padding
+        camera.model == "cubemap" and camera.layout == "dice")
     fast, valid = camera.pixel_rays()
     assert np.array_equal(valid, want) and np.isnan(fast[~want]).all()
     np.testing.assert_allclose(fast[want], rays[want], atol=1e-15, rtol=0)

@@ -1,7 +1,7 @@
 """Camera models: pixel <-> ray in both directions, lens normal maps, calibration files."""
 
 from .base import DEFAULT_ROTATION, Camera
-from .cubemap import Cubemap, cube_faces
+from .cubemap import Cubemap, EquiAngularCubemap, cube_faces
 from .files import read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt, RadialPoly
 from .formats import from_doc, with_fov_and_mask
@@ -13,4 +13,4 @@ from .rig import stitch_at
 from .scaramuzza import Scaramuzza
 
 __all__ = ["Camera", "DEFAULT_ROTATION", "Pinhole", "Division", "Fisheye", "KannalaBrandt", "FOV", "RadialPoly", "Mei",
-           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "Cubemap", "cube_faces", "LensNormalMap", "frame_key", "from_doc", "imu_rotation", "imu_time_shift", "load", "load_all", "load_rig", "read_mask", "rig_topics", "save", "stitch_at", "with_fov_and_mask"]
+           "DoubleSphere", "EUCM", "Scaramuzza", "Equirectangular", "Cubemap", "EquiAngularCubemap", "cube_faces", "LensNormalMap", "frame_key", "from_doc", "imu_rotation", "imu_time_shift", "load", "load_all", "load_rig", "read_mask", "rig_topics", "save", "stitch_at", "with_fov_and_mask"]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .base import FORMAT_TAG, Camera
-from .cubemap import Cubemap
+from .cubemap import Cubemap, EquiAngularCubemap
 from .files import FORMATS, Src, plain_list, read_mask
 from .fisheye import FOV, Fisheye, KannalaBrandt, RadialPoly
 from .omni import EUCM, DoubleSphere, Mei
@@ -20,7 +20,7 @@ from .woodscape import is_woodscape, load_woodscape
 
 MODELS = {c.__name__: c for c in (Pinhole, Division, Fisheye, KannalaBrandt, FOV, Mei,
                                   DoubleSphere, EUCM, Scaramuzza, Equirectangular, Cubemap,
-                                  RadialPoly)}
+                                  EquiAngularCubemap, RadialPoly)}
 _PINHOLE_DIST = ("plumb_bob", "rational_polynomial", "pinhole", "radtan")
 _FISHEYE_DIST = ("equidistant", "fisheye", "kannala-brandt", "kb4")
 
