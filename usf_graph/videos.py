@@ -387,8 +387,12 @@ def check_panorama_video(path, eye: str | None = None) -> None:
     refused rather than silently wrong."""
     meta = spherical_metadata(path)
     if meta is not None and meta["projection"] != "equirectangular":
+        hint = {"cubemap": "if its frames are FFmpeg's 3x2 cube map, read them with --camera "
+                           "cubemap:c3x2; else ",
+                "mesh": "if it is YouTube's equi-angular cube map (EAC, which YouTube's streams "
+                        "mark with a mesh), read it with --camera eac; else "}.get(meta["projection"], "")
         raise ValueError(f"{path}: its 360 video metadata (V{meta['version']}) says projection "
-                         f"{meta['projection']}, not equirectangular: re-encode it to an "
+                         f"{meta['projection']}, not equirectangular: {hint}re-encode it to an "
                          "equirectangular panorama first (e.g. FFmpeg's v360 filter)")
     if eye is not None:
         _stereo_layout(path, eye, meta)
