@@ -107,3 +107,8 @@ def test_reimage_benchmark_runs():
 def test_cubemap_benchmark_runs():
     out = run("benchmarks/cubemap.py", "--sizes", "64", "--reps", "1")
     assert "| panorama -> cube map 64x32 |" in out and "| cube map -> panorama 64x32 |" in out
+
+
+def test_eac_benchmark_runs():
+    out = run("benchmarks/eac.py", "--sizes", "64", "--reps", "1")
+    assert "| panorama -> EAC 64x32 |" in out and "| EAC -> panorama 64x32 |" in out
