@@ -293,6 +293,19 @@ class EquiAngularCubemap(Camera):
         local[..., 1] = np.tan((t - 0.5) * (math.pi / 2))
         return normalize(_per_face(local, k, self._R.transpose(0, 2, 1))), ok
 
+    def pixels_with_rays(self) -> np.ndarray:
+        """The faces' pixels (not the padding's), from where they lie alone, unless a field
+        of view limits them (computed then)."""
+        if self.fov_limit is not None:
+            return super().pixels_with_rays()
+        u = np.arange(self.width, dtype=np.float64)
+        v = np.arange(self.height, dtype=np.float64)
+        u0, v0 = self._edges(0, 0)  # on a face's middle row and column, which pixels are?
+        fw, fh = self.face_shape
+        cols = self._cell(np.stack([u, np.full_like(u, v0 + fh / 2)], -1))[4]
+        rows = self._cell(np.stack([np.full_like(v, u0 + fw / 2), v], -1))[4]
+        return rows[:, None] & cols[None, :]
+
     def pixel_solid_angles(self) -> np.ndarray:
         """Solid angle (sr) of each pixel ``[H, W]``, from its corners on its own face (a
         row's faces meet edge to edge, but the rows do not), 0 in the padding and where
