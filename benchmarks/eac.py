@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from conv import timeit as best_of  # noqa: E402  (benchmarks/ is the script's folder)
 
-from usf_graph.cameras import Equirectangular, EquiAngularCubemap
+from usf_graph.cameras import EquiAngularCubemap, Equirectangular
 from usf_graph.frontend import Reimager
 from usf_graph.viz import labelled_panorama
 
