@@ -181,12 +181,10 @@ def rooms_only_options(args) -> None:
     if args.dataset != "woodscape" and getattr(args, "scale", None) is not None:
         raise ValueError("--scale resizes WoodScape's images; give --dataset woodscape, or "
                          "--size for the others")
-    rooms_only = given(args, "num_train", "num_test", "fov_epochs", "up_extra", "up_caps", "up_sign",
-                       *(("up_epochs",) if args.dataset == "woodscape" else ()))
+    rooms_only = given(args, "num_train", "num_test", "fov_epochs", "up_extra", "up_caps", "up_sign")
     if args.dataset != "rooms" and rooms_only:
         raise ValueError(f"{', '.join(rooms_only)}: options of the rooms protocols; {args.dataset} "
-                         "trains on its own training split" + (
-                             ", its up estimate with the segmenter" if "--up-epochs" in rooms_only else ""))
+                         "trains on its own training split")
 
 
 def rooms_kind(results: dict) -> str:

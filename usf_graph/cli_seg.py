@@ -36,7 +36,7 @@ def cmd_train_seg(args) -> int:
             raise ValueError("--size: WoodScape's images keep their shape; --scale resizes them")
         res = run_woodscape(root=args.root or "data/woodscape", out=args.out or "runs/seg_woodscape",
                             models=tuple(args.models or ("spherical_deeplab",)),
-                            **given_or_default(args, run_woodscape, ("scale",)), **kw)
+                            **given_or_default(args, run_woodscape, ("scale", "up_epochs")), **kw)
     else:
         res = run(root=args.root or "data/rooms", out=args.out or "runs/seg",
                   models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw,

@@ -198,3 +198,20 @@ def test_lines_up_reads_a_pinholes_rendered_rooms_and_split_up_says_what_it_read
         split_up(model(), ds, known_up=True, up_lines=True)
     with pytest.raises(ValueError, match="has none"):
         split_up(SimpleNamespace(gravity=None), ds, up_lines=True)
+
+
+def test_an_up_batch_of_several_fields_of_view_is_refused():
+    """The up step reads one field of view per batch: views of two cameras in one batch
+    stop with the fix, rather than all being read through the first one's."""
+    from torch_geometric.data import Batch
+
+    from usf_graph.train.gravity import up_step
+
+    g = icosahedral(2)
+    net = UpNet(3, 2, channels=(4, 4))
+    a, b = (g.pos[:, 0] > -0.2), (g.pos[:, 0] < 0.2)  # two caps: a front and a back camera
+    views = [Data(x=torch.rand(len(g.pos), 3) * m[:, None], pos=g.pos.float(), mask=m) for m in (a, b, a)]
+    with pytest.raises(ValueError, match=r"different fields of view.*field_groups"):
+        up_step(net, Batch.from_data_list(views[:2]))
+    loss, _, n = up_step(net, Batch.from_data_list(views[::2]))  # one camera: trained
+    assert n == 2 and torch.isfinite(loss)

@@ -152,10 +152,12 @@ def test_woodscape_command_trains_on_four_cameras_and_eval_scores_it_again(tmp_p
     root = _woodscape(tmp_path / "ws")
     out = tmp_path / "out"
     assert main(["train", "seg", "--dataset", "woodscape", "--root", str(root), "--out", str(out),
-                 "--models", "spherical_unet", "--epochs", "1", "--batch-size", "2"]) == 0
+                 "--models", "spherical_unet", "--epochs", "1", "--batch-size", "2",
+                 "--up-epochs", "2"]) == 0  # the up estimate first, alone, by field of view too
     printed = capsys.readouterr().out
     res = json.loads((out / "results.json").read_text())
     assert res["samples"] == {"train": 3, "test": 2} and res["fields_of_view"] == 2
+    assert res["up_epochs"] == 2 and len((out / "up_estimate" / "metrics.csv").read_text().splitlines()) == 3
     r = res["spherical_unet"]
     assert np.isfinite(r["mIoU"]) and set(r["cameras"]) == {"MVL", "MVR"}
     assert f"mIoU {100 * r['mIoU']:.2f}," in printed
@@ -167,8 +169,6 @@ def test_woodscape_command_trains_on_four_cameras_and_eval_scores_it_again(tmp_p
     for argv, match in ((["train", "seg", "--dataset", "woodscape", "--models", "planar_unet"],
                          "spherical models .* not \\['planar_unet'\\]"),
                         (["train", "seg", "--scale", "0.5"], "--scale resizes WoodScape"),
-                        (["train", "seg", "--dataset", "woodscape", "--up-epochs", "3"],
-                         "--up-epochs: options of the rooms .* with the segmenter"),
                         (["train", "det", "--dataset", "woodscape"], "segmentation dataset"),
                         (["eval", "seg", str(out / "spherical_unet.pt"), "--dataset", "stanford2d3ds"],
                          "predicts 10 classes")):

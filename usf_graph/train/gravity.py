@@ -255,6 +255,9 @@ def up_step(model, batch, caps: float = 0.0, cap_degrees: tuple[float, float] = 
     B = batch.num_graphs
     x, _ = to_static(batch.x, batch.x.shape[0] // B, batch.batch, "up batch")
     seen = getattr(batch, "mask", None)  # panoramas may come without one
+    if seen is not None and not (seen.view(B, -1) == seen.view(B, -1)[0]).all():
+        raise ValueError("the views of an up batch have different fields of view; batch one "
+                         "camera (groups=field_groups(dataset.mask))")
     mask = torch.ones(x.shape[1], dtype=torch.bool, device=x.device) if seen is None else \
         seen.view(B, -1)[0]
     if caps and float(torch.rand(())) < caps:
@@ -312,17 +315,20 @@ def up_views(root, num: int, grid="icosahedral:5", progress: bool = True,
 def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                 progress: bool = True, log_dir=None, caps: float = 0.0,
                 cap_degrees: tuple[float, float] = UP_CAP_DEGREES, extra=None,
-                sign_weight: float = 0.0, resume: bool = False) -> None:
+                sign_weight: float = 0.0, resume: bool = False, groups=None) -> None:
     """Trains ``net.gravity`` alone on ``train`` (views of known gravity), and ``extra``
     views when given (e.g. :class:`~usf_graph.datasets.RoomsGravity`), for ``epochs``,
     then freezes it: the segmenter's own training then reads the known gravity and never
     runs it. The up estimate is small (tens of ms a step), so it can see many views at
     little cost, which it needs (README). ``caps``, ``cap_degrees`` and ``sign_weight``:
-    see :func:`up_step`; ``resume``: as :func:`~usf_graph.train.engine.fit`'s."""
+    see :func:`up_step`; ``resume``, ``groups`` (``train``'s fields of view; no
+    ``extra`` then): as :func:`~usf_graph.train.engine.fit`'s."""
     if extra is not None:
+        if groups is not None:
+            raise ValueError("groups are the training set's; extra views cannot join them")
         train = UpViews(train, extra)
     fit(net.gravity, train, None, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-        log_dir=log_dir, progress=progress, name="up estimate", resume=resume,
+        log_dir=log_dir, progress=progress, name="up estimate", resume=resume, groups=groups,
         step=partial(up_step, caps=caps, cap_degrees=tuple(cap_degrees), sign_weight=sign_weight))
     net.gravity.requires_grad_(False)
 

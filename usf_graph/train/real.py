@@ -72,8 +72,8 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
                   models=("spherical_deeplab",), level: int = 5, scale: float = 0.5,
                   epochs: int = 12, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
                   progress: bool = True, balance: float = 0.5, upright: bool = True,
-                  known_up: bool = True, resume: bool = False, device: str | None = None,
-                  gray: bool = False) -> dict:
+                  up_epochs: int = 0, known_up: bool = True, resume: bool = False,
+                  device: str | None = None, gray: bool = False) -> dict:
     """Train on WoodScape's ``train`` list (OmniDet's) and score its ``val`` list: every image
     lifted through its own calibration (:class:`~usf_graph.datasets.WoodScape`, images
     resized by ``scale``), the four cameras' images in one training set, each batch from one
@@ -83,9 +83,9 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
     sphere's area-weighted mIoU, and each camera's mIoU. Spherical models only (a planar
     one would train on the fisheye images; WoodScape's own baselines do that).
 
-    The up estimate trains with the segmenter (``up_epochs=0`` of
-    :func:`~usf_graph.train.seg.train_model`; there are no panoramas to pretrain it on).
-    ``known_up``: at test, the models read the vehicle frame's up (+z, the road's slope
+    The up estimate trains with the segmenter (``up_epochs=0``), or first and alone for
+    ``up_epochs`` on the same images (:func:`~usf_graph.train.seg.train_model`), batched
+    by field of view as well. ``known_up``: at test, the models read the vehicle frame's up (+z, the road's slope
     aside), where every calibration places its camera, as they would read an IMU; else
     their estimate. Writes ``results.json`` and ``<model>.pt`` under ``out``; ``resume``,
     ``device`` and ``gray`` as :func:`~usf_graph.train.seg.run`'s."""
@@ -105,12 +105,13 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
     groups = field_groups(train.mask)
     results = {"samples": {"train": len(train), "test": len(test)}, "fields_of_view": int(groups.max()) + 1,
                "level": level, "scale": scale, "epochs": epochs, "balance": balance,
-               "upright": upright, "known_up": known_up, "gray": gray}
+               "upright": upright, "up_epochs": up_epochs, "known_up": known_up, "gray": gray}
+    shared = {}
     for name in models:
         seed_everything(seed)
         net = seg.make_model(name, level, upright, gray=gray, num_classes=len(CLASSES)).to(dev)
         seg.train_model(net, train, out, name, epochs, batch_size, lr, seed, progress, balance,
-                        0, {}, resume=resume, groups=groups)
+                        up_epochs, shared, resume=resume, groups=groups)
         if rank != 0:
             continue
         results[name] = r = seg.evaluate_fields(net, test, known_up, progress=progress,

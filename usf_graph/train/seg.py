@@ -382,16 +382,16 @@ def train_model(net, train, out: Path, name: str, epochs: int, batch_size: int, 
     view to cut, on the whole panoramas, so that every model trains as long.
 
     ``resume``: every stage continues from its ``last.pt``
-    (:func:`~usf_graph.train.engine.fit`). ``groups``: batch within them (as ``fit``'s; a
-    split of several cameras' fields of view, with ``up_epochs=0`` and no ``fov_epochs``,
-    which cut one field per batch)."""
-    if groups is not None and ((getattr(net, "gravity", None) is not None and up_epochs) or fov_epochs):
-        raise ValueError("batches grouped by field of view train the up estimate with the "
-                         "segmenter (up_epochs=0) and have no second phase (fov_epochs=0)")
+    (:func:`~usf_graph.train.engine.fit`). ``groups``: every stage batches within them (as
+    ``fit``'s: a split of several cameras' fields of view), and there is no second phase,
+    which cuts one field of view per batch."""
+    if groups is not None and fov_epochs:
+        raise ValueError("batches grouped by field of view have no second phase through "
+                         "random fields of view (fov_epochs=0)")
     if getattr(net, "gravity", None) is not None and up_epochs:
         if "up" not in shared:
             pretrain_up(net, train, up_epochs, batch_size, lr, seed, progress,
-                        log_dir=out / "up_estimate", resume=resume, **(up_kw or {}))
+                        log_dir=out / "up_estimate", resume=resume, groups=groups, **(up_kw or {}))
             shared["up"] = net.gravity.state_dict()
         net.gravity.load_state_dict(shared["up"])
         net.gravity.requires_grad_(False)
