@@ -152,11 +152,16 @@ def test_gravity_views_are_cut_from_a_larger_stored_split(tmp_path, monkeypatch)
 
 def test_splits_rendered_by_worker_processes_equal_those_rendered_here(tmp_path, monkeypatch):
     """Each view depends only on its seed and index, so two worker processes store the
-    same split, boxes and up views as this process alone; a worker's error reaches here."""
+    same split, boxes and up views as this process alone; a worker's error reaches here.
+    This process casts rays first, so the workers are spawned: forked, they waited forever
+    on Embree's thread pool (session 57's suite hung here)."""
+    from usf_graph.datasets import rooms
+
     cam = cameras.Equirectangular(64, 32)
     kw = dict(camera=cam, num_scenes=5, grid="icosahedral:2", progress=False)
     monkeypatch.setenv(WORKERS_ENV, "1")
     alone = RoomsDetection(tmp_path / "alone", **kw)
+    assert rooms.worker_start_method() == "spawn"
     up_alone = RoomsGravity(tmp_path / "alone", 5, camera=cam, grid="icosahedral:2", progress=False)
     monkeypatch.setenv(WORKERS_ENV, "2")
     assert render_workers(5) == 2
@@ -165,7 +170,10 @@ def test_splits_rendered_by_worker_processes_equal_those_rendered_here(tmp_path,
     for k in ("x", "y", "mask", "image", "label_image", "boxes", "box_class", "box_ptr"):
         assert torch.equal(getattr(alone, k), getattr(two, k)), k
     assert torch.equal(up_alone.x, up_two.x)
-    monkeypatch.setattr("usf_graph.datasets.rooms.render", lambda *a, **k: 1 / 0)  # forked along
+    # forked workers (this process as if it had cast no ray) take the broken render along
+    monkeypatch.setattr("usf_graph.scenes.room._EMBREE_STARTED", False)
+    assert rooms.worker_start_method() == "fork"
+    monkeypatch.setattr("usf_graph.datasets.rooms.render", lambda *a, **k: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         RoomsSegmentation(tmp_path / "broken", **kw)
 

@@ -26,6 +26,7 @@ from ..geometry import random_rotation
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, make_room, render
 from ..scenes.materials import check_materials
+from ..scenes.room import embree_started
 from .stacked import add_boxes, load_or_rebuild, pack_boxes, pre_transform_stacked
 
 ROTATIONS = ("none", "so3")
@@ -117,9 +118,19 @@ def _single_threaded() -> None:
     torch.set_num_threads(1)  # a worker is one of several processes: no oversubscription
 
 
+def worker_start_method() -> str:
+    """How :func:`render_views` starts its workers on Linux: forked, as PyTorch's
+    DataLoader does, while this process has not cast a ray; spawned once it has
+    (:func:`~usf_graph.scenes.room.embree_started`), because a forked worker's Embree would
+    wait forever on a thread pool that stayed behind. (A spawned worker imports the main
+    module again: a script that renders rooms needs ``if __name__ == "__main__":``, or
+    Python stops it with its bootstrapping error.)"""
+    return "spawn" if embree_started() else "fork"
+
+
 def render_views(job: _ViewJob, n: int, desc: str, progress: bool):
     """``job(i)`` for ``i`` in ``range(n)``, in order, in :func:`render_workers` processes
-    (forked on Linux, as PyTorch's DataLoader does; elsewhere fork is unsafe with some
+    started by :func:`worker_start_method` on Linux (elsewhere fork is unsafe with some
     system libraries and spawn would rerun an unguarded script, so all here), with a
     progress bar."""
     import multiprocessing
@@ -129,7 +140,7 @@ def render_views(job: _ViewJob, n: int, desc: str, progress: bool):
     if workers > 1 and sys.platform.startswith("linux"):
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(workers, multiprocessing.get_context("fork"),
+        with ProcessPoolExecutor(workers, multiprocessing.get_context(worker_start_method()),
                                  initializer=_single_threaded) as pool:
             yield from tqdm(pool.map(job, range(n), chunksize=max(1, n // (8 * workers))),
                             total=n, desc=desc, disable=not progress, leave=False)

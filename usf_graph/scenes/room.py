@@ -38,6 +38,18 @@ class Instance:
     hi: np.ndarray
 
 
+#: Whether this process has cast a ray: Embree's thread pool then exists, and a process
+#: forked from this one would wait on it forever (:func:`embree_started`).
+_EMBREE_STARTED = False
+
+
+def embree_started() -> bool:
+    """Whether this process has started Embree (cast a ray): after that, worker processes
+    must not be forked from it (a forked worker's Embree waits forever on the threads that
+    stayed behind)."""
+    return _EMBREE_STARTED
+
+
 @dataclass
 class Scene:
     """A room: its mesh (faces tagged with instance ids), instances and appearance.
@@ -69,6 +81,8 @@ class Scene:
         if self._caster is None:
             from trimesh.ray.ray_pyembree import RayMeshIntersector
 
+            global _EMBREE_STARTED
+            _EMBREE_STARTED = True
             self._caster = RayMeshIntersector(self.mesh, scale_to_box=False)
         d = np.ascontiguousarray(directions, np.float64).reshape(-1, 3)
         o = np.broadcast_to(np.asarray(origin, np.float64), d.shape)
