@@ -16,14 +16,10 @@ grey levels on the pixels with rays: the EAC's faces, the whole panorama).
 
 from __future__ import annotations
 
-import argparse
-import time
 from fractions import Fraction
 
-import cv2
 import numpy as np
-import torch
-from conv import timeit as best_of  # noqa: E402  (benchmarks/ is the script's folder)
+from cubemap import compare, header, parse  # noqa: E402  (benchmarks/ is the script's folder)
 
 from usf_graph.cameras import EquiAngularCubemap, Equirectangular
 from usf_graph.frontend import Reimager
@@ -31,63 +27,50 @@ from usf_graph.viz import labelled_panorama
 
 
 class V360:
-    """FFmpeg's v360 filter as a callable on RGB uint8 frames of one size."""
+    """FFmpeg's v360 filter as a callable on RGB uint8 frames of one size; its graph is
+    configured (its maps built) on the first call, which the first-frame column times."""
 
     def __init__(self, width: int, height: int, args: str, threads: int):
+        self.size, self.args, self.threads, self.pts, self.graph = (width, height), args, threads, 0, None
+
+    def _configure(self) -> None:
         import av
 
-        self.av, self.pts = av, 0
         self.graph = av.filter.Graph()
-        self.graph.threads = threads
-        self.src = self.graph.add_buffer(width=width, height=height, format="rgb24",
+        self.graph.threads = self.threads
+        self.src = self.graph.add_buffer(width=self.size[0], height=self.size[1], format="rgb24",
                                          time_base=Fraction(1, 25))
-        v360 = self.graph.add("v360", f"{args}:interp=linear")
+        v360 = self.graph.add("v360", f"{self.args}:interp=linear")
         self.sink = self.graph.add("buffersink")
         self.src.link_to(v360)
         v360.link_to(self.sink)
         self.graph.configure()
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        frame = self.av.VideoFrame.from_ndarray(image, format="rgb24")
+        import av
+
+        if self.graph is None:
+            self._configure()
+        frame = av.VideoFrame.from_ndarray(image, format="rgb24")
         frame.pts, self.pts = self.pts, self.pts + 1
         self.src.push(frame)
         return self.sink.pull().to_ndarray(format="rgb24")
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
-    p.add_argument("--reps", type=int, default=3)
-    p.add_argument("--threads", type=int, default=2)
-    a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    cv2.setNumThreads(a.threads)
-    print("| job | first call: ours (s) | first frame: FFmpeg (s) | ours (ms/frame) | "
-          "FFmpeg (ms/frame) | ratio | difference |")
-    print("|---|---|---|---|---|---|---|")
+    a = parse(argv, __doc__)
+    header("FFmpeg", "first frame")
     for size in a.sizes:
         pano_cam = Equirectangular(size, size // 2)
         eac_cam = EquiAngularCubemap(3 * size // 4, size // 2)
         pano = (255 * labelled_panorama(size, size // 2)).round().astype(np.uint8)
         eac = Reimager(pano_cam, eac_cam)(pano)
-        jobs = (("panorama -> EAC", pano_cam, eac_cam, pano, "input=e:output=eac"),
-                ("EAC -> panorama", eac_cam, pano_cam, eac, "input=eac:output=e"))
-        for name, src, dst, image, args in jobs:
-            t = time.perf_counter()
-            r = Reimager(src, dst)
-            ours_out = r(image)
-            first = time.perf_counter() - t
-            t = time.perf_counter()
-            theirs = V360(src.width, src.height, f"{args}:w={dst.width}:h={dst.height}", a.threads)
-            theirs_out = theirs(image)  # its maps built on the first frame
-            their_first = time.perf_counter() - t
-            ours = best_of(lambda: r(image), a.reps)  # noqa: B023
-            other = best_of(lambda: theirs(image), a.reps)  # noqa: B023
-            seen = dst.pixels_with_rays()
-            diff = np.abs(ours_out.astype(np.float64) - theirs_out)[seen].mean()
-            print(f"| {name} {size}x{size // 2} | {first:.2f} | {their_first:.2f} | "
-                  f"{1e3 * ours:.1f} | {1e3 * other:.1f} | {other / ours:.1f}x | {diff:.1f} |",
-                  flush=True)
+        compare([(name, src, dst, image,
+                  V360(src.width, src.height, f"{args}:w={dst.width}:h={dst.height}", a.threads))
+                 for name, src, dst, image, args in (
+                     ("panorama -> EAC", pano_cam, eac_cam, pano, "input=e:output=eac"),
+                     ("EAC -> panorama", eac_cam, pano_cam, eac, "input=eac:output=e"))],
+                size, a.reps, seen_only=True)
 
 
 if __name__ == "__main__":
