@@ -67,7 +67,7 @@ def cmd_train_seg(args) -> int:
 
 
 def format_woodscape(name: str, r: dict) -> str:
-    """A WoodScape score (:func:`~usf_graph.train.seg.evaluate_fields`) in two lines."""
+    """A WoodScape score (:func:`~usf_graph.train.real.evaluate_fields`) in two lines."""
     cams = ", ".join(f"{c} {100 * v:.2f}" for c, v in r["cameras"].items())
     return (f"{name}: mIoU {100 * r['mIoU']:.2f}, mAcc {100 * r['mAcc']:.2f}, sphere_mIoU "
             f"{100 * r['sphere_mIoU']:.2f}, per_image_mIoU {100 * r['per_image_mIoU']:.2f}\n"
@@ -91,7 +91,7 @@ def cmd_eval_seg(args) -> int:
     if data == "woodscape":
         from .datasets import WoodScape
         from .datasets.woodscape import CLASSES
-        from .train.seg import evaluate_fields
+        from .train.real import evaluate_fields
 
         test = WoodScape(args.root or "data/woodscape", "val", grid=f"icosahedral:{level}",
                          scale=ckpt.scale or 0.5)

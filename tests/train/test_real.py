@@ -122,7 +122,7 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
     from usf_graph.datasets import WoodScape
     from usf_graph.datasets.woodscape import CLASSES
     from usf_graph.frontend.interpolation import valid_pixels
-    from usf_graph.train.seg import evaluate_fields
+    from usf_graph.train.real import evaluate_fields
 
     root = _woodscape(tmp_path / "ws")
     ds = WoodScape(root, "val", grid="icosahedral:3", scale=0.5, progress=False)

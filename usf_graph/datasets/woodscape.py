@@ -100,7 +100,8 @@ class WoodScape(UprightAsReleased, Dataset):
         if not 0 < scale <= 1:
             raise ValueError(f"scale must be in (0, 1], got {scale}")
         self.split, self.scale, self.progress = split, float(scale), progress
-        self._cache: dict = {}
+        self._cache: dict = {}  # frontends by calibration content
+        self._contents: dict = {}  # calibration content by path
         self.grid: Grid = from_spec(grid) if isinstance(grid, str) else grid
         super().__init__(str(root), transform, pre_transform, log=False)
         blob = load_or_rebuild(self.processed_paths[0], self.process,
@@ -128,7 +129,9 @@ class WoodScape(UprightAsReleased, Dataset):
     def _frontends(self, calibration: Path) -> tuple:
         """The lifting and label frontends of a calibration file at this dataset's scale, and
         the release's image size; one per distinct calibration (the files repeat per camera)."""
-        key = calibration.read_bytes()
+        key = self._contents.get(calibration)
+        if key is None:  # read once: a split's scoring asks for each sample's camera
+            key = self._contents[calibration] = calibration.read_bytes()
         if key not in self._cache:
             cam = cameras.load(calibration)
             full = (cam.width, cam.height)

@@ -2,8 +2,9 @@
 folds of Stanford 2D-3D-S (segmentation, :func:`run_stanford`) and PANDORA (detection,
 :func:`run_pandora`), each model trained by the rooms protocols' recipe. ``usf-graph
 scenes --layout stanford2d3ds|pandora`` writes procedural rooms in their layouts, on which
-these run offline. WoodScape's fisheyes (segmentation, :func:`run_woodscape`) train on
-fixtures in its layout in the tests."""
+these run offline. WoodScape's fisheyes (segmentation, :func:`run_woodscape`, scored by
+:func:`evaluate_fields` on each image's own camera) train on fixtures in its layout in the
+tests."""
 
 from __future__ import annotations
 
@@ -11,12 +12,22 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm.auto import tqdm
 
 from ..scenes import PANDORA_CLASSES
 from . import det, seg
-from .devices import resolve_device, setup_distributed
-from .engine import fit, save_checkpoint, seed_everything, write_results
-from .gravity import pretrain_up
+from .devices import is_planar, model_device, resolve_device, setup_distributed
+from .engine import (
+    field_groups,
+    fit,
+    group_batches,
+    save_checkpoint,
+    seed_everything,
+    write_results,
+)
+from .gravity import pretrain_up, views_up
+from .seg_metrics import confusion_matrix, score_confusions, scores
 
 
 def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
@@ -68,6 +79,44 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
     return write_results(out, results, t0)
 
 
+@torch.no_grad()
+def evaluate_fields(model, ds, known_up: bool = True, batch_size: int = seg.PREDICT_BATCH,
+                    progress: bool = True, desc: str = "segment", render: str = "nearest",
+                    names=None) -> dict:
+    """Scores of a spherical model on a split whose samples have cameras of their own
+    (``ds.x [S, N, C]``, ``ds.y``, ``ds.mask [S, N]``, ``ds.frontend(i)`` and
+    ``ds.label_image(i)``, e.g. :class:`~usf_graph.datasets.WoodScape`): batched by field
+    of view (:func:`~usf_graph.train.engine.field_groups`), each sample's predictions
+    rendered into its own camera's pixels (``render``: as :func:`~usf_graph.train.seg.predict`'s) and scored there
+    (:func:`~usf_graph.train.seg_metrics.score_confusions`: mIoU and mAcc over the split,
+    USF's per-image mean, the sphere's area-weighted mIoU), with the mIoU of each camera
+    (``ds.camera_names``) under ``"cameras"``. ``known_up``: the model reads the views'
+    gravity (``ds.gravity``), else its estimate. ``names``: the classes (default: their
+    indices)."""
+    if is_planar(model):
+        raise ValueError("evaluate_fields scores spherical models; a planar one has no grid")
+    model.eval()
+    dev, C = model_device(model), model.config["num_classes"]
+    up, area = (views_up(ds) if known_up else None), ds.grid.area.numpy()[None]
+    confs, sphere = [None] * len(ds), np.zeros((C, C))
+    batches = group_batches(field_groups(ds.mask), batch_size, shuffle=False)
+    for b in tqdm(batches, desc=desc, leave=False, disable=not progress):
+        x, mask = ds.x[b].to(dev).float(), ds.mask[b[0]]
+        mask = None if mask.all() else mask.to(dev)
+        logits = model(x, mask, **({} if up is None else {"up": up[b].to(dev, x.dtype)})).cpu()
+        for i, lg in zip(b, logits):
+            sphere += confusion_matrix(lg.argmax(-1).numpy()[None], ds.y[i].numpy()[None], C,
+                                       weight=area)
+            pixels = ds.frontend(i).to_labels(lg.softmax(-1) if render == "soft" else lg, render)
+            confs[i] = confusion_matrix(pixels.numpy(), ds.label_image(i), C)
+    names = list(names) if names is not None else [str(c) for c in range(C)]
+    res = score_confusions(confs, names, sphere)
+    cams = list(getattr(ds, "camera_names", ["all"] * len(ds)))
+    res["cameras"] = {c: scores(sum(f for f, k in zip(confs, cams) if k == c), names)["mIoU"]
+                      for c in dict.fromkeys(cams)}
+    return res
+
+
 def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
                   models=("spherical_deeplab",), level: int = 5, scale: float = 0.5,
                   epochs: int = 12, batch_size: int = 8, lr: float = 3e-3, seed: int = 0,
@@ -78,7 +127,7 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
     lifted through its own calibration (:class:`~usf_graph.datasets.WoodScape`, images
     resized by ``scale``), the four cameras' images in one training set, each batch from one
     field of view (:func:`~usf_graph.train.engine.field_groups`). Scores are on each image's
-    own pixels (:func:`~usf_graph.train.seg.evaluate_fields`): mIoU and mAcc over the
+    own pixels (:func:`evaluate_fields`): mIoU and mAcc over the
     split's confusion matrix on the 10 classes, void included, as OmniDet counts them, the
     sphere's area-weighted mIoU, and each camera's mIoU. Spherical models only (a planar
     one would train on the fisheye images; WoodScape's own baselines do that).
@@ -91,7 +140,6 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
     ``device`` and ``gray`` as :func:`~usf_graph.train.seg.run`'s."""
     from ..datasets import WoodScape
     from ..datasets.woodscape import CLASSES
-    from .engine import field_groups
 
     if planar := [m for m in models if m not in ("spherical_unet", "spherical_deeplab")]:
         raise ValueError(f"WoodScape trains the spherical models (spherical_unet, "
@@ -114,7 +162,7 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
                         up_epochs, shared, resume=resume, groups=groups)
         if rank != 0:
             continue
-        results[name] = r = seg.evaluate_fields(net, test, known_up, progress=progress,
+        results[name] = r = evaluate_fields(net, test, known_up, progress=progress,
                                                 desc=f"{name} val", names=CLASSES)
         save_checkpoint(out / f"{name}.pt", net, {"model": name, **net.config}, r,
                         extra={"data": {"dataset": "woodscape", "scale": scale}})

@@ -41,9 +41,7 @@ from ..scenes.materials import check_materials
 from .devices import is_planar, model_device, resolve_device, setup_distributed
 from .engine import (
     check_channel_scale,
-    field_groups,
     fit,
-    group_batches,
     save_checkpoint,
     scaled_channels,
     seed_everything,
@@ -61,7 +59,7 @@ from .gravity import (
     up_views,
     views_up,
 )
-from .seg_metrics import confusion_matrix, median_frequency_weights, score, score_confusions, scores
+from .seg_metrics import median_frequency_weights, score
 
 PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
             "c": ("fisheye190", "none", 0), "d": ("pinhole90", "none", 0),
@@ -311,44 +309,6 @@ def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
     if u.estimate is not None:
         r["up"] = u.report(views_up(ds))
     return r, pix
-
-
-@torch.no_grad()
-def evaluate_fields(model, ds, known_up: bool = True, batch_size: int = PREDICT_BATCH,
-                    progress: bool = True, desc: str = "segment", render: str = "nearest",
-                    names=None) -> dict:
-    """Scores of a spherical model on a split whose samples have cameras of their own
-    (``ds.x [S, N, C]``, ``ds.y``, ``ds.mask [S, N]``, ``ds.frontend(i)`` and
-    ``ds.label_image(i)``, e.g. :class:`~usf_graph.datasets.WoodScape`): batched by field
-    of view (:func:`~usf_graph.train.engine.field_groups`), each sample's predictions
-    rendered into its own camera's pixels (``render``: as :func:`predict`'s) and scored there
-    (:func:`~usf_graph.train.seg_metrics.score_confusions`: mIoU and mAcc over the split,
-    USF's per-image mean, the sphere's area-weighted mIoU), with the mIoU of each camera
-    (``ds.camera_names``) under ``"cameras"``. ``known_up``: the model reads the views'
-    gravity (``ds.gravity``), else its estimate. ``names``: the classes (default: their
-    indices)."""
-    if is_planar(model):
-        raise ValueError("evaluate_fields scores spherical models; a planar one has no grid")
-    model.eval()
-    dev, C = model_device(model), model.config["num_classes"]
-    up, area = (views_up(ds) if known_up else None), ds.grid.area.numpy()[None]
-    confs, sphere = [None] * len(ds), np.zeros((C, C))
-    batches = group_batches(field_groups(ds.mask), batch_size, shuffle=False)
-    for b in tqdm(batches, desc=desc, leave=False, disable=not progress):
-        x, mask = ds.x[b].to(dev).float(), ds.mask[b[0]]
-        mask = None if mask.all() else mask.to(dev)
-        logits = model(x, mask, **({} if up is None else {"up": up[b].to(dev, x.dtype)})).cpu()
-        for i, lg in zip(b, logits):
-            sphere += confusion_matrix(lg.argmax(-1).numpy()[None], ds.y[i].numpy()[None], C,
-                                       weight=area)
-            pixels = ds.frontend(i).to_labels(lg.softmax(-1) if render == "soft" else lg, render)
-            confs[i] = confusion_matrix(pixels.numpy(), ds.label_image(i), C)
-    names = list(names) if names is not None else [str(c) for c in range(C)]
-    res = score_confusions(confs, names, sphere)
-    cams = list(getattr(ds, "camera_names", ["all"] * len(ds)))
-    res["cameras"] = {c: scores(sum(f for f, k in zip(confs, cams) if k == c), names)["mIoU"]
-                      for c in dict.fromkeys(cams)}
-    return res
 
 
 def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_CLASSES)):
