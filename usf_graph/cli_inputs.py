@@ -118,7 +118,8 @@ def is_cubemap_spec(spec: str) -> bool:
 def _cubemap(spec: str, image_shape):
     """The :class:`~usf_graph.cameras.Cubemap` of ``cubemap[:SIZE][:LAYOUT]``; without a
     size, the image's (``image_shape``: 6:1 a horizon strip, 4:3 a dice cross; other
-    layouts of those shapes, and the 3:2 ones, by name)."""
+    layouts of those shapes, and the 3:2 ones, by name). ``eac[:WxH]``: the
+    :class:`~usf_graph.cameras.EquiAngularCubemap` of that size, else the image's."""
     from .cameras import Cubemap, EquiAngularCubemap
     from .cameras.cubemap import LAYOUTS
 

@@ -83,6 +83,16 @@ def _per_face(v: np.ndarray, k: np.ndarray, R: np.ndarray) -> np.ndarray:
     return out
 
 
+def _onto_faces(rays: np.ndarray, face_of: np.ndarray, R: np.ndarray):
+    """Each ray's face (the one it points most towards: its largest coordinate and that
+    one's sign; ``face_of`` as :func:`_face_of`'s) and the ray in that face's optical
+    frame (``R [6, 3, 3]``)."""
+    axis = np.argmax(np.abs(rays), -1)
+    positive = np.take_along_axis(rays, axis[..., None], -1)[..., 0] > 0
+    k = face_of[axis, positive.astype(np.int64)]
+    return k, _per_face(rays, k, R)
+
+
 def cube_faces(size: int) -> dict[str, Pinhole]:
     """The six faces as pinholes without distortion, ``size`` pixels square (90 degrees
     from pixel edge to pixel edge), mounted in the sphere frame: a cube map as a rig."""
@@ -142,11 +152,7 @@ class Cubemap(Camera):
         return Cubemap(width // cols, self.layout, self.rotation)
 
     def _project(self, rays):
-        # the face the ray points most towards: its largest coordinate and that one's sign
-        axis = np.argmax(np.abs(rays), -1)
-        positive = np.take_along_axis(rays, axis[..., None], -1)[..., 0] > 0
-        k = self._face_of[axis, positive.astype(np.int64)]
-        p = _per_face(rays, k, self._R)  # in the face's optical frame
+        k, p = _onto_faces(rays, self._face_of, self._R)
         half, c = self.size / 2, (self.size - 1) / 2
         uv = half * p[..., :2] / p[..., 2:] + c + self._cells[k] * self.size
         return uv, np.ones(uv.shape[:-1], bool)
@@ -263,10 +269,7 @@ class EquiAngularCubemap(Camera):
                 self.height / 2 * np.asarray(row) + self.padding - 0.5)
 
     def _project(self, rays):
-        axis = np.argmax(np.abs(rays), -1)
-        positive = np.take_along_axis(rays, axis[..., None], -1)[..., 0] > 0
-        k = self._face_of[axis, positive.astype(np.int64)]
-        p = _per_face(rays, k, self._R)
+        k, p = _onto_faces(rays, self._face_of, self._R)
         st = np.arctan(p[..., :2] / p[..., 2:]) * (2 / math.pi) + 0.5  # [0, 1] across the face
         fw, fh = self.face_shape
         u0, v0 = self._edges(self._cells[k, 0], self._cells[k, 1])
