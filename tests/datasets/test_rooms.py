@@ -152,7 +152,8 @@ def test_gravity_views_are_cut_from_a_larger_stored_split(tmp_path, monkeypatch)
 
 def test_splits_rendered_by_worker_processes_equal_those_rendered_here(tmp_path, monkeypatch):
     """Each view depends only on its seed and index, so two worker processes store the
-    same split, boxes and up views as this process alone; a worker's error reaches here.
+    same split and boxes as this process alone (the up views go through the same
+    ``render_views``: a third pool added 10 s); a worker's error reaches here.
     This process casts rays first, so the workers are spawned: forked, they waited forever
     on Embree's thread pool (session 57's suite hung here)."""
     from usf_graph.datasets import rooms
@@ -162,14 +163,11 @@ def test_splits_rendered_by_worker_processes_equal_those_rendered_here(tmp_path,
     monkeypatch.setenv(WORKERS_ENV, "1")
     alone = RoomsDetection(tmp_path / "alone", **kw)
     assert rooms.worker_start_method() == "spawn"
-    up_alone = RoomsGravity(tmp_path / "alone", 5, camera=cam, grid="icosahedral:2", progress=False)
     monkeypatch.setenv(WORKERS_ENV, "2")
     assert render_workers(5) == 2
     two = RoomsDetection(tmp_path / "two", **kw)
-    up_two = RoomsGravity(tmp_path / "two", 5, camera=cam, grid="icosahedral:2", progress=False)
     for k in ("x", "y", "mask", "image", "label_image", "boxes", "box_class", "box_ptr"):
         assert torch.equal(getattr(alone, k), getattr(two, k)), k
-    assert torch.equal(up_alone.x, up_two.x)
     # forked workers (this process as if it had cast no ray) take the broken render along
     monkeypatch.setattr("usf_graph.scenes.room._EMBREE_STARTED", False)
     assert rooms.worker_start_method() == "fork"

@@ -93,17 +93,17 @@ def test_oriented_stages_are_those_on_the_asked_levels(cls, kw):
 @pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalDeepLabV3, DEEPLAB)])
 def test_refined_model_computes_nearly_the_same_function(cls, kw):
     torch.manual_seed(1)
-    m = cls(**{**kw, "level": 4}).double().eval()
+    m = cls(**kw).double().eval()  # level 3, refined to 4 (5 took 5x longer, no more checked)
     fine = m.refined(1)
-    assert fine.num_points == len(grids.icosahedral(5)) and fine.config["refine"] == 1
-    coarse_pos, fine_pos = grids.icosahedral(4).pos, grids.icosahedral(5).pos
+    assert fine.num_points == len(grids.icosahedral(4)) and fine.config["refine"] == 1
+    coarse_pos, fine_pos = grids.icosahedral(3).pos, grids.icosahedral(4).pos
     f = lambda p: torch.as_tensor(smooth_signal(p.numpy()))[None]  # noqa: E731
     with torch.no_grad():
         a, b = m(f(coarse_pos)), fine(f(fine_pos))[:, : len(coarse_pos)]  # nested grids
     rel = (a - b).norm() / a.norm()
-    assert rel < 0.15, rel
+    assert rel < 0.1, rel  # 0.022 (U-Net), 0.0015 (DeepLab)
     # another network with the same architecture differs far more: the weights carried over
-    other = cls(**{**kw, "level": 4}).double().eval().refined(1)
+    other = cls(**kw).double().eval().refined(1)
     with torch.no_grad():
         c = other(f(fine_pos))[:, : len(coarse_pos)]
     assert (a - c).norm() / a.norm() > 3 * rel

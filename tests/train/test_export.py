@@ -5,6 +5,7 @@ outputs where up is unusable, and every refusal names the fix."""
 import json
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -311,3 +312,43 @@ def test_detector_refusals_name_the_fix(tmp_path):
     with pytest.raises(ValueError, match="not a spherical detector"):
         BoundDetector(_deeplab(), _fisheye(32))
     assert not list(tmp_path.iterdir())
+
+
+def test_a_pt2_is_loaded_again_once_its_file_changes(tmp_path, monkeypatch):
+    """``load_exported`` keeps the last ``.pt2`` it loaded (export's check has just loaded
+    the file a caller loads next); a file written again at the same path is read anew."""
+    import os
+
+    from usf_graph.train import export
+
+    loads = []
+
+    class Program:
+        def __init__(self, text):
+            self.text = text
+
+        def module(self):
+            return self
+
+        class graph:  # noqa: N801 (the program's graph: no inputs to read)
+            @staticmethod
+            def find_nodes(op):
+                return []
+
+    def fake_load(path, extra_files):
+        loads.append(Path(path).read_text())
+        extra_files[export.META_FILE] = json.dumps({"task": "seg", "version": loads[-1]})
+        return Program(loads[-1])
+
+    monkeypatch.setattr(torch.export, "load", fake_load)
+    path = tmp_path / "m.pt2"
+    path.write_text("one")
+    assert load_exported(path).metadata["version"] == "one"
+    assert load_exported(path).metadata["version"] == "one" and loads == ["one"]
+    path.write_text("two")  # same size: told apart by its modification time
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 1))
+    assert load_exported(path).metadata["version"] == "two" and loads == ["one", "two"]
+    other = tmp_path / "n.pt2"
+    other.write_text("three")
+    assert load_exported(other).metadata["version"] == "three"
+    assert load_exported(path).metadata["version"] == "two" and len(loads) == 4  # one kept

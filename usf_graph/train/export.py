@@ -138,7 +138,9 @@ def export_model(model: nn.Module, camera, path, up="input", interpolation: str 
             if fmt == "ONNX":
                 program = torch.onnx.export(bound, example, dynamo=True, opset_version=OPSET,
                                             input_names=bound.input_names,
-                                            output_names=bound.output_names, verbose=False)
+                                            output_names=bound.output_names, verbose=False,
+                                            optimize=False)
+                _fold_constants(program.model)
                 program.model.metadata_props.update(meta)
                 program.save(str(tmp))
             else:
@@ -158,6 +160,17 @@ def export_model(model: nn.Module, camera, path, up="input", interpolation: str 
         info["check"] = check_exported(path, model, camera, reads, bound.interpolation, seed,
                                        getattr(bound, "decoding", None))
     return info
+
+
+def _fold_constants(model) -> None:
+    """Constant folding alone, in place of the exporter's default optimization: that one's
+    pattern rewrites took 12 of a detector's 30 s of export (minutes on the protocol's
+    models) and gained nothing at run time, where onnxruntime fuses the graph itself
+    (``benchmarks/export_frame.py``)."""
+    import onnxscript.optimizer
+
+    onnxscript.optimizer.fold_constants(model)
+    onnxscript.optimizer.remove_unused_nodes(model)
 
 
 @contextlib.contextmanager
@@ -239,9 +252,7 @@ def load_exported(path, threads: int | None = None):
         def call(feeds):
             return session.run(None, dict(zip(names, feeds)))
     else:
-        extra = {META_FILE: ""}
-        program = torch.export.load(str(path), extra_files=extra).module()
-        meta = json.loads(extra[META_FILE]) if extra[META_FILE] else {}
+        program, meta = _load_pt2(path)
         kinds = [n.meta["val"].dtype for n in program.graph.find_nodes(op="placeholder")
                  if "val" in n.meta]
         takes = (kinds.count(torch.uint8), torch.float32 in kinds)
@@ -275,6 +286,24 @@ def load_exported(path, threads: int | None = None):
         return (answer if rig else answer[0]), u
     run.metadata = meta  # what the file says of itself (metadata())
     return run
+
+
+# The last .pt2 loaded, by its file's identity: torch.export.load re-traces the program
+# (14 s for a detector), and export's check has just loaded the file that a caller loads next
+_LAST_PT2: dict = {}
+
+
+def _load_pt2(path: Path):
+    """``(program module, metadata)`` of a ``.pt2`` file, loaded once per version of the
+    file (same inode, size and modification time) in a row."""
+    st = path.stat()
+    key = (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+    if key not in _LAST_PT2:
+        extra = {META_FILE: ""}
+        program = torch.export.load(str(path), extra_files=extra).module()
+        _LAST_PT2.clear()
+        _LAST_PT2[key] = program, json.loads(extra[META_FILE]) if extra[META_FILE] else {}
+    return _LAST_PT2[key]
 
 
 def _angle(u, v) -> float:
