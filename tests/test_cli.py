@@ -1192,7 +1192,7 @@ def test_predict_up_lines_reads_the_images_straight_lines(tmp_path, capsys):
         detect_image(det, rgb, cam, up="level")
 
 
-def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys):
+def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys, monkeypatch):
     """``export seg``: a checkpoint and a calibration file in, an ONNX program out that
     gives ``segment_image``'s labels; its refusals exit 2 with the fix."""
     import json
@@ -1232,8 +1232,20 @@ def test_export_cli_writes_a_checked_program_from_a_camera_file(tmp_path, capsys
     check = SignCheck(level=3, channels=(4, 4))
     save_checkpoint(tmp_path / "sign.pt", check, {"model": "sign_check", **check.config}, {})
     signed = ["--sign-check", str(tmp_path / "sign.pt"), "--out", str(tmp_path / "signed.pt2")]
+    seen = []  # the check reaches the exported model (its export: tests/train/test_export.py)
+
+    def export(model, camera, path, up, **kw):
+        seen.append((model.gravity.sign_check, up))
+        return {"path": str(path), "format": "torch.export", "bytes": 0, "export_s": 0.0,
+                "inputs": ["image uint8 [32, 32, 3] RGB"], "outputs": ["labels", "up_read"]}
+
+    monkeypatch.setattr("usf_graph.train.export.export_model", export)
     assert main([*args, "--fov", "180", *signed]) == 0  # the estimate and its check inside
-    assert "100.00% of" in capsys.readouterr().out
+    [(got, up)] = seen
+    assert up is None and isinstance(got, SignCheck) and not got.training
+    for k, v in check.state_dict().items():
+        assert torch.equal(got.state_dict()[k], v), k
+    monkeypatch.undo()  # export_model's own refusals follow
     for bad, why in ((["--up", "0", "0", "1", "--level-prior", "10", "--out", str(tmp_path / "a.pt2")],
                       "--level-prior shapes"),
                      (["--up-input", *signed], "--sign-check corrects"),
