@@ -50,7 +50,7 @@ protocols: setup
 # two worker processes (pytest-xdist), one torch thread each: 5 minutes where one took 8
 test: setup
 	@$(VENV)/bin/ruff check usf_graph tests examples benchmarks scripts
-	@$(PY) -m pytest -n 2
+	@$(PY) -m pytest -n 2 --dist worksteal
 
 # the API reference from the docstrings: docs/api/index.html (pdoc, about 10 s)
 docs: setup
