@@ -164,9 +164,9 @@ def export_model(model: nn.Module, camera, path, up="input", interpolation: str 
 
 def _fold_constants(model) -> None:
     """Constant folding alone, in place of the exporter's default optimization: that one's
-    pattern rewrites took 12 of a detector's 30 s of export (minutes on the protocol's
-    models) and gained nothing at run time, where onnxruntime fuses the graph itself
-    (``benchmarks/export_frame.py``)."""
+    pattern rewrites took 12 of a small detector's 30 s of export (the protocol's detector:
+    49.5 s of export against 21.4 s without them) and gained nothing at run time, where
+    onnxruntime fuses the graph itself (``benchmarks/export_frame.py``)."""
     import onnxscript.optimizer
 
     onnxscript.optimizer.fold_constants(model)
@@ -289,7 +289,7 @@ def load_exported(path, threads: int | None = None):
 
 
 # The last .pt2 loaded, by its file's identity: torch.export.load re-traces the program
-# (14 s for a detector), and export's check has just loaded the file that a caller loads next
+# (6-7 s for a small detector), and export's check has just loaded the file a caller loads next
 _LAST_PT2: dict = {}
 
 
