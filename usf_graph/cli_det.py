@@ -38,17 +38,20 @@ share = at_least(0.0, float, most=1.0)
 
 def add_train_options(t) -> None:
     """Options of ``train det`` and ``train seg`` (their defaults: those of
-    :func:`usf_graph.train.det.run` and :func:`usf_graph.train.seg.run`)."""
+    :func:`usf_graph.train.det.run` and :func:`usf_graph.train.seg.run`, read from their
+    source: :mod:`usf_graph.cli_defaults`)."""
+    from .cli_defaults import per_task
+
     g = t.add_argument_group("det and seg (the protocols on procedural rooms, or real data)")
     g.add_argument("--dataset", default="rooms", choices=["rooms", "pandora", "stanford2d3ds", "woodscape"],
                    help="procedural rooms (rendered here), or the real data: PANDORA (det), "
                         "Stanford 2D-3D-S or WoodScape's fisheyes (seg); download those first")
     g.add_argument("--size", type=positive_int, default=None,
                    help="panorama height (width 2x; fisheye and pinhole size x size); default: "
-                        "det 128, seg 96 (stanford2d3ds: 256)")
-    g.add_argument("--num-train", type=positive_int, default=None, help="rooms: training views (det 200, seg 400)")
-    g.add_argument("--num-test", type=positive_int, default=None, help="rooms: views per test (50)")
-    g.add_argument("--lr", type=at_least(0.0, float, above=True), default=None, help="AdamW learning rate (det 2e-3, seg 3e-3)")
+                        f"{per_task('size')} (stanford2d3ds: 256)")
+    g.add_argument("--num-train", type=positive_int, default=None, help=f"rooms: training views ({per_task('num_train')})")
+    g.add_argument("--num-test", type=positive_int, default=None, help=f"rooms: views per test ({per_task('num_test')})")
+    g.add_argument("--lr", type=at_least(0.0, float, above=True), default=None, help=f"AdamW learning rate ({per_task('lr')})")
     g.add_argument("--scale", type=at_least(0.0, float, above=True, most=1.0), default=None,
                    help="woodscape: the images resized by this factor before lifting (0.5: "
                         "640 x 483)")
@@ -61,9 +64,9 @@ def add_train_options(t) -> None:
     g.add_argument("--fov-epochs", type=count, default=None,
                    help="rooms: epochs of the second phase at a lower learning rate, the "
                         "spherical models' with half their batches through random fields of "
-                        "view (every model; 6, 0 skips it)")
+                        f"view (every model; {per_task('fov_epochs')}, 0 skips it)")
     g.add_argument("--channel-scale", type=float, default=None, metavar="S",
-                   help="rooms: every model's channel counts times S (1; 0.5 in the README's "
+                   help=f"rooms: every model's channel counts times S ({per_task('channel_scale')}; 0.5 in the README's "
                         "15-minute recipes, 'make demo-seg' and 'make demo-det')")
     g.add_argument("--materials", default=None, choices=["random", "by_kind"],
                    help="rooms: every object's look drawn at random (the protocols' rooms, the "
@@ -75,12 +78,12 @@ def add_train_options(t) -> None:
                         "every test; 'eval' and 'predict' read it from the checkpoint")
     u = t.add_argument_group("the spherical models' up estimate on rooms (trained first, alone)")
     u.add_argument("--up-extra", type=count, default=None,
-                   help="cheap extra panoramas of other rooms (det 1600, seg 800)")
+                   help=f"cheap extra panoramas of other rooms ({per_task('up_extra')})")
     u.add_argument("--up-caps", type=share, default=None,
-                   help="share of its batches seen through random 40-100 degree caps (0.5)")
-    u.add_argument("--up-epochs", type=positive_int, default=None, help="its epochs (det 12, seg 8)")
+                   help=f"share of its batches seen through random 40-100 degree caps ({per_task('up_caps')})")
+    u.add_argument("--up-epochs", type=positive_int, default=None, help=f"its epochs ({per_task('up_epochs')})")
     u.add_argument("--up-sign", type=nonnegative, default=None,
-                   help="weight of a loss term against scoring down above up (0; 1 was a "
+                   help=f"weight of a loss term against scoring down above up ({per_task('up_sign')}; 1 was a "
                         "lead in session 26, docs/seg_det_log.md)")
 
 
