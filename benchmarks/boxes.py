@@ -1,8 +1,11 @@
 """Spherical box IoU: the batched exact IoU in float64 (reference) and float32 (fast path),
 its float32 error on random overlapping pairs, and the time per pair against a per-pair
 loop of the same code (how published spherical IoU code runs) and a sampling estimate.
+Then a detector's NMS over its ``--k`` best candidates (float64, as decoding runs): the
+IoU of every pair, as an exported program computes it, against the pairs whose bounding
+caps meet; greedy NMS over every row against the live rows only.
 
-    python benchmarks/boxes.py [--pairs 100000] [--threads 2]
+    python benchmarks/boxes.py [--pairs 100000] [--k 100] [--threads 2]
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import numpy as np
 import torch
 
 from usf_graph.grids import fibonacci
-from usf_graph.ops import box_iou, points_in_boxes
+from usf_graph.ops import box_iou, iou, nms_keep, pairwise_box_iou, points_in_boxes
 
 
 def random_pairs(n, seed=0):
@@ -40,6 +43,7 @@ def timed(fn):
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--pairs", type=int, default=100_000)
+    p.add_argument("--k", type=int, default=100, help="candidates NMS sees (decode's k)")
     p.add_argument("--threads", type=int, default=2)
     a_ = p.parse_args()
     torch.set_num_threads(a_.threads)
@@ -70,6 +74,42 @@ def main():
           f"{tloop / n_loop / (t32 / a_.pairs):.0f} | 0 |")
     print(f"| sampling, 200k points | {tmc * 1e6 / n_mc:.0f} | {tmc / n_mc / (t32 / a_.pairs):.0f} | "
           f"{mc_err.max():.1e} / {np.quantile(mc_err, 0.99):.1e} / {np.median(mc_err):.1e} |")
+    nms_table(a_.k)
+
+
+def best(fn, reps=5):
+    """``(fn's result, its best time of reps in s)``."""
+    times = []
+    for _ in range(reps):
+        out, t = timed(fn)
+        times.append(t)
+    return out, min(times)
+
+
+def nms_table(k: int) -> None:
+    """NMS over ``k`` candidates anywhere on the sphere (as an untrained detector's, or a
+    frame's objects), in a tenth and in all of them live."""
+    boxes = torch.as_tensor(random_pairs(k, seed=1)[0])
+    classes = torch.as_tensor(np.random.default_rng(2).integers(0, 12, k))
+    every, t_every = best(lambda: box_iou(boxes[:, None], boxes[None]))
+    caps, t_caps = best(lambda: pairwise_box_iou(boxes, boxes))
+    print(f"\nNMS over {k} candidates (float64; best of 5; same IoUs: "
+          f"{bool(torch.equal(every, caps))})\n")
+    print("| step | every pair / row, ms | caps meet / live rows, ms | ratio |")
+    print("|---|---|---|---|")
+    print(f"| IoU matrix, {k}x{k} | {t_every * 1e3:.2f} | {t_caps * 1e3:.2f} | "
+          f"{t_every / t_caps:.1f}x |")
+    for share in (0.1, 1.0):
+        alive = torch.arange(k) < max(1, round(share * k))
+        live, t_live = best(lambda alive=alive: nms_keep(boxes, alive, 0.5, classes))
+        check, iou.check_values = iou.check_values, lambda: False  # the exported form
+        try:
+            fixed, t_fixed = best(lambda alive=alive: nms_keep(boxes, alive, 0.5, classes))
+        finally:
+            iou.check_values = check
+        assert torch.equal(fixed, live)
+        print(f"| NMS, {share:.0%} live | {t_fixed * 1e3:.2f} | {t_live * 1e3:.2f} | "
+              f"{t_fixed / t_live:.1f}x |")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,9 @@ from usf_graph.ops import (
     rotate_boxes,
     spherical_nms,
 )
+from usf_graph.ops import iou as iou_module
+from usf_graph.ops.boxes import box_axes, boxes_from_axes
+from usf_graph.ops.iou import _caps_meet
 
 F64 = torch.float64
 
@@ -138,6 +141,56 @@ def test_pairwise_matches_pairs_in_chunks():
     m = pairwise_box_iou(a, b, dtype=F64, chunk=100)
     want = torch.stack([box_iou(a[i], b, dtype=F64) for i in range(30)])
     torch.testing.assert_close(m, want, atol=1e-12, rtol=0)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), wide=st.booleans())
+def test_pairwise_skips_only_pairs_that_share_no_point(seed, wide):
+    """The pairs whose bounding caps are apart are set to 0 unclipped; clipping every pair
+    (one broadcast :func:`box_iou`) gives the same matrix and the same gradients, for
+    boxes of any size up to 179 degrees and pairs that nearly touch."""
+    rng = np.random.default_rng(seed)
+    a = _random_boxes(40, seed)
+    b = np.concatenate([_random_boxes(20, seed + 1), _random_boxes(20, seed + 2, near=a[:20])])
+    if wide:
+        a[:10, 2:4] = rng.uniform(2.5, math.radians(179), (10, 2))
+    # partners just past the far edge of a's first boxes, along their horizontal axis:
+    # apart by 1e-6 rad, inside each other's caps
+    c, e, _ = box_axes(a[:5])
+    b[:5] = boxes_from_axes(np.cos(a[:5, 2:3] / 2 + 0.1 + 1e-6) * c
+                            + np.sin(a[:5, 2:3] / 2 + 0.1 + 1e-6) * e, e, 0.2, 0.2)
+    exact = None
+    for dtype, tol in ((F64, 1e-12), (torch.float32, 1e-6)):
+        x, y = torch.tensor(a, dtype=dtype, requires_grad=True), torch.tensor(b, dtype=dtype)
+        fast = pairwise_box_iou(x, y)
+        assert fast.dtype == dtype
+        (g_fast,) = torch.autograd.grad((fast * torch.arange(40.0, dtype=dtype)).sum(), x)
+        full = box_iou(x[:, None], y[None])
+        (g_full,) = torch.autograd.grad((full * torch.arange(40.0, dtype=dtype)).sum(), x)
+        torch.testing.assert_close(fast, full, atol=tol, rtol=0)
+        torch.testing.assert_close(g_fast, g_full, atol=100 * tol, rtol=0)
+        exact = full.detach() if exact is None else exact
+    near = _caps_meet(torch.as_tensor(a), torch.as_tensor(b))
+    assert 0 < int(near.sum()) < near.numel() and near[:5, :5].diagonal().all()
+    assert (exact[~near] == 0).all() and (exact[:5, :5].diagonal() == 0).all()
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_nms_keep_over_live_boxes_is_the_fixed_shape_nms(seed):
+    """Eager NMS runs over the live boxes only; the exporters' form (every row, no value
+    read) gives the same boxes, for live masks and classes that change between calls."""
+    rng = np.random.default_rng(seed)
+    first = _random_boxes(30, seed)
+    boxes = torch.as_tensor(np.concatenate([first, _random_boxes(30, seed + 1, near=first)]))
+    for _ in range(3):
+        alive = torch.as_tensor(rng.random(60) < rng.uniform(0.1, 0.9))
+        classes = torch.as_tensor(rng.integers(0, 3, 60))
+        eager = nms_keep(boxes, alive, 0.3, classes)
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(iou_module, "check_values", lambda: False)
+            fixed = nms_keep(boxes, alive, 0.3, classes)
+        assert torch.equal(eager, fixed) and not (eager & ~alive).any()
 
 
 def test_nms_keeps_the_best_of_each_cluster():

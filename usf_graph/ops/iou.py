@@ -123,11 +123,43 @@ def box_iou(a, b, dtype=None) -> torch.Tensor:
 
 
 def pairwise_box_iou(a, b, dtype=None, chunk: int = 65536) -> torch.Tensor:
-    """IoU matrix ``[N, M]`` of boxes ``a [N, 5]`` and ``b [M, 5]``, in chunks of pairs."""
+    """IoU matrix ``[N, M]`` of boxes ``a [N, 5]`` and ``b [M, 5]``, in chunks of pairs.
+    Pairs whose circumscribed caps are apart (:func:`_caps_meet`) are 0 without clipping,
+    where values can be read; an exported program computes every pair."""
     a, b = _tensor(a, dtype).reshape(-1, 5), _tensor(b, dtype).reshape(-1, 5)
-    rows = max(1, chunk // max(len(b), 1))
-    out = [box_iou(a[i:i + rows, None], b[None]) for i in range(0, len(a), rows)]
-    return torch.cat(out) if out else a.new_zeros(0, len(b))
+    if not check_values():  # fixed shapes: every pair, as the exporters trace it
+        rows = max(1, chunk // max(len(b), 1))
+        out = [box_iou(a[i:i + rows, None], b[None]) for i in range(0, len(a), rows)]
+        return torch.cat(out) if out else a.new_zeros(0, len(b))
+    dt = torch.promote_types(a.dtype, b.dtype)
+    a = _fields_of_view(a.to(dt), "IoU", closed=False)
+    b = _fields_of_view(b.to(dt), "IoU", closed=False)
+    i, j = _caps_meet(a, b).nonzero(as_tuple=True)
+    vals = [box_iou(a[i[k:k + chunk]], b[j[k:k + chunk]]) for k in range(0, len(i), chunk)]
+    vals = torch.cat(vals) if vals else a.new_zeros(0)
+    return a.new_zeros(len(a), len(b)).index_put((i, j), vals)
+
+
+def _caps_meet(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    r"""``[N, M]`` bool: False where box ``a[n]``'s and box ``b[m]``'s circumscribed caps are
+    apart, so that the boxes share no point (their IoU is 0). A box lies in the cap about
+    its centre through its corners, at :math:`\arctan\sqrt{\tan^2(f_x/2) +
+    \tan^2(f_y/2)}` (below 90 degrees, where a cap is convex). Computed in float64, with
+    a margin far above its rounding: a pair it keeps is clipped as before."""
+    a, b = a.detach().double(), b.detach().double()
+
+    def cap(x):
+        sx, cx = torch.sin(x[:, 2] / 2), torch.cos(x[:, 2] / 2)
+        sy, cy = torch.sin(x[:, 3] / 2), torch.cos(x[:, 3] / 2)
+        lat, lon = x[:, 1], x[:, 0]
+        c = torch.stack([torch.cos(lat) * torch.cos(lon), torch.cos(lat) * torch.sin(lon),
+                         torch.sin(lat)], -1)
+        return c, torch.atan2(torch.sqrt((sx * cy) ** 2 + (cx * sy) ** 2), cx * cy)
+
+    (ca, ra), (cb, rb) = cap(a), cap(b)
+    cos = ca @ cb.T
+    sin = torch.linalg.cross(ca[:, None], cb[None], dim=-1).norm(dim=-1)
+    return torch.atan2(sin, cos) <= ra[:, None] + rb[None] + 1e-9
 
 
 def spherical_nms(boxes, scores, iou_threshold: float, classes=None) -> torch.Tensor:
@@ -151,11 +183,20 @@ def nms_keep(boxes: torch.Tensor, alive: torch.Tensor, iou_threshold: float,
     ``classes [N]``) overlaps by more than ``iou_threshold``; boxes not alive suppress
     nothing. A fixed sequence of N steps and no branch on values, so an exported detector
     traces it (:class:`~usf_graph.train.bound.BoundDetector`)."""
-    n = len(boxes)
+    if check_values():  # only the live boxes, a few of the top k, take part
+        live = alive.nonzero().squeeze(1)
+        kept = _greedy(boxes[live], alive[live], iou_threshold,
+                       None if classes is None else classes[live])
+        return torch.zeros_like(alive).index_put((live,), kept)
+    return _greedy(boxes, alive, iou_threshold, classes)
+
+
+def _greedy(boxes, alive, iou_threshold, classes):
+    """:func:`nms_keep` over every row: a fixed sequence of ``len(boxes)`` steps."""
     over = pairwise_box_iou(boxes, boxes) > iou_threshold
     if classes is not None:
         over = over & (classes[:, None] == classes[None, :])
     over = torch.triu(over, diagonal=1)  # a box suppresses only worse ones
-    for i in range(n):
+    for i in range(len(boxes)):
         alive = alive & ~(alive[i] & over[i])
     return alive
