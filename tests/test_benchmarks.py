@@ -65,8 +65,10 @@ def test_scenes_benchmark_runs():
 
 
 def test_boxes_benchmark_runs():
-    out = run("benchmarks/boxes.py", "--pairs", "300")
+    out = run("benchmarks/boxes.py", "--pairs", "300", "--k", "30")
     assert "| batched float32 (fast path) |" in out and "| sampling, 200k points |" in out
+    assert "NMS over 30 candidates (float64; best of 5; same IoUs: True)" in out
+    assert "| NMS, 10% live |" in out and "| NMS, 100% live |" in out
 
 
 def test_seg_step_benchmark_runs():
