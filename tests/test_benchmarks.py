@@ -71,6 +71,14 @@ def test_boxes_benchmark_runs():
     assert "| NMS, 10% live |" in out and "| NMS, 100% live |" in out
 
 
+def test_sparse_indices_benchmark_runs():
+    out = run("benchmarks/sparse_indices.py", "--reps", "1", "--batch", "1",
+              "--channel-scale", "0.25", "--size", "64", "--tasks", "seg")
+    for label in ("one sparse product", "DeepLab network", "DeepLab training step, batch 1"):
+        assert f"| {label}" in out
+    assert out.count("x |") == 3 and "detector" not in out
+
+
 def test_seg_step_benchmark_runs():
     out = run("benchmarks/seg_step.py", "--batch", "1", "--level", "3", "--reps", "1",
               "--channel-scale", "0.5")  # both at half the channels: the planar U-Net's 257,357

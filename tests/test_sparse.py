@@ -1,9 +1,11 @@
 """Geometry buffers: converted to a call's dtype once and never stale; a sparse matrix's
 members kept with storage of their own."""
 
+import pytest
 import torch
 
-from usf_graph.sparse import buffer_as, csr, csr_parts
+from usf_graph import sparse
+from usf_graph.sparse import buffer_as, csr, csr_parts, index_dtype
 
 
 def test_buffer_as_converts_once_and_follows_edits_and_to():
@@ -31,6 +33,34 @@ def test_csr_parts_rebuild_the_matrix_and_alias_nothing():
         assert part._base is None  # a view of the sparse tensor stops torch.compile
     val.mul_(2)  # and editing a part leaves the matrix alone
     assert torch.equal(A.values(), torch.tensor([1.0, 2.0, 4.0, 3.0]))
+    # int32 indices, which torch's CPU sparse products take without converting them on
+    # every call; int64 past 2**31 (the switch lowered to test it)
+    assert crow.dtype == cols.dtype == torch.int32
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(sparse, "INT32_LIMIT", 4)
+        assert index_dtype(3, 3) == torch.int32 and index_dtype(3, 4) == torch.int64
+        assert csr_parts(A)[0].dtype == csr_parts(A)[1].dtype == torch.int64
+
+
+def test_the_layers_sparse_operators_take_int32_indices():
+    """The pools', jets', convolutions' and (rows of varying length: area lifting, soft
+    labels) interpolation tables' CSR matrices."""
+    from usf_graph import grids
+    from usf_graph.frontend.frontend import _Table
+    from usf_graph.nn import GaussianPool, LocalJet, SphericalConv, geodesic_radius_graph
+
+    g = grids.icosahedral(2)
+    pool = GaussianPool(g.pos, grids.icosahedral(1).pos, 0.3)
+    ei, ew = geodesic_radius_graph(g.pos, 3.5 * g.spacing)
+    jet = LocalJet(g.pos, ei, ew, g.spacing)
+    conv = SphericalConv(2, 3, 3.5 * g.spacing).bind(ei, ew)
+    conv(torch.rand(1, len(g), 2))
+    parts = [pool.crow, pool.col, *(t for k, t in jet.named_buffers() if k.endswith(("crow", "col")))]
+    parts += [t for k, t in conv.plan.named_buffers() if k.startswith(("crow", "col"))]
+    table = _Table(torch.tensor([0, 1, 3]), torch.tensor([2, 0, 1]), torch.ones(3), 4)
+    parts += [table.csr.crow_indices(), table.csr.col_indices()]
+    assert len(parts) >= 10 and all(t.dtype == torch.int32 for t in parts)
+    assert torch.equal(table.apply(torch.arange(4.0)[:, None]), torch.tensor([[2.0], [1.0]]))
 
 
 # -- the padded layout of the plain forms (usf_graph.tracing) --------------------------------

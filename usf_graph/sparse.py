@@ -11,6 +11,24 @@ import torch
 
 from .tracing import exporting, require_eager, transforming
 
+#: Index counts below this take int32 indices; larger ones int64.
+INT32_LIMIT = 2 ** 31
+
+
+def index_dtype(*counts: int) -> torch.dtype:
+    """The dtype of a CSR matrix's row pointers and columns whose sizes and entry count are
+    ``counts``: int32 where they fit. torch's CPU sparse products (MKL) take int32 indices
+    and convert int64 ones on every product (two copies a call, about a tenth of a
+    model's forward pass; ``benchmarks/README.md``, session 59); int32 also halves them."""
+    return torch.int32 if max(counts, default=0) < INT32_LIMIT else torch.int64
+
+
+def csr_indices(crow: torch.Tensor, col: torch.Tensor, num_cols: int
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(crow, col)`` in :func:`index_dtype` for ``num_cols`` columns."""
+    idx = index_dtype(len(crow), len(col), num_cols)
+    return crow.to(idx), col.to(idx)
+
 
 @contextlib.contextmanager
 def quiet_sparse():
@@ -121,10 +139,12 @@ def csr(row: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch
 
 
 def csr_parts(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(crow, col, val)`` of a sparse CSR matrix, each with storage of its own: kept as
+    """``(crow, col, val)`` of a sparse CSR matrix, each with storage of its own (indices in
+    :func:`index_dtype`): kept as
     dense buffers, members that alias the sparse tensor would stop ``torch.compile``
     (Dynamo cannot take a view whose base is sparse as a graph input)."""
-    return A.crow_indices().clone(), A.col_indices().clone(), A.values().clone()
+    crow, col = csr_indices(A.crow_indices(), A.col_indices(), A.shape[1])
+    return crow.clone(), col.clone(), A.values().clone()
 
 
 def transpose_csr(A: torch.Tensor) -> torch.Tensor:

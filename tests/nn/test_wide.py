@@ -82,25 +82,35 @@ def test_structures_are_cached_per_batch_size_and_bounded():
 
 
 @pytest.mark.parametrize("c_in, c_out", [(5, 3), (2, 9)])
-def test_int64_indices_give_what_int32_ones_do(monkeypatch, c_in, c_out):
-    """Past 2**31 entries the structures switch to int64 indices; a graph that large does
-    not fit a test, so the switch is lowered to 0 here and the product and its gradients
-    are checked against the per-edge sum as above."""
-    from usf_graph.nn import wide
+@pytest.mark.parametrize("wide", [True, False])
+def test_int64_indices_give_what_int32_ones_do(monkeypatch, c_in, c_out, wide):
+    """The CSR structures take int32 indices (torch's CPU sparse products convert int64
+    ones on every product), and int64 past 2**31 entries; a graph that large does not fit
+    a test, so the switch is lowered to 0 here. Both forms, with per-sample coefficients
+    given as a transposed view (as ``UprightConv`` gives them), and their gradients,
+    against the per-edge sum."""
+    from usf_graph import sparse
 
     x, w, coef, ei = case(11, 80, 3, c_in, c_out, 3, True, True)
     ref = per_edge(x, w, coef, ei)
     g = torch.randn(ref.shape, dtype=ref.dtype)
     want = torch.autograd.grad(ref, (x, w, coef), g)
-    monkeypatch.setattr(wide, "INT32_LIMIT", 0)
-    plan = EdgePlan(ei, 80)
-    y = wide_aggregate(x, w, coef, plan)
-    assert (y - ref).abs().max() < 1e-12
-    for a, b in zip(torch.autograd.grad(y, (x, w, coef), g), want):
-        assert (a - b).abs().max() < 1e-11 * (1 + b.abs().max())
-    kinds = {key[0] for key in plan.wide_cache}  # forward's and backward's structures
-    assert len(kinds) >= 2 and all(s[0].dtype == s[1].dtype == torch.long
-                                   for s in plan.wide_cache.values())
+    view = coef.detach().transpose(1, 2).contiguous().transpose(1, 2).requires_grad_()
+    for limit, idx in ((2 ** 31, torch.int32), (0, torch.long)):
+        monkeypatch.setattr(sparse, "INT32_LIMIT", limit)
+        plan = EdgePlan(ei, 80)
+        form = wide_aggregate if wide else aggregate.basis_aggregate
+        y = form(x, w, view, plan)
+        assert (y - ref).abs().max() < 1e-12
+        for a, b in zip(torch.autograd.grad(y, (x, w, view), g), want):
+            assert (a - b).abs().max() < 1e-11 * (1 + b.abs().max())
+        if wide:
+            kinds = {key[0] for key in plan.wide_cache}  # forward's and backward's structures
+            assert len(kinds) >= 2 and all(s[0].dtype == s[1].dtype == idx
+                                           for s in plan.wide_cache.values())
+        else:
+            assert all(getattr(plan, f"{name}{t}").dtype == idx for t in range(len(plan.bounds))
+                       for name in ("crow", "col", "crow_t", "col_t"))
 
 
 def test_bad_coefficient_shapes_name_the_problem():

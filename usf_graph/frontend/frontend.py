@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from ..cameras import Camera
 from ..graph import geodesic_radius_graph
 from ..grids import Grid
-from ..sparse import quiet_sparse
+from ..sparse import csr_indices, quiet_sparse
 from .cache import GeometryCache, default_cache
 from .image import SphericalImage
 from .interpolation import (
@@ -53,8 +53,9 @@ class _Table:
             self.w = torch.as_tensor(val).reshape(-1, p)
         else:
             with quiet_sparse():
-                self.csr = torch.sparse_csr_tensor(torch.as_tensor(crow), torch.as_tensor(col),
-                                                   torch.as_tensor(val), (self.n_rows, n_cols))
+                idx = csr_indices(torch.as_tensor(crow), torch.as_tensor(col), n_cols)
+                self.csr = torch.sparse_csr_tensor(*idx, torch.as_tensor(val),
+                                                   (self.n_rows, n_cols))
 
     def apply(self, flat: torch.Tensor, rows: slice | None = None) -> torch.Tensor:
         """``flat [..., n_cols, C]`` -> ``[..., n_rows, C]`` (only ``rows`` of them)."""

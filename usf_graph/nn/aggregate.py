@@ -13,7 +13,7 @@ import weakref
 import torch
 from torch import nn
 
-from ..sparse import kept, padded_rows, quiet_sparse, row_pointers, version
+from ..sparse import csr_indices, kept, padded_rows, quiet_sparse, row_pointers, version
 from ..tracing import plain_forms, require_eager
 from .plain import differentiable_backward, plain_aggregate
 from .precision import accumulate_in
@@ -92,7 +92,8 @@ class EdgePlan(nn.Module):
             if cols is not None:
                 c, width = torch.searchsorted(cols, c), len(cols)
             bounds.append((s, e, a, b, width))
-            for name, value in (("cols", cols), ("row", r), ("col", c), ("crow", _crow(r, e - s)),
+            crow, c = csr_indices(_crow(r, e - s), c, width)
+            for name, value in (("cols", cols), ("row", r), ("col", c), ("crow", crow),
                                 ("perm_t", None), ("crow_t", None), ("col_t", None)):
                 self.register_buffer(f"{name}{t}", value, persistent=False)
         self._bounds = bounds
@@ -131,10 +132,11 @@ class EdgePlan(nn.Module):
         s, e, _, _, width = self.bounds[t]
         r, c = getattr(self, f"row{t}"), getattr(self, f"col{t}")
         with kept():
-            perm_t = torch.argsort(c * (e - s) + r)  # row-major in the transpose
+            perm_t = torch.argsort(c.long() * (e - s) + r)  # row-major in the transpose
+            crow_t, col_t = csr_indices(_crow(c, width), r[perm_t], e - s)
             setattr(self, f"perm_t{t}", perm_t)
-            setattr(self, f"crow_t{t}", _crow(c, width))
-            setattr(self, f"col_t{t}", r[perm_t])
+            setattr(self, f"crow_t{t}", crow_t)
+            setattr(self, f"col_t{t}", col_t)
 
     def tiles(self, coef: torch.Tensor, transpose: bool = False) -> list:
         """The tiles ``(s, e, cols, row, col, A, At)`` with ``A`` (and, with ``transpose``,

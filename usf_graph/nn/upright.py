@@ -109,7 +109,9 @@ class UprightConv(SphericalConv):
         basis = self._bound_basis(coef, acc)
         ang = (basis.reshape(-1, 3) @ up.to(acc).t()).view(len(coef), -1, len(x))  # [E, 2K, B]
         w = self.weight.view(3 * self.num_basis, self.in_channels, self.out_channels).to(acc)
-        full = torch.cat([coef.expand(len(x), -1, -1), ang.permute(2, 0, 1)], 2)  # [B, E, 3K]
+        # [B, E, 3K] as a view of [B, 3K, E]: the sparse kernel reads each basis function's
+        # values as one contiguous row, so it need not transpose every sample's copy
+        full = torch.cat([coef.t().expand(len(x), -1, -1), ang.permute(2, 1, 0)], 1).transpose(1, 2)
         full = self._explained(full)
         out = basis_aggregate(x.contiguous(), w, full, self.plan)
         return out if self.bias is None else out + self.bias

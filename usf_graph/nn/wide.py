@@ -23,11 +23,8 @@ from __future__ import annotations
 
 import torch
 
-from ..sparse import kept, quiet_sparse, row_pointers
+from ..sparse import index_dtype, kept, quiet_sparse, row_pointers
 from .plain import differentiable_backward
-
-#: Index counts below this take int32 indices (half the memory); larger ones int64.
-INT32_LIMIT = 2 ** 31
 
 
 def _local(kind: str, row, col, n: int, K: int):
@@ -66,8 +63,7 @@ def _structure(plan, kind: str, batch: int, K: int, per_sample: bool, device) ->
     nnz = len(perm)
     b = torch.arange(batch, device=device)[:, None]
     crow = torch.cat([(crow0[:-1][None] + b * nnz).reshape(-1), crow0.new_full((1,), batch * nnz)])
-    small = max(batch * rows, batch * cols, batch * nnz) < INT32_LIMIT
-    idx = torch.int32 if small else torch.long
+    idx = index_dtype(batch * rows, batch * cols, batch * nnz)
     return (crow.to(idx), (c[perm][None] + b * cols).reshape(-1).to(idx),
             (m[perm][None] + b * nnz * per_sample).reshape(-1),
             (batch * rows, batch * cols))
