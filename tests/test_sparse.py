@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from usf_graph import sparse
-from usf_graph.sparse import buffer_as, csr, csr_parts, index_dtype
+from usf_graph.sparse import buffer_as, csr, csr_parts, index_dtype, transpose_csr
 
 
 def test_buffer_as_converts_once_and_follows_edits_and_to():
@@ -40,6 +40,30 @@ def test_csr_parts_rebuild_the_matrix_and_alias_nothing():
         m.setattr(sparse, "INT32_LIMIT", 4)
         assert index_dtype(3, 3) == torch.int32 and index_dtype(3, 4) == torch.int64
         assert csr_parts(A)[0].dtype == csr_parts(A)[1].dtype == torch.int64
+
+
+@pytest.mark.parametrize("duplicates", [False, True])
+def test_csr_from_entries_in_any_order_is_the_coalesced_matrix(duplicates):
+    """Entries in any order give the sorted CSR matrix of their dense sum, with the values'
+    gradient; repeated entries (summed) take the coalescing path. The transpose too."""
+    gen = torch.Generator().manual_seed(0)
+    key = torch.randperm(40 * 30, generator=gen)[:300]
+    if duplicates:
+        key = torch.cat([key, key[:20]])
+    row, col = key // 30, key % 30
+    val = torch.randn(len(key), dtype=torch.float64, generator=gen).requires_grad_()
+    A = csr(row, col, val, (40, 30))
+    dense = torch.zeros(40, 30, dtype=torch.float64).index_put((row, col), val, accumulate=True)
+    assert torch.equal(A.to_dense(), dense.detach())
+    c = A.crow_indices()
+    for r in range(40):  # each row's columns ascending, none twice
+        assert bool((A.col_indices()[c[r]:c[r + 1]].diff() > 0).all())
+    w = torch.randn(30, 2, dtype=torch.float64, generator=gen)
+    (g,) = torch.autograd.grad((A @ w).square().sum(), val)
+    (want,) = torch.autograd.grad((dense @ w).square().sum(), val)
+    torch.testing.assert_close(g, want, rtol=1e-12, atol=1e-12)
+    At = transpose_csr(A.detach())
+    assert At.layout == torch.sparse_csr and torch.equal(At.to_dense(), dense.detach().t())
 
 
 def test_the_layers_sparse_operators_take_int32_indices():

@@ -74,9 +74,11 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     if (counts < _TERMS).any() or not torch.isfinite(cond).all() or cond.max() > 1e12:
         raise ValueError(f"the local jet needs >= {_TERMS} well-spread neighbours per point "
                          f"(fewest: {int(counts.min())}); use a larger radius")
-    coef = torch.linalg.solve(normal[i], w[:, None] * M)  # [E, 6] rows of (A^T W A)^-1 A^T W
+    # rows 1..rows of (A^T W A)^-1 A^T W per edge: one inverse per point, not a solve per edge
+    inv = torch.linalg.solve(normal, torch.eye(_TERMS, dtype=pos.dtype).expand(n, -1, -1))
+    coef = torch.einsum("erb,eb->er", inv[:, 1:rows + 1][i], w[:, None] * M)  # [E, rows]
     r = torch.cat([i * rows + a for a in range(rows)])
-    vals = torch.cat([coef[:, a + 1] for a in range(rows)])
+    vals = torch.cat([coef[:, a] for a in range(rows)])
     return csr(r, j.repeat(rows), vals, (rows * n, n))
 
 
