@@ -18,8 +18,9 @@ INT32_LIMIT = 2 ** 31
 def index_dtype(*counts: int) -> torch.dtype:
     """The dtype of a CSR matrix's row pointers and columns whose sizes and entry count are
     ``counts``: int32 where they fit. torch's CPU sparse products (MKL) take int32 indices
-    and convert int64 ones on every product (two copies a call, about a tenth of a
-    model's forward pass; ``benchmarks/README.md``, session 59); int32 also halves them."""
+    and convert int64 ones on every product (two copies a call: 9% of a bare product, up
+    to 4% of a network's forward pass; ``benchmarks/sparse_indices.py``); int32 also
+    halves their memory."""
     return torch.int32 if max(counts, default=0) < INT32_LIMIT else torch.int64
 
 
@@ -148,9 +149,9 @@ def csr(row: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch
 
 def csr_parts(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(crow, col, val)`` of a sparse CSR matrix, each with storage of its own (indices in
-    :func:`index_dtype`): kept as
-    dense buffers, members that alias the sparse tensor would stop ``torch.compile``
-    (Dynamo cannot take a view whose base is sparse as a graph input)."""
+    :func:`index_dtype`): kept as dense buffers, members that alias the sparse tensor
+    would stop ``torch.compile`` (Dynamo cannot take a view whose base is sparse as a
+    graph input)."""
     crow, col = csr_indices(A.crow_indices(), A.col_indices(), A.shape[1])
     return crow.clone(), col.clone(), A.values().clone()
 
