@@ -147,3 +147,22 @@ def test_locality_order_lets_the_convolution_tile():
     assert len(local.bounds) == 11
     assert sum(len(getattr(local, f"cols{t}")) for t in range(11)) < 2 * len(g)
     assert len(plan(g.pos).bounds) == 1  # the nested numbering has no locality
+
+
+def test_voronoi_areas_are_kept_by_the_points_not_the_object(monkeypatch):
+    """A new grid object with the same points reuses their areas; other points (a turned
+    grid) get their own, and editing a grid's areas leaves the kept ones alone."""
+    from usf_graph.grids import base
+
+    calls = []
+    real = base.voronoi_areas
+    monkeypatch.setattr(base, "voronoi_areas", lambda p: calls.append(len(p)) or real(p))
+    monkeypatch.setattr(base, "_AREAS", type(base._AREAS)())
+    a = grids.fibonacci(300).area
+    b = grids.fibonacci(300).area
+    assert len(calls) == 1 and torch.equal(a, b) and abs(float(a.sum()) - 4 * math.pi) < 1e-9
+    a.mul_(2)  # the caller's copy
+    assert torch.equal(grids.fibonacci(300).area, b) and len(calls) == 1
+    turned = rotate(grids.fibonacci(300).pos, random_rotation(seed=1, dtype=torch.float64))
+    other = grids.Grid(turned, "fibonacci", {"n": 300})  # same name, other points
+    assert torch.equal(other.area, torch.as_tensor(real(other.pos.numpy()))) and len(calls) == 2
