@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 import torch
+from timing import best_time
 
 from usf_graph.grids import fibonacci
 from usf_graph.ops import box_iou, iou, nms_keep, pairwise_box_iou, points_in_boxes
@@ -77,22 +78,15 @@ def main():
     nms_table(a_.k)
 
 
-def best(fn, reps=5):
-    """``(fn's result, its best time of reps in s)``."""
-    times = []
-    for _ in range(reps):
-        out, t = timed(fn)
-        times.append(t)
-    return out, min(times)
-
-
 def nms_table(k: int) -> None:
     """NMS over ``k`` candidates anywhere on the sphere (as an untrained detector's, or a
     frame's objects), in a tenth and in all of them live."""
     boxes = torch.as_tensor(random_pairs(k, seed=1)[0])
     classes = torch.as_tensor(np.random.default_rng(2).integers(0, 12, k))
-    every, t_every = best(lambda: box_iou(boxes[:, None], boxes[None]))
-    caps, t_caps = best(lambda: pairwise_box_iou(boxes, boxes))
+    every = box_iou(boxes[:, None], boxes[None])
+    caps = pairwise_box_iou(boxes, boxes)
+    t_every = best_time(lambda: box_iou(boxes[:, None], boxes[None]), 5)
+    t_caps = best_time(lambda: pairwise_box_iou(boxes, boxes), 5)
     print(f"\nNMS over {k} candidates (float64; best of 5; same IoUs: "
           f"{bool(torch.equal(every, caps))})\n")
     print("| step | every pair / row, ms | caps meet / live rows, ms | ratio |")
@@ -101,10 +95,11 @@ def nms_table(k: int) -> None:
           f"{t_every / t_caps:.1f}x |")
     for share in (0.1, 1.0):
         alive = torch.arange(k) < max(1, round(share * k))
-        live, t_live = best(lambda alive=alive: nms_keep(boxes, alive, 0.5, classes))
+        run = lambda alive=alive: nms_keep(boxes, alive, 0.5, classes)  # noqa: E731
+        live, t_live = run(), best_time(run, 5)
         check, iou.check_values = iou.check_values, lambda: False  # the exported form
         try:
-            fixed, t_fixed = best(lambda alive=alive: nms_keep(boxes, alive, 0.5, classes))
+            fixed, t_fixed = run(), best_time(run, 5)
         finally:
             iou.check_values = check
         assert torch.equal(fixed, live)

@@ -54,7 +54,7 @@ def product_case(n: int = 10242, degree: int = 8, channels: int = 64):
     cols = (rows + torch.randint(-40, 41, (len(rows),), generator=gen)).clamp(0, n - 1)
     key = torch.unique(rows * n + cols)
     rows, cols = key // n, key % n
-    crow = torch.cat([torch.zeros(1, dtype=torch.long), torch.bincount(rows, minlength=n).cumsum(0)])
+    crow = sparse.row_pointers(torch.bincount(rows, minlength=n))
     vals, x = torch.rand(len(cols), generator=gen), torch.rand(n, channels, generator=gen)
     out = {}
     for name, limit in (("int32", 2 ** 31), ("int64", 0)):

@@ -2,7 +2,7 @@
 
 Importing ``usf_graph.train`` imports torch and PyG (6-8 s); ``usf-graph train --help``
 needs only a few literals from the signatures, so it reads them from the files instead.
-The functions stay the one source: ``tests/test_cli.py`` checks these values against
+The functions stay the one source: ``tests/test_cli_defaults.py`` checks these values against
 ``inspect.signature`` of the imported functions."""
 
 from __future__ import annotations

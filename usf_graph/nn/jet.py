@@ -78,7 +78,7 @@ def jet_operator(pos: torch.Tensor, edge_index: torch.Tensor, edge_weight: torch
     inv = torch.linalg.solve(normal, torch.eye(_TERMS, dtype=pos.dtype).expand(n, -1, -1))
     coef = torch.einsum("erb,eb->er", inv[:, 1:rows + 1][i], w[:, None] * M)  # [E, rows]
     r = torch.cat([i * rows + a for a in range(rows)])
-    vals = torch.cat([coef[:, a] for a in range(rows)])
+    vals = coef.t().reshape(-1)  # row i * rows + a of edge e: coef[e, a], a-major as r
     return csr(r, j.repeat(rows), vals, (rows * n, n))
 
 

@@ -20,6 +20,7 @@ import math
 import numpy as np
 import torch
 
+from ..geometry import from_latlon, geodesic_distance
 from ..tracing import check_values
 from .boxes import _as_boxes, box_planes
 
@@ -151,15 +152,11 @@ def _caps_meet(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     def cap(x):
         sx, cx = torch.sin(x[:, 2] / 2), torch.cos(x[:, 2] / 2)
         sy, cy = torch.sin(x[:, 3] / 2), torch.cos(x[:, 3] / 2)
-        lat, lon = x[:, 1], x[:, 0]
-        c = torch.stack([torch.cos(lat) * torch.cos(lon), torch.cos(lat) * torch.sin(lon),
-                         torch.sin(lat)], -1)
-        return c, torch.atan2(torch.sqrt((sx * cy) ** 2 + (cx * sy) ** 2), cx * cy)
+        radius = torch.atan2(torch.sqrt((sx * cy) ** 2 + (cx * sy) ** 2), cx * cy)
+        return from_latlon(x[:, 1], x[:, 0]), radius
 
     (ca, ra), (cb, rb) = cap(a), cap(b)
-    cos = ca @ cb.T
-    sin = torch.linalg.cross(ca[:, None], cb[None], dim=-1).norm(dim=-1)
-    return torch.atan2(sin, cos) <= ra[:, None] + rb[None] + 1e-9
+    return geodesic_distance(ca[:, None], cb[None]) <= ra[:, None] + rb[None] + 1e-9
 
 
 def spherical_nms(boxes, scores, iou_threshold: float, classes=None) -> torch.Tensor:
