@@ -1,6 +1,8 @@
-"""One training step of a small spherical model; run alone or under torchrun (tests)."""
+"""One training step of a small spherical model, with and without batches drawn by group;
+run alone (imported by the tests) or under torchrun."""
 
 import sys
+from pathlib import Path
 
 import torch
 from torch.utils.data import TensorDataset
@@ -8,6 +10,8 @@ from torch.utils.data import TensorDataset
 from usf_graph.models import SphericalClassifier
 from usf_graph.train.devices import teardown_distributed
 from usf_graph.train.engine import fit
+
+CASES = ("plain", "groups")
 
 
 class NoNorm(SphericalClassifier):
@@ -26,18 +30,30 @@ class _Id(torch.nn.Module):
         return x
 
 
+def step(case: str) -> dict:
+    """The state after one epoch of one (or two) steps, in float64: one process and two
+    differ only in summation order. "groups": two batches of 4, each from one group (as of
+    one field of view)."""
+    dtype = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        torch.manual_seed(0)
+        x = torch.randn(8, 162, 1)
+        y = torch.arange(8) % 10
+        model = NoNorm()
+        groups = [0, 1, 1, 0, 1, 0, 0, 1] if case == "groups" else None
+        fit(model, TensorDataset(x, y), epochs=1, batch_size=4 if groups else 8, progress=False,
+            groups=groups)
+        return model.state_dict()
+    finally:
+        torch.set_default_dtype(dtype)
+
+
 if __name__ == "__main__":
-    torch.set_default_dtype(torch.float64)  # 1 vs 2 processes differ only in summation order
-    torch.manual_seed(0)
-    x = torch.randn(8, 162, 1)
-    y = torch.arange(8) % 10
-    model = NoNorm()
-    # "groups": two batches of 4, each from one group (as of one field of view)
-    groups = [0, 1, 1, 0, 1, 0, 0, 1] if sys.argv[2:] == ["groups"] else None
-    fit(model, TensorDataset(x, y), epochs=1, batch_size=4 if groups else 8, progress=False,
-        groups=groups)
     import torch.distributed as dist
 
-    if not dist.is_initialized() or dist.get_rank() == 0:
-        torch.save(model.state_dict(), sys.argv[1])
+    for case in CASES:
+        state = step(case)
+        if not dist.is_initialized() or dist.get_rank() == 0:
+            torch.save(state, Path(sys.argv[1]) / f"{case}.pt")
     teardown_distributed()

@@ -50,33 +50,32 @@ def _free_port():
         return s.getsockname()[1]
 
 
-@pytest.mark.parametrize("grouped", [False, True])
-def test_two_process_ddp_step_equals_one_process(tmp_path, grouped):
-    """Each process takes its share of every batch, also of batches drawn by group."""
+def test_two_process_ddp_step_equals_one_process(tmp_path):
+    """Each process takes its share of every batch, also of batches drawn by group: two
+    processes under torchrun end where this one does."""
+    from tests.train.ddp_worker import CASES, NoNorm, step
+
     torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
     worker = os.path.join(os.path.dirname(__file__), "ddp_worker.py")
     # loopback only: the sandbox's other interfaces may not route between processes
     env = {**os.environ, "OMP_NUM_THREADS": "1", "USF_GRAPH_CACHE": "off",
            "GLOO_SOCKET_IFNAME": "lo"}
-    more = ["groups"] if grouped else []
-    subprocess.run([sys.executable, worker, str(tmp_path / "one.pt"), *more], check=True, env=env,
-                   timeout=300)
     subprocess.run([torchrun, "--nproc_per_node=2", "--master_addr=127.0.0.1",
-                    f"--master_port={_free_port()}", worker,
-                    str(tmp_path / "two.pt"), *more], check=True, env=env, timeout=300)
-    one = torch.load(tmp_path / "one.pt", weights_only=True)
-    two = torch.load(tmp_path / "two.pt", weights_only=True)
-    from tests.train.ddp_worker import NoNorm
-
+                    f"--master_port={_free_port()}", worker, str(tmp_path)],
+                   check=True, env=env, timeout=300)
     torch.manual_seed(0)
     torch.randn(8, 162, 1)
-    start = NoNorm()  # the worker's initial parameters
-    moved = 0.0
-    for k in one:
-        assert torch.allclose(one[k], two[k], atol=1e-9, rtol=0), (k, (one[k] - two[k]).abs().max())
-        if k in start.state_dict() and one[k].is_floating_point():
-            moved = max(moved, float((one[k] - start.state_dict()[k]).abs().max()))
-    assert moved > 1e-4  # the step did change the parameters
+    start = NoNorm().state_dict()  # the worker's initial parameters
+    for case in CASES:
+        one = step(case)
+        two = torch.load(tmp_path / f"{case}.pt", weights_only=True)
+        assert one.keys() == two.keys()
+        moved = 0.0
+        for k in one:
+            assert torch.allclose(one[k], two[k], atol=1e-9, rtol=0), (case, k, (one[k] - two[k]).abs().max())
+            if k in start and one[k].is_floating_point():
+                moved = max(moved, float((one[k] - start[k].double()).abs().max()))
+        assert moved > 1e-4, case  # the step did change the parameters
 
 
 def test_a_diverging_run_stops_with_a_clear_error_and_keeps_the_last_epoch(tmp_path):

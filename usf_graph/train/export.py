@@ -145,8 +145,7 @@ def export_model(model: nn.Module, camera, path, up="input", interpolation: str 
                 program.save(str(tmp))
             else:
                 program = torch.export.export(bound, example)
-                with _unused_buffers_emptied(bound, program):  # the fast forms' geometry
-                    program = torch.export.export(bound, example)
+                _empty_unread_buffers(program)  # the fast forms' geometry
                 torch.export.save(program, str(tmp), extra_files={META_FILE: json.dumps(meta)})
     tmp.replace(path)  # atomic: a failed export leaves no half-written file
     info = {"path": str(path), "format": fmt, "bytes": path.stat().st_size,
@@ -187,7 +186,7 @@ def _quiet_exporters():
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*LeafSpec", category=FutureWarning)
-            # .pt2 archives of the emptied buffers (_unused_buffers_emptied), all on the CPU
+            # .pt2 archives of the emptied buffers (_empty_unread_buffers), all on the CPU
             warnings.filterwarnings("ignore", message="No complete tensor found", category=UserWarning)
             yield
     finally:
@@ -195,33 +194,22 @@ def _quiet_exporters():
             log.setLevel(level)
 
 
-@contextlib.contextmanager
-def _unused_buffers_emptied(module: nn.Module, program):
-    """Inside, every buffer of ``module`` that ``program`` (its export) never reads, and
-    that no read buffer shares its tensor with, is a zero-stride tensor of its shape: a
+def _empty_unread_buffers(program) -> None:
+    """Every buffer in ``program``'s state that its graph never reads, and that no read
+    buffer shares its tensor with, becomes a zero-stride tensor of its shape, in place: a
     ``.pt2`` keeps every buffer of the module, and the fast forms' tables (a jet's
-    transposed operator, the float64 geometry) would triple its size. Restored after."""
+    transposed operator, the float64 geometry) would triple its size. The shapes stay, so
+    the graph's signature holds as traced."""
     users = {n.name: len(n.users) for n in program.graph.find_nodes(op="placeholder")}
-    to_buffer = program.graph_signature.inputs_to_buffers
-
-    def owner(fqn):
-        mod, _, name = fqn.rpartition(".")
-        return module.get_submodule(mod), name
-
-    read = {id(m._buffers[n]) for ph, fqn in to_buffer.items() if users.get(ph, 1)
-            for m, n in [owner(fqn)]}
-    kept = {}
-    for ph, fqn in to_buffer.items():
-        m, n = owner(fqn)
-        t = m._buffers[n]
-        if users.get(ph, 1) == 0 and id(t) not in read:
-            kept[(m, n)] = t
-            m._buffers[n] = torch.zeros((), dtype=t.dtype, device=t.device).expand(t.shape)
-    try:
-        yield
-    finally:
-        for (m, n), t in kept.items():
-            m._buffers[n] = t
+    held = [program.state_dict, program.constants]  # persistent buffers, non-persistent ones
+    unread = {fqn for ph, fqn in program.graph_signature.inputs_to_buffers.items()
+              if users.get(ph, 1) == 0}
+    read = {id(t) for d in held for fqn, t in d.items() if fqn not in unread}
+    for d in held:
+        for fqn in unread & d.keys():
+            t = d[fqn]
+            if id(t) not in read:
+                d[fqn] = torch.zeros((), dtype=t.dtype, device=t.device).expand(t.shape)
 
 
 def load_exported(path, threads: int | None = None):
