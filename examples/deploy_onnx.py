@@ -88,7 +88,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for path in args.frames:
-        bgr = cv2.imread(path, cv2.IMREAD_COLOR)
+        # the pixels as stored: a JPEG's EXIF orientation turns them for display only
+        bgr = cv2.imread(path, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if bgr is None:
             sys.exit(f"cannot read {path} as an image")
         if bgr.shape[:2] != (h, w):

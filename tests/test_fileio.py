@@ -1,4 +1,5 @@
-"""Files: a JPEG panorama marked as a 360 photo, as another reader (Pillow) sees it."""
+"""Files: a JPEG panorama marked as a 360 photo, as another reader (Pillow) sees it; a
+photo's EXIF orientation, and images read as their sensor stored them."""
 
 import xml.etree.ElementTree as ET
 
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from usf_graph.fileio import XMP_ID, mark_360_photo
+from usf_graph.fileio import XMP_ID, exif_orientation, mark_360_photo
 
 GPANO = "{http://ns.google.com/photos/1.0/panorama/}"
 
@@ -87,3 +88,40 @@ def test_read_photo_sphere_reads_what_pillow_wrote(tmp_path, as_elements):
         assert read_photo_sphere(tmp_path / name) is None
     mark_360_photo(tmp_path / "plain.jpg")  # and what we write
     assert read_photo_sphere(tmp_path / "plain.jpg")["FullPanoWidthPixels"] == "16"
+
+
+def _tagged_jpeg(path, pixels, orientation):
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(pixels).save(path, quality=100, subsampling=0, exif=exif.tobytes())
+
+
+def test_exif_orientation_reads_the_tag_pillow_wrote(tmp_path):
+    pixels = np.zeros((8, 12, 3), np.uint8)
+    for k in range(1, 9):
+        _tagged_jpeg(tmp_path / f"{k}.jpg", pixels, k)
+        assert exif_orientation(tmp_path / f"{k}.jpg") == k
+    Image.fromarray(pixels).save(tmp_path / "plain.png")
+    (tmp_path / "empty.jpg").write_bytes(b"")
+    (tmp_path / "text.jpg").write_text("not an image")
+    for name in ("plain.png", "empty.jpg", "text.jpg"):
+        assert exif_orientation(tmp_path / name) is None
+
+
+def test_an_image_is_read_as_stored_whatever_viewers_turn_and_the_user_is_told(tmp_path, capsys):
+    """A 24x16 image tagged "turn 90 degrees clockwise": OpenCV's default reading turns it
+    to 16x24 (the trap), ``read_image`` keeps the sensor's 24x16 pixels, RGB, and says so."""
+    from usf_graph.cli_inputs import read_image
+
+    rng = np.random.default_rng(0)
+    pixels = np.repeat(np.repeat(rng.integers(0, 256, (2, 3, 3), dtype=np.uint8), 8, 0), 8, 1)
+    _tagged_jpeg(tmp_path / "phone.jpg", pixels, 6)
+    assert cv2.imread(str(tmp_path / "phone.jpg")).shape == (24, 16, 3)  # turned for display
+    got = read_image(tmp_path / "phone.jpg")
+    assert got.shape == (16, 24, 3) and np.abs(got.astype(int) - pixels).max() <= 4  # JPEG's loss
+    said = capsys.readouterr().out
+    assert "phone.jpg is shown turned 90 degrees clockwise by viewers" in said
+    assert "PIL.ImageOps.exif_transpose" in said
+    _tagged_jpeg(tmp_path / "upright.jpg", pixels, 1)
+    assert read_image(tmp_path / "upright.jpg").shape == (16, 24, 3)
+    assert capsys.readouterr().out == ""

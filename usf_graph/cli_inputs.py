@@ -320,16 +320,22 @@ def read_image(path):
         except (OSError, ValueError) as e:
             raise ValueError(f"cannot read image {p}: {e}") from e
     from .bags import is_bag
-    from .fileio import decode_image
+    from .fileio import EXIF_ORIENTATIONS, decode_image, exif_orientation
 
     if is_bag(p) and p.exists():
         raise ValueError(f"{p} is a ROS bag, not an image: 'usf-graph predict' reads bags "
                          "(in Python: usf_graph.bags.frames)")
     if not p.is_file():
         raise ValueError(f"image {p} does not exist" + (" (it is a folder)" if p.is_dir() else ""))
-    img = decode_image(p)
+    img = decode_image(p)  # the stored pixels: OpenCV's IMREAD_UNCHANGED applies no EXIF turn
     if img is None:
         raise ValueError(f"cannot read image {p}: empty, or not an image format OpenCV reads")
+    turn = EXIF_ORIENTATIONS.get(exif_orientation(p))
+    if turn is not None:
+        print(f"note: {p.name} is shown {turn} by viewers (its EXIF orientation); usf-graph reads "
+              "its pixels as stored, which calibrations from raw frames describe (Kalibr, ROS, "
+              "OpenCV). If the camera was calibrated on the turned images, store the image "
+              "turned first (PIL.ImageOps.exif_transpose)")
     if img.ndim == 3 and img.shape[2] in (3, 4):  # OpenCV's BGR(A) -> RGB(A)
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
     return img

@@ -50,6 +50,26 @@ def decode_image(path, flags: int | None = None):
     return cv2.imdecode(data, flags) if data.size else None
 
 
+EXIF_ORIENTATIONS = {2: "mirrored left to right", 3: "turned 180 degrees",
+                     4: "mirrored top to bottom", 5: "mirrored along its main diagonal",
+                     6: "turned 90 degrees clockwise", 7: "mirrored along its other diagonal",
+                     8: "turned 90 degrees counterclockwise"}
+
+
+def exif_orientation(path) -> int | None:
+    """The EXIF Orientation tag (1 to 8) of the image file ``path``: how viewers turn or
+    mirror its stored pixels for display; None where it has none or is no file Pillow
+    reads. Only the header is read."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            k = im.getexif().get(0x0112)
+    except (OSError, UnidentifiedImageError, ValueError):
+        return None
+    return int(k) if isinstance(k, int) and 1 <= k <= 8 else None
+
+
 def file_md5(path) -> str:
     h = hashlib.md5()  # noqa: S324 - a checksum the data publishers give, not security
     with open(path, "rb") as f:
