@@ -54,6 +54,15 @@ def test_conv_and_lift_benchmarks_run():
     assert out.count("| panorama 2048x1024 |") == 2 and out.count("| fisheye 1280x960") == 2
 
 
+def test_equivariance_benchmark_runs():
+    """The distance-only network's rotation error stays near the lift's own interpolation
+    error; a Conv2d on the panorama's is many times it."""
+    out = run("benchmarks/equivariance.py", "--grids", "icosahedral:3", "--widths", "64")
+    ratios = {row.split("|")[3].strip(): float(row.split("|")[-2]) for row in out.splitlines()
+              if row.startswith("| icosahedral:3") or row.startswith("| equirectangular")}
+    assert ratios["gaussian K=3, r=4 spacings"] < 3 < 10 < ratios["Conv2d 3x3"], ratios
+
+
 def test_train_step_benchmark_runs():
     out = run("benchmarks/train_step.py", "--batch", "2", "--reps", "1")
     assert "| SphericalClassifier | 10242 |" in out and "spherical / planar step time" in out
