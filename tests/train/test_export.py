@@ -174,6 +174,32 @@ def test_pt2_holds_the_up_estimates_sign_check(tmp_path):
     assert turned == 1
 
 
+def test_unread_buffers_leave_the_file_and_shared_ones_keep_what_is_read(tmp_path):
+    """A .pt2 holds the buffers its graph never reads as one element each; where two names
+    share a tensor (export reads it through one of them), what is read survives the file."""
+    from usf_graph.train.export import _empty_unread_buffers, _quiet_exporters
+
+    class Twins(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            t = torch.arange(6.0)
+            self.register_buffer("read", t)
+            self.register_buffer("twin", t)
+            self.register_buffer("unread", torch.ones(1000), persistent=False)
+
+        def forward(self, x):
+            return x + self.read
+
+    program = torch.export.export(Twins(), (torch.zeros(6),))
+    _empty_unread_buffers(program)
+    with _quiet_exporters():  # torch's note on the emptied tensors' storage
+        torch.export.save(program, tmp_path / "m.pt2")
+    loaded = torch.export.load(tmp_path / "m.pt2").module()
+    torch.testing.assert_close(loaded(torch.ones(6)), torch.arange(1.0, 7.0))
+    sizes = sorted(b.untyped_storage().nbytes() for b in loaded.buffers())
+    assert sizes == [4, 4, 24]  # the unread one and one twin emptied, the twin read kept
+
+
 def test_a_fixed_up_and_a_model_without_gravity(tmp_path):
     cam = _fisheye(40)
     info = export_model(_deeplab(2, gray=True), cam, tmp_path / "level.onnx", up=[0, 0, 2.0])

@@ -195,20 +195,17 @@ def _quiet_exporters():
 
 
 def _empty_unread_buffers(program) -> None:
-    """Every buffer in ``program``'s state that its graph never reads, and that no read
-    buffer shares its tensor with, becomes a zero-stride tensor of its shape, in place: a
-    ``.pt2`` keeps every buffer of the module, and the fast forms' tables (a jet's
-    transposed operator, the float64 geometry) would triple its size. The shapes stay, so
-    the graph's signature holds as traced."""
+    """Every buffer in ``program``'s state that its graph never reads becomes a
+    zero-stride tensor of its shape, in place: a ``.pt2`` keeps every buffer of the module,
+    and the fast forms' tables (a jet's transposed operator, the float64 geometry) would
+    triple its size. The shapes stay, so the graph's signature holds as traced. Names that
+    share one tensor are one input the graph reads through one of them, which keeps it."""
     users = {n.name: len(n.users) for n in program.graph.find_nodes(op="placeholder")}
     held = [program.state_dict, program.constants]  # persistent buffers, non-persistent ones
-    unread = {fqn for ph, fqn in program.graph_signature.inputs_to_buffers.items()
-              if users.get(ph, 1) == 0}
-    read = {id(t) for d in held for fqn, t in d.items() if fqn not in unread}
-    for d in held:
-        for fqn in unread & d.keys():
-            t = d[fqn]
-            if id(t) not in read:
+    for ph, fqn in program.graph_signature.inputs_to_buffers.items():
+        for d in held:
+            if users.get(ph, 1) == 0 and fqn in d:
+                t = d[fqn]
                 d[fqn] = torch.zeros((), dtype=t.dtype, device=t.device).expand(t.shape)
 
 
