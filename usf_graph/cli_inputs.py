@@ -327,10 +327,11 @@ def read_image(path):
                          "(in Python: usf_graph.bags.frames)")
     if not p.is_file():
         raise ValueError(f"image {p} does not exist" + (" (it is a folder)" if p.is_dir() else ""))
-    img = decode_image(p)  # the stored pixels: OpenCV's IMREAD_UNCHANGED applies no EXIF turn
+    data = p.read_bytes()  # read once, for OpenCV's pixels and Pillow's header
+    img = decode_image(data)  # the stored pixels: OpenCV's IMREAD_UNCHANGED applies no EXIF turn
     if img is None:
         raise ValueError(f"cannot read image {p}: empty, or not an image format OpenCV reads")
-    turn = EXIF_ORIENTATIONS.get(exif_orientation(p))
+    turn = EXIF_ORIENTATIONS.get(exif_orientation(data))
     if turn is not None:
         print(f"note: {p.name} is shown {turn} by viewers (its EXIF orientation); usf-graph reads "
               "its pixels as stored, which calibrations from raw frames describe (Kalibr, ROS, "

@@ -57,13 +57,15 @@ EXIF_ORIENTATIONS = {2: "mirrored left to right", 3: "turned 180 degrees",
 
 
 def exif_orientation(path) -> int | None:
-    """The EXIF Orientation tag (1 to 8) of the image file ``path``: how viewers turn or
-    mirror its stored pixels for display; None where it has none or is no file Pillow
-    reads. Only the header is read."""
+    """The EXIF Orientation tag (1 to 8) of the image file ``path`` (or of its bytes,
+    already read): how viewers turn or mirror its stored pixels for display; None where it
+    has none or is no file Pillow reads. Only the header is parsed."""
+    import io
+
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as im:
+        with Image.open(io.BytesIO(path) if isinstance(path, bytes) else path) as im:
             k = im.getexif().get(0x0112)
     except (OSError, UnidentifiedImageError, ValueError):
         return None

@@ -202,11 +202,12 @@ def _empty_unread_buffers(program) -> None:
     share one tensor are one input the graph reads through one of them, which keeps it."""
     users = {n.name: len(n.users) for n in program.graph.find_nodes(op="placeholder")}
     held = [program.state_dict, program.constants]  # persistent buffers, non-persistent ones
-    for ph, fqn in program.graph_signature.inputs_to_buffers.items():
-        for d in held:
-            if users.get(ph, 1) == 0 and fqn in d:
-                t = d[fqn]
-                d[fqn] = torch.zeros((), dtype=t.dtype, device=t.device).expand(t.shape)
+    unread = {fqn for ph, fqn in program.graph_signature.inputs_to_buffers.items()
+              if users.get(ph, 1) == 0}
+    for d in held:
+        for fqn in unread & d.keys():
+            t = d[fqn]
+            d[fqn] = torch.zeros((), dtype=t.dtype, device=t.device).expand(t.shape)
 
 
 def load_exported(path, threads: int | None = None):
