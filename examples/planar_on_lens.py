@@ -26,7 +26,7 @@ from pathlib import Path
 from usf_graph.datasets import RoomsSegmentation
 from usf_graph.models import PlanarUNet
 from usf_graph.scenes.materials import MATERIALS
-from usf_graph.train import defaults, fit, save_checkpoint, seed_everything, seg
+from usf_graph.train import defaults, fit, save_checkpoint, seed_everything, seg, seg_eval
 from usf_graph.train.engine import scaled_channels
 
 
@@ -67,10 +67,10 @@ def main(argv=None) -> dict:
     fit(net, train, None, epochs=a.epochs, batch_size=protocol["batch_size"], lr=protocol["lr"],
         seed=a.seed, log_dir=out, config=net.config, progress=a.progress,
         name=f"planar on ({a.test})", step=step)
-    pixels, _ = seg.predict(net, test, progress=a.progress, pano=test.camera)  # its own image
+    pixels, _ = seg_eval.predict(net, test, progress=a.progress, pano=test.camera)  # its own image
     res = {"test": a.test, "num_train": a.num_train, "epochs": a.epochs, "seed": a.seed,
            "materials": a.materials, "channel_scale": a.channel_scale,
-           **{k: v for k, v in seg.score(pixels, test).items() if k in ("mIoU", "mAcc")}}
+           **{k: v for k, v in seg_eval.score(pixels, test).items() if k in ("mIoU", "mAcc")}}
     print(f"planar U-Net trained on ({a.test})'s own images of {a.num_train} rooms x {a.epochs} "
           f"epochs: mIoU {100 * res['mIoU']:.2f}, mAcc {100 * res['mAcc']:.2f} on its pixels")
     (out / "results.json").write_text(json.dumps(res, indent=1))

@@ -32,7 +32,7 @@ from functools import partial
 from pathlib import Path
 
 from usf_graph.models import set_level_prior
-from usf_graph.train import defaults, det, load_checkpoint, save_checkpoint, seg
+from usf_graph.train import defaults, det, load_checkpoint, save_checkpoint, seg, seg_eval
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.fov import second_phase
 from usf_graph.train.gravity import views_up
@@ -51,7 +51,7 @@ def _seg(net, args, size, level):
                  progress=args.progress, step=step, device=args.device)
 
     def metric(known):
-        res, _ = seg.evaluate_protocol(net, sets, ("a", args.test), args.progress, known_up=known)
+        res, _ = seg_eval.evaluate_protocol(net, sets, ("a", args.test), args.progress, known_up=known)
         return {k: r["mIoU"] for k, r in res.items()}
 
     return metric, "mIoU on pixels"

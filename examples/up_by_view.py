@@ -23,7 +23,7 @@ import argparse
 import numpy as np
 
 from usf_graph.scenes import SEMANTIC_CLASSES
-from usf_graph.train import det, seg
+from usf_graph.train import det, seg, seg_eval
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.det_metrics import coco_ap
 from usf_graph.train.gravity import GROSS_DEGREES, up_errors, views_up
@@ -71,7 +71,7 @@ def detection_scores(model, ds):
 def segmentation_scores(model, ds):
     """``up -> (views -> (mIoU, None))`` for a segmenter on the split ``ds``."""
     def with_up(up):
-        pixels = seg.predict(model, ds, progress=False, up=up)[0]
+        pixels = seg_eval.predict(model, ds, progress=False, up=up)[0]
         return lambda views: (miou_on(pixels, ds, views), None)
     return with_up
 

@@ -1347,7 +1347,7 @@ def test_eval_scores_a_checkpoint_through_the_users_camera(task, tmp_path, capsy
     score is what the same test views, rendered through it by hand, give."""
     from usf_graph.datasets import RoomsDetection, RoomsSegmentation
     from usf_graph.models import SphericalDetector
-    from usf_graph.train import det, save_checkpoint, seg
+    from usf_graph.train import det, save_checkpoint, seg_eval
     from usf_graph.train.apply import choose_interpolation
 
     cam = cameras.KannalaBrandt(20.0, 20.0, 31.5, 23.5, 64, 48, k=(0.01, 0.0, 0.0, 0.0))
@@ -1379,7 +1379,7 @@ def test_eval_scores_a_checkpoint_through_the_users_camera(task, tmp_path, capsy
               interpolation=choose_interpolation(cam, grids.from_spec(grid)))
     net.eval()
     if task == "seg":
-        r = seg.evaluate_set(net, RoomsSegmentation(root, "test", **kw), progress=False)[0]
+        r = seg_eval.evaluate_set(net, RoomsSegmentation(root, "test", **kw), progress=False)[0]
         want = f"(camera) mIoU {100 * r['mIoU']:.2f}, mAcc {100 * r['mAcc']:.2f}"
     else:
         data = det.DetectionSet.spherical(RoomsDetection(root, "test", **kw))

@@ -168,7 +168,7 @@ def test_through_lens_example_trains_the_first_phase_through_the_lens(tmp_path, 
     trains through the lens while its up estimate stays frozen, and the result is saved
     with its scores. A checkpoint without a first phase is refused."""
     from usf_graph.models import set_level_prior
-    from usf_graph.train import det, seg
+    from usf_graph.train import det, seg, seg_eval
     from usf_graph.train.engine import load_checkpoint, save_checkpoint
 
     torch.manual_seed(0)
@@ -190,10 +190,10 @@ def test_through_lens_example_trains_the_first_phase_through_the_lens(tmp_path, 
     if kind == "seg":
         sets = seg.protocol_sets(tmp_path / "rooms", 16, 3, 0, 2, tests=("a", "d"), progress=False)
         for known, key in ((True, "true up"), (False, "estimate")):
-            want, _ = seg.evaluate_protocol(first, sets, ("a", "d"), False, known_up=known)
+            want, _ = seg_eval.evaluate_protocol(first, sets, ("a", "d"), False, known_up=known)
             assert res[key] == {k: r["mIoU"] for k, r in want.items()}
         set_level_prior(first, 10.0)  # the third row: the estimate with a level camera's prior
-        want, _ = seg.evaluate_protocol(first, sets, ("a", "d"), False)
+        want, _ = seg_eval.evaluate_protocol(first, sets, ("a", "d"), False)
         assert res["estimate, level prior"] == {k: r["mIoU"] for k, r in want.items()}
     else:
         sets = det.protocol_sets(tmp_path / "rooms", 32, num_train=0, num_test=2, progress=False)
@@ -216,7 +216,7 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
     panoramas re-imaged: its saved weights, run by hand on the test's images, give the
     printed score. On rooms with materials by kind, which it renders and scores on."""
     from usf_graph.datasets import RoomsSegmentation
-    from usf_graph.train import seg
+    from usf_graph.train import seg, seg_eval
     from usf_graph.train.checkpoints import load_protocol_model
 
     out = tmp_path / "out"
@@ -234,7 +234,7 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
     assert test.image.shape[1:3] == (16, 16)
     with torch.no_grad():
         logits = ckpt.model.eval()(test.image.permute(0, 3, 1, 2).float() / 255)
-    want = seg.score(logits.argmax(1).to(torch.uint8).numpy(), test)
+    want = seg_eval.score(logits.argmax(1).to(torch.uint8).numpy(), test)
     assert res["mIoU"] == want["mIoU"] and res["mAcc"] == want["mAcc"]
     # the one training split it rendered is the pinhole's
     rendered = sorted((tmp_path / "rooms" / "processed").glob("rooms_train_*"))
@@ -291,7 +291,7 @@ def test_up_by_view_example_counts_each_view_once_and_scores_as_the_protocol(tmp
 def test_up_by_view_example_scores_a_segmenter_as_the_protocol(tmp_path):
     """For a seg checkpoint, mIoU over all views is the protocol's score of the test, with
     the estimate and with the true up, and the bins hold every view once."""
-    from usf_graph.train import seg
+    from usf_graph.train import seg, seg_eval
     from usf_graph.train.engine import save_checkpoint
     from usf_graph.train.gravity import views_up
 
@@ -304,7 +304,7 @@ def test_up_by_view_example_scores_a_segmenter_as_the_protocol(tmp_path):
                            progress=False)["d"]
     assert sum(b["views"] for b in res["bins"]) == 3
     for name, up in (("estimate", None), ("true up", views_up(ds))):
-        want = seg.score(seg.predict(net.eval(), ds, progress=False, up=up)[0], ds)["mIoU"]
+        want = seg_eval.score(seg_eval.predict(net.eval(), ds, progress=False, up=up)[0], ds)["mIoU"]
         assert res["mIoU"][name]["all"] == pytest.approx(want)
 
 

@@ -78,7 +78,8 @@ def cmd_eval_seg(args) -> int:
     from .cameras import Equirectangular
     from .train.checkpoints import load_protocol_model
     from .train.gravity import format_up_report
-    from .train.seg import PROTOCOL, evaluate_protocol, evaluate_set, protocol_sets
+    from .train.seg import protocol_sets
+    from .train.seg_eval import PROTOCOL, evaluate_protocol, evaluate_set
 
     ckpt = load_protocol_model(args.checkpoint).require("seg")
     model, name = ready_model(ckpt, args), ckpt.name

@@ -24,7 +24,8 @@ from usf_graph.train.apply import (
     rgb01,
     segment_image,
 )
-from usf_graph.train.seg import predict, protocol_sets
+from usf_graph.train.seg import protocol_sets
+from usf_graph.train.seg_eval import predict
 
 
 @pytest.fixture(scope="module")

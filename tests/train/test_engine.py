@@ -287,7 +287,7 @@ def test_on_a_gpu_segmentation_training_and_prediction_follow_the_cpu(tmp_path):
     float32 rounding."""
     from functools import partial
 
-    from usf_graph.train import seg
+    from usf_graph.train import seg, seg_eval
     from usf_graph.train.apply import segment_image
     from usf_graph.train.engine import fit
     from usf_graph.train.gravity import up_report, views_up
@@ -305,7 +305,7 @@ def test_on_a_gpu_segmentation_training_and_prediction_follow_the_cpu(tmp_path):
         assert all(p.device.type == dev for p in net.parameters())
         nets.append({k: v.detach().cpu() for k, v in net.named_parameters()
                      if k not in before_a_norm(net) and not k.startswith("gravity.head.")})
-        preds.append(seg.predict(net, sets["d"], progress=False)[1])
+        preds.append(seg_eval.predict(net, sets["d"], progress=False)[1])
         ups.append(up_report(net.gravity, sets["d"].x, sets["d"].mask[0], views_up(sets["d"])))
         own.append(segment_image(net, sets["d"].image[0].numpy(), sets["d"].camera)["points"])
     for a, b in zip(*losses):

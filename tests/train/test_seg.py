@@ -3,7 +3,6 @@ checkpoints read back by ``eval seg``, and the Stanford 2D-3D-S command on fixtu
 
 import json
 
-import numpy as np
 import pytest
 import torch
 from torch_geometric.loader import DataLoader
@@ -16,17 +15,16 @@ from usf_graph.train.fov import camera_field
 from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
     MODELS,
-    PROTOCOL,
     ThroughRandomFields,
     format_table,
     make_model,
-    predict,
     protocol_sets,
     run,
     segmentation_loss,
     segmentation_step,
     split_batch,
 )
+from usf_graph.train.seg_eval import PROTOCOL
 
 
 def test_loss_ignores_and_weights():
@@ -130,34 +128,11 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
     cfg = {k: v for k, v in blob["config"].items() if k not in ("model", "size")}
     net = SphericalUNet.from_config(cfg)
     net.load_state_dict(blob["state_dict"])
-    sets = protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=2,
-                         tests=("b", "c"), progress=False)
-    ds = sets["c"]
-    z = torch.tensor([0.0, 0.0, 1.0])
-    _, points = predict(net, ds, up=z)
-    with torch.no_grad():
-        want = net.eval()(ds.x.float(), ds.mask[0], up=z.expand(2, 3)).argmax(-1)
-    assert np.array_equal(points, want.numpy())
-    # the rotated views, one per batch, each with its own gravity
-    rot = sets["b"]
-    _, points = predict(net, rot, batch_size=1, up=rot.gravity)
-    with torch.no_grad():
-        want = net(rot.x.float(), None, up=rot.gravity.float()).argmax(-1)
-    assert np.array_equal(points, want.numpy()) and not (rot.gravity[:, 2] > 0.999).all()
-    # scoring runs the estimate once, for the prediction and the report: its pixels are the
-    # model's own (the estimate run inside its forward), its report a separate run's
-    from usf_graph.train.gravity import up_report, views_up
-    from usf_graph.train.seg import evaluate_set
-
-    calls = []
-    hook = net.gravity.register_forward_hook(lambda *_: calls.append(1))
-    r, pix = evaluate_set(net, ds, progress=False)
-    hook.remove()
-    assert len(calls) == 1 and np.array_equal(pix, predict(net, ds, progress=False)[0])
-    assert r["up"] == up_report(net.gravity, ds.x, ds.mask[0], views_up(ds))
-    assert evaluate_set(net, ds, progress=False, known_up=True)[0]["up"] == r["up"]
+    ds = protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=2,
+                       tests=("c",), progress=False)["c"]
     # --level-prior: the fisheye's up estimate assumes a level camera; the report follows it
     from usf_graph.models import set_level_prior
+    from usf_graph.train.gravity import up_report, views_up
 
     capsys.readouterr()
     assert main(["eval", "seg", ckpt, "--root", str(tmp_path / "rooms"), "--num-test", "2",

@@ -16,7 +16,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..scenes import PANDORA_CLASSES
-from . import det, seg
+from . import det, seg, seg_eval
 from .devices import is_planar, model_device, resolve_device, setup_distributed
 from .engine import (
     field_groups,
@@ -27,7 +27,7 @@ from .engine import (
     write_results,
 )
 from .gravity import pretrain_up, views_up
-from .seg_metrics import confusion_matrix, score_confusions, scores
+from .seg_metrics import confusion_matrix, score, score_confusions, scores
 
 
 def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
@@ -65,8 +65,8 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
                         resume=resume)
             if rank != 0:
                 continue
-            pix, pts = seg.predict(net, test, progress=progress, desc=f"{name} fold {fold}")
-            r = results.setdefault(name, {})[f"fold{fold}"] = seg.score(pix, test, pts)
+            pix, pts = seg_eval.predict(net, test, progress=progress, desc=f"{name} fold {fold}")
+            r = results.setdefault(name, {})[f"fold{fold}"] = score(pix, test, pts)
             save_checkpoint(out / f"fold{fold}_{name}.pt", net, {"model": name, "size": size, **net.config},
                             r, extra={"data": {"dataset": "stanford2d3ds", "fold": fold}})
     if rank != 0:
@@ -80,14 +80,14 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
 
 
 @torch.no_grad()
-def evaluate_fields(model, ds, known_up: bool = True, batch_size: int = seg.PREDICT_BATCH,
+def evaluate_fields(model, ds, known_up: bool = True, batch_size: int = seg_eval.PREDICT_BATCH,
                     progress: bool = True, desc: str = "segment", render: str = "nearest",
                     names=None) -> dict:
     """Scores of a spherical model on a split whose samples have cameras of their own
     (``ds.x [S, N, C]``, ``ds.y``, ``ds.mask [S, N]``, ``ds.frontend(i)`` and
     ``ds.label_image(i)``, e.g. :class:`~usf_graph.datasets.WoodScape`): batched by field
     of view (:func:`~usf_graph.train.engine.field_groups`), each sample's predictions
-    rendered into its own camera's pixels (``render``: as :func:`~usf_graph.train.seg.predict`'s) and scored there
+    rendered into its own camera's pixels (``render``: as :func:`~usf_graph.train.seg_eval.predict`'s) and scored there
     (:func:`~usf_graph.train.seg_metrics.score_confusions`: mIoU and mAcc over the split,
     USF's per-image mean, the sphere's area-weighted mIoU), with the mIoU of each camera
     (``ds.camera_names``) under ``"cameras"``. ``known_up``: the model reads the views'

@@ -6,7 +6,7 @@ planar U-Net on procedural rooms seen by an upright equirectangular camera, stra
 the PyG dataset (:class:`~usf_graph.datasets.RoomsSegmentation`) through the shared
 engine (8 epochs, then a second phase of 6 at a lower learning rate, the spherical models'
 through random fields of view: :func:`train_model`), then scores them
-(:mod:`~usf_graph.train.seg_metrics`) on:
+(:mod:`~usf_graph.train.seg_eval`, :mod:`~usf_graph.train.seg_metrics`) on:
 
 (a) new rooms, same camera; (b) the same views under Haar-random rotations; (c) the same
 views through a 190-degree fisheye; (d) through a 90-degree pinhole, both zero-shot;
@@ -30,15 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
-from tqdm.auto import tqdm
 
-from ..cameras import Equirectangular
-from ..frontend import render as reimage
 from ..models import PlanarUNet, SphericalDeepLabV3, SphericalUNet
 from ..nn.batching import to_static
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from ..scenes.materials import check_materials
-from .devices import is_planar, model_device, resolve_device, setup_distributed
+from .devices import is_planar, resolve_device, setup_distributed
 from .engine import (
     check_channel_scale,
     fit,
@@ -50,26 +47,17 @@ from .engine import (
 from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
 from .gravity import (
     check_extra_rooms,
-    given_up,
     known_up,
     pretrain_up,
-    split_up,
     trains_up,
     up_loss,
     up_views,
-    views_up,
 )
-from .seg_metrics import median_frequency_weights, score
+from .seg_eval import PROTOCOL, PROTOCOL_NAMES, evaluate_protocol
+from .seg_metrics import median_frequency_weights
 
-PROTOCOL = {"a": ("equirectangular", "none", 0), "b": ("equirectangular", "so3", 0),
-            "c": ("fisheye190", "none", 0), "d": ("pinhole90", "none", 0),
-            "e": ("equirectangular", "none", 1)}
-PROTOCOL_NAMES = {"a": "in distribution", "b": "SO(3)-rotated", "c": "fisheye 190 (zero-shot)",
-                  "d": "pinhole 90 (zero-shot)", "e": "finer grid (zero-shot)"}
 # every model's second phase, the spherical ones' through random fields of view (README)
 FOV_EPOCHS = 6
-#: Views per batch when a trained model predicts a test split.
-PREDICT_BATCH = 8
 MODELS = {"spherical_unet": SphericalUNet, "spherical_deeplab": SphericalDeepLabV3,
           "planar_unet": PlanarUNet}
 
@@ -184,48 +172,6 @@ def segmentation_step(model, batch, class_weight: torch.Tensor | None = None):
     return loss, {"acc": acc, **stats}, len(x)
 
 
-@torch.no_grad()
-def predict(model, ds, batch_size: int = PREDICT_BATCH, progress: bool = True, desc: str = "segment",
-            pano: Equirectangular | None = None, up: torch.Tensor | None = None,
-            render: str = "nearest"):
-    """Per-pixel class predictions ``[S, H, W]`` (uint8) in ``ds.camera``'s pixels, and for
-    spherical models the per-point ones ``[S, N]`` (else ``None``). A planar model sees
-    other lenses re-imaged as ``pano`` (default: ``2 H x H`` for the camera's height H,
-    the protocol's training size). ``up [3]`` or ``[S, 3]``: the up each view is read
-    with by a spherical model with ``gravity=True``, instead of running its estimate: the
-    views' known gravity (an IMU; :func:`~usf_graph.train.gravity.views_up`) or an estimate
-    already made (:func:`~usf_graph.train.gravity.split_up`). ``render``: how a spherical
-    model's predictions reach the pixels (:meth:`SphericalFrontend.to_labels`: ``nearest``,
-    the protocols', or ``soft``). Runs on the device the model is on."""
-    model.eval()
-    cam, S, dev = ds.camera, len(ds), model_device(model)
-    pixels, points = [], []
-    if is_planar(model):
-        if isinstance(cam, Equirectangular):
-            pano = cam
-        elif pano is None:
-            pano = Equirectangular(2 * cam.height, cam.height)
-        for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
-            imgs = ds.image[s:s + batch_size].numpy()
-            if pano is not cam:
-                imgs = np.stack([reimage(im, cam, pano) for im in imgs])
-            x = torch.as_tensor(imgs).permute(0, 3, 1, 2).to(dev).float() / 255
-            pred = model(x).argmax(1).to(torch.uint8).cpu().numpy()
-            if pano is not cam:
-                pred = np.stack([reimage(p, pano, cam, interpolation="nearest") for p in pred])
-            pixels.append(pred)
-        return np.concatenate(pixels), None
-    mask = ds.mask[0]
-    mask = None if mask.all() else mask.to(dev)
-    for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
-        x = ds.x[s:s + batch_size].to(dev).float()
-        logits = model(x, mask, **given_up(up, x, s)).cpu()
-        points.append(logits.argmax(-1).to(torch.uint8))
-        probs = logits.softmax(-1) if render == "soft" else logits  # blend probabilities
-        pixels += [ds.frontend.to_labels(p, render).to(torch.uint8).numpy() for p in probs]
-    return np.stack(pixels), torch.cat(points).numpy()
-
-
 def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
                   num_test: int = 50, seed: int = 0, tests=tuple(PROTOCOL),
                   progress: bool = True, materials: str = "random") -> dict:
@@ -273,42 +219,6 @@ def make_model(name: str, level: int = 5, upright: bool = True,
     if upright and name == "spherical_deeplab":  # the U-Net's stay distance-only: its step budget
         kw["upright_convs"] = level - 1
     return MODELS[name](C, level=level, gravity=True, gray=gray, **kw)
-
-
-def evaluate_protocol(net, sets: dict, tests=tuple(PROTOCOL), progress: bool = True,
-                      name: str = "model", known_up: bool = False,
-                      up_lines: bool = False, render: str = "nearest") -> tuple[dict, dict]:
-    """Scores and pixel predictions of one trained model on the protocol's test sets;
-    ``known_up``, ``up_lines``, ``render``: as :func:`evaluate_set`'s. A model with an up estimate also
-    gets its :func:`~usf_graph.train.gravity.up_summary` per test (``"up"``)."""
-    res, preds = {}, {}
-    for k in tests:
-        model = net
-        if not is_planar(net) and PROTOCOL[k][2]:
-            model = net.refined(PROTOCOL[k][2])
-        res[k], preds[k] = evaluate_set(model, sets[k], f"{name} ({k})", known_up, progress, up_lines,
-                                        render)
-    return res, preds
-
-
-def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
-                 progress: bool = True, up_lines: bool = False,
-                 render: str = "nearest", pano: Equirectangular | None = None
-                 ) -> tuple[dict, np.ndarray]:
-    """:func:`score` and the pixel predictions of a trained model on one test set (a rooms
-    test or :class:`~usf_graph.datasets.Stanford2D3DS`); ``known_up``: a spherical model
-    reads the views' gravity (:func:`views_up`); ``up_lines``: its up estimate picks among the
-    straight-line axes of each image (:func:`~usf_graph.train.gravity.lines_up`). A model
-    with an up estimate also gets its :func:`~usf_graph.train.gravity.up_summary` (``"up"``;
-    the estimate runs once, for the prediction and the report). ``render``, ``pano``: as
-    :func:`predict`'s."""
-    u = split_up(model, ds, known_up, up_lines, batch_size=PREDICT_BATCH)
-    pix, pts = predict(model, ds, PREDICT_BATCH, progress=progress, desc=desc, up=u.up,
-                       render=render, pano=pano)
-    r = score(pix, ds, pts)
-    if u.estimate is not None:
-        r["up"] = u.report(views_up(ds))
-    return r, pix
 
 
 def balanced_weights(train, power: float = 0.5, num_classes: int = len(SEMANTIC_CLASSES)):
