@@ -30,7 +30,7 @@ import torch
 
 from usf_graph.geometry import geodesic_distance
 from usf_graph.models import SignCheck, set_level_prior
-from usf_graph.train import save_checkpoint, seg, seg_eval
+from usf_graph.train import save_checkpoint, seg, seg_eval, seg_metrics
 from usf_graph.train.checkpoints import load_protocol_model
 from usf_graph.train.engine import seed_everything
 from usf_graph.train.gravity import GROSS_DEGREES, views_up
@@ -87,7 +87,7 @@ def main(argv=None) -> dict:
             err = torch.rad2deg(geodesic_distance(u.double(), g))
             pix, pts = seg_eval.predict(model, ds, progress=False, up=u)
             r[when] = {"gross": int((err > GROSS_DEGREES).sum()),
-                       "mIoU": seg_eval.score(pix, ds, pts)["mIoU"]}
+                       "mIoU": seg_metrics.score(pix, ds, pts)["mIoU"]}
         res[k] = r
         print(f"({k}) gross errors {r['before']['gross']} -> {r['after']['gross']} ({r['flipped']} "
               f"flipped), mIoU {100 * r['before']['mIoU']:.2f} -> {100 * r['after']['mIoU']:.2f}")

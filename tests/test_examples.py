@@ -216,7 +216,7 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
     panoramas re-imaged: its saved weights, run by hand on the test's images, give the
     printed score. On rooms with materials by kind, which it renders and scores on."""
     from usf_graph.datasets import RoomsSegmentation
-    from usf_graph.train import seg, seg_eval
+    from usf_graph.train import seg, seg_metrics
     from usf_graph.train.checkpoints import load_protocol_model
 
     out = tmp_path / "out"
@@ -234,7 +234,7 @@ def test_planar_on_lens_example_trains_and_scores_on_the_lens_own_images(tmp_pat
     assert test.image.shape[1:3] == (16, 16)
     with torch.no_grad():
         logits = ckpt.model.eval()(test.image.permute(0, 3, 1, 2).float() / 255)
-    want = seg_eval.score(logits.argmax(1).to(torch.uint8).numpy(), test)
+    want = seg_metrics.score(logits.argmax(1).to(torch.uint8).numpy(), test)
     assert res["mIoU"] == want["mIoU"] and res["mAcc"] == want["mAcc"]
     # the one training split it rendered is the pinhole's
     rendered = sorted((tmp_path / "rooms" / "processed").glob("rooms_train_*"))
@@ -291,7 +291,7 @@ def test_up_by_view_example_counts_each_view_once_and_scores_as_the_protocol(tmp
 def test_up_by_view_example_scores_a_segmenter_as_the_protocol(tmp_path):
     """For a seg checkpoint, mIoU over all views is the protocol's score of the test, with
     the estimate and with the true up, and the bins hold every view once."""
-    from usf_graph.train import seg, seg_eval
+    from usf_graph.train import seg, seg_eval, seg_metrics
     from usf_graph.train.engine import save_checkpoint
     from usf_graph.train.gravity import views_up
 
@@ -304,7 +304,7 @@ def test_up_by_view_example_scores_a_segmenter_as_the_protocol(tmp_path):
                            progress=False)["d"]
     assert sum(b["views"] for b in res["bins"]) == 3
     for name, up in (("estimate", None), ("true up", views_up(ds))):
-        want = seg_eval.score(seg_eval.predict(net.eval(), ds, progress=False, up=up)[0], ds)["mIoU"]
+        want = seg_metrics.score(seg_eval.predict(net.eval(), ds, progress=False, up=up)[0], ds)["mIoU"]
         assert res["mIoU"][name]["all"] == pytest.approx(want)
 
 
