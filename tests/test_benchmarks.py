@@ -136,6 +136,14 @@ def test_export_frame_benchmark_runs(task):
         assert len(alike) == 2 and all(a == b and int(a) > 0 for a, b in alike)
 
 
+@pytest.mark.slow  # two worker processes start and import torch: about 30 s
+def test_render_split_benchmark_runs_and_checks_the_splits_agree():
+    out = run("benchmarks/render_split.py", "--views", "3", "--workers", "1,2")
+    rows = re.findall(r"^\| (segmentation 192x96|detection 256x128) \| [\d.]+ \| [\d.]+ \| [\d.]+x \|$",
+                      out, re.M)
+    assert rows == ["segmentation 192x96", "detection 256x128"]  # it exits when they differ
+
+
 def test_lines_benchmark_runs():
     out = run("benchmarks/lines.py", "--sizes", "256", "--reps", "1")
     assert "| 256x128 |" in out and "first version (s)" in out
