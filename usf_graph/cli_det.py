@@ -95,8 +95,6 @@ def add_device_option(p, what: str = "the model runs") -> None:
                         "under torchrun, cuda is each process's own GPU")
 
 
-
-
 def add_eval_options(e) -> None:
     """Options of ``eval det`` and ``eval seg``: which tests, which views, which up."""
     e.add_argument("--dataset", default=None, choices=["rooms", "stanford2d3ds", "woodscape", "pandora"],
