@@ -98,6 +98,13 @@ def test_seg_step_benchmark_runs():
     assert "| SphericalDeepLabV3 (icosahedral:3) | 642 |" in out
 
 
+def test_det_step_benchmark_runs():
+    out = run("benchmarks/det_step.py", "--batch", "2", "--size", "32", "--reps", "1",
+              "--channel-scale", "0.25", "--boxes", "2")
+    assert "| PlanarDetector (64x32) | 2048 |" in out and "2 boxes per view" in out
+    assert "| SphericalDetector (icosahedral:5) | 10242 |" in out and "spherical / planar step time" in out
+
+
 def test_profile_step_benchmark_runs():
     out = run("benchmarks/profile_step.py", "--batch", "1", "--level", "3", "--steps", "1",
               "--rows", "5")
