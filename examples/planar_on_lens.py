@@ -26,16 +26,9 @@ from pathlib import Path
 from usf_graph.datasets import RoomsSegmentation
 from usf_graph.models import PlanarUNet
 from usf_graph.scenes.materials import MATERIALS
-from usf_graph.train import (
-    defaults,
-    fit,
-    save_checkpoint,
-    seed_everything,
-    seg,
-    seg_eval,
-    seg_metrics,
-)
+from usf_graph.train import defaults, fit, save_checkpoint, seed_everything, seg, seg_eval
 from usf_graph.train.engine import scaled_channels
+from usf_graph.train.seg_metrics import score
 
 
 def main(argv=None) -> dict:
@@ -78,7 +71,7 @@ def main(argv=None) -> dict:
     pixels, _ = seg_eval.predict(net, test, progress=a.progress, pano=test.camera)  # its own image
     res = {"test": a.test, "num_train": a.num_train, "epochs": a.epochs, "seed": a.seed,
            "materials": a.materials, "channel_scale": a.channel_scale,
-           **{k: v for k, v in seg_metrics.score(pixels, test).items() if k in ("mIoU", "mAcc")}}
+           **{k: v for k, v in score(pixels, test).items() if k in ("mIoU", "mAcc")}}
     print(f"planar U-Net trained on ({a.test})'s own images of {a.num_train} rooms x {a.epochs} "
           f"epochs: mIoU {100 * res['mIoU']:.2f}, mAcc {100 * res['mAcc']:.2f} on its pixels")
     (out / "results.json").write_text(json.dumps(res, indent=1))
