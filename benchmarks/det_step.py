@@ -20,7 +20,7 @@ import math
 
 import torch
 from seg_step import GivenUp
-from timing import add_form_option, apply_form, step_time
+from timing import add_step_options, start_step, step_time
 
 from usf_graph.models import PlanarDetector
 from usf_graph.scenes import DETECTION_CLASSES
@@ -43,20 +43,13 @@ def random_boxes(batch: int, per_view: int, gen: torch.Generator):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--batch", type=int, default=8)
+    add_step_options(p, batch=8, reps=5)
     p.add_argument("--size", type=int, default=128, help="the planar panoramas' height")
     p.add_argument("--boxes", type=int, default=4, help="random boxes per view")
-    p.add_argument("--reps", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2, help="CPU threads")
     p.add_argument("--channel-scale", type=float, default=1.0,
                    help="both models' channels times this (as train det's option)")
-    add_form_option(p)
     a = p.parse_args()
-    apply_form(a.form)
-    torch.set_num_threads(a.threads)
-    dev = torch.device(a.device)
-    torch.manual_seed(0)
+    dev = start_step(a)
     sph = make_detector(channel_scale=a.channel_scale).to(dev)
     sph.gravity.requires_grad_(False)
     planar = PlanarDetector(height=a.size, width=2 * a.size,

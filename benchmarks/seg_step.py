@@ -24,7 +24,7 @@ import argparse
 import math
 
 import torch
-from timing import add_form_option, apply_form, step_time
+from timing import add_step_options, start_step, step_time
 
 from usf_graph.models import PlanarUNet, SphericalUNet
 from usf_graph.train import defaults, scaled_channels
@@ -33,21 +33,14 @@ from usf_graph.train.seg import make_model, segmentation_loss
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--batch", type=int, default=8)
+    add_step_options(p, batch=8, reps=5)
     p.add_argument("--level", type=int, default=5)
-    p.add_argument("--reps", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2, help="CPU threads")
     p.add_argument("--model", default="spherical_unet", choices=["spherical_unet", "spherical_deeplab"],
                    help="the spherical model (the 2x target is the U-Net's)")
     p.add_argument("--channel-scale", type=float, default=1.0,
                    help="both models' channels times this (as train seg's option)")
-    add_form_option(p)
     a = p.parse_args()
-    apply_form(a.form)
-    torch.set_num_threads(a.threads)
-    dev = torch.device(a.device)
-    torch.manual_seed(0)
+    dev = start_step(a)
     sph = make_model(a.model, a.level, channel_scale=a.channel_scale).to(dev)
     unet = {**defaults(SphericalUNet), **scaled_channels(SphericalUNet, a.channel_scale)}
     planar = PlanarUNet(channels=unet["channels"]).to(dev)  # not a 2nd model

@@ -42,6 +42,25 @@ def step_time(model, x, y, loss_fn, reps: int, device, warmup: int = 3) -> float
     return best_time(step, reps, device, warmup=warmup)
 
 
+def add_step_options(parser, batch: int, reps: int) -> None:
+    """The training-step benchmarks' ``--device``, ``--batch``, ``--reps``, ``--threads`` and
+    ``--form`` (see :func:`start_step`)."""
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--batch", type=int, default=batch)
+    parser.add_argument("--reps", type=int, default=reps)
+    parser.add_argument("--threads", type=int, default=2, help="CPU threads")
+    add_form_option(parser)
+
+
+def start_step(args) -> torch.device:
+    """Sets the sparse kernel's form and the CPU threads of :func:`add_step_options`'s
+    arguments and seeds torch with 0; returns their device."""
+    apply_form(args.form)
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    return torch.device(args.device)
+
+
 FORMS = {"auto": None, "wide": True, "blockwise": False}
 
 

@@ -14,7 +14,7 @@ import argparse
 import inspect
 
 import torch
-from timing import add_form_option, apply_form, step_time
+from timing import add_step_options, start_step, step_time
 
 from usf_graph.models import PlanarCNN, SphericalClassifier
 from usf_graph.train.mnist import run as mnist_run
@@ -22,17 +22,10 @@ from usf_graph.train.mnist import run as mnist_run
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--batch", type=int, default=64)
-    p.add_argument("--reps", type=int, default=10)
-    p.add_argument("--threads", type=int, default=2, help="CPU threads")
-    add_form_option(p)
+    add_step_options(p, batch=64, reps=10)
     a = p.parse_args()
-    apply_form(a.form)
-    torch.set_num_threads(a.threads)
-    dev = torch.device(a.device)
+    dev = start_step(a)
     d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}
-    torch.manual_seed(0)
     sph = SphericalClassifier(level=d["level"], input_level=d["input_level"],
                               min_level=d["min_level"], pairs=d["pairs"],
                               pair_stages=d["pair_stages"]).to(dev)
