@@ -30,7 +30,8 @@ from usf_graph.train.det import make_detector
 
 def random_boxes(batch: int, per_view: int, gen: torch.Generator):
     """``per_view`` boxes on each view, ``(boxes [K, 5], classes [K], image [K])``:
-    centres up to 40 degrees from the horizon, 10 to 50 degrees wide and tall, any roll."""
+    centres up to 40 degrees from the horizon, 10 to 50 degrees wide and tall, rolled up to
+    45 degrees either way."""
     k = batch * per_view
     u = torch.rand(k, 5, generator=gen)
     boxes = torch.stack([(2 * u[:, 0] - 1) * math.pi, (2 * u[:, 1] - 1) * math.radians(40),
