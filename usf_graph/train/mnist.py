@@ -13,13 +13,72 @@ from ..datasets import SphericalMNIST
 from ..frontend import SphericalFrontend
 from ..models import PlanarCNN, SphericalClassifier
 from .devices import resolve_device, setup_distributed
-from .engine import evaluate, fit, save_checkpoint, seed_everything, write_results
+from .engine import evaluate, fit, load_checkpoint, save_checkpoint, seed_everything, write_results
+
+#: The planar baseline's equirectangular images, width x height.
+PLANAR_IMAGE = (64, 32)
+#: Where a checkpoint saved before they recorded their grid was trained (the run's default).
+DEFAULT_GRID = "icosahedral:5"
 
 
-def equirect_images(x: torch.Tensor, fe: SphericalFrontend) -> torch.Tensor:
-    """Spherical samples ``[S, N, 1]`` -> equirectangular images ``[S, 1, H, W]``."""
+def equirect_images(x: torch.Tensor, grid) -> torch.Tensor:
+    """Spherical samples ``[S, N, 1]`` on ``grid`` -> the planar baseline's equirectangular
+    images ``[S, 1, 32, 64]``."""
+    fe = SphericalFrontend(Equirectangular(*PLANAR_IMAGE), grid)
     img = torch.stack([fe.to_image(x[i]) for i in range(len(x))])  # [S, H, W, 1]
     return img.permute(0, 3, 1, 2).contiguous()
+
+
+def classifier_kind(blob: dict) -> str | None:
+    """``"spherical"`` or ``"planar"`` for a checkpoint of ``usf-graph train mnist`` (its
+    recorded model, or, saved before session 62, its config's keys); None for any other."""
+    data, cfg = blob.get("data") or {}, blob.get("config") or {}
+    if data.get("dataset") == "mnist":
+        return data["model"]
+    if {"level", "readout"} <= set(cfg):
+        return "spherical"
+    return "planar" if set(cfg) == {"in_channels", "num_classes", "channels"} else None
+
+
+def load_classifier(path) -> tuple[torch.nn.Module, dict]:
+    """The trained model of a ``usf-graph train mnist`` checkpoint, and what it was trained
+    on: ``{"model": "spherical" | "planar", "grid": spec, "seed": int | None,
+    "provenance": dict | None}`` (the
+    planar model reads :func:`equirect_images` of that grid's samples). Checkpoints saved
+    before session 62 do not record the grid of a planar model (:data:`DEFAULT_GRID`
+    then, with a note) nor the seed."""
+    blob = load_checkpoint(path)
+    kind = classifier_kind(blob)
+    if kind is None:
+        raise ValueError(f"{path} is not a checkpoint of 'usf-graph train mnist'; score those "
+                         "of 'train seg|det' with 'usf-graph eval seg|det'")
+    cfg, data = blob["config"], blob.get("data") or {}
+    model = SphericalClassifier.from_config(cfg) if kind == "spherical" else PlanarCNN(**cfg)
+    model.load_state_dict(blob["state_dict"])
+    grid = data.get("grid")
+    if grid is None:
+        grid = f"icosahedral:{model.input_level}" if kind == "spherical" else DEFAULT_GRID
+        if kind == "planar":
+            print(f"note: {path} does not record the grid its images came from (saved before "
+                  f"session 62); reading them from {grid}, the run's default")
+    return model, {"model": kind, "grid": grid, "seed": data.get("seed"),
+                   "provenance": blob.get("provenance")}
+
+
+def score(path, root="data/mnist", rotate: str = "so3", seed: int | None = None,
+          source: str = "auto", device: str | None = None, progress: bool = True) -> dict:
+    """The loss and accuracy of a ``usf-graph train mnist`` checkpoint on the test digits
+    under ``rotate`` (``none``, ``so3``, ``chunk500``), their rotations drawn from ``seed``
+    (default: the run's own, so that ``so3`` gives its NR/R number), and what
+    :func:`load_classifier` says it is."""
+    model, info = load_classifier(path)
+    seed = seed if seed is not None else (info["seed"] or 0)
+    ds = SphericalMNIST(root, "test", grid=info["grid"], rotate=rotate, seed=seed, source=source,
+                        progress=progress)
+    x = ds.x if info["model"] == "spherical" else equirect_images(ds.x, ds.grid)
+    model.to(resolve_device(device))
+    m = evaluate(model, TensorDataset(x, ds.y), progress=progress)
+    return {**m, **info, "seed": seed, "rotate": rotate}
 
 
 def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
@@ -55,20 +114,21 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
     results = {"samples": {"train": len(train), "test": len(test_nr)}, "grid": grid}
 
     def train_and_score(name, net, data):
-        """Fit on unrotated digits; rank 0 scores NR and R and writes ``<name>.pt``."""
+        """Fit on unrotated digits; rank 0 scores NR and R and writes ``<name>.pt`` (with
+        what :func:`load_classifier` reads back)."""
         fit(net, data["train"], data["NR"], epochs=epochs, batch_size=batch_size, seed=seed,
             log_dir=out / name, config=net.config, progress=progress, name=name, resume=resume,
             device=dev)
         if rank == 0:
             results[name] = {k: evaluate(net, data[k], desc=f"{name} {k}",
                                          progress=progress)["acc"] for k in ("NR", "R")}
-            save_checkpoint(out / f"{name}.pt", net, net.config, results[name])
+            save_checkpoint(out / f"{name}.pt", net, net.config, results[name], extra={"data": {
+                "dataset": "mnist", "model": name, "grid": grid, "seed": seed}})
         net.cpu()  # the figure runs it on the CPU's test digits
 
     train_and_score("spherical", model, sets)
     if planar:
-        fe = SphericalFrontend(Equirectangular(64, 32), train.grid)
-        pl = {k: TensorDataset(equirect_images(d.tensors[0], fe), d.tensors[1])
+        pl = {k: TensorDataset(equirect_images(d.tensors[0], train.grid), d.tensors[1])
               for k, d in sets.items()}
         train_and_score("planar", PlanarCNN(), pl)
     if rank != 0:
