@@ -9,6 +9,7 @@ import torch
 from usf_graph import grids
 from usf_graph.nn import (
     geodesic_radius_graph,
+    radius_for_neighbors,
 )
 
 
@@ -52,3 +53,20 @@ def test_euclidean_graphs_match_brute_force():
         knn_graph(pos, 0)
     with pytest.raises(ValueError, match="NaN"):
         knn_graph(torch.full((5, 3), float("nan")), 2)
+
+
+@pytest.mark.parametrize("grid", ["fibonacci:4000", "icosahedral:4", "healpix:16"])
+def test_radius_for_neighbors_holds_about_k_points(grid):
+    """A cap of the radius holds k grid points (self included) on average, give or take the
+    shell a lattice's small caps take whole (7.8 on a Fibonacci grid for k = 7, 32.5 on the
+    icosahedral one for k = 30); bad k is refused."""
+    g = grids.from_spec(grid)
+    n = len(g)
+    for k in (7, 30, 120):
+        r = radius_for_neighbors(n, k)
+        assert 2 * math.pi * (1 - math.cos(r)) == pytest.approx(4 * math.pi * k / n, rel=1e-12)
+        ei, _ = geodesic_radius_graph(g.pos, r)
+        assert len(ei[1]) / n == pytest.approx(k, abs=1 + 0.1 * k)
+    for bad in (0, -1, n):
+        with pytest.raises(ValueError, match=rf"k must be in \(0, {n}\)"):
+            radius_for_neighbors(n, bad)

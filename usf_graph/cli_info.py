@@ -88,7 +88,7 @@ def cmd_info(args) -> int:
 
 
 def cmd_cache(args) -> int:
-    from .frontend.cache import GEOMETRY_VERSION, default_cache_dir
+    from .frontend.cache import GEOMETRY_VERSION, GeometryCache, default_cache_dir
 
     d = default_cache_dir()
     if d is None:
@@ -105,7 +105,6 @@ def cmd_cache(args) -> int:
     total = sum(sum(v) for v in kinds.values())
     print(f"  {'total':<8} {len(files):5d} files {total / 1e6:10.2f} MB")
     if args.clear:
-        for f in files:
-            f.unlink(missing_ok=True)
+        GeometryCache(d).clear(disk=True)
         print(f"removed {len(files)} files; geometry is rebuilt on next use")
     return 0

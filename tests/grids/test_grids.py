@@ -28,6 +28,19 @@ def test_counts_areas_and_coarsening(g, n):
     assert (d_own <= d_all.min(1).values + 1e-12).all()
 
 
+def test_hierarchy_is_the_chain_of_coarsenings():
+    chain = grids.icosahedral(4).hierarchy(3)
+    assert [len(g) for g, _ in chain] == [642, 162, 42]
+    fine = grids.icosahedral(4)
+    for coarse, cluster in chain:
+        want_grid, want_cluster = fine.coarsen()
+        assert coarse.spec == want_grid.spec and torch.equal(cluster, want_cluster)
+        assert len(cluster) == len(fine)
+        fine = coarse
+    with pytest.raises(ValueError, match="cannot be coarsened further"):
+        grids.icosahedral(1).hierarchy(2)
+
+
 def test_icosahedral_is_nested():
     for level in range(1, 5):
         fine, coarse = grids.icosahedral(level), grids.icosahedral(level - 1)
