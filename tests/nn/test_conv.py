@@ -668,6 +668,8 @@ def test_torch_func_transforms_and_forward_mode_through_both_layers():
 def test_bad_inputs_name_the_problem():
     with pytest.raises(ValueError, match="normalize"):
         SphericalConv(1, 1, 0.1, normalize="sum")
+    with pytest.raises(ValueError, match="kernel must be 'basis' or 'mlp', got 'gauss'"):
+        SphericalConv(1, 1, 0.1, kernel="gauss")
     conv = SphericalConv(2, 2, 0.5)
     g = grids.icosahedral(1)
     ei, ew = geodesic_radius_graph(g.pos, 0.5)
@@ -683,6 +685,12 @@ def test_bad_inputs_name_the_problem():
         (lambda: conv.bind(ei, ew, node_weight=torch.full((n,), float("inf"))), "areas"),
         (lambda: conv.bind(ei, ew)(torch.randn(2, n + 5, 2)), f"{n + 5} points, the bound graph has {n}"),
         (lambda: conv.bind(ei, ew)(torch.randn(n, 2), ei[:, :0]), "edge_weight"),
+        (lambda: conv(torch.randn(n, 2), ei[:, :-1], ew),
+         rf"need edge_index \[2, E\] and edge_weight \[E\], got \(2, {ei.shape[1] - 1}\)"),
+        (lambda: conv.bind(ei, ew)(torch.randn(n, 2), edge_weight=ew),
+         "edge_weight/node_weight without edge_index"),
+        (lambda: conv.bind(ei, ew)(torch.randn(n, 2), mask=torch.ones(n - 1, dtype=torch.bool)),
+         rf"mask must have shape \[{n}\], got \({n - 1},\)"),
     ]
     for f, match in cases:
         with pytest.raises(ValueError, match=match):

@@ -9,6 +9,7 @@ from tests.helpers import random_sphere
 from usf_graph import grids
 from usf_graph.geometry import random_rotation, rotate, rotation_from_axis_angle
 from usf_graph.nn import (
+    FPSPool,
     GaussianPool,
     GridPool,
     GridUnpool,
@@ -171,3 +172,24 @@ def test_readouts_on_a_pyg_batch_of_different_graphs():
                                torch.stack([global_mean_pool_area(x[i], None, m[i]) for i in range(2)]))
     torch.testing.assert_close(global_max_pool_masked(x, m),
                                torch.stack([global_max_pool_masked(x[i], m[i]) for i in range(2)]))
+
+
+def test_bad_arguments_are_refused_and_reprs_say_the_sizes():
+    g = grids.icosahedral(2)
+    coarse, cl = g.coarsen()
+    for make, why in ((lambda: GridPool(cl, mode="sum"), "mode must be 'max' or 'mean', got 'sum'"),
+                      (lambda: GridUnpool(cl, mode="cubic"),
+                       "mode must be 'nearest' or 'linear', got 'cubic'"),
+                      (lambda: GridUnpool(cl, mode="linear"),
+                       "mode='linear' needs fine_pos and coarse_pos"),
+                      (lambda: FPSPool(ratio=0), r"ratio in \(0, 1\] and radius > 0, got 0, 0.5"),
+                      (lambda: FPSPool(radius=-1.0), r"radius > 0, got 0.25, -1.0")):
+        with pytest.raises(ValueError, match=why):
+            make()
+    assert repr(GridPool(cl, mode="mean")) == "GridPool(162 -> 42, mode='mean')"
+    assert repr(GridUnpool(cl)) == "GridUnpool(42 -> 162 points, mode='nearest')"
+    assert repr(FPSPool(0.5, 0.2)) == "FPSPool(ratio=0.5, radius=0.2)"
+    x = torch.rand(2, len(g), 3)
+    with pytest.raises(ValueError, match=r"with batch, x must be \[sum N_i, C\] and batch "
+                                         r"\[sum N_i\]; got \(2, 162, 3\) and \(324,\)"):
+        global_mean_pool_area(x, batch=torch.zeros(2 * len(g), dtype=torch.long))

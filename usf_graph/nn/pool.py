@@ -289,6 +289,8 @@ class FPSPool(nn.Module):
 
     def __init__(self, ratio: float = 0.25, radius: float = 0.5):
         super().__init__()
+        if not 0 < ratio <= 1 or not radius > 0:
+            raise ValueError(f"FPSPool needs ratio in (0, 1] and radius > 0, got {ratio}, {radius}")
         self.ratio, self.radius = float(ratio), float(radius)
 
     def forward(self, x, pos, batch=None):
