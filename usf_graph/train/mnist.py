@@ -71,12 +71,13 @@ def score(path, root="data/mnist", rotate: str = "so3", seed: int | None = None,
     under ``rotate`` (``none``, ``so3``, ``chunk500``), their rotations drawn from ``seed``
     (default: the run's own, so that ``so3`` gives its NR/R number), and what
     :func:`load_classifier` says it is."""
+    dev = resolve_device(device)  # before the digits are processed: a bad device loses nothing
     model, info = load_classifier(path)
     seed = seed if seed is not None else (info["seed"] or 0)
     ds = SphericalMNIST(root, "test", grid=info["grid"], rotate=rotate, seed=seed, source=source,
                         progress=progress)
     x = ds.x if info["model"] == "spherical" else equirect_images(ds.x, ds.grid)
-    model.to(resolve_device(device))
+    model.to(dev)
     m = evaluate(model, TensorDataset(x, ds.y), progress=progress)
     return {**m, **info, "seed": seed, "rotate": rotate}
 
