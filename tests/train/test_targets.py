@@ -78,6 +78,9 @@ def test_targets_refuse_results_that_are_not_a_rooms_protocols():
         targets({"planar_unet": {"a": {"mIoU": 0.2}}})
     with pytest.raises(ValueError, match="no test"):
         targets({"spherical_unet": {"mean": {"mIoU": 0.2}}})  # Stanford 2D-3D-S's form
+    with pytest.raises(ValueError, match="results of 'usf-graph train mnist'"):
+        targets({"samples": {"train": 4000, "test": 1000}, "spherical": {"NR": 0.9, "R": 0.9},
+                 "planar": {"NR": 0.98, "R": 0.3}})
 
 
 def test_format_targets_marks_misses_and_one_way_holds():

@@ -114,6 +114,10 @@ def targets(res: dict) -> list[dict]:
     """The targets of a rooms run's results, its task told by its models: a list of
     ``{"target", "value", "holds", "text", "both_ways"}`` (segmentation's first row names
     the model judged, ``{"target", "text", "info": True}``)."""
+    if isinstance(res.get("spherical"), dict) and "NR" in res["spherical"]:
+        raise ValueError("these are the results of 'usf-graph train mnist' (NR/R accuracy, in "
+                         "its results.json); the targets are the rooms protocols' (a run of "
+                         "'usf-graph train seg|det')")
     det = task_of(res) == "det"
     task = det_targets if det else seg_targets
     models = ["spherical"] if det else [m for m in SPHERICAL_SEG if m in res]
