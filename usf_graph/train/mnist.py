@@ -13,12 +13,18 @@ from ..datasets import SphericalMNIST
 from ..frontend import SphericalFrontend
 from ..models import PlanarCNN, SphericalClassifier
 from .devices import resolve_device, setup_distributed
-from .engine import evaluate, fit, load_checkpoint, save_checkpoint, seed_everything, write_results
+from .engine import (
+    defaults,
+    evaluate,
+    fit,
+    load_checkpoint,
+    save_checkpoint,
+    seed_everything,
+    write_results,
+)
 
 #: The planar baseline's equirectangular images, width x height.
 PLANAR_IMAGE = (64, 32)
-#: Where a checkpoint saved before they recorded their grid was trained (the run's default).
-DEFAULT_GRID = "icosahedral:5"
 
 
 def equirect_images(x: torch.Tensor, grid) -> torch.Tensor:
@@ -42,11 +48,10 @@ def classifier_kind(blob: dict) -> str | None:
 
 def load_classifier(path) -> tuple[torch.nn.Module, dict]:
     """The trained model of a ``usf-graph train mnist`` checkpoint, and what it was trained
-    on: ``{"model": "spherical" | "planar", "grid": spec, "seed": int | None,
-    "provenance": dict | None}`` (the
-    planar model reads :func:`equirect_images` of that grid's samples). Checkpoints saved
-    before session 62 do not record the grid of a planar model (:data:`DEFAULT_GRID`
-    then, with a note) nor the seed."""
+    on: ``{"model": "spherical" | "planar", "grid": spec, "seed": int | None, "provenance":
+    dict | None}`` (the planar model reads :func:`equirect_images` of that grid's samples).
+    Checkpoints saved before session 62 record neither the seed nor a planar model's grid
+    (:func:`run`'s default input level then, with a note)."""
     blob = load_checkpoint(path)
     kind = classifier_kind(blob)
     if kind is None:
@@ -57,7 +62,8 @@ def load_classifier(path) -> tuple[torch.nn.Module, dict]:
     model.load_state_dict(blob["state_dict"])
     grid = data.get("grid")
     if grid is None:
-        grid = f"icosahedral:{model.input_level}" if kind == "spherical" else DEFAULT_GRID
+        level = model.input_level if kind == "spherical" else defaults(run)["input_level"]
+        grid = f"icosahedral:{level}"
         if kind == "planar":
             print(f"note: {path} does not record the grid its images came from (saved before "
                   f"session 62); reading them from {grid}, the run's default")
