@@ -178,6 +178,11 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
     assert torch.equal(x, ds.x.float()) and torch.equal(y, ds.y)
     assert torch.equal(mask, ds.mask[0]) and 0 < mask.float().mean() < 0.7
     assert image.shape == (2, 3, 32, 32) and torch.equal(label, ds.label_image.long())
+    mixed = batch.clone()  # two cameras in one batch: refused, not read as the first's
+    mixed.mask = batch.mask.clone()
+    mixed.mask[-1] = ~mixed.mask[-1]
+    with pytest.raises(ValueError, match="different fields of view; batch one camera"):
+        split_batch(mixed)
     torch.manual_seed(0)
     m = SphericalUNet(level=3, channels=(8, 8, 8, 8))
     loss, stats, n = segmentation_step(m, batch)
