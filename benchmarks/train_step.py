@@ -11,12 +11,13 @@ baseline on 64x32 equirectangular images. Random inputs: the cost does not depen
 from __future__ import annotations
 
 import argparse
-import inspect
 
 import torch
 from timing import add_step_options, start_step, step_time
 
 from usf_graph.models import PlanarCNN, SphericalClassifier
+from usf_graph.train import defaults
+from usf_graph.train.mnist import PLANAR_IMAGE
 from usf_graph.train.mnist import run as mnist_run
 
 
@@ -25,7 +26,7 @@ def main():
     add_step_options(p, batch=64, reps=10)
     a = p.parse_args()
     dev = start_step(a)
-    d = {k: v.default for k, v in inspect.signature(mnist_run).parameters.items()}
+    d = defaults(mnist_run)
     sph = SphericalClassifier(level=d["level"], input_level=d["input_level"],
                               min_level=d["min_level"], pairs=d["pairs"],
                               pair_stages=d["pair_stages"]).to(dev)
@@ -33,7 +34,8 @@ def main():
     B = a.batch
     y = torch.randint(0, 10, (B,), device=dev)
     xs = torch.randn(B, sph.num_points, 1, device=dev)
-    xp = torch.randn(B, 1, 32, 64, device=dev)
+    W, H = PLANAR_IMAGE
+    xp = torch.randn(B, 1, H, W, device=dev)
     ce = torch.nn.functional.cross_entropy
     ts = step_time(sph, xs, y, ce, a.reps, dev)
     tp = step_time(planar, xp, y, ce, a.reps, dev)
@@ -42,7 +44,7 @@ def main():
     print("| model | points | parameters | step (ms) | samples/s |")
     print("|---|---|---|---|---|")
     for name, m, n, t in (("SphericalClassifier", sph, sph.num_points, ts),
-                          ("PlanarCNN (64x32)", planar, 64 * 32, tp)):
+                          (f"PlanarCNN ({W}x{H})", planar, W * H, tp)):
         params = sum(q.numel() for q in m.parameters())
         print(f"| {name} | {n} | {params} | {1e3 * t:.1f} | {B / t:.0f} |")
     print(f"\nspherical / planar step time: {ts / tp:.1f}x")

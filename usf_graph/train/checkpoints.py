@@ -93,8 +93,8 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     name, size = cfg.pop("model", None), cfg.pop("size", None)
     data = blob.get("data", {})  # what it was trained on: dataset, and fold or seed
     dataset, fold, seed = data.get("dataset"), data.get("fold"), data.get("seed")
-    if classifier_kind(blob) is not None:
-        raise ValueError(f"{path} holds the {classifier_kind(blob)} MNIST classifier of "
+    if (kind := classifier_kind(blob)) is not None:
+        raise ValueError(f"{path} holds the {kind} MNIST classifier of "
                          "'usf-graph train mnist', not a seg|det model; score it with "
                          "'usf-graph eval mnist'")
     if name in seg.MODELS:

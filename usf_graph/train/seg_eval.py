@@ -105,5 +105,3 @@ def evaluate_set(model, ds, desc: str = "segment", known_up: bool = False,
     if u.estimate is not None:
         r["up"] = u.report(views_up(ds))
     return r, pix
-
-
