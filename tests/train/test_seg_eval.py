@@ -71,4 +71,3 @@ def test_evaluate_set_runs_the_estimate_once_for_prediction_and_report(sets, net
     assert r["up"] == up_report(net.gravity, ds.x, ds.mask[0], views_up(ds))
     assert evaluate_set(net, ds, progress=False, known_up=True)[0]["up"] == r["up"]
     assert 0 <= r["mIoU"] <= 1 and "sphere_mIoU" in r
-
