@@ -1103,6 +1103,26 @@ def test_train_resume_reaches_the_run(monkeypatch, tmp_path, task, module):
         assert seen.pop("gray") is False
         assert main(["train", task, "--out", str(tmp_path), *data.get(module, []), "--gray"]) == 0
         assert seen.pop("gray") is True
+    if module != "det" and module != "pandora":  # mnist: the first conv's level; seg: the grid's
+        assert seen.pop("level") == (4 if task == "mnist" else 5)  # run's default
+        assert main(["train", task, "--out", str(tmp_path), *data.get(module, []), "--level", "3"]) == 0
+        assert seen.pop("level") == 3
+    if module == "seg":  # the spherical models alone
+        assert "planar_unet" in seen.pop("models")
+        assert main(["train", "seg", "--out", str(tmp_path), "--no-planar"]) == 0
+        assert seen.pop("models") == ("spherical_unet", "spherical_deeplab")
+
+
+def test_train_det_and_seg_refuse_the_options_of_train_mnist(capsys):
+    for argv, said in ((["det", "--level", "3"], "--level: an option of 'train mnist', not of 'train det'"),
+                       (["seg", "--source", "idx", "--pairs", "0"],
+                        "--source, --pairs: options of 'train mnist', not of 'train seg'"),
+                       (["seg", "--input-level", "4", "--min-level", "1", "--pair-stages", "1"],
+                        "--input-level, --min-level, --pair-stages: options of 'train mnist'"),
+                       (["seg", "--no-planar", "--models", "planar_unet"],
+                        "--no-planar and --models planar_unet: give one of them")):
+        assert main(["train", *argv]) == 2
+        assert said in capsys.readouterr().err
 
 
 def test_train_mnist_refuses_the_options_of_train_det_and_seg(capsys):

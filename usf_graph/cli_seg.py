@@ -7,6 +7,7 @@ import json
 from .cli_det import (
     eval_data,
     given_or_default,
+    mnist_only_options,
     print_targets,
     ready_model,
     rooms_kind,
@@ -24,23 +25,27 @@ def cmd_train_seg(args) -> int:
 
     if args.dataset == "pandora":
         raise ValueError("PANDORA is a detection dataset: use 'usf-graph train det'")
+    mnist_only_options(args, "seg", "level")
+    if args.no_planar and "planar_unet" in (args.models or ()):
+        raise ValueError("--no-planar and --models planar_unet: give one of them")
     kw = run_kwargs(args, run)
     rooms_only_options(args)
     if args.dataset == "stanford2d3ds":
         folds = (1, 2, 3) if args.fold == "all" else (int(args.fold),)
         res = run_stanford(root=args.root or "data/stanford2d3ds", out=args.out or "runs/seg_stanford",
                            folds=folds, models=tuple(args.models or ("spherical_unet",)),
-                           **given_or_default(args, run_stanford, ("size", "up_epochs")), **kw)
+                           **given_or_default(args, run_stanford, ("size", "level", "up_epochs")), **kw)
     elif args.dataset == "woodscape":
         if args.size is not None:
             raise ValueError("--size: WoodScape's images keep their shape; --scale resizes them")
         res = run_woodscape(root=args.root or "data/woodscape", out=args.out or "runs/seg_woodscape",
                             models=tuple(args.models or ("spherical_deeplab",)),
-                            **given_or_default(args, run_woodscape, ("scale", "up_epochs")), **kw)
+                            **given_or_default(args, run_woodscape, ("scale", "level", "up_epochs")), **kw)
     else:
+        models = args.models or [m for m in MODELS if not (args.no_planar and m == "planar_unet")]
         res = run(root=args.root or "data/rooms", out=args.out or "runs/seg",
-                  models=tuple(args.models or MODELS), **up_kwargs(args, run), **kw,
-                  **given_or_default(args, run, ("size", "num_train", "num_test", "fov_epochs",
+                  models=tuple(models), **up_kwargs(args, run), **kw,
+                  **given_or_default(args, run, ("size", "level", "num_train", "num_test", "fov_epochs",
                                                     "channel_scale", "materials")))
     teardown_distributed()
     if not res:

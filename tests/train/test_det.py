@@ -1,6 +1,7 @@
 """The detection protocol end to end on a few tiny rooms, and the PANDORA command on the
 fixture in PANDORA's format."""
 
+import functools
 import json
 
 import numpy as np
@@ -27,7 +28,7 @@ from usf_graph.train.fov import camera_field
 from usf_graph.train.gravity import lines_up
 
 
-def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
+def test_protocol_runs_and_scores_every_test(tmp_path, capsys, monkeypatch):
     res = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, num_train=3, num_test=2,
               epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2,
               fov_epochs=1, channel_scale=0.5)
@@ -71,6 +72,26 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
                 epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2,
                 fov_epochs=1, channel_scale=0.5, resume=True)
     assert again["spherical"] == res["spherical"] and again["planar"] == res["planar"]
+    # the shell's command hands its options to run and prints these results' tables and
+    # targets (run itself stands in: the shell has no --up-train, and it ran just above)
+    calls = []
+    monkeypatch.setattr("usf_graph.train.det.run",
+                        functools.wraps(run)(lambda **kw: calls.append(kw) or res))
+    capsys.readouterr()
+    assert main(["train", "det", "--root", str(tmp_path / "rooms"), "--out", str(tmp_path / "out"),
+                 "--size", "32", "--num-train", "3", "--num-test", "2", "--epochs", "1",
+                 "--batch-size", "2", "--up-epochs", "1", "--up-extra", "2", "--fov-epochs", "1",
+                 "--channel-scale", "0.5", "--no-planar", "--resume"]) == 0
+    given = {"size": 32, "num_train": 3, "num_test": 2, "epochs": 1, "batch_size": 2,
+             "up_epochs": 1, "up_extra": 2, "fov_epochs": 1, "channel_scale": 0.5,
+             "planar": False, "resume": True}
+    assert {k: calls[0][k] for k in given} == given
+    out = capsys.readouterr().out
+    assert "Detection on procedural rooms, trained on upright panoramas (3 views; 2 test" in out
+    for metric in ("AP50", "AP50_every_box", "AP", "usf_mAP@10"):
+        assert f"{metric}:\n{format_table(res, metric)}" in out
+    assert "The issue's targets (bold: misses):" in out and f"figure: {res['figure']}" in out
+    monkeypatch.undo()
     # the zero-shot tests see fewer boxes than the panorama of the same views
     assert saved["boxes"]["c"] <= saved["boxes"]["a"] and saved["boxes"]["b"] == saved["boxes"]["a"]
     # and only they have boxes the camera cuts, which scoring ignores

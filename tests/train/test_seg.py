@@ -76,15 +76,22 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
         assert (tmp_path / "out" / f"{name}.pt").is_file()
     assert (tmp_path / "out" / "seg_results.png").is_file()
     assert "(e) finer grid" in format_table(res) and "| planar_unet |" in format_table(res)
-    # resuming a finished run loads every stage (the up estimate's, both phases) and scores
-    # the same models again, to the digit
-    again = run(root=tmp_path / "rooms", out=tmp_path / "out", size=32, level=3, num_train=3,
-                num_test=2, epochs=1, batch_size=2, progress=False, up_extra=2, up_caps=0.5,
-                fov_epochs=1, resume=True)
-    for name in ("spherical_unet", "spherical_deeplab", "planar_unet"):
-        assert again[name] == res[name]
-    # eval seg reads a checkpoint back and reproduces the protocol's numbers
+    # resuming the finished run from the shell loads every stage (the up estimate's, both
+    # phases), scores the same models again, to the digit, and prints their table and targets
     capsys.readouterr()
+    assert main(["train", "seg", "--root", str(tmp_path / "rooms"), "--out", str(tmp_path / "out"),
+                 "--size", "32", "--level", "3", "--num-train", "3", "--num-test", "2",
+                 "--epochs", "1", "--batch-size", "2", "--up-extra", "2", "--up-caps", "0.5",
+                 "--fov-epochs", "1", "--resume"]) == 0
+    again = json.loads((tmp_path / "out" / "results.json").read_text())
+    for name in ("spherical_unet", "spherical_deeplab", "planar_unet"):
+        assert again[name] == saved[name]
+    out = capsys.readouterr().out
+    assert "Segmentation on procedural rooms, trained on upright panoramas (3 views; 2 test" in out
+    assert f"mIoU (camera pixels):\n{format_table(res, 'mIoU')}" in out
+    assert f"mAcc (camera pixels):\n{format_table(res, 'mAcc')}" in out
+    assert "The issue's targets (bold: misses):" in out and "pinhole" in out
+    assert f"figure: {res['figure']}" in out
     assert main(["eval", "seg", str(tmp_path / "out" / "spherical_unet.pt"), "--root",
                  str(tmp_path / "rooms"), "--num-test", "2", "--test", "b", "e"]) == 0
     out = capsys.readouterr().out
