@@ -1139,6 +1139,11 @@ def test_eval_mnist_refuses_the_options_of_eval_det_and_seg(tmp_path, capsys):
                         (["--gray"], "--gray")):
         assert main(["eval", "mnist", str(tmp_path / "m.pt"), *argv]) == 2
         assert f"{named}: options of 'eval det|seg'" in capsys.readouterr().err
+    for task, argv, said in (("seg", ["--rotate", "none"], "--rotate: an option of 'eval mnist', not of 'eval seg'"),
+                             ("det", ["--source", "idx", "--rotate", "so3"],
+                              "--rotate, --source: options of 'eval mnist', not of 'eval det'")):
+        assert main(["eval", task, str(tmp_path / "m.pt"), *argv]) == 2
+        assert said in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("task", ["seg", "det", "mnist"])

