@@ -80,6 +80,14 @@ def test_k_d_dim_files_as_yaml_filestorage_and_npz(tmp_path):
         assert C.load(tmp_path / name).key() == ref.key()
     np.savez(tmp_path / "pin.npz", K=K, D=np.array([0.1, -0.05, 1e-3, 2e-4, 0.01]), DIM=[1280, 960])
     assert isinstance(C.load(tmp_path / "pin.npz"), C.Pinhole)  # 5 coefficients: radtan
+    # DIM as a FileStorage sequence (a hand-written file), beside a string node it ignores
+    text = (tmp_path / "calib.yaml").read_text()
+    seq = text[:text.index("DIM:")] + 'DIM: [ 1280, 960 ]\nmodel: "fisheye"\n'
+    (tmp_path / "seq.yaml").write_text(seq)
+    assert C.load(tmp_path / "seq.yaml").key() == ref.key()
+    (tmp_path / "seq.yaml").write_text(seq.replace("1280, 960", "1280.5, 960"))
+    with pytest.raises(ValueError, match="DIM"):
+        C.load(tmp_path / "seq.yaml")
 
 
 def test_usf_reference_sensor_yaml(tmp_path):
@@ -147,6 +155,19 @@ BROKEN = [
     ("usf_sensor_mei.yaml", "    gamma1: 409.006\n", "", "missing key 'gamma1' in 'projection_parameters'"),
     ("usf_sensor_mei.yaml", "gamma1: 409.006", "gamma1: -330.0", r"fx must be a positive finite number, got -330.0\."),
     ("usf_sensor_mei.yaml", "usf_sensor_mask.png", "nothing.png", "cannot read the image mask"),
+    # image sizes that are not whole pixels are refused, not truncated
+    ("kalibr_camchain.yaml", "resolution: [512, 512]", "resolution: [512.5, 512]",
+     r"\[cam1\]: 'resolution' must be whole positive numbers of pixels, got \[512.5, 512"),
+    ("opencv_pinhole.yaml", "image_width: 1280", "image_width: 1279.6",
+     "'image_width' must be whole positive numbers of pixels, got \\[1279.6\\]"),
+    ("ros_plumb_bob.yaml", "image_width: 640", "image_width: 0", "'image_width' must be whole positive"),
+    ("vins_pinhole.yaml", "image_width: 752", "image_width: 752.25", "'image_width' must be whole"),
+    ("orbslam3_mono_pinhole.yaml", "Camera.width: 640", "Camera.width: 640.5",
+     "'Camera.width' must be whole positive numbers of pixels"),
+    ("nerfstudio_transforms.json", '"w": 876', '"w": 876.4', "'w' must be whole positive numbers"),
+    ("calib_results.txt", "960 1280", "960 1280.5", "'height width' must be whole positive numbers"),
+    ("basalt_calib.json", "                848,", "                848.5,",
+     r"\[cam1\]: 'resolution' must be whole positive numbers of pixels, got \[848.5, 800"),
 ]
 
 
@@ -276,6 +297,15 @@ def test_bad_files_raise_clear_errors(tmp_path):
     p.write_text("just: [a, list\n")
     with pytest.raises(ValueError, match="not valid YAML"):
         C.load(p)
+    p.write_text("- fx: 400\n- fy: 400\n")
+    with pytest.raises(ValueError, match=r"a.yaml: unrecognized calibration file \(expected a YAML mapping\)"):
+        C.load(p)
+    p.write_text("%YAML:1.0\n---\nK: !!opencv-matrix\n   rows: 3\n   cols: [3\n")
+    with pytest.raises(ValueError, match="a.yaml: OpenCV cannot parse this FileStorage file"):
+        C.load(p)
+    (tmp_path / "calib.npz").write_bytes(b"PK\x03\x04 not a zip archive")
+    with pytest.raises(ValueError, match="cannot read .*calib.npz"):
+        C.load(tmp_path / "calib.npz")
     with pytest.raises(FileNotFoundError):
         C.load(tmp_path / "nope.yaml")
     p.write_text("cam0: {camera_model: pinhole, intrinsics: [-5, 400, 320, 240], "

@@ -50,7 +50,7 @@ def load_basalt(src: Src, data: dict, name: str) -> Camera:
     if res.size < 2 * (i + 1):
         raise src.error(f"'resolution' lists {res.size // 2} cameras' sizes, but this is "
                         f"camera {i}: {plain_list(res)}")
-    w, h = (int(x) for x in res[2 * i:2 * i + 2])
+    w, h = src.pixels(res[2 * i:2 * i + 2], "resolution")
     K = dict(fx=p["fx"], fy=p["fy"], cx=p["cx"], cy=p["cy"], width=w, height=h)
     if kind == "pinhole":
         return src.build(Pinhole, **K)

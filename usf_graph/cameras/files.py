@@ -55,6 +55,15 @@ class Src:
             raise self.error(f"'{name}' must be finite, got {x}")
         return x
 
+    def pixels(self, v, name: str) -> tuple[int, ...]:
+        """Image sizes in pixels: whole positive numbers. A file's 752.7 is refused, not
+        truncated to 752."""
+        a = np.atleast_1d(np.asarray(v, np.float64))
+        if not (np.isfinite(a).all() and (a == np.round(a)).all() and (a >= 1).all()):
+            raise self.error(f"'{name}' must be whole positive numbers of pixels, got "
+                             f"{plain_list(a)}")
+        return tuple(int(x) for x in a)
+
     def array(self, v, name: str, sizes: tuple = ()) -> np.ndarray:
         """A matrix or vector given as an OpenCV matrix, a ROS ``{rows, cols, data}`` map or
         a (nested) list; ``sizes``: the accepted numbers of elements."""
@@ -151,8 +160,9 @@ def _read_filestorage(path: Path) -> dict:
 
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
-        raise ValueError(f"{path}: OpenCV cannot parse this FileStorage file ({e})") from e
+    except (cv2.error, SystemError) as e:  # OpenCV 5's binding wraps its parse error in SystemError
+        why = str(e.__cause__ if isinstance(e.__cause__, cv2.error) else e).strip()
+        raise ValueError(f"{path}: OpenCV cannot parse this FileStorage file ({why})") from e
     if not fs.isOpened():
         raise ValueError(f"{path}: OpenCV cannot open this FileStorage file")
     try:

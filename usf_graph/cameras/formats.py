@@ -56,8 +56,9 @@ def _load_single(path: Path, data: dict):
 
 def _size(src: Src, data: dict) -> tuple[int, int]:
     hint = "give the image size as image_width and image_height"
-    w, h = (src.number(src.need(data, k, hint=hint), k) for k in ("image_width", "image_height"))
-    return int(w), int(h)
+    w, h = (src.pixels(src.number(src.need(data, k, hint=hint), k), k)[0]
+            for k in ("image_width", "image_height"))
+    return w, h
 
 
 def _k(src: Src, K, name: str):
@@ -146,7 +147,7 @@ def _load_kdd(src: Src, data: dict) -> Camera:
     D = src.array(src.need(data, "D", hint="K/D/DIM files need the distortion D"), "D",
                   (4, 5, 8, 12))
     if "DIM" in data:
-        w, h = (int(v) for v in src.array(data["DIM"], "DIM", (2,)))
+        w, h = src.pixels(src.array(data["DIM"], "DIM", (2,)), "DIM")
     else:
         w, h = _size(src, data) if "image_width" in data else (None, None)
         if w is None:
@@ -217,6 +218,7 @@ def _load_ocamcalib(path, text) -> Camera:
     except (ValueError, IndexError) as e:
         raise ValueError(f"{path}: malformed OCamCalib calib_results.txt ({e}); expected the "
                          "sections pol, invpol, centre, affine, size") from e
-    h, w = int(size[0]), int(size[1])
-    return Src(Path(path)).build(Scaramuzza, pol=pol[1:], center=center, affine=affine,
-                                  width=w, height=h, invpol=invpol[1:])
+    src = Src(Path(path))
+    h, w = src.pixels(size, "height width")
+    return src.build(Scaramuzza, pol=pol[1:], center=center, affine=affine, width=w, height=h,
+                     invpol=invpol[1:])

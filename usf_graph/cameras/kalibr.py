@@ -44,7 +44,7 @@ def load_kalibr(src: Src, c: dict) -> Camera:
     if dist.size != _KALIBR_DIST[dm]:
         raise src.error(f"Kalibr distortion_model '{dm}' takes {_KALIBR_DIST[dm]} "
                         f"distortion_coeffs, got {dist.size}")
-    w, h = (int(v) for v in src.array(src.need(c, "resolution"), "resolution", (2,)))
+    w, h = src.pixels(src.array(src.need(c, "resolution"), "resolution", (2,)), "resolution")
     K = dict(fx=p["fu"], fy=p["fv"], cx=p["pu"], cy=p["pv"], width=w, height=h)
     if model == "pinhole":
         if dm == "equidistant":

@@ -88,7 +88,7 @@ def transforms_camera(src: Src, f: dict) -> Camera:
 
 def _intrinsics(src: Src, f: dict) -> Camera:
     hint = "nerfstudio writes the image size as w and h"
-    w, h = (int(src.finite(src.need(f, k, hint=hint), k)) for k in ("w", "h"))
+    w, h = (src.pixels(src.finite(src.need(f, k, hint=hint), k), k)[0] for k in ("w", "h"))
     model = f.get("camera_model") or ("OPENCV_FISHEYE" if f.get("is_fisheye") else "OPENCV")
     if model not in MODELS:
         raise src.error(f"camera_model {model!r} is not read here (known: {', '.join(MODELS)}); "

@@ -38,9 +38,9 @@ def load_orbslam(src: Src, data: dict, name: str) -> Camera:
             return default
         return src.number(src.need(data, full), full)
 
-    size = {k: int(src.number(src.need(data, f"Camera.{k}", hint="ORB-SLAM3 settings give "
-                                       "the image size as Camera.width and Camera.height"),
-                              f"Camera.{k}")) for k in ("width", "height")}
+    size = {k: src.pixels(src.number(src.need(data, f"Camera.{k}", hint="ORB-SLAM3 settings give "
+                                              "the image size as Camera.width and Camera.height"),
+                                     f"Camera.{k}"), f"Camera.{k}")[0] for k in ("width", "height")}
     K = dict(fx=num("fx"), fy=num("fy"), cx=num("cx"), cy=num("cy"), **size)
     if kind == "KannalaBrandt8":
         return src.build(KannalaBrandt, **K, k=[num(f"k{i}") for i in range(1, 5)])
