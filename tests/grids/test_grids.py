@@ -122,6 +122,13 @@ def test_spec_round_trip_and_errors():
     assert len(grids.from_spec("equiangular:8,16")) == 128
     with pytest.raises(ValueError, match="unknown grid"):
         grids.from_spec("cube:3")
+    g = grids.from_spec("healpix:4,ring")
+    assert grids.from_spec(g.spec).params == g.params  # a grid's own spec reads back
+    assert grids.from_spec("healpix:4").params == grids.from_spec("healpix:4,nest").params \
+        == {"nside": 4, "nest": True}
+    for bad in ("healpix:4,rnig", "healpix:4,ring,2", "healpix:"):  # a typo picks no ordering
+        with pytest.raises(ValueError, match=f"bad grid spec '{bad}'"):
+            grids.from_spec(bad)
     with pytest.raises(ValueError, match="power of two"):
         grids.healpix(3)
     with pytest.raises(ValueError, match="cannot be coarsened"):

@@ -16,10 +16,14 @@ def from_spec(spec: str) -> Grid:
     if name not in _BUILDERS:
         raise ValueError(f"unknown grid '{name}' in {spec!r}; use one of {sorted(_BUILDERS)}")
     vals = [a.strip() for a in args.split(",") if a.strip()]
-    if name == "healpix":
-        nest = not (len(vals) > 1 and vals[1].lower() in ("ring", "false"))
-        return healpix(int(vals[0]), nest=nest)
     try:
+        if name == "healpix":
+            order = vals[1].lower() if len(vals) > 1 else "nest"
+            orders = {"nest": True, "nested": True, "true": True, "ring": False, "false": False}
+            if order not in orders or len(vals) > 2:  # a typo must not pick an ordering
+                raise ValueError("HEALPix takes healpix:NSIDE, healpix:NSIDE,nest or "
+                                 f"healpix:NSIDE,ring, not {args!r}")
+            return healpix(*(int(v) for v in vals[:1]), nest=orders[order])
         return _BUILDERS[name](*(int(v) for v in vals))
     except (TypeError, ValueError) as e:
         raise ValueError(f"bad grid spec {spec!r}: {e}") from e
