@@ -210,3 +210,17 @@ def test_rooms_by_kind_are_stored_apart_and_the_protocols_files_keep_their_names
                                               progress=False).x)
     with pytest.raises(ValueError, match="materials must be one of"):
         RoomsDetection(tmp_path, "test", materials="paint", **kw)
+
+
+def test_worker_processes_load_the_same_batches(tmp_path):
+    """PyG's DataLoader with worker processes (the dataset pickled into each) gives the
+    batches loaded here, every field equal."""
+    ds = RoomsSegmentation(tmp_path, "train", camera=cameras.Equirectangular(64, 32),
+                           grid="icosahedral:3", num_scenes=4, progress=False)
+    here = list(DataLoader(ds, batch_size=2))
+    there = list(DataLoader(ds, batch_size=2, num_workers=2))
+    assert len(here) == len(there) == 2
+    for a, b in zip(here, there):
+        assert a.keys() == b.keys()
+        for key in a.keys():
+            assert torch.equal(a[key], b[key]), key
