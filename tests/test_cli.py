@@ -776,7 +776,9 @@ def test_train_refuses_sizes_and_counts_below_one(option, capsys):
     (["scenes", "--num", "0", "--out", "x"], "--num: must be at least 1, got 0"),
     (["eval", "det", "x.pt", "--level-prior", "-1"], "--level-prior: must be at least 0.0"),
     (["predict", "det", "x.pt", "y.png", "--camera", "equirectangular", "--min-score", "2"],
-     "--min-score: must be at least 0.0 and at most 1.0, got 2")])
+     "--min-score: must be at least 0.0 and at most 1.0, got 2"),
+    (["predict", "seg", "x.pt", "y.mp4", "--camera", "equirectangular", "--video", "o.mp4",
+      "--video-fps", "0"], "--video-fps: must be above 0.0, got 0")])
 def test_numbers_out_of_range_stop_at_the_command_line(argv, said, capsys):
     with pytest.raises(SystemExit):
         main(argv)
@@ -921,7 +923,9 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     (tmp_path / "broken.mp4").write_bytes(b"not a video")
     for argv, said in (([str(tmp_path / "broken.mp4")], "cannot read video"),
                        ([frames[0], "--every", "2"], "--every picks a video's or a bag's frames"),
-                       ([str(tmp_path / "drive.avi"), "--rig"], "not videos")):
+                       ([str(tmp_path / "drive.avi"), "--rig"], "not videos"),
+                       ([frames[0], "--min-score", "0.5"], "--min-score is detection's"),
+                       ([frames[0], "--video-fps", "5"], "--video-fps is --video's frame rate")):
         assert main(["predict", "seg", str(tmp_path / "seg.pt"), *argv, *common]) == 2
         assert said in capsys.readouterr().err, said
 

@@ -25,6 +25,9 @@ from .cli_inputs import (
 from .videos import VIDEO_SUFFIXES, is_video, split_frame
 from .videos import frames as video_frames
 
+#: the score from which ``predict det`` draws and lists boxes
+MIN_SCORE = 0.3
+
 
 def add_predict_parser(sub, fmt, full: bool = True) -> None:
     """The ``predict`` subcommand and its options (``full=False``: its name and help only)."""
@@ -36,7 +39,7 @@ def add_predict_parser(sub, fmt, full: bool = True) -> None:
                                    "spherical boxes (JSON, PANDORA's degrees) drawn on it.")
     if not full:
         return
-    from .cli_det import add_device_option, estimate_options, positive_int, share
+    from .cli_det import add_device_option, at_least, estimate_options, positive_int, share
     from .frontend.choices import METHODS
 
     p.add_argument("task", choices=["seg", "det"], help="the checkpoint's task")
@@ -82,14 +85,14 @@ def add_predict_parser(sub, fmt, full: bool = True) -> None:
                         "point's label (the default; the protocols'); soft: the argmax of the "
                         "probabilities blended over the three nearest points, smoother "
                         "on images finer than the grid (README, Your own images)")
-    p.add_argument("--min-score", type=share, default=0.3,
-                   help="det: boxes drawn and listed from this score (the JSON keeps every box "
-                        "from 0.05)")
+    p.add_argument("--min-score", type=share, default=None,
+                   help=f"det: boxes drawn and listed from this score (default: {MIN_SCORE}; "
+                        "the JSON keeps every box from 0.05)")
     p.add_argument("--video", default=None, metavar="AVI|MP4",
                    help="also write every frame's picture (seg: the image beside its labels; "
                         "det: the boxes drawn) into this video, e.g. for a bag or a video")
-    p.add_argument("--video-fps", type=float, default=10.0, metavar="FPS",
-                   help="--video's frame rate")
+    p.add_argument("--video-fps", type=at_least(0.0, float, above=True), default=None,
+                   metavar="FPS", help="--video's frame rate (default: 10)")
     p.add_argument("--out", default="predictions", metavar="DIR",
                    help="folder for <image name>_labels.png and _seg.png (seg), or "
                         "_boxes.json and _boxes.png (det)")
@@ -162,6 +165,10 @@ def cmd_predict(args) -> int:
     check_panorama_videos(args)
     if args.render and args.task != "seg":
         raise ValueError("--render is segmentation's: a detector's answer is boxes")
+    if args.min_score is not None and args.task != "det":
+        raise ValueError("--min-score is detection's: a segmenter labels every pixel")
+    if args.video_fps is not None and args.video is None:
+        raise ValueError("--video-fps is --video's frame rate: give --video OUT.mp4 too")
     ckpt = load_protocol_model(args.checkpoint).require(args.task, spherical=True)
     model = ready_model(ckpt, args)  # loaded once for every image
     names = class_names(args.task, model.config["num_classes"])
@@ -171,7 +178,7 @@ def cmd_predict(args) -> int:
     if args.video is not None:
         from .viz import FrameVideo
 
-        video = FrameVideo(args.video, args.video_fps)
+        video = FrameVideo(args.video, args.video_fps or 10.0)
     run = partial(_predict_seg if args.task == "seg" else _predict_det, video=video)
     try:
         _predict_all(run, model, names, out, args, rig_bag, streams)
@@ -311,12 +318,13 @@ def _predict_det(model, stems, sources, images, cam, names, out: Path, args, up=
     stem = stems[0]
     _write_boxes(r, names, out / f"{stem}_boxes.json", sources,
                  args.camera or "the bag's camera_info")
-    keep = r["scores"] >= args.min_score
+    min_score = MIN_SCORE if args.min_score is None else args.min_score
+    keep = r["scores"] >= min_score
     if keep.any():
         print(f"{'class':>14} score  [lon, lat, fov_x, fov_y, gamma] in degrees, as in the JSON")
     for b, c, s in zip(_pandora(r["boxes"][keep]), r["classes"][keep], r["scores"][keep]):
         print(f"{names[c]:>14} {s:.2f}   [" + ", ".join(f"{v:.1f}" for v in b) + "]")
-    print(f"{int(keep.sum())} of {len(keep)} boxes score {args.min_score:g} or more")
+    print(f"{int(keep.sum())} of {len(keep)} boxes score {min_score:g} or more")
     cams = list(cam.values()) if args.rig else [cam]
     pictures = []
     for s, image, c in zip(stems, images, cams):  # each camera draws what it sees
