@@ -204,6 +204,7 @@ def test_render_into_and_out_of_cube_maps(tmp_path, capsys):
     assert main(["camera", "cubemap:32:dice"]) == 0
     assert "100.00% of the sphere" in capsys.readouterr().out
     for spec, image, why in (("cubemap:big", "pano.png", "write cubemap[:SIZE][:LAYOUT]"),
+                             ("cubemap:0:dice", "pano.png", "'cubemap:0:dice': write cubemap[:SIZE]"),
                              ("cubemap", "pano.png", "a cube map's is 6:1 (horizon, c6x1), 4:3 (dice)"),
                              ("cubemap:horizon", "dice.png", "give its layout and face size"),
                              ("cubemap", "eac.png", "3:2: name its kind, cubemap:c3x2")):

@@ -132,7 +132,7 @@ def _cubemap(spec: str, image_shape):
         return EquiAngularCubemap(image_shape[1], image_shape[0])
     parts = [p.lower() for p in spec.split(":")[1:] if p]
     layouts, sizes = [p for p in parts if p in LAYOUTS], [p for p in parts if p not in LAYOUTS]
-    if len(layouts) > 1 or len(sizes) > 1 or (sizes and not sizes[0].isdigit()):
+    if len(layouts) > 1 or len(sizes) > 1 or (sizes and not (sizes[0].isdigit() and int(sizes[0]))):
         raise ValueError(f"{spec!r}: write cubemap[:SIZE][:LAYOUT], e.g. cubemap:512 or "
                          f"cubemap:512:dice (layouts: {', '.join(LAYOUTS)})")
     layout = layouts[0] if layouts else None
