@@ -670,6 +670,12 @@ def test_bad_inputs_name_the_problem():
         SphericalConv(1, 1, 0.1, normalize="sum")
     with pytest.raises(ValueError, match="kernel must be 'basis' or 'mlp', got 'gauss'"):
         SphericalConv(1, 1, 0.1, kernel="gauss")
+    for args, said in (((0, 4, 0.3), "in_channels must be a positive integer, got 0"),
+                       ((3, 2.5, 0.3), "out_channels must be a positive integer, got 2.5"),
+                       ((3, 4, 0.0), "radius must be a positive finite geodesic distance"),
+                       ((3, 4, float("nan")), "radius must be .* got nan")):
+        with pytest.raises(ValueError, match=said):
+            SphericalConv(*args)
     conv = SphericalConv(2, 2, 0.5)
     g = grids.icosahedral(1)
     ei, ew = geodesic_radius_graph(g.pos, 0.5)

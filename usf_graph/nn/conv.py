@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from torch import nn
@@ -101,6 +103,12 @@ class DistanceConv(GeometryModule, MessagePassing):
             raise ValueError(f"kernel must be 'basis' or 'mlp', got {kernel!r}")
         if normalize not in NORMALIZE:
             raise ValueError(f"normalize must be one of {NORMALIZE}, got {normalize!r}")
+        for name, n in (("in_channels", in_channels), ("out_channels", out_channels), ("hidden", hidden)):
+            if int(n) != n or n < 1:
+                raise ValueError(f"{name} must be a positive integer, got {n!r}")
+        if not (math.isfinite(radius) and radius > 0):
+            raise ValueError(f"radius must be a positive finite geodesic distance in radians (or "
+                             f"a distance in R3), got {radius!r}")
         self.in_channels, self.out_channels = in_channels, out_channels
         self.radius, self.num_basis, self.kernel_type = float(radius), num_basis, kernel
         self.normalize = normalize
