@@ -17,14 +17,13 @@ def checkpoint_rows(path) -> list[tuple[str, str]]:
     """What a checkpoint holds, as (field, value) rows for people: the model and its input,
     what it was trained on, the scores saved with it and what made it."""
     from .train import load_checkpoint
+    from .train.checkpoints import model_name
     from .train.provenance import describe
 
     blob = load_checkpoint(path)
     cfg, data = blob["config"], blob.get("data", {})
     level = cfg.get("input_level", cfg.get("level"))
-    name = cfg.get("model") or ("planar_detector" if "height" in cfg else
-                                "spherical_detector" if "head_level" in cfg else
-                                "spherical_classifier" if level is not None else "planar_cnn")
+    name = model_name(blob) or "a model of unknown kind"
     numbers = sum(v.numel() for v in blob["state_dict"].values() if hasattr(v, "numel"))
     seen = (f"icosahedral:{level} ({10 * 4 ** level + 2} points)" if level is not None else
             f"{2 * cfg['size']}x{cfg['size']} panoramas" if "size" in cfg else

@@ -1,8 +1,15 @@
 import pytest
 import torch
 
-from usf_graph.models import PlanarDetector, PlanarUNet, SphericalDetector, SphericalUNet
-from usf_graph.train.checkpoints import load_protocol_model
+from usf_graph.models import (
+    PlanarCNN,
+    PlanarDetector,
+    PlanarUNet,
+    SphericalClassifier,
+    SphericalDetector,
+    SphericalUNet,
+)
+from usf_graph.train.checkpoints import load_protocol_model, model_name
 from usf_graph.train.engine import save_checkpoint
 
 
@@ -50,6 +57,23 @@ def test_a_checkpoint_of_another_kind_is_refused(tmp_path):
     save_checkpoint(tmp_path / "m.pt", model, {"model": "sign_check"}, {})
     with pytest.raises(ValueError, match="not a checkpoint of 'usf-graph train seg|det'.*'sign_check'"):
         load_protocol_model(tmp_path / "m.pt")
+    save_checkpoint(tmp_path / "m.pt", model, {"in_channels": 2}, {})
+    with pytest.raises(ValueError, match="not a checkpoint of 'usf-graph train seg|det'.*None"):
+        load_protocol_model(tmp_path / "m.pt")
+
+
+def test_one_rule_names_every_kind_of_checkpoint():
+    """The names ``usf-graph info`` shows and that :func:`load_protocol_model` reads: from
+    the configs the models save, MNIST's by what the run records or, before it did, by
+    their configs' keys."""
+    mnist = SphericalClassifier(level=2, channels=(4, 4))
+    blobs = [({"config": cfg}, name) for _, cfg, _, name, _ in _models()]
+    blobs += [({"config": mnist.config}, "spherical_classifier"),
+              ({"config": PlanarCNN().config}, "planar_cnn"),
+              ({"config": {}, "data": {"dataset": "mnist", "model": "planar"}}, "planar_cnn"),
+              ({"config": {"in_channels": 2}}, None)]
+    for blob, name in blobs:
+        assert model_name(blob) == name, blob["config"]
 
 
 def test_rooms_seed_defaults_to_the_checkpoints_and_refuses_its_training_rooms(capsys):

@@ -82,6 +82,25 @@ def _default_size(task: str) -> int:
     return defaults(seg.run if task == "seg" else det.run)["size"]
 
 
+#: the names :func:`model_name` gives ``usf-graph train mnist``'s two models
+CLASSIFIERS = {"spherical": "spherical_classifier", "planar": "planar_cnn"}
+
+
+def model_name(blob: dict) -> str | None:
+    """The name of the model a loaded checkpoint holds, the one rule every reader follows:
+    ``usf-graph train mnist``'s (:data:`CLASSIFIERS`), a segmentation model's own
+    (``config["model"]``), else a detector's (``planar_detector`` where the config has the
+    image ``height``, ``spherical_detector``); None for a config none of these."""
+    if (kind := classifier_kind(blob)) is not None:
+        return CLASSIFIERS[kind]
+    cfg = blob.get("config") or {}
+    if cfg.get("model") is not None:
+        return cfg["model"]
+    if "num_classes" in cfg:
+        return "planar_detector" if "height" in cfg else "spherical_detector"
+    return None
+
+
 def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     """The model a checkpoint of ``usf-graph train seg|det`` (or of an example saving one
     of the same kind) holds, with its trained weights (``weights=False``: freshly
@@ -90,20 +109,19 @@ def load_protocol_model(path, weights: bool = True) -> ProtocolCheckpoint:
     has the image ``height``."""
     blob = load_checkpoint(path)
     cfg = dict(blob["config"])
-    name, size = cfg.pop("model", None), cfg.pop("size", None)
+    name, size = model_name(blob), cfg.pop("size", None)
+    cfg.pop("model", None)
     data = blob.get("data", {})  # what it was trained on: dataset, and fold or seed
     dataset, fold, seed = data.get("dataset"), data.get("fold"), data.get("seed")
-    if (kind := classifier_kind(blob)) is not None:
-        raise ValueError(f"{path} holds the {kind} MNIST classifier of "
+    if name in CLASSIFIERS.values():
+        raise ValueError(f"{path} holds the {classifier_kind(blob)} MNIST classifier of "
                          "'usf-graph train mnist', not a seg|det model; score it with "
                          "'usf-graph eval mnist'")
     if name in seg.MODELS:
         task, model = "seg", seg.MODELS[name].from_config(cfg)
-    elif name is None and "num_classes" in cfg:
+    elif name in ("planar_detector", "spherical_detector"):
         task = "det"
-        planar = "height" in cfg
-        name = "planar_detector" if planar else "spherical_detector"
-        model = (PlanarDetector if planar else SphericalDetector).from_config(cfg)
+        model = (PlanarDetector if name == "planar_detector" else SphericalDetector).from_config(cfg)
     else:
         raise ValueError(f"{path} is not a checkpoint of 'usf-graph train seg|det' (its config "
                          f"names model {name!r})")
