@@ -104,6 +104,58 @@ def test_a_diverging_run_stops_with_a_clear_error_and_keeps_the_last_epoch(tmp_p
     assert blob["epoch"] == 1 and all(torch.isfinite(v).all() for v in blob["state_dict"].values())
 
 
+def test_tensorboard_gets_every_epochs_row_and_is_closed(tmp_path, monkeypatch):
+    """With ``tensorboard`` installed (a stand-in here: the suite does not install it), each
+    epoch's metrics.csv row goes to TensorBoard as scalars at that epoch, and the writer is
+    closed, also when training stops early, so that its last events reach the disk."""
+    import types
+
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.train.engine import fit
+
+    writers = []
+
+    class Writer:
+        def __init__(self, log_dir):
+            self.log_dir, self.scalars, self.closed = log_dir, [], False
+            writers.append(self)
+
+        def add_scalar(self, tag, value, step):
+            self.scalars.append((tag, value, step))
+
+        def close(self):
+            self.closed = True
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.close()
+
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard",
+                        types.SimpleNamespace(SummaryWriter=Writer))
+    torch.manual_seed(0)
+    data = TensorDataset(torch.randn(8, 2), torch.randn(8, 1))
+
+    def step(m, batch):
+        x, y = batch
+        return ((m(x) - y) ** 2).mean(), {}, len(x)
+
+    hist = fit(torch.nn.Linear(2, 1), data, epochs=2, batch_size=4, lr=0.01, log_dir=tmp_path,
+               progress=False, step=step)["history"]
+    (w,) = writers
+    assert w.log_dir == str(tmp_path) and w.closed
+    assert w.scalars == [(k, v, row["epoch"]) for row in hist for k, v in row.items() if k != "epoch"]
+
+    def stop(epoch, row):
+        raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        fit(torch.nn.Linear(2, 1), data, epochs=2, batch_size=4, lr=0.01, log_dir=tmp_path / "b",
+            progress=False, step=step, on_epoch=stop)
+    assert writers[1].closed and len(writers[1].scalars) == 2  # train_loss and lr of epoch 1
+
+
 @pytest.mark.parametrize("kw, said", [
     (dict(epochs=0), "epochs and batch_size must be whole numbers of at least 1, got 0 and 2"),
     (dict(epochs=-1), "got -1 and 2"), (dict(batch_size=0), "got 1 and 0"),

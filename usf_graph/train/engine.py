@@ -3,6 +3,7 @@ DDP: :mod:`.devices`)."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import inspect
 import json
@@ -293,48 +294,49 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
         if stateful is not None:
             stateful.load_state_dict(blob["collate"])
     writer = _tensorboard(log_dir) if rank == 0 else None
-    for epoch in range(start, epochs):
-        model.train()
-        if frozen_norms:
-            freeze_norms(model)
-        bar = tqdm(_batches(train, batch_size, True, seed, epoch, collate_fn, groups), leave=False,
-                   desc=f"{name} epoch {epoch + 1}/{epochs}", disable=not progress or rank != 0)
-        mean = _Mean()
-        for i, batch in enumerate(bar):
-            loss, stats, n = step(model, batch if dev.type == "cpu" else to_device(batch, dev))
-            if not torch.isfinite(loss.detach()).all():
-                # one bad step makes every weight NaN; stop before a checkpoint keeps them
-                raise FloatingPointError(
-                    f"{name}: the loss is {loss.detach().flatten()[0].item()} at epoch {epoch + 1}, "
-                    f"batch {i + 1}: training diverged; lower the learning rate (lr={lr}) or "
-                    f"check the inputs for NaN" + (f"; {log_dir / 'last.pt'} holds the last "
-                                                   "finished epoch" if log_dir is not None else ""))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            mean.add(loss.detach(), stats, n)
-            bar.set_postfix({k: f"{v:.3f}" for k, v in mean.means().items()})
-        row = {"epoch": epoch + 1, **{f"train_{k}": v for k, v in mean.means().items()},
-               "lr": sched.get_last_lr()[0]}
-        if val is not None and rank == 0:
-            v = evaluate(model.module if world > 1 else model, val, progress=False, step=step,
-                         collate_fn=collate_fn, batch_size=max(batch_size, 32))
-            row.update({f"val_{k}": x for k, x in v.items()})
-        history.append(row)
-        if rank == 0:
-            if progress:
-                tqdm.write(f"{name} epoch {epoch + 1}/{epochs}: " +
-                           ", ".join(f"{k}={v:.4g}" for k, v in row.items() if k != "epoch"))
-            if log_dir is not None:
-                _log(log_dir, history, writer)
-                state = {"plan": plan, "rng": torch.get_rng_state()}
-                if stateful is not None:
-                    state["collate"] = stateful.state_dict()
-                save_checkpoint(log_dir / "last.pt", model, config or {}, {"history": history},
-                                opt, sched, epoch + 1, extra=state)
-            if on_epoch is not None:
-                on_epoch(epoch, row)
+    with writer or contextlib.nullcontext():  # closed, so TensorBoard has every epoch
+        for epoch in range(start, epochs):
+            model.train()
+            if frozen_norms:
+                freeze_norms(model)
+            bar = tqdm(_batches(train, batch_size, True, seed, epoch, collate_fn, groups), leave=False,
+                       desc=f"{name} epoch {epoch + 1}/{epochs}", disable=not progress or rank != 0)
+            mean = _Mean()
+            for i, batch in enumerate(bar):
+                loss, stats, n = step(model, batch if dev.type == "cpu" else to_device(batch, dev))
+                if not torch.isfinite(loss.detach()).all():
+                    # one bad step makes every weight NaN; stop before a checkpoint keeps them
+                    raise FloatingPointError(
+                        f"{name}: the loss is {loss.detach().flatten()[0].item()} at epoch {epoch + 1}, "
+                        f"batch {i + 1}: training diverged; lower the learning rate (lr={lr}) or "
+                        f"check the inputs for NaN" + (f"; {log_dir / 'last.pt'} holds the last "
+                                                       "finished epoch" if log_dir is not None else ""))
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                sched.step()
+                mean.add(loss.detach(), stats, n)
+                bar.set_postfix({k: f"{v:.3f}" for k, v in mean.means().items()})
+            row = {"epoch": epoch + 1, **{f"train_{k}": v for k, v in mean.means().items()},
+                   "lr": sched.get_last_lr()[0]}
+            if val is not None and rank == 0:
+                v = evaluate(model.module if world > 1 else model, val, progress=False, step=step,
+                             collate_fn=collate_fn, batch_size=max(batch_size, 32))
+                row.update({f"val_{k}": x for k, x in v.items()})
+            history.append(row)
+            if rank == 0:
+                if progress:
+                    tqdm.write(f"{name} epoch {epoch + 1}/{epochs}: " +
+                               ", ".join(f"{k}={v:.4g}" for k, v in row.items() if k != "epoch"))
+                if log_dir is not None:
+                    _log(log_dir, history, writer)
+                    state = {"plan": plan, "rng": torch.get_rng_state()}
+                    if stateful is not None:
+                        state["collate"] = stateful.state_dict()
+                    save_checkpoint(log_dir / "last.pt", model, config or {}, {"history": history},
+                                    opt, sched, epoch + 1, extra=state)
+                if on_epoch is not None:
+                    on_epoch(epoch, row)
     if world > 1:
         dist.barrier()  # rank 0 may still be evaluating or writing; leave fit together
     return {"history": history}
