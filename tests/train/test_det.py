@@ -316,7 +316,8 @@ def test_a_bad_channel_scale_stops_a_protocol_before_it_renders(tmp_path, task):
     import importlib
 
     module = importlib.import_module(f"usf_graph.train.{task}")
-    with pytest.raises(ValueError, match="channel scale must be in"):
-        module.run(root=tmp_path / "rooms", out=tmp_path / "out", channel_scale=-0.5,
-                   progress=False)
+    for kw, said in ((dict(channel_scale=-0.5), "channel scale must be in"),
+                     (dict(fov_share=-0.1), "random fields of view must be in")):
+        with pytest.raises(ValueError, match=said):
+            module.run(root=tmp_path / "rooms", out=tmp_path / "out", progress=False, **kw)
     assert not (tmp_path / "rooms").exists() and not (tmp_path / "out").exists()

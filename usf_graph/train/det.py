@@ -37,7 +37,7 @@ from .engine import (
     seed_everything,
     write_results,
 )
-from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
+from .fov import FOV_SHARE, FieldDraws, RandomFields, check_share, second_phase
 from .gravity import (
     check_extra_rooms,
     given_up,
@@ -251,6 +251,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     :func:`make_detector`), in training and in every test."""
     check_channel_scale(channel_scale)  # these before any rendering
     check_materials(materials)
+    check_share(fov_share)
     check_extra_rooms(seed, up_extra if upright else 0)
     dev = resolve_device(device)
     rank, _ = setup_distributed()

@@ -95,6 +95,14 @@ class FieldDraws:
         self.fields.generator.set_state(state["generator"])
 
 
+def check_share(share: float) -> None:
+    """Refuse a share of batches (``fov_share``) outside [0, 1], the protocols before any
+    rendering and :class:`RandomFields` when built."""
+    if not 0 <= share <= 1:
+        raise ValueError(f"the share of batches through random fields of view must be in "
+                         f"[0, 1], got {share}")
+
+
 class RandomFields:
     """Fields of view to train a share of the batches through: ``fields(mask)`` is ``None``
     (leave this batch whole) with probability ``1 - share``, else one
@@ -106,8 +114,7 @@ class RandomFields:
 
     def __init__(self, pos: torch.Tensor, share: float, seed: int = 0,
                  camera: Camera | None = None, turn: str = "yaw"):
-        if not 0 <= share <= 1:
-            raise ValueError(f"share must be in [0, 1], got {share}")
+        check_share(share)
         if pos.dim() != 2 or pos.shape[1] != 3:
             raise ValueError(f"pos must be the grid's points [N, 3], got {tuple(pos.shape)}")
         self.pos, self.share = pos.double(), float(share)

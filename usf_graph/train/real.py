@@ -49,6 +49,7 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
 
     dev = resolve_device(device)
     rank, _ = setup_distributed()
+    seg.check_models(models, level)
     seed_everything(seed)
     out, t0 = Path(out), time.time()
     kw = dict(grid=f"icosahedral:{level}", size=size, progress=progress)
@@ -144,6 +145,7 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
     if planar := [m for m in models if m not in ("spherical_unet", "spherical_deeplab")]:
         raise ValueError(f"WoodScape trains the spherical models (spherical_unet, "
                          f"spherical_deeplab), not {planar}")
+    seg.check_models(models, level)
     dev = resolve_device(device)
     rank, _ = setup_distributed()
     seed_everything(seed)

@@ -23,6 +23,7 @@ does not see), and its predictions are rendered back into their pixels.
 
 from __future__ import annotations
 
+import math
 import time
 from functools import partial
 from pathlib import Path
@@ -44,7 +45,7 @@ from .engine import (
     seed_everything,
     write_results,
 )
-from .fov import FOV_SHARE, FieldDraws, RandomFields, second_phase
+from .fov import FOV_SHARE, FieldDraws, RandomFields, check_share, second_phase
 from .gravity import (
     check_extra_rooms,
     known_up,
@@ -194,6 +195,23 @@ def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
     return sets
 
 
+#: the coarsest input level of the spherical models: they pool three times
+MIN_LEVEL = 3
+
+
+def check_models(models, level: int) -> None:
+    """Refuse, before any data is read, a protocol's ``models`` that it cannot train on
+    ``icosahedral:level``: none, an unknown name, or a spherical model below
+    :data:`MIN_LEVEL`."""
+    if not models:
+        raise ValueError(f"no models to train: name at least one of {sorted(MODELS)}")
+    if unknown := sorted(set(models) - set(MODELS)):
+        raise ValueError(f"unknown models {unknown}: choose from {sorted(MODELS)}")
+    if level < MIN_LEVEL and any(m != "planar_unet" for m in models):
+        raise ValueError(f"level {level}: the spherical models pool three times, from "
+                         f"icosahedral:L down to L - 3; give a level of at least {MIN_LEVEL}")
+
+
 def make_model(name: str, level: int = 5, upright: bool = True,
                channel_scale: float = 1.0, gray: bool = False,
                num_classes: int = len(SEMANTIC_CLASSES)) -> nn.Module:
@@ -208,8 +226,7 @@ def make_model(name: str, level: int = 5, upright: bool = True,
     up estimate keeps its own). ``gray``: the model reads only its input's luma (for mono
     cameras; :class:`~usf_graph.models.upnet.WithUp`). ``num_classes``: the rooms' 13 by
     default."""
-    if name not in MODELS:
-        raise ValueError(f"model must be one of {sorted(MODELS)}, got {name!r}")
+    check_models([name], level)
     C = num_classes
     widths = scaled_channels(MODELS[name], channel_scale)
     if name == "planar_unet":
@@ -309,10 +326,13 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     its tests gray as well."""
     check_channel_scale(channel_scale)  # these before any rendering
     check_materials(materials)
+    check_share(fov_share)
+    if not (math.isfinite(balance) and balance >= 0):
+        raise ValueError(f"balance is the class weights' power (0: none, 1: full "
+                         f"median-frequency balancing), got {balance}")
     check_extra_rooms(seed, up_extra)
     dev = resolve_device(device)
-    if unknown := sorted(set(models) - set(MODELS)):
-        raise ValueError(f"unknown models {unknown}: choose from {sorted(MODELS)}")
+    check_models(models, level)
     rank, _ = setup_distributed()
     seed_everything(seed)
     out, t0 = Path(out), time.time()
