@@ -122,8 +122,10 @@ def test_spec_round_trip_and_errors():
     assert len(grids.from_spec("equiangular:8,16")) == 128
     with pytest.raises(ValueError, match="unknown grid"):
         grids.from_spec("cube:3")
-    g = grids.from_spec("healpix:4,ring")
-    assert grids.from_spec(g.spec).params == g.params  # a grid's own spec reads back
+    for g in (grids.icosahedral(2), grids.healpix(4), grids.healpix(4, nest=False),
+              grids.fibonacci(100), grids.equiangular(8, 16)):  # a grid's own spec reads back
+        back = grids.from_spec(g.spec)
+        assert back.params == g.params and torch.equal(back.pos, g.pos), g.spec
     assert grids.from_spec("healpix:4").params == grids.from_spec("healpix:4,nest").params \
         == {"nside": 4, "nest": True}
     for bad in ("healpix:4,rnig", "healpix:4,ring,2", "healpix:"):  # a typo picks no ordering
