@@ -1136,14 +1136,16 @@ def test_train_mnist_refuses_the_options_of_train_det_and_seg(capsys):
                         (["--dataset", "pandora", "--fold", "2"], "--dataset, --fold"),
                         (["--gray"], "--gray")):
         assert main(["train", "mnist", *argv]) == 2
-        assert f"{named}: options of 'train det|seg', not of 'train mnist'" in capsys.readouterr().err
+        what = "options" if "," in named else "an option"
+        assert f"{named}: {what} of 'train det|seg', not of 'train mnist'" in capsys.readouterr().err
 
 
 def test_eval_mnist_refuses_the_options_of_eval_det_and_seg(tmp_path, capsys):
     for argv, named in ((["--test", "a"], "--test"), (["--known-up", "--fold", "2"], "--fold, --known-up"),
                         (["--gray"], "--gray")):
         assert main(["eval", "mnist", str(tmp_path / "m.pt"), *argv]) == 2
-        assert f"{named}: options of 'eval det|seg'" in capsys.readouterr().err
+        what = "options" if "," in named else "an option"
+        assert f"{named}: {what} of 'eval det|seg', not of 'eval mnist'" in capsys.readouterr().err
     for task, argv, said in (("seg", ["--rotate", "none"], "--rotate: an option of 'eval mnist', not of 'eval seg'"),
                              ("det", ["--source", "idx", "--rotate", "so3"],
                               "--rotate, --source: options of 'eval mnist', not of 'eval det'")):

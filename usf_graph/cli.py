@@ -81,7 +81,7 @@ def _task_command(task: str, verb: str):
 
 
 def cmd_train(args) -> int:
-    from .cli_det import given_or_default
+    from .cli_det import given_or_default, refuse_options
     from .train import teardown_distributed
     from .train.mnist import format_table, run
 
@@ -93,8 +93,7 @@ def cmd_train(args) -> int:
              if getattr(args, n) is not None]
     other += ["--dataset"] * (args.dataset != "rooms") + ["--fold"] * (args.fold != "1")
     other += ["--gray"] * args.gray  # MNIST's digits are gray already
-    if other:  # rather than ignore them
-        raise ValueError(f"{', '.join(other)}: options of 'train det|seg', not of 'train mnist'")
+    refuse_options(other, "train det|seg", "train mnist")
     res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", planar=not args.no_planar,
               **given_or_default(args, run, ("epochs", "batch_size", "level", "input_level",
                                              "min_level", "source", "pairs", "pair_stages")),
@@ -112,19 +111,16 @@ def cmd_train(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from .cli_det import given
+    from .cli_det import given, refuse_options
 
     if args.task != "mnist":
-        if mnist := given(args, "rotate", "source"):  # rather than ignore them
-            raise ValueError(f"{', '.join(mnist)}: {'an option' if len(mnist) == 1 else 'options'}"
-                             f" of 'eval mnist', not of 'eval {args.task}' (its tests: --test, "
-                             "b being the SO(3)-rotated one)")
+        refuse_options(given(args, "rotate", "source"), "eval mnist", f"eval {args.task}",
+                       " (its tests: --test, b being the SO(3)-rotated one)")
         return _task_command(args.task, "eval")(args)
     other = given(args, "dataset", "fold", "test", "size", "num_test", "boxes", "known_up",
                   "up_lines", "level_prior", "sign_check", "render", "gray", "camera", "key",
                   "fov", "image_mask", "figure")
-    if other:  # rather than ignore them
-        raise ValueError(f"{', '.join(other)}: options of 'eval det|seg', not of 'eval mnist'")
+    refuse_options(other, "eval det|seg", "eval mnist")
     from .train.mnist import score
     from .train.provenance import announce
 

@@ -188,14 +188,21 @@ def rooms_only_options(args) -> None:
                          "trains on its own training split")
 
 
+def refuse_options(flags: list[str], owner: str, command: str, hint: str = "") -> None:
+    """Refuse ``flags`` given to ``command`` that only ``owner`` reads, rather than ignore
+    them."""
+    if flags:
+        what = "an option" if len(flags) == 1 else "options"
+        raise ValueError(f"{', '.join(flags)}: {what} of '{owner}', not of '{command}'{hint}")
+
+
 def mnist_only_options(args, task: str, *keep: str) -> None:
     """Refuse the options of ``train mnist`` that ``train <task>`` does not read (all but
-    ``keep``), rather than ignore them."""
+    ``keep``)."""
     names = ("level", "input_level", "min_level", "source", "pairs", "pair_stages")
-    if mnist := [f"--{n.replace('_', '-')}" for n in names
-                 if n not in keep and getattr(args, n, None) is not None]:
-        what = "an option" if len(mnist) == 1 else "options"
-        raise ValueError(f"{', '.join(mnist)}: {what} of 'train mnist', not of 'train {task}'")
+    refuse_options([f"--{n.replace('_', '-')}" for n in names
+                    if n not in keep and getattr(args, n, None) is not None],
+                   "train mnist", f"train {task}")
 
 
 def rooms_kind(results: dict) -> str:
