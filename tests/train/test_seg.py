@@ -328,7 +328,7 @@ def test_an_unknown_model_stops_the_protocol_before_it_renders(tmp_path):
 def test_a_plan_the_models_cannot_train_is_refused_before_any_rendering(tmp_path, capsys):
     for kw, said in ((dict(models=()), "no models to train"),
                      (dict(models=("spherical_unet", "unet")), r"unknown models \['unet'\]"),
-                     (dict(level=2), "level 2: the spherical models pool three times"),
+                     (dict(level=2), "level 2: the spherical models need icosahedral:3 or finer"),
                      (dict(fov_share=1.5), r"random fields of view must be in \[0, 1\], got 1.5"),
                      (dict(balance=-1.0), "balance is the class weights' power")):
         with pytest.raises(ValueError, match=said):
@@ -336,5 +336,5 @@ def test_a_plan_the_models_cannot_train_is_refused_before_any_rendering(tmp_path
     with pytest.raises(ValueError, match="give a level of at least 3"):
         make_model("spherical_deeplab", level=2)
     assert main(["train", "seg", "--root", str(tmp_path / "rooms"), "--level", "1"]) == 2
-    assert "level 1: the spherical models pool three times" in capsys.readouterr().err
+    assert "level 1: the spherical models need icosahedral:3" in capsys.readouterr().err
     assert not (tmp_path / "rooms").exists() and not (tmp_path / "out").exists()

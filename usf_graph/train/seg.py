@@ -195,7 +195,7 @@ def protocol_sets(root, size: int = 96, level: int = 5, num_train: int = 200,
     return sets
 
 
-#: the coarsest input level of the spherical models: they pool three times
+#: the coarsest input level of the spherical models (the U-Net pools three times)
 MIN_LEVEL = 3
 
 
@@ -208,8 +208,8 @@ def check_models(models, level: int) -> None:
     if unknown := sorted(set(models) - set(MODELS)):
         raise ValueError(f"unknown models {unknown}: choose from {sorted(MODELS)}")
     if level < MIN_LEVEL and any(m != "planar_unet" for m in models):
-        raise ValueError(f"level {level}: the spherical models pool three times, from "
-                         f"icosahedral:L down to L - 3; give a level of at least {MIN_LEVEL}")
+        raise ValueError(f"level {level}: the spherical models need icosahedral:{MIN_LEVEL} or "
+                         f"finer (the U-Net pools three times); give a level of at least {MIN_LEVEL}")
 
 
 def make_model(name: str, level: int = 5, upright: bool = True,
