@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from usf_graph.fileio import XMP_ID, exif_orientation, mark_360_photo
+from usf_graph.cli import main
+from usf_graph.fileio import XMP_ID, exif_orientation, mark_360_photo, write_image
 
 GPANO = "{http://ns.google.com/photos/1.0/panorama/}"
 
@@ -125,3 +126,21 @@ def test_an_image_is_read_as_stored_whatever_viewers_turn_and_the_user_is_told(t
     _tagged_jpeg(tmp_path / "upright.jpg", pixels, 1)
     assert read_image(tmp_path / "upright.jpg").shape == (16, 24, 3)
     assert capsys.readouterr().out == ""
+
+
+def test_write_image_writes_what_opencv_reads_and_refuses_what_it_cannot(tmp_path, capsys):
+    img = np.random.default_rng(0).integers(0, 256, (12, 20, 3), dtype=np.uint8)
+    write_image(tmp_path / "a" / "img.png", img)  # its folder made
+    assert np.array_equal(cv2.imread(str(tmp_path / "a" / "img.png")), img)
+    labels = np.arange(240, dtype=np.uint8).reshape(12, 20)
+    write_image(tmp_path / "labels.png", labels)
+    assert np.array_equal(cv2.imread(str(tmp_path / "labels.png"), cv2.IMREAD_UNCHANGED), labels)
+    for name in ("img.xyz", "img"):  # no writer for either suffix
+        with pytest.raises(ValueError, match=f"cannot write .*{name}: use an image suffix"):
+            write_image(tmp_path / name, img)
+        assert not (tmp_path / name).exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp file
+    cv2.imwrite(str(tmp_path / "pano.png"), np.zeros((16, 32, 3), np.uint8))
+    assert main(["render", str(tmp_path / "pano.png"), "--camera", "equirectangular", "--to",
+                 "equirectangular:32x16", "--out", str(tmp_path / "out.xyz")]) == 2
+    assert "use an image suffix OpenCV knows" in capsys.readouterr().err

@@ -74,12 +74,12 @@ def _overlay(cam, image_path: str, out: str) -> None:
     whole)."""
     import cv2
 
+    from .fileio import write_image
     from .viz import draw_graticule
 
     img = read_image(image_path)
     drawn = draw_graticule(img, fit_to_image(cam, img.shape))
-    if not cv2.imwrite(out, cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
-        raise ValueError(f"cannot write {out}: use an image suffix OpenCV knows (.png, .jpg)")
+    write_image(out, cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
     print(f"wrote {out}")
 
 

@@ -16,6 +16,7 @@ from .cli_inputs import (
     read_image,
     rig_from_spec,
 )
+from .fileio import write_image
 from .videos import frames as video_frames
 from .videos import info as video_info
 from .videos import is_video, split_frame
@@ -324,8 +325,8 @@ def cmd_render(args) -> int:
         out = cv2.cvtColor(out, cv2.COLOR_RGB2BGR if out.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
     if args.out.endswith(".npy"):
         np.save(args.out, out)
-    elif not cv2.imwrite(args.out, out):
-        raise ValueError(f"cannot write {args.out}: use an image suffix OpenCV knows (.png, .jpg)")
+    else:
+        write_image(args.out, out)
     print(f"wrote {args.out}")
     _mark_360(args.out, dst, (".jpg", ".jpeg"), "photo")
     return 0

@@ -22,6 +22,7 @@ from .cli_inputs import (
     rig_from_spec,
     rig_options,
 )
+from .fileio import write_image
 from .videos import VIDEO_SUFFIXES, is_video, split_frame
 from .videos import frames as video_frames
 
@@ -279,8 +280,6 @@ def _rig_cameras(images, sources, args):
 
 def _predict_seg(model, stems, sources, images, cam, names, out: Path, args, up=None,
                  video=None) -> None:
-    import cv2
-
     from .scenes import colourize
     from .train.apply import UNSEEN, segment_image
 
@@ -296,7 +295,7 @@ def _predict_seg(model, stems, sources, images, cam, names, out: Path, args, up=
         top = np.argsort(-shares)[:5]
         print(f"{stem}: " + ", ".join(f"{names[c]} {100 * shares[c]:.1f}%" for c in top
                                       if shares[c] > 0))
-        cv2.imwrite(str(out / f"{stem}_labels.png"), lab)
+        write_image(out / f"{stem}_labels.png", lab)
         _seg_figure(_as_uint8(image), lab, out / f"{stem}_seg.png", names)
         print(f"wrote {out / f'{stem}_labels.png'} (class index per pixel, {UNSEEN}: unseen) "
               f"and {out / f'{stem}_seg.png'}")
@@ -331,7 +330,7 @@ def _predict_det(model, stems, sources, images, cam, names, out: Path, args, up=
         scale = max(1, round(512 / max(c.width, c.height)))  # small images enlarged to about 512
         drawn = draw_boxes(_as_uint8(image), c, r["boxes"][keep],
                            [names[k] for k in r["classes"][keep]], scale=scale)
-        cv2.imwrite(str(out / f"{s}_boxes.png"), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
+        write_image(out / f"{s}_boxes.png", cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
         pictures.append(drawn)
     if video is not None:  # a rig's cameras side by side
         video.add(_stacked(pictures, axis=1))

@@ -1,5 +1,6 @@
 """Files: atomic writes (a temp file in the target's folder, then ``os.replace``),
-checksums, downloads, image decoding, and a JPEG panorama marked as a 360 photo.
+checksums, downloads, image encoding and decoding, and a JPEG panorama marked as a 360
+photo.
 
 Readers never see a partial file, concurrent writers of one path each leave a complete
 one, and a failed write removes its temp file.
@@ -35,6 +36,21 @@ def atomic_torch_save(obj, path) -> None:
     import torch
 
     atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def write_image(path, image) -> None:
+    """``cv2.imwrite(path, image)`` (BGR), atomically, and loud where OpenCV is not: a
+    suffix it has no writer for, or a failed write, raises ``ValueError`` naming the file."""
+    import cv2
+
+    path = Path(path)
+    try:
+        ok, data = cv2.imencode(path.suffix, image)
+    except cv2.error:  # OpenCV 5 raises for a suffix it has no writer for
+        ok = False
+    if not ok:
+        raise ValueError(f"cannot write {path}: use an image suffix OpenCV knows (.png, .jpg)")
+    atomic_write(path, lambda f: f.write(data.tobytes()))
 
 
 def decode_image(path, flags: int | None = None):
