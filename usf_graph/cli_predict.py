@@ -22,7 +22,7 @@ from .cli_inputs import (
     rig_from_spec,
     rig_options,
 )
-from .fileio import write_image
+from .fileio import atomic_write, write_image
 from .videos import VIDEO_SUFFIXES, is_video, split_frame
 from .videos import frames as video_frames
 
@@ -384,7 +384,7 @@ def _write_boxes(r: dict, names, path: Path, images, camera) -> None:
            "detections": [{"category": names[c], "category_index": int(c), "score": float(s),
                            "bbox": [float(v) for v in b]}
                           for b, c, s in zip(bbox, r["classes"], r["scores"])]}
-    path.write_text(json.dumps(doc, indent=1))
+    atomic_write(path, lambda f: f.write(json.dumps(doc, indent=1)), mode="w")
 
 
 def _seg_figure(rgb: np.ndarray, labels: np.ndarray, path: Path, names) -> None:

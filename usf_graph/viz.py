@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from .fileio import atomic_write  # noqa: E402
 from .geometry import to_latlon  # noqa: E402
 
 
@@ -119,8 +120,8 @@ def plot_mnist_results(results: dict, model, test_r, path, n: int = 6):
 
 def _finish(fig, path, rect=None):
     fig.tight_layout(rect=rect)
-    if path is not None:
-        fig.savefig(path, dpi=110)
+    if path is not None:  # atomically: a figure is never seen half written
+        atomic_write(path, lambda f: fig.savefig(f, dpi=110, format=Path(path).suffix[1:] or None))
         plt.close(fig)
     return fig
 

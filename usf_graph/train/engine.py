@@ -355,11 +355,13 @@ def _tensorboard(log_dir):
 def _log(log_dir: Path, history: list[dict], writer) -> None:
     log_dir.mkdir(parents=True, exist_ok=True)
     keys = sorted({k for r in history for k in r}, key=lambda k: (k != "epoch", k))
-    with open(log_dir / "metrics.csv", "w", newline="") as f:
+
+    def table(f):
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
         w.writerows(history)
-    (log_dir / "metrics.json").write_text(json.dumps(history, indent=1))
+    atomic_write(log_dir / "metrics.csv", table, mode="w")
+    atomic_write(log_dir / "metrics.json", lambda f: f.write(json.dumps(history, indent=1)), mode="w")
     if writer is not None:
         for k, v in history[-1].items():
             if k != "epoch":
