@@ -38,14 +38,15 @@ def atomic_torch_save(obj, path) -> None:
     atomic_write(path, lambda f: torch.save(obj, f))
 
 
-def write_image(path, image) -> None:
-    """``cv2.imwrite(path, image)`` (BGR), atomically, and loud where OpenCV is not: a
-    suffix it has no writer for, or a failed write, raises ``ValueError`` naming the file."""
+def write_image(path, image, params: tuple = ()) -> None:
+    """``cv2.imwrite(path, image, params)`` (BGR; ``params``: e.g. a JPEG's quality),
+    atomically, and loud where OpenCV is not: a suffix it has no writer for, or a failed
+    write, raises ``ValueError`` naming the file."""
     import cv2
 
     path = Path(path)
     try:
-        ok, data = cv2.imencode(path.suffix, image)
+        ok, data = cv2.imencode(path.suffix, image, list(params))
     except cv2.error:  # OpenCV 5 raises for a suffix it has no writer for
         ok = False
     if not ok:

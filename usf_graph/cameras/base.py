@@ -387,16 +387,13 @@ class Camera:
         atomically. An image mask goes next to it as ``<stem>.mask.png``."""
         import yaml
 
-        from ..fileio import atomic_write
+        from ..fileio import atomic_write, write_image
 
         path = Path(path)
         doc = self.to_doc()
         if self.image_mask is not None:
-            import cv2
-
             name = f"{path.stem}.mask.png"
-            ok, png = cv2.imencode(".png", self.image_mask.astype(np.uint8) * 255)
-            atomic_write(path.with_name(name), lambda f: f.write(png.tobytes()))
+            write_image(path.with_name(name), self.image_mask.astype(np.uint8) * 255)
             doc["image_mask"] = name
         text = yaml.safe_dump(doc, sort_keys=False)
         atomic_write(path, lambda f: f.write(text), "w")

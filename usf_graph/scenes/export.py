@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cameras import Equirectangular
-from ..fileio import atomic_write
+from ..fileio import atomic_write, write_image
 from ..ops.boxes import to_pandora
 from .classes import IGNORE, PANDORA_CLASSES, PANDORA_IDS, SEMANTIC_CLASSES, colourize
 from .render import View
@@ -27,17 +27,6 @@ from .render import View
 STANFORD_AREAS = ("1", "2", "3", "4", "5a", "5b", "6")
 #: The colour of Stanford 2D-3D-S's pixels without data (an index past the label list's end).
 STANFORD_MISSING = 0x0D0D0D
-
-
-def _write_image(path: Path, img: np.ndarray, params: tuple = ()) -> None:
-    """Write ``img`` (OpenCV's BGR order) atomically, encoded by ``path``'s suffix (PNG, or
-    JPEG with ``params``)."""
-    import cv2
-
-    ok, buf = cv2.imencode(path.suffix, img, list(params))
-    if not ok:
-        raise OSError(f"could not encode {path}")
-    atomic_write(path, lambda f: f.write(buf.tobytes()))
 
 
 def depth_png(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -53,10 +42,10 @@ def save_view(view: View, out, stem: str) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     files = {"rgb": f"{stem}_rgb.png", "label": f"{stem}_label.png",
              "label_color": f"{stem}_label_color.png", "depth": f"{stem}_depth.png"}
-    _write_image(out / files["rgb"], view.rgb[..., ::-1])
-    _write_image(out / files["label"], view.label)
-    _write_image(out / files["label_color"], colourize(view.label)[..., ::-1])
-    _write_image(out / files["depth"], depth_png(view.depth, view.valid))
+    write_image(out / files["rgb"], view.rgb[..., ::-1])
+    write_image(out / files["label"], view.label)
+    write_image(out / files["label_color"], colourize(view.label)[..., ::-1])
+    write_image(out / files["depth"], depth_png(view.depth, view.valid))
     return files
 
 
@@ -103,7 +92,7 @@ def export_stanford(views: list[View], camera, root) -> list[Path]:
         for kind, img in (("rgb", view.rgb[..., ::-1]), ("semantic", stanford_semantic(view.label)[..., ::-1]),
                           ("depth", depth_png(view.depth, view.valid))):
             (pano / kind).mkdir(parents=True, exist_ok=True)
-            _write_image(pano / kind / f"{stem}_{kind}.png", img)
+            write_image(pano / kind / f"{stem}_{kind}.png", img)
         paths.append(pano / "rgb" / f"{stem}_rgb.png")
     doc = json.dumps(stanford_entries())
     atomic_write(root / "semantic_labels.json", lambda fh: fh.write(doc), "w")
@@ -125,7 +114,7 @@ def export_pandora(views: list[View], camera, root, test_every: int = 5) -> dict
     splits: dict[str, list] = {"train": [], "test": []}
     for i, view in enumerate(views):
         name = f"procedural_{i:06d}.jpg"
-        _write_image(root / "images" / name, view.rgb[..., ::-1], (cv2.IMWRITE_JPEG_QUALITY, 95))
+        write_image(root / "images" / name, view.rgb[..., ::-1], (cv2.IMWRITE_JPEG_QUALITY, 95))
         splits["test" if i % test_every == test_every - 1 else "train"].append((name, view))
     for split, items in splits.items():
         doc = json.dumps(pandora_json(items, camera), indent=1)
