@@ -43,6 +43,12 @@ def test_lift_cli_writes_sample_and_preview(tmp_path, capsys):
     assert cameras.from_doc(blob["cameras"]["cam0"]).key() == fe.camera.key()
     assert (tmp_path / "s.pt").stat().st_size < ref.x.numel() * 4 + 2562 + 8_000
     assert (tmp_path / "s.png").stat().st_size > 10_000
+    # a preview matplotlib cannot write stops the command before it writes anything
+    assert main(["lift", str(tmp_path / "img.png"), "--camera", str(tmp_path / "cam.yaml"),
+                 "--grid", "icosahedral:4", "--out", str(tmp_path / "t.pt"),
+                 "--preview", str(tmp_path / "t.xyz")]) == 2
+    assert "Format 'xyz' is not supported" in capsys.readouterr().err
+    assert not (tmp_path / "t.pt").exists() and not list(tmp_path.glob(".t.*"))
     torch.save({"format": "usf_graph.lifted", "version": 99}, tmp_path / "old.pt")
     with pytest.raises(ValueError, match="version 99"):
         load_lifted(tmp_path / "old.pt")

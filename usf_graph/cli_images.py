@@ -62,12 +62,7 @@ def cmd_lift(args) -> int:
         fe = SphericalFrontend(cam, grid, interpolation=args.interpolation, radius=args.radius)
         x = fe.lift(images[0])
     print(f"{fe}\n-> x {tuple(x.shape)}, {int(fe.mask.sum())}/{len(grid)} points visible")
-    if args.out:
-        save_lifted(args.out, x, fe, source=" ".join(args.image))
-        size = Path(args.out).stat().st_size
-        print(f"wrote {args.out} ({size / 1e6:.2f} MB: signal, mask and geometry spec; "
-              "read it with usf_graph.frontend.load_lifted)")
-    if args.preview:
+    if args.preview:  # first: a suffix matplotlib cannot write stops before --out is written
         from .viz import plot_sphere
 
         v = x.float()  # RGB images in colour, other channel counts as their mean
@@ -76,6 +71,11 @@ def cmd_lift(args) -> int:
         plot_sphere(grid.pos, v if v.shape[-1] == 3 else v.mean(-1), fe.mask, args.preview,
                     title=" + ".join(args.image))
         print(f"wrote {args.preview}")
+    if args.out:
+        save_lifted(args.out, x, fe, source=" ".join(args.image))
+        size = Path(args.out).stat().st_size
+        print(f"wrote {args.out} ({size / 1e6:.2f} MB: signal, mask and geometry spec; "
+              "read it with usf_graph.frontend.load_lifted)")
     return 0
 
 
