@@ -58,13 +58,19 @@ def geodesic_radius_graph(pos: torch.Tensor, radius: float, batch=None, loop: bo
     return ei, w
 
 
+def check_radius(radius: float) -> float:
+    """``radius`` as a float, refused unless it is a geodesic radius in (0, pi]."""
+    if not 0 < radius <= math.pi:
+        raise ValueError(f"radius must be in (0, pi] radians, got {radius}")
+    return float(radius)
+
+
 def geodesic_radius(pos: torch.Tensor, centres: torch.Tensor | None, radius: float, batch=None,
                     loop: bool = True):
     """Edges from unit vectors ``pos`` (row 0) to ``centres`` (row 1; ``None``: ``pos``
     itself) within geodesic ``radius``, searched on the chord 2 sin(r/2), never truncated;
     ``edge_weight`` = atan2 geodesic distance."""
-    if not 0 < radius <= math.pi:
-        raise ValueError(f"radius must be in (0, pi] radians, got {radius}")
+    check_radius(radius)
     chord = float(geodesic_to_chord(radius)) * (1 + 1e-12)
     if centres is None:
         ei = _radius_edges(pos.detach(), chord, batch, loop)

@@ -114,6 +114,9 @@ def test_interpolations_fov_mask_and_errors():
         fe(np.zeros((128, 128, 0), np.uint8))
     with pytest.raises(ValueError, match="unknown interpolation 'bicubic'"):
         SphericalFrontend(cam, g, interpolation="bicubic", cache=GeometryCache(None))
+    for r in (-1.0, 0.0, float("nan"), 4.0):  # when built, not when the graph is first used
+        with pytest.raises(ValueError, match=r"radius must be in \(0, pi\] radians"):
+            SphericalFrontend(cam, g, radius=r, cache=GeometryCache(None))
     bad = img.copy()
     bad[40:90, 20:60] = np.nan  # pixels the masked camera still sees
     with pytest.raises(ValueError, match="NaN"):

@@ -10,7 +10,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ..cameras import Camera
-from ..graph import geodesic_radius_graph
+from ..graph import check_radius, geodesic_radius_graph
 from ..grids import Grid
 from ..sparse import csr_indices, quiet_sparse
 from .cache import GeometryCache, default_cache
@@ -139,7 +139,8 @@ class SphericalFrontend:
         self.mask = t["mask"].bool()
         self._table = _Table(t["crow"], t["col"], t["val"], camera.width * camera.height)
         self._uv = t["uv"].numpy()
-        self.radius = float(radius) if radius is not None else default_radius(grid)
+        # checked now: the graph is built on first use, and a lifted file records the radius
+        self.radius = check_radius(radius) if radius is not None else default_radius(grid)
         self._edges = None  # built on first use: lift/lift_batch never need the graph
         self._fast = None
         self._render = {}
