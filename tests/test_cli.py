@@ -757,7 +757,9 @@ def test_eval_scores_a_checkpoint_on_rooms_of_its_own_materials(task, tmp_path, 
     ("--materials", "random", "--materials is an option of the procedural rooms; {}'s"),
     ("--up-extra", "10", "--up-extra: options of the rooms protocols; {} trains on its own"),
     ("--num-train", "10", "--num-train: options of the rooms protocols; {} trains on its own"),
-    ("--fov-epochs", "2", "--fov-epochs: options of the rooms protocols; {} trains on its own")])
+    ("--fov-epochs", "2", "--fov-epochs: options of the rooms protocols; {} trains on its own"),
+    ("--fov-epochs", "0", "--fov-epochs: options of the rooms protocols"),  # 0 is given too
+    ("--up-sign", "0", "--up-sign: options of the rooms protocols")])
 def test_rooms_options_are_refused_on_real_data(task, dataset, option, value, said, capsys):
     assert main(["train", task, "--dataset", dataset, option, value]) == 2
     assert said.format(dataset) in capsys.readouterr().err

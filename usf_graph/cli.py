@@ -81,18 +81,16 @@ def _task_command(task: str, verb: str):
 
 
 def cmd_train(args) -> int:
-    from .cli_det import given_or_default, refuse_options
+    from .cli_det import given, given_or_default, refuse_options
     from .train import teardown_distributed
     from .train.mnist import format_table, run
 
     if args.task != "mnist":
         return _task_command(args.task, "train")(args)
-    other = [f"--{n.replace('_', '-')}" for n in ("size", "num_train", "num_test", "lr", "models",
-                                                   "fov_epochs", "channel_scale", "materials",
-                                                   "up_extra", "up_caps", "up_epochs", "up_sign")
-             if getattr(args, n) is not None]
+    other = given(args, "size", "num_train", "num_test", "lr", "models", "fov_epochs",
+                  "channel_scale", "materials", "up_extra", "up_caps", "up_epochs", "up_sign",
+                  "gray")  # MNIST's digits are gray already
     other += ["--dataset"] * (args.dataset != "rooms") + ["--fold"] * (args.fold != "1")
-    other += ["--gray"] * args.gray  # MNIST's digits are gray already
     refuse_options(other, "train det|seg", "train mnist")
     res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", planar=not args.no_planar,
               **given_or_default(args, run, ("epochs", "batch_size", "level", "input_level",

@@ -141,7 +141,7 @@ def estimate_options(p, scope: str = "") -> None:
     """``--level-prior`` and ``--sign-check``, the up estimate's test-time options
     (:func:`up_options` sets them), for ``eval``, ``predict`` and ``export``; ``scope``
     begins their help (where they apply)."""
-    p.add_argument("--level-prior", type=nonnegative, default=0.0, metavar="BETA",
+    p.add_argument("--level-prior", type=nonnegative, default=None, metavar="BETA",
                    help=f"{scope}the up estimate assumes a level camera (optical axis "
                         "horizontal) with this strength (10 in the README; 0, the default, off)")
     p.add_argument("--sign-check", default=None, metavar="PATH",
@@ -165,9 +165,11 @@ def up_kwargs(args, run) -> dict:
 
 
 def given(args, *names) -> list[str]:
-    """The options among ``names`` (their attribute names) that the command line gave a
-    value, as flags (``num_test`` -> ``--num-test``)."""
-    return ["--" + n.replace("_", "-") for n in names if getattr(args, n)]
+    """The options among ``names`` (their attribute names) that the command line gave, as
+    flags (``num_test`` -> ``--num-test``): a value, 0 included (their defaults are None),
+    or a switch that is on."""
+    return ["--" + n.replace("_", "-") for n in names
+            if (v := getattr(args, n, None)) is not None and v is not False]
 
 
 def rooms_only_options(args) -> None:
@@ -200,9 +202,8 @@ def mnist_only_options(args, task: str, *keep: str) -> None:
     """Refuse the options of ``train mnist`` that ``train <task>`` does not read (all but
     ``keep``)."""
     names = ("level", "input_level", "min_level", "source", "pairs", "pair_stages")
-    refuse_options([f"--{n.replace('_', '-')}" for n in names
-                    if n not in keep and getattr(args, n, None) is not None],
-                   "train mnist", f"train {task}")
+    refuse_options(given(args, *(n for n in names if n not in keep)), "train mnist",
+                   f"train {task}")
 
 
 def rooms_kind(results: dict) -> str:
