@@ -109,7 +109,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from .cli_det import given, refuse_options
+    from .cli_det import given, given_or_default, refuse_options
 
     if args.task != "mnist":
         refuse_options(given(args, "rotate", "source"), "eval mnist", f"eval {args.task}",
@@ -122,11 +122,10 @@ def cmd_eval(args) -> int:
     from .train.mnist import score
     from .train.provenance import announce
 
-    rotate = args.rotate or "so3"
-    m = score(args.checkpoint, args.root or "data/mnist", rotate, args.seed,
-              args.source or "auto", args.device)
+    m = score(args.checkpoint, args.root or "data/mnist", seed=args.seed, device=args.device,
+              **given_or_default(args, score, ("rotate", "source")))
     announce(args.checkpoint, m["provenance"])
-    print(f"{args.checkpoint}: the {m['model']} classifier, test ({rotate}, seed "
+    print(f"{args.checkpoint}: the {m['model']} classifier, test ({m['rotate']}, seed "
           f"{m['seed']}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
     return 0
 
