@@ -115,6 +115,35 @@ def test_chord_geodesic_roundtrip(t):
     assert G.chord_to_geodesic(G.geodesic_to_chord(d)) == pytest.approx(d, abs=tol)
 
 
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_chord_geodesic_torch_matches_numpy_with_gradients(seed):
+    d = torch.rand(7, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    d = (d * 3.0).requires_grad_()  # below pi, where the inverse's gradient is finite
+    c = G.geodesic_to_chord(d)
+    np.testing.assert_allclose(c.detach().numpy(), 2 * np.sin(d.detach().numpy() / 2), rtol=1e-15)
+    back = G.chord_to_geodesic(c)
+    np.testing.assert_allclose(back.detach().numpy(), G.chord_to_geodesic(c.detach().numpy()),
+                               rtol=1e-15)
+    np.testing.assert_allclose(back.detach().numpy(), d.detach().numpy(), rtol=1e-12)
+    back.sum().backward()
+    np.testing.assert_allclose(d.grad.numpy(), 1.0, rtol=1e-9)  # the round trip is the identity
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_tangent_towards_is_the_log_maps_direction_row_by_row(seed):
+    gen = torch.Generator().manual_seed(seed)
+    p = G.normalize(torch.randn(6, 3, generator=gen, dtype=torch.float64))
+    q = G.normalize(torch.randn(6, 3, generator=gen, dtype=torch.float64))
+    t = G.tangent_towards(p, q)
+    for pi, qi, ti in zip(p.numpy(), q.numpy(), t.numpy()):
+        # the great circle through p and q: its unit tangent at p, computed here by angles
+        d = float(G.geodesic_distance(pi, qi))
+        want = (qi - np.cos(d) * pi) / np.sin(d)
+        np.testing.assert_allclose(ti, want, atol=1e-12)
+
+
 def test_tangent_towards_points_along_the_great_circle():
     tangent_towards = G.tangent_towards
     p = torch.tensor([[0.0, 0, 1], [1.0, 0, 0]], dtype=torch.float64)
@@ -148,3 +177,29 @@ def test_level_rotation_at_the_poles_and_on_bad_input():
     for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [1.0, 2.0]):
         with pytest.raises(ValueError, match="finite, non-zero 3-vector"):
             G.level_rotation(bad)
+
+
+def test_as_rotation_matrix_refuses_what_is_not_a_rotation():
+    R = G.random_rotation(seed=4)
+    np.testing.assert_array_equal(G.as_rotation_matrix(R), R.numpy())  # a tensor is taken
+    nudged = R.numpy() + 1e-8  # within the tolerance
+    np.testing.assert_array_equal(G.as_rotation_matrix(nudged), nudged)
+    with pytest.raises(ValueError, match=r"R must be a 3x3 rotation matrix, got shape \(2, 3, 3\)"):
+        G.as_rotation_matrix(np.stack([np.eye(3)] * 2))
+    with pytest.raises(ValueError, match="Q contains NaN"):
+        G.as_rotation_matrix(np.where(np.eye(3) > 0, np.nan, 0.0), name="Q")
+    for bad in (np.diag([1.0, 1.0, -1.0]), 1.01 * np.eye(3), np.eye(3) + 1e-5):
+        with pytest.raises(ValueError, match="is not a rotation matrix"):
+            G.as_rotation_matrix(bad)
+
+
+def test_rotation_angle_of_batches_in_numpy_and_torch():
+    angles = np.array([0.0, 0.3, 1.7, np.pi])
+    axes = G.normalize(np.array([[1.0, 2, 3], [0, 0, 1], [-1, 0.5, 0], [0.3, -0.2, 0.9]]))
+    R = G.rotation_from_axis_angle(axes, angles)
+    np.testing.assert_allclose(G.rotation_angle(R), angles, atol=1e-7)
+    np.testing.assert_allclose(G.rotation_angle(torch.as_tensor(R)).numpy(), angles, atol=1e-7)
+    # a tensor angle about a numpy axis gives tensors
+    Rt = G.rotation_from_axis_angle(axes, torch.as_tensor(angles))
+    assert torch.is_tensor(Rt)
+    np.testing.assert_allclose(Rt.numpy(), R, atol=1e-15)

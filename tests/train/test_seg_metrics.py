@@ -47,6 +47,20 @@ def test_weighted_confusion_and_absent_classes():
             confusion_matrix(pred, target, 4, weight=np.array([0.5, bad, 1.0]))
 
 
+def test_the_edges_of_the_class_range():
+    """Targets just outside [0, C) are not classes (left out); predictions there are refused;
+    a zero area counts nothing; a class given as ``ignore_index`` is left out."""
+    target, pred = np.array([-1, 0, 1, 2, 3]), np.array([1, 0, 1, 2, 0])
+    np.testing.assert_array_equal(confusion_matrix(pred, target, 3), np.diag([1.0, 1, 1]))
+    np.testing.assert_array_equal(confusion_matrix(pred, target, 3, ignore_index=1),
+                                  np.diag([1.0, 0, 1]))
+    for bad in (3, -1):
+        with pytest.raises(ValueError, match="class indices"):
+            confusion_matrix(np.array([0, bad]), np.array([0, 2]), 3)
+    conf = confusion_matrix(pred, target, 3, weight=np.array([1.0, 0.0, 2.0, 0.5, 1.0]))
+    np.testing.assert_array_equal(conf, np.diag([0.0, 2.0, 0.5]))
+
+
 def test_per_image_mean_differs_from_dataset_level():
     a = confusion_matrix(np.array([0, 0]), np.array([0, 0]), 2)  # image 1: perfect, class 0 only
     b = confusion_matrix(np.array([0, 1, 1, 1]), np.array([1, 1, 1, 1]), 2)  # image 2
