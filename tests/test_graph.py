@@ -27,6 +27,31 @@ def test_radius_graph_is_not_truncated():
     assert (ew[ei[0] == ei[1]] == 0).all()
 
 
+def _assert_csr_order(ei):
+    key = ei[1] * (int(ei[0].max()) + 1) + ei[0]
+    assert (key[1:] > key[:-1]).all()  # by centre, then neighbour, no repeats
+
+
+def test_every_graph_is_sorted_by_centre_then_neighbour_and_refuses_nan():
+    from usf_graph.nn import euclidean_radius, euclidean_radius_graph, geodesic_radius, knn_graph
+
+    gen = torch.Generator().manual_seed(1)
+    pos = grids.fibonacci(500).pos
+    centres = torch.nn.functional.normalize(torch.randn(40, 3, generator=gen, dtype=pos.dtype), dim=1)
+    for ei in (geodesic_radius_graph(pos, 0.3)[0], geodesic_radius(pos, centres, 0.3)[0],
+               euclidean_radius_graph(pos, 0.3)[0], euclidean_radius(pos, centres, 0.3)[0],
+               knn_graph(pos, 9)[0]):
+        _assert_csr_order(ei)
+    bad = pos.clone()
+    bad[7, 1] = float("inf")
+    for build in (lambda: geodesic_radius_graph(bad, 0.3), lambda: euclidean_radius(bad, centres, 0.3),
+                  lambda: knn_graph(bad, 3)):
+        with pytest.raises(ValueError, match="NaN or inf; cannot build a graph"):
+            build()
+    with pytest.raises(ValueError, match="points are torch.float64 but centres are torch.float32"):
+        geodesic_radius(pos, centres.float(), 0.3)
+
+
 def test_euclidean_graphs_match_brute_force():
     from scipy.spatial import cKDTree
 
@@ -67,6 +92,7 @@ def test_radius_for_neighbors_holds_about_k_points(grid):
         assert 2 * math.pi * (1 - math.cos(r)) == pytest.approx(4 * math.pi * k / n, rel=1e-12)
         ei, _ = geodesic_radius_graph(g.pos, r)
         assert len(ei[1]) / n == pytest.approx(k, abs=1 + 0.1 * k)
+    assert radius_for_neighbors(n, 0.5) > 0  # half a point on average: a valid, tiny cap
     for bad in (0, -1, n):
         with pytest.raises(ValueError, match=rf"k must be in \(0, {n}\)"):
             radius_for_neighbors(n, bad)

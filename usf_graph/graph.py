@@ -26,8 +26,10 @@ def _radius_edges(pos: torch.Tensor, r: float, batch, loop: bool, centres=None,
     """
     import torch_cluster
 
-    if not torch.isfinite(pos).all():
-        raise ValueError("positions contain NaN or inf; cannot build a graph")
+    _check_finite(pos)
+    if centres is not None and centres.dtype != pos.dtype:
+        raise ValueError(f"points are {pos.dtype} but centres are {centres.dtype}: give both "
+                         "in one dtype (e.g. centres.to(pos.dtype))")
     num_centres = pos.shape[0] if centres is None else centres.shape[0]
     cap = 64
     while True:
@@ -42,8 +44,17 @@ def _radius_edges(pos: torch.Tensor, r: float, batch, loop: bool, centres=None,
         if deg.numel() == 0 or int(deg.max()) < cap:
             break
         cap *= 4
-    order = torch.argsort(ei[1] * pos.shape[0] + ei[0])  # CSR by target, then source
-    return ei[:, order]
+    return _by_centre(ei, pos.shape[0])
+
+
+def _check_finite(pos: torch.Tensor) -> None:
+    if not torch.isfinite(pos).all():
+        raise ValueError("positions contain NaN or inf; cannot build a graph")
+
+
+def _by_centre(ei: torch.Tensor, num_sources: int) -> torch.Tensor:
+    """Edges sorted by centre (row 1), then neighbour (row 0): CSR order."""
+    return ei[:, torch.argsort(ei[1] * num_sources + ei[0])]
 
 
 def geodesic_radius_graph(pos: torch.Tensor, radius: float, batch=None, loop: bool = True):
@@ -107,9 +118,7 @@ def knn_graph(pos: torch.Tensor, k: int, batch=None, loop: bool = True):
 
     if int(k) != k or k < 1:
         raise ValueError(f"k must be a positive integer, got {k!r}")
-    if not torch.isfinite(pos).all():
-        raise ValueError("positions contain NaN or inf; cannot build a graph")
-    ei = torch_cluster.knn_graph(pos.detach(), int(k), batch=batch, loop=loop)
-    order = torch.argsort(ei[1] * pos.shape[0] + ei[0])
-    ei = ei[:, order]
+    _check_finite(pos)
+    ei = _by_centre(torch_cluster.knn_graph(pos.detach(), int(k), batch=batch, loop=loop),
+                    pos.shape[0])
     return ei, (pos[ei[0]] - pos[ei[1]]).norm(dim=-1)
