@@ -48,6 +48,11 @@ def test_every_graph_is_sorted_by_centre_then_neighbour_and_refuses_nan():
                   lambda: knn_graph(bad, 3)):
         with pytest.raises(ValueError, match="NaN or inf; cannot build a graph"):
             build()
+    for bad in (0.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="radius must be > 0"):
+            euclidean_radius_graph(pos, bad)
+        with pytest.raises(ValueError, match="radius must be > 0"):
+            euclidean_radius(pos, centres, bad)
     with pytest.raises(ValueError, match="points are torch.float64 but centres are torch.float32"):
         geodesic_radius(pos, centres.float(), 0.3)
 
