@@ -1306,6 +1306,9 @@ def test_export_det_decodes_by_default_as_predict_and_eval_do(tmp_path, capsys):
     assert main(["export", "seg", str(tmp_path / "seg.pt"), "--camera", "equirectangular:64x32",
                  "--nms", "0.3", "--out", str(tmp_path / "seg.onnx")]) == 2
     assert "--nms: a detector's decoding" in capsys.readouterr().err
+    assert main(["export", "seg", str(tmp_path / "seg.pt"), "--camera", "equirectangular:64x32",
+                 "--out", str(tmp_path / "seg.tflite")]) == 2
+    assert "seg.tflite: name the file .onnx (ONNX) or .pt2" in capsys.readouterr().err
 
 
 def test_export_cli_writes_a_detector_with_its_decoding(tmp_path, capsys):

@@ -72,8 +72,9 @@ def add_export_parser(sub, fmt, full: bool = True) -> None:
 def cmd_export(args) -> int:
     from .cli_det import ready_model
     from .train.checkpoints import load_protocol_model
-    from .train.export import export_model
+    from .train.export import export_format, export_model
 
+    export_format(args.out)  # a wrong suffix before the checkpoint loads
     given = {k: getattr(args, k) for k in DECODING if getattr(args, k) is not None}
     if args.task == "seg" and given:
         raise ValueError(f"{', '.join('--' + k.replace('_', '-') for k in given)}: a detector's "

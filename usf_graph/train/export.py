@@ -100,6 +100,17 @@ def metadata(bound: BoundModel) -> dict[str, str]:
     return meta
 
 
+def export_format(path) -> str:
+    """The format an export to ``path`` writes, by its suffix; refused before any work when
+    the suffix names none, or names ONNX and its exporter is not installed."""
+    fmt = FORMATS.get(Path(path).suffix.lower())
+    if fmt is None:
+        raise ValueError(f"{path}: name the file .onnx (ONNX) or .pt2 (torch.export)")
+    if fmt == "ONNX":
+        _onnx_ready()
+    return fmt
+
+
 def export_model(model: nn.Module, camera, path, up="input", interpolation: str = "auto",
                  check: bool = True, seed: int = 0, **decoding) -> dict:
     """Write ``model`` bound to ``camera`` to ``path``: a spherical segmenter as
@@ -111,11 +122,7 @@ def export_model(model: nn.Module, camera, path, up="input", interpolation: str 
     (:func:`check_exported`). Returns what it did: the file, its format and size, the
     seconds taken and the check's numbers."""
     path = Path(path)
-    fmt = FORMATS.get(path.suffix.lower())
-    if fmt is None:
-        raise ValueError(f"{path}: name the file .onnx (ONNX) or .pt2 (torch.export)")
-    if fmt == "ONNX":
-        _onnx_ready()
+    fmt = export_format(path)
     if any(t.device.type != "cpu" for t in model.parameters()):
         raise ValueError("export traces on the CPU: move the model there first (model.cpu()); "
                          "the written file runs on whatever devices its runtime has")
@@ -404,4 +411,4 @@ def _matched(got: dict, want: dict) -> dict:
             "matched": matched, "unmatched": unmatched, "score_diff": worst, "iou_min": least}
 
 
-__all__ = ["FORMATS", "META_FILE", "check_exported", "export_model", "load_exported", "metadata"]
+__all__ = ["FORMATS", "META_FILE", "check_exported", "export_format", "export_model", "load_exported", "metadata"]
