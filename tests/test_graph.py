@@ -57,6 +57,34 @@ def test_every_graph_is_sorted_by_centre_then_neighbour_and_refuses_nan():
         geodesic_radius(pos, centres.float(), 0.3)
 
 
+@pytest.mark.parametrize("kind", ["geodesic", "euclidean"])
+def test_bipartite_graphs_match_brute_force(kind):
+    """Edges from points to centres: exactly the pairs within the radius (a boundary pair
+    included), with their distances; radius pi on the sphere takes every pair."""
+    from usf_graph.nn import euclidean_radius, geodesic_radius
+
+    gen = torch.Generator().manual_seed(2)
+    pos = torch.nn.functional.normalize(torch.randn(200, 3, generator=gen, dtype=torch.float64), dim=1)
+    centres = torch.nn.functional.normalize(torch.randn(30, 3, generator=gen, dtype=torch.float64), dim=1)
+    if kind == "geodesic":
+        dist = torch.atan2(torch.linalg.cross(pos[:, None], centres[None].expand(200, 30, 3)).norm(dim=-1),
+                           pos @ centres.T)
+        build = geodesic_radius
+    else:
+        dist = torch.cdist(pos, centres)
+        build = euclidean_radius
+    r = float(dist[5, 3])  # point 5 lies on centre 3's boundary
+    ei, w = build(pos, centres, r)
+    want = (dist <= r).nonzero()
+    assert sorted(map(tuple, ei.T.tolist())) == sorted(map(tuple, want.tolist()))
+    torch.testing.assert_close(w, dist[ei[0], ei[1]], rtol=1e-12, atol=1e-15)
+    if kind == "geodesic":
+        assert build(pos, centres, math.pi)[0].shape[1] == 200 * 30
+        for bad in (0.0, math.pi + 1e-9, float("nan")):
+            with pytest.raises(ValueError, match=r"radius must be in \(0, pi\]"):
+                build(pos, centres, bad)
+
+
 def test_euclidean_graphs_match_brute_force():
     from scipy.spatial import cKDTree
 
@@ -79,8 +107,10 @@ def test_euclidean_graphs_match_brute_force():
     for i in (0, 17, 299):
         assert sorted(ei[0][ei[1] == i].tolist()) == sorted(nb[i].tolist())
     np.testing.assert_allclose(np.sort(ew.reshape(300, 8).numpy(), 1), d, rtol=1e-12)
-    with pytest.raises(ValueError, match="positive integer"):
-        knn_graph(pos, 0)
+    assert knn_graph(pos, 1)[0].tolist() == [list(range(400))] * 2  # each point its own nearest
+    for bad in (0, 2.5):
+        with pytest.raises(ValueError, match="positive integer"):
+            knn_graph(pos, bad)
     with pytest.raises(ValueError, match="NaN"):
         knn_graph(torch.full((5, 3), float("nan")), 2)
 

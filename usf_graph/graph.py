@@ -94,22 +94,27 @@ def geodesic_radius(pos: torch.Tensor, centres: torch.Tensor | None, radius: flo
 
 
 def euclidean_radius_graph(pos: torch.Tensor, radius: float, batch=None, loop: bool = True):
-    """Edges within euclidean ``radius`` in R3, with ``edge_weight`` = |p_j - p_i|."""
-    if not radius > 0:
-        raise ValueError(f"radius must be > 0, got {radius}")
-    ei = _radius_edges(pos.detach(), radius, batch, loop)
-    w = (pos[ei[0]] - pos[ei[1]]).norm(dim=-1)
-    return ei, w
+    """Edges within euclidean ``radius`` in R3 (``|p_j - p_i| <= radius``), with
+    ``edge_weight`` = |p_j - p_i|."""
+    return euclidean_radius(pos, pos, radius, batch, batch, loop)
 
 
 def euclidean_radius(pos: torch.Tensor, centres: torch.Tensor, radius: float, batch=None,
-                     batch_centres=None):
+                     batch_centres=None, loop: bool = True):
     """Bipartite edges from points ``pos`` (row 0) to ``centres`` (row 1) within euclidean
-    ``radius``, never truncated; ``edge_weight`` = distance."""
+    ``radius`` (the boundary included, as on the sphere), never truncated; ``edge_weight`` =
+    distance. ``centres is pos`` gives the graph on ``pos`` (``loop``: with self-loops)."""
     if not radius > 0:
         raise ValueError(f"radius must be > 0, got {radius}")
-    ei = _radius_edges(pos.detach(), radius, batch, True, centres.detach(), batch_centres)
-    return ei, (pos[ei[0]] - centres[ei[1]]).norm(dim=-1)
+    # torch_cluster keeps d < r; search a hair wider, then keep d <= r exactly
+    wider = float(radius) * (1 + 1e-12)
+    if centres is pos:
+        ei = _radius_edges(pos.detach(), wider, batch, loop)
+    else:
+        ei = _radius_edges(pos.detach(), wider, batch, True, centres.detach(), batch_centres)
+    w = (pos[ei[0]] - centres[ei[1]]).norm(dim=-1)
+    keep = w <= radius
+    return ei[:, keep], w[keep]
 
 
 def knn_graph(pos: torch.Tensor, k: int, batch=None, loop: bool = True):
