@@ -95,12 +95,16 @@ from hypothesis import strategies as st  # noqa: E402
 from usf_graph.sparse import padded_operator, padded_product, padded_rows, padded_values  # noqa: E402
 
 
-def _random_csr(seed: int, rows: int, cols: int, density: float, group: int = 1):
+def _random_csr(seed: int, rows: int, cols: int, density: float, group: int = 1,
+                shared: bool = True):
     """A random sparse ``[rows * group, cols]`` matrix (empty rows included), dense and as
-    CSR parts; with ``group`` > 1 each block of ``group`` rows shares its columns."""
+    CSR parts; with ``group`` > 1 and ``shared`` each block of ``group`` rows shares its
+    columns (otherwise every row draws its own)."""
     gen = torch.Generator().manual_seed(seed)
-    pattern = torch.rand(rows, cols, generator=gen) < density
-    pattern = pattern.repeat_interleave(group, 0)
+    if shared:
+        pattern = (torch.rand(rows, cols, generator=gen) < density).repeat_interleave(group, 0)
+    else:
+        pattern = torch.rand(rows * group, cols, generator=gen) < density
     dense = torch.randn(rows * group, cols, generator=gen, dtype=torch.float64) * pattern
     A = dense.to_sparse_csr()
     return dense, A.crow_indices(), A.col_indices(), A.values()
@@ -108,17 +112,21 @@ def _random_csr(seed: int, rows: int, cols: int, density: float, group: int = 1)
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 10_000), rows=st.integers(1, 12), cols=st.integers(1, 9),
-       density=st.floats(0.0, 1.0), group=st.sampled_from([1, 2, 5]), feat=st.integers(1, 3))
-def test_padded_product_is_the_matrix_product(seed, rows, cols, density, group, feat):
-    dense, crow, col, val = _random_csr(seed, rows, cols, density, group)
+       density=st.floats(0.0, 1.0), group=st.sampled_from([1, 2, 5]), feat=st.integers(1, 3),
+       shared=st.booleans())
+def test_padded_product_is_the_matrix_product(seed, rows, cols, density, group, feat, shared):
+    dense, crow, col, val = _random_csr(seed, rows, cols, density, group, shared)
     c, slot = padded_rows(crow, col, group)
     assert c.dtype == slot.dtype == torch.int32
     x = torch.randn(cols, 2, feat, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
     y = padded_product(c, padded_values(val, slot), x)
     want = (dense @ x.reshape(cols, -1)).reshape(-1, 2, feat)
     assert y.shape == want.shape and (y - want).abs().max() < 1e-12
-    if len(val):  # the shared rows of a block are gathered once
-        assert slot.shape[:2] == (rows * group // slot.shape[1], slot.shape[1])
+    # the rows of a block that hold the same columns are gathered once; others one by one
+    blocks = (dense != 0).reshape(rows, group, cols)
+    alike = bool((blocks == blocks[:, :1]).all()) and len(val) > 0
+    assert slot.shape[:2] == ((rows, group) if alike else (rows * group, 1))
+    assert c.shape[0] == slot.shape[0]
 
 
 def test_blocks_with_different_columns_are_laid_out_row_by_row():
@@ -129,6 +137,10 @@ def test_blocks_with_different_columns_are_laid_out_row_by_row():
     assert slot.shape[1] == 1  # rows 0 and 1 differ: no sharing
     x = torch.randn(3, 2, dtype=torch.float64)
     assert torch.allclose(padded_product(cols, padded_values(A.values(), slot), x), dense @ x)
+    B = dense[1:].to_sparse_csr()  # 3 rows do not split into blocks of 2
+    cols, slot = padded_rows(B.crow_indices(), B.col_indices(), group=2)
+    assert slot.shape[:2] == (3, 1)
+    assert torch.allclose(padded_product(cols, padded_values(B.values(), slot), x), dense[1:] @ x)
 
 
 def test_padded_operators_share_one_layout_and_follow_edits():
