@@ -114,3 +114,25 @@ def test_ignored_boxes_are_neither_hits_nor_misses():
     assert only_b["AP50"] == pytest.approx(0.0) and only_b["AR50"] == pytest.approx(0.0)
     with pytest.raises(ValueError, match="2 true boxes but 1"):
         coco_ap(truth, found_a, 1, [np.array([True])])
+
+
+def test_ar50_is_read_at_iou_050():
+    # IoU 0.52: found at 0.50, not at 0.55, the next threshold COCO's recall table holds
+    near = P([6.3, 0, 20, 20, 0])
+    assert 0.5 < float(box_iou(near, GT[0][0][0])) < 0.55
+    r = coco_ap([(GT[0][0][:1], np.array([0]))], [(near, np.array([0]), np.array([0.9]))], 1)
+    assert r["AR50"] == pytest.approx(1.0) and r["AP"] == pytest.approx(0.1)
+
+
+def test_usf_map_matches_each_true_box_once_and_takes_the_envelope():
+    box = GT[0][0][:1]
+    one = [(box, np.array([0]))]
+    # the same box detected twice: the second is a false positive -> AP 1 (not recall 2)
+    twice = [(np.concatenate([box, box]), np.array([0, 0]), np.array([0.9, 0.8]))]
+    assert usf_map(one, twice, 1) == pytest.approx(1.0)
+    # two true boxes; hit, miss, hit: precision 1, 1/2, 2/3 at recall 1/2, 1/2, 1, so the
+    # envelope is 1 up to recall 1/2 and 2/3 after: AP = 1/2 + 1/3
+    two = [(np.concatenate([box, P([90, 0, 20, 20, 0])]), np.array([0, 0]))]
+    dets = [(np.concatenate([box, P([-90, 0, 20, 20, 0]), P([90, 0, 20, 20, 0])]),
+             np.array([0, 0, 0]), np.array([0.9, 0.8, 0.7]))]
+    assert usf_map(two, dets, 1) == pytest.approx(0.5 + 1 / 3)
