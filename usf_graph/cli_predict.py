@@ -179,7 +179,7 @@ def cmd_predict(args) -> int:
     if args.video is not None:
         from .viz import FrameVideo
 
-        video = FrameVideo(args.video, args.video_fps or 10.0)
+        video = FrameVideo(args.video, **({} if args.video_fps is None else {"fps": args.video_fps}))
     run = partial(_predict_seg if args.task == "seg" else _predict_det, video=video)
     try:
         _predict_all(run, model, names, out, args, rig_bag, streams)
