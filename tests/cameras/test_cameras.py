@@ -437,6 +437,20 @@ def test_scaramuzza_round_trip():
     (lambda: C.Fisheye(300, 320, 240, 640, 480, model="orthographic", fov_deg=200), "fov_deg"),
     (lambda: C.Scaramuzza([250.0, 0, 1e-3], (240, 320), (1, 0, 0), 640, 480), "a0 < 0"),
     (lambda: C.LensNormalMap(np.full((4, 4, 3), np.nan)), "no valid pixel"),
+    (lambda: C.KannalaBrandt(300, 300, 320, 240, 640, 480, k=(0.1, 0.0)), "4 coefficients k1..k4"),
+    (lambda: C.FOV(300, 300, 320, 240, 640, 480, omega=math.pi), r"omega must lie in \(0, pi\)"),
+    (lambda: C.RadialPoly([-300.0, 1.0], 320, 240, 640, 480), "needs k1 > 0"),
+    (lambda: C.Mei(300, 300, 320, 240, 640, 480, xi=0.9, dist=(0.1, 0.0, 0.0, 0.0, 0.0)), "radtan"),
+    (lambda: C.Scaramuzza([-250.0, 0, 1e-3], (240, 320, 1), (1, 0, 0), 640, 480), r"center must be \(row"),
+    (lambda: C.Scaramuzza([-250.0, 0, 1e-3], (240, 320), (1, 2, 0.5), 640, 480), "singular"),
+    (lambda: C.Equirectangular(64, 32, lat_range=(0.5, 0.2)), "lat_range must be increasing"),
+    (lambda: C.Equirectangular(64, 32, lon_range=(-4.0, 4.0)), "span at most 2 pi"),
+    (lambda: C.LensNormalMap(np.ones((4, 4, 3)), valid=np.ones((4, 5), bool)), r"valid must have shape \(4, 4\)"),
+    (lambda: C.LensNormalMap(np.ones((4, 3))), r"shape \[H, W, 3\]"),
+    (lambda: C.Pinhole(300, 300, 320, 240, 640.5, 480), "positive integer number of pixels"),
+    (lambda: C.Pinhole(300, 300, 320, 240, 640, 480).project(np.ones((5, 2))), r"rays must have shape \[\.\.\., 3\]"),
+    (lambda: C.Pinhole(300, 300, 320, 240, 640, 480).unproject(np.ones(3)), r"uv must have shape \[\.\.\., 2\]"),
+    (lambda: C.LensNormalMap(np.ones((4, 4, 3))).save("m.yaml"), "numpy.savez"),
 ])
 def test_bad_parameters_raise_clear_errors(bad, match):
     with pytest.raises(ValueError, match=match):

@@ -114,5 +114,6 @@ def test_mounting_field_of_view_and_mask_follow():
     assert np.array_equal(new.position, cam.position) and new.distance == 2.0
     assert new.image_mask.shape == (240, 320) and not new.image_mask[:, :160].any()
     assert new.image_mask[:, 160:].all()
-    with pytest.raises(ValueError, match="positive size"):
-        cam.resized(0, 240)
+    for size, said in (((0, 240), "width"), ((640.7, 480), "width"), ((320, float("nan")), "height")):
+        with pytest.raises(ValueError, match=f"{said} must be a positive integer number of pixels"):
+            cam.resized(*size)  # 640.7 was truncated to 640

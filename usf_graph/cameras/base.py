@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import as_rotation_matrix
-from .resize import moved, resized
+from .resize import moved, resized, whole_pixels
 
 FORMAT_TAG = "usf_graph_camera"  # marks usf-graph's own calibration YAML
 
@@ -87,10 +87,7 @@ class Camera:
     wraps_u: bool = False  # True when the image is periodic in u (full panoramas)
 
     def __init__(self, width: int, height: int, rotation=None):
-        for name, v in (("width", width), ("height", height)):
-            if int(v) != v or v <= 0:
-                raise ValueError(f"{name} must be a positive integer number of pixels, got {plain(v)}")
-        self.width, self.height = int(width), int(height)
+        self.width, self.height = whole_pixels("width", width), whole_pixels("height", height)
         self.rotation = check_rotation(rotation)
         self.fov_limit: float | None = None  # usable half-angle (rad) about the optical axis
         self.image_mask: np.ndarray | None = None  # [H, W] bool, False on pixels to ignore

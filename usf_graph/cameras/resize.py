@@ -20,9 +20,7 @@ def resized(cam, width: int, height: int):
     """``cam`` for its images resized to ``width x height`` (the whole frame, no crop). Its
     mounting, position, distance and field-of-view limit stay; an image mask is resized
     with the nearest pixel."""
-    width, height = int(width), int(height)
-    if width < 1 or height < 1:
-        raise ValueError(f"a resized camera needs a positive size, got {width} x {height}")
+    width, height = whole_pixels("width", width), whole_pixels("height", height)
     new = cam._resized(width, height, width / cam.width, height / cam.height)
     new.fov_limit, new.position, new.distance = cam.fov_limit, cam.position, cam.distance
     if cam.image_mask is not None:
@@ -31,6 +29,20 @@ def resized(cam, width: int, height: int):
         new.image_mask = cv2.resize(cam.image_mask.astype(np.uint8), (width, height),
                                     interpolation=cv2.INTER_NEAREST).astype(bool)
     return new
+
+
+def whole_pixels(name: str, value) -> int:
+    """``value`` as an int, refused unless it is a positive whole number of pixels: a size
+    of 640.7 would otherwise be truncated without a word."""
+    number = np.ndim(value) == 0 and not isinstance(value, (str, bytes))
+    try:
+        v = float(value) if number else float("nan")
+    except (TypeError, ValueError):  # None, an object
+        number, v = False, float("nan")
+    if not (np.isfinite(v) and v == int(v) and v >= 1):
+        shown = str(value) if number else repr(value)
+        raise ValueError(f"{name} must be a positive integer number of pixels, got {shown}")
+    return int(v)
 
 
 def moved(c, s: float):
