@@ -54,7 +54,7 @@ def test_lifted_pixels_are_the_image(root):
 
 
 def test_missing_data_says_how_to_get_it(tmp_path):
-    with pytest.raises(FileNotFoundError, match="SphericalObjectDetection"):
+    with pytest.raises(FileNotFoundError, match=r"annotations/train.json not found\. .*SphericalObjectDetection"):
         Pandora(tmp_path, "train", progress=False)
 
 

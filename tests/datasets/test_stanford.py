@@ -28,6 +28,10 @@ def test_label_table(tmp_path):
     p.write_text("{not json")
     with pytest.raises(ValueError, match="semantic_labels.json"):
         label_table(p)
+    for wrong in ({"chair": 1}, ["chair_1", 7]):
+        p.write_text(json.dumps(wrong))
+        with pytest.raises(ValueError, match="must be a JSON list of strings"):
+            label_table(p)
 
 
 def test_decode_every_ignore_case():
@@ -96,7 +100,7 @@ def test_loader_reads_real_layout(stanford):
 
 def test_loader_errors(stanford, tmp_path):
     root, _ = stanford
-    with pytest.raises(FileNotFoundError, match="2D-3D-Semantics"):
+    with pytest.raises(FileNotFoundError, match=r"^area_1, area_2, area_3, area_4, area_6 not found under .*2D-3D-Semantics"):
         Stanford2D3DS(root, fold=1, split="train", grid="icosahedral:1", size=8, progress=False)
     with pytest.raises(ValueError, match="fold"):
         Stanford2D3DS(root, fold=4, split="test")
@@ -108,7 +112,7 @@ def test_loader_errors(stanford, tmp_path):
     with pytest.raises(ValueError, match="corrupt"):
         Stanford2D3DS(root, fold=1, split="test", grid="icosahedral:1", size=8, progress=False)
     rgb.unlink()
-    with pytest.raises(FileNotFoundError, match="is missing"):
+    with pytest.raises(FileNotFoundError, match=r"_rgb\.png is missing \(its semantic image exists\)"):
         Stanford2D3DS(root, fold=1, split="test", grid="icosahedral:1", size=8, progress=False)
 
 

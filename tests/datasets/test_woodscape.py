@@ -104,7 +104,7 @@ def test_the_processed_split_is_reused_and_a_corrupt_one_rebuilt(release):
 
 
 def test_missing_and_broken_data_name_the_fix(tmp_path, release):
-    with pytest.raises(FileNotFoundError, match="woodscape.valeo.com"):
+    with pytest.raises(FileNotFoundError, match=r"^rgb_images, semantic_annotations not found under .*woodscape.valeo.com"):
         WoodScape(tmp_path / "nothing", "all", grid="icosahedral:2", progress=False)
     (release / "train.txt").unlink()
     with pytest.raises(FileNotFoundError, match="train.txt not found.*OmniDet"):

@@ -30,6 +30,7 @@ from .stacked import (
     UprightAsReleased,
     add_boxes,
     load_or_rebuild,
+    missing_release,
     pack_boxes,
     pre_transform_stacked,
 )
@@ -115,7 +116,7 @@ class Pandora(UprightAsReleased, Dataset):
         return [f"pandora_{self.split}_{spec}_{self.interpolation}.pt"]
 
     def download(self):
-        raise FileNotFoundError(GET_IT.format(root=self.root, split=self.split))
+        raise missing_release(self, GET_IT.format(root=self.root, split=self.split))
 
     def process(self):
         import cv2

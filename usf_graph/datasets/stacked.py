@@ -92,6 +92,14 @@ def add_boxes(data: Data, store, idx: int) -> Data:
     return data
 
 
+def missing_release(dataset, get_it: str) -> FileNotFoundError:
+    """The error for a dataset release not found under its ``raw_dir``: the files and
+    folders it lacks (of ``raw_file_names``), then how to get it (``get_it``)."""
+    root = Path(dataset.raw_dir)
+    missing = [f for f in dataset.raw_file_names if not (root / f).exists()]
+    return FileNotFoundError(f"{', '.join(missing)} not found under {root}. {get_it}")
+
+
 class UprightAsReleased:
     """For datasets of panoramas released gravity-aligned (Stanford 2D-3D-S, PANDORA), whose
     split is ``self.x [S, ...]``."""

@@ -32,7 +32,13 @@ from ..frontend.image import SphericalImage
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, SEMANTIC_CLASSES
 from ..scenes.export import STANFORD_AREAS, STANFORD_MISSING
-from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked, read_release_image
+from .stacked import (
+    UprightAsReleased,
+    load_or_rebuild,
+    missing_release,
+    pre_transform_stacked,
+    read_release_image,
+)
 
 AREAS = STANFORD_AREAS
 #: The three area-disjoint folds: (train areas, test areas).
@@ -149,7 +155,7 @@ class Stanford2D3DS(UprightAsReleased, Dataset):
         return [f"stanford_f{self.fold}_{self.split}_{spec}_{self.size}.pt"]
 
     def download(self):
-        raise FileNotFoundError(GET_IT.format(root=self.root))
+        raise missing_release(self, GET_IT.format(root=self.root))
 
     def process(self):
         import cv2

@@ -32,7 +32,13 @@ from ..frontend.image import SphericalImage
 from ..frontend.interpolation import choose_interpolation, valid_pixels
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE
-from .stacked import UprightAsReleased, load_or_rebuild, pre_transform_stacked, read_release_image
+from .stacked import (
+    UprightAsReleased,
+    load_or_rebuild,
+    missing_release,
+    pre_transform_stacked,
+    read_release_image,
+)
 
 CLASSES = ("void", "road", "lanemarks", "curb", "person", "rider", "vehicles", "bicycle",
            "motorcycle", "traffic_sign")
@@ -124,7 +130,7 @@ class WoodScape(UprightAsReleased, Dataset):
         return [f"woodscape_{self.split}_{spec}_{self.scale:g}.pt"]
 
     def download(self):
-        raise FileNotFoundError(GET_IT.format(root=self.root))
+        raise missing_release(self, GET_IT.format(root=self.root))
 
     def _frontends(self, calibration: Path) -> tuple:
         """The lifting and label frontends of a calibration file at this dataset's scale, and
