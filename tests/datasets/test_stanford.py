@@ -104,7 +104,9 @@ def test_loader_errors(stanford, tmp_path):
         Stanford2D3DS(root, fold=1, split="train", grid="icosahedral:1", size=8, progress=False)
     with pytest.raises(ValueError, match="fold"):
         Stanford2D3DS(root, fold=4, split="test")
-    with pytest.raises(FileNotFoundError, match="semantic_labels.json"):
+    with pytest.raises(ValueError, match="split must be 'train' or 'test', got 'val'"):
+        Stanford2D3DS(root, fold=1, split="val")
+    with pytest.raises(FileNotFoundError, match="^semantic_labels.json not found under"):
         Stanford2D3DS(tmp_path / "nothing", fold=1, split="test")
     # a corrupt RGB PNG names itself; a missing RGB is reported
     rgb = next((root / "area_5b" / "pano" / "rgb").glob("*.png"))
