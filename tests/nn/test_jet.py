@@ -203,6 +203,12 @@ def test_jets_share_a_fit_only_with_the_same_graph():
     assert torch.equal(c.op_val, fresh.values()) and not torch.allclose(c.op_val, a.op_val)
     d = SurfaceJet(g.pos, ei, ew, h, sigma=h)  # another width
     assert torch.equal(d.op_val, jet_operator(g.pos, ei, ew, h).values())
+    two = jet_operator(g.pos, ei, ew, h, rows=2).to_dense()  # the gradient rows alone
+    assert two.shape == (2 * len(g), len(g))
+    full = jet_operator(g.pos, ei, ew, h).to_dense().reshape(len(g), 5, len(g))
+    torch.testing.assert_close(two.reshape(len(g), 2, len(g)), full[:, :2], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="rows must be 2 .* or 5"):
+        jet_operator(g.pos, ei, ew, h, rows=3)
     assert not torch.allclose(d.op_val, a.op_val)
     # distances that need gradients: fitted afresh, and the gradient reaches them
     w = ew.double().clone().requires_grad_(True)
