@@ -539,3 +539,18 @@ def test_the_ray_straight_behind_a_lens_lands_nowhere(cam):
     behind = int(np.argmin(g.pos.numpy() @ (cam.rotation @ [0.0, 0.0, 1.0])))
     assert g.pos[behind].numpy() @ (cam.rotation @ [0.0, 0.0, 1.0]) < -1 + 1e-12
     assert not SphericalFrontend(cam, g).mask[behind]
+
+
+@pytest.mark.parametrize("cam, g, dg", [
+    (C.KannalaBrandt(300, 300, 320, 240, 640, 480, k=(0.03, -0.01, 0.002, -1e-4)), "_theta_d", "_dtheta_d"),
+    (C.RadialPoly([340.0, -12.0, 25.0, -8.0], 640, 480, 1280, 966), "_rho", "_drho"),
+    (C.Scaramuzza([-250.0, 0.0, 1.2e-3, -2e-7, 3e-10], (480.2, 640.7), (1.0003, 1.2e-4, -2e-4),
+                  1280, 960), "_theta", "_dtheta"),
+])
+def test_the_newton_derivatives_are_the_derivatives(cam, g, dg):
+    """The unprojections' safeguarded Newton falls back to bisection, so a wrong derivative
+    would only cost iterations; checked here against central differences."""
+    t = np.linspace(0.05, 1.2, 40) if g != "_theta" else np.linspace(5.0, 600.0, 40)
+    h = 1e-6 * t.max()
+    numeric = (getattr(cam, g)(t + h) - getattr(cam, g)(t - h)) / (2 * h)
+    np.testing.assert_allclose(getattr(cam, dg)(t), numeric, rtol=1e-6, atol=1e-9)
