@@ -75,6 +75,13 @@ def test_bad_annotations_are_named(root):
         path.write_text(json.dumps(doc))
         with pytest.raises(ValueError, match=r"annotation 1 of train.json .* fields of view in \(0, 180\)"):
             read_annotations(path)
+    doc["annotations"][0]["bbox"] = [10, 90, 20, 20, 0]  # a box on the pole: lat 90 is valid
+    path.write_text(json.dumps(doc))
+    assert read_annotations(path)
+    doc["annotations"][0]["image_id"] = 99
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="annotation 1 of train.json refers to image 99, which is not listed"):
+        read_annotations(path)
     path.write_text("{not json")
     with pytest.raises(ValueError, match="not a PANDORA annotation file"):
         read_annotations(path)
