@@ -53,9 +53,15 @@ def test_lifted_pixels_are_the_image(root):
     torch.testing.assert_close(ds[0].x, fe.lift(img), atol=2e-3, rtol=0)
 
 
-def test_missing_data_says_how_to_get_it(tmp_path):
+def test_missing_data_says_how_to_get_it(tmp_path, root):
     with pytest.raises(FileNotFoundError, match=r"annotations/train.json not found\. .*SphericalObjectDetection"):
         Pandora(tmp_path, "train", progress=False)
+    with pytest.raises(ValueError, match="split must be 'train' or 'test', got 'val'"):
+        Pandora(root, "val", progress=False)
+    image = root / "images" / "0001.jpg"  # of the train split
+    image.unlink()
+    with pytest.raises(FileNotFoundError, match=rf"{image.name} is missing or not an image\. PANDORA is"):
+        Pandora(root, "train", grid="icosahedral:1", progress=False)
 
 
 def test_bad_annotations_are_named(root):
