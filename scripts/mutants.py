@@ -20,6 +20,7 @@ import copy
 import os
 import random
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -163,6 +164,7 @@ def main(argv=None) -> int:
                     key=lambda m: (m.line, m.column))
     print(f"{module}: {len(found)} mutants, running {len(chosen)}", flush=True)
     scratch = _scratch_copy()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a timeout still cleans up
     env = dict(os.environ, PYTHONPATH=str(scratch), PYTHONDONTWRITEBYTECODE="1")
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
            "-m", "not slow", *a.tests]

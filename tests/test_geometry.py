@@ -33,6 +33,8 @@ def test_latlon_roundtrip_torch_and_convention():
     # lon = pi maps to -pi (half-open range)
     _, l = G.to_latlon(np.array([-1.0, 0.0, 0.0]))
     assert l == -math.pi
+    _, lt = G.to_latlon(torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64))
+    assert lt.item() == -math.pi  # in torch too
 
 
 @given(unit, unit, unit)
