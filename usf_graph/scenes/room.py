@@ -141,19 +141,34 @@ class _Layout:
         return not any(np.all(np.minimum(hi, h) - np.maximum(lo, l) > 1e-6) for l, h in boxes)
 
     def add(self, kind, semantic, detect, parts, T=None, check=True, ignore=()) -> int | None:
-        m = trimesh.util.concatenate(parts)
-        if T is not None:
-            m.apply_transform(T)
-        lo, hi = m.bounds
+        lo, hi = _bounds(parts, T)
         half = np.array([self.size[0] / 2, self.size[1] / 2, self.size[2]])
         if check and (np.any(lo[:2] < -half[:2] - 1e-6) or np.any(hi > half + 1e-6)
                       or not self.free(lo, hi, ignore)):
             return None
+        m = trimesh.util.concatenate(parts)  # built only once placed: most tries are refused
+        if T is not None:
+            m.apply_transform(T)
         self.meshes.append(m)
         self.owner.append(np.full(len(m.faces), len(self.instances)))
         det = None if detect is None else DETECTION_CLASSES.index(detect)
         self.instances.append(Instance(kind, semantic_index(semantic), det, lo, hi))
         return len(self.instances) - 1
+
+
+def _bounds(parts, T=None) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds ``(lo, hi)`` of ``parts`` moved by ``T``: to the bit those of the
+    concatenated, transformed mesh (the same points through trimesh's own transform),
+    without building it (building meshes took half of a room's time)."""
+    v = np.vstack([p.vertices for p in parts])
+    if T is not None:
+        v = trimesh.transformations.transform_points(v, T)
+    return v.min(axis=0), v.max(axis=0)
+
+
+def _extents(parts) -> np.ndarray:
+    lo, hi = _bounds(parts)
+    return hi - lo
 
 
 def _pose(yaw, xyz):
@@ -224,14 +239,14 @@ def _wall_items(lay, L, W, H):
                 wall = int(rng.integers(4))
                 length = (L, W)[_WALLS[wall][1]]
                 parts = t.build(rng)
-                ext = trimesh.util.concatenate(parts).extents
+                ext = _extents(parts)
                 if ext[0] > length - 0.4:
                     continue
                 s = rng.uniform(-length / 2 + ext[0] / 2 + 0.1, length / 2 - ext[0] / 2 - 0.1)
                 T = _wall_pose(lay.size, wall, s, 0.0)
                 if kind == "door":  # keep the floor in front of a door free
                     clear = box((ext[0] + 0.2, 0.9, 2.0), (0, -0.5, 1.0))
-                    lo, hi = trimesh.util.concatenate([clear]).apply_transform(T).bounds
+                    lo, hi = _bounds([clear], T)
                     if not lay.free(lo, hi):
                         continue
                     if lay.add(kind, t.semantic, t.detect, parts, T) is not None:
@@ -249,7 +264,7 @@ def _furniture(lay, L, W, n):
         t = FLOOR[kind]
         for _attempt in range(40):
             parts = t.build(rng)
-            ext = trimesh.util.concatenate(parts).extents
+            ext = _extents(parts)
             if kind in AGAINST_WALL:
                 wall = int(rng.integers(4))
                 length = (L, W)[_WALLS[wall][1]]
@@ -271,7 +286,7 @@ def _furniture(lay, L, W, n):
             t = ON_TABLE[kind]
             for _attempt in range(20):
                 parts = t.build(rng)
-                e = trimesh.util.concatenate(parts).extents
+                e = _extents(parts)
                 xy = rng.uniform(-1, 1, 2) * np.maximum((ext[:2] - e[:2].max()) / 2 - 0.03, 0)
                 Tc = T @ _pose(rng.uniform(-math.pi, math.pi), np.r_[xy, ext[2]])
                 if lay.add(kind, t.semantic, t.detect, parts, Tc, ignore=[k]) is not None:
