@@ -62,12 +62,12 @@ def _near_edge(view, cam):
 
 
 def test_rotated_views_agree_on_world_rays_and_boxes(scene):
-    cam = cameras.Equirectangular(2048, 1024)
+    cam = EQUI  # edges' share of the pixels, where views may differ, halves at 2048x1024
     p, R0 = scene.viewpoint(0)
     a = scenes.render(scene, cam, position=p, rotation=R0)
     b = scenes.render(scene, cam, position=p, rotation=random_rotation(seed=7).numpy())
     both, agree, differ = _agreement(a, cam, b, cam)
-    assert both.mean() > 0.99 and agree >= 0.995
+    assert both.mean() > 0.99 and agree >= 0.99
     assert (_near_edge(a, cam) | _near_edge(b, cam))[differ].all()  # the rest lie on edges
     assert len(a.boxes) >= 5 and np.array_equal(a.box_instance, b.box_instance)
     wa, wb = rotate_boxes(a.boxes, a.rotation), rotate_boxes(b.boxes, b.rotation)
