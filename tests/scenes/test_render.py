@@ -8,7 +8,7 @@ from usf_graph import cameras, scenes
 from usf_graph.geometry import normalize, random_rotation, rotation_from_axis_angle
 from usf_graph.grids import fibonacci
 from usf_graph.ops import box_axes, box_corners, rotate_boxes
-from usf_graph.scenes import IGNORE, SEMANTIC_CLASSES
+from usf_graph.scenes import IGNORE, SEMANTIC_CLASSES, room
 from usf_graph.scenes.render import edge_pixels
 
 EQUI = cameras.Equirectangular(1024, 512)
@@ -121,13 +121,31 @@ def test_pinhole_sees_what_it_faces(scene):
 
 
 def test_scenes_are_deterministic():
-    a, b = scenes.make_room(5, 11), scenes.make_room(5, 11)
+    a = scenes.make_room(5, 11)
+    b = room._room.__wrapped__(5, 11, None, None, "random")  # built again, past the kept rooms
+    assert b is not a and b.mesh is not a.mesh
     assert np.array_equal(a.mesh.vertices, b.mesh.vertices) and a.size == b.size
     va, vb = scenes.render(a, cameras.Equirectangular(256, 128)), scenes.render(b, cameras.Equirectangular(256, 128))
     for f in ("rgb", "label", "instance", "depth", "boxes", "box_class"):
         assert np.array_equal(getattr(va, f), getattr(vb, f)), f
     c = scenes.make_room(5, 12)
     assert c.size != a.size
+
+
+def test_rooms_are_kept_read_only_and_rebuilt_once_let_go():
+    a = scenes.make_room(6, 2, size=[5, 4, 3])
+    assert scenes.make_room(6, 2, size=(5.0, 4.0, 3.0)) is a  # the same arguments, any spelling
+    assert scenes.make_room(6, 2, size=(5, 4, 3.1)) is not a
+    assert scenes.make_room(6, 2, size=(5, 4, 3), materials="by_kind") is not a
+    with pytest.raises(AttributeError, match="cannot assign"):
+        a.light = np.zeros(3)
+    for arr in (a.light, a.face_instance, a.instances[0].lo, a.appearance["tint"]):
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 0
+    for i in range(room.ROOMS_KEPT):  # past what is kept: built again, the same
+        scenes.make_room(6, 100 + i, size=(5, 4, 3))
+    b = scenes.make_room(6, 2, size=(5, 4, 3))
+    assert b is not a and np.array_equal(b.mesh.vertices, a.mesh.vertices)
 
 
 def test_rooms_follow_the_spec():

@@ -10,6 +10,7 @@ machine.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -27,7 +28,7 @@ _FLOOR_MIX = ("table", "table", "chair", "chair", "chair", "sofa", "bed", "bookc
               "bookcase", "cabinet", "cabinet", "floor_lamp", "floor_clutter", "floor_clutter")
 
 
-@dataclass
+@dataclass(frozen=True)
 class Instance:
     """One object of a scene: what it is and where (its world bounding box)."""
 
@@ -50,12 +51,14 @@ def embree_started() -> bool:
     return _EMBREE_STARTED
 
 
-@dataclass
+@dataclass(frozen=True)
 class Scene:
     """A room: its mesh (faces tagged with instance ids), instances and appearance.
 
     Use :func:`make_room` to build one, :meth:`viewpoint` for seeded camera poses and
-    :func:`usf_graph.scenes.render` to see it through a camera.
+    :func:`usf_graph.scenes.render` to see it through a camera. Read-only: make_room hands
+    the same scene to every call with the same arguments, so its fields cannot be set and
+    its arrays cannot be written (its mesh is trimesh's: leave it as it is).
     """
 
     size: tuple
@@ -83,7 +86,8 @@ class Scene:
 
             global _EMBREE_STARTED
             _EMBREE_STARTED = True
-            self._caster = RayMeshIntersector(self.mesh, scale_to_box=False)
+            # the one thing a scene learns after it is built (frozen: set past the guard)
+            object.__setattr__(self, "_caster", RayMeshIntersector(self.mesh, scale_to_box=False))
         d = np.ascontiguousarray(directions, np.float64).reshape(-1, 3)
         o = np.broadcast_to(np.asarray(origin, np.float64), d.shape)
         face = self._caster.intersects_first(o, d) if len(d) else np.zeros(0, np.int64)
@@ -293,9 +297,15 @@ def _furniture(lay, L, W, n):
                     break
 
 
+#: How many rooms :func:`make_room` keeps (a few MB each, with their cast boxes): tests,
+#: and protocols that render each test room through several cameras, ask for them again.
+ROOMS_KEPT = 16
+
+
 def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None = None,
               materials: str = "random") -> Scene:
-    """Build room ``index`` of ``seed``.
+    """Build room ``index`` of ``seed``: the same :class:`Scene` (read-only) for the same
+    arguments, the last :data:`ROOMS_KEPT` of them kept.
 
     Args:
         seed, index: the room is drawn from ``numpy.random.default_rng([seed, index])``.
@@ -307,7 +317,20 @@ def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None 
             layout and light), :mod:`usf_graph.scenes.materials`.
     """
     check_materials(materials)
-    rng = np.random.default_rng([int(seed), int(index)])
+    if size is not None:
+        size = tuple(float(s) for s in size)
+    return _room(int(seed), int(index), size, None if num_objects is None else int(num_objects),
+                 materials)
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+@functools.lru_cache(maxsize=ROOMS_KEPT)
+def _room(seed: int, index: int, size, num_objects, materials: str) -> Scene:
+    rng = np.random.default_rng([seed, index])
     if size is None:
         size = (*rng.uniform(*WALL_RANGE, 2), rng.uniform(*HEIGHT_RANGE))
     size = tuple(float(s) for s in size)
@@ -322,7 +345,7 @@ def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None 
     _structure(lay, L, W, H)
     _columns_and_beams(lay, L, W, H)
     _wall_items(lay, L, W, H)
-    _furniture(lay, L, W, int(rng.integers(4, 13)) if num_objects is None else int(num_objects))
+    _furniture(lay, L, W, int(rng.integers(4, 13)) if num_objects is None else num_objects)
     for _ in range(int(rng.integers(1, 3))):
         r = rng.uniform(0.2, 0.3)
         xy = rng.uniform(-1, 1, 2) * (np.array([L, W]) / 2 - 0.5)
@@ -330,5 +353,7 @@ def make_room(seed: int = 0, index: int = 0, size=None, num_objects: int | None 
     mesh = trimesh.util.concatenate(lay.meshes)
     ap = appearance(lay.instances, rng, materials, (seed, index))
     light = np.array([*rng.uniform(-0.3, 0.3, 2) * [L, W], H - 0.25])
-    return Scene(size, lay.instances, mesh, np.concatenate(lay.owner), light,
-                 float(rng.uniform(0.3, 0.45)), ap, int(seed), int(index))
+    for a in [*(i.lo for i in lay.instances), *(i.hi for i in lay.instances), *ap.values()]:
+        _read_only(a)
+    return Scene(size, tuple(lay.instances), mesh, _read_only(np.concatenate(lay.owner)),
+                 _read_only(light), float(rng.uniform(0.3, 0.45)), ap, seed, index)
