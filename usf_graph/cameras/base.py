@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import as_rotation_matrix
+from .kept import kept_rays, lens_key
 from .resize import moved, resized, whole_pixels
 
 FORMAT_TAG = "usf_graph_camera"  # marks usf-graph's own calibration YAML
@@ -162,8 +163,9 @@ class Camera:
 
     def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`unproject` of every pixel centre: rays ``[H, W, 3]`` (optical frame) and
-        ``valid [H, W]``; a camera may compute it faster from its structure."""
-        return self.unproject(self.pixel_grid())
+        ``valid [H, W]``, computed once per lens (:mod:`~usf_graph.cameras.kept`); a camera
+        may compute it faster from its structure."""
+        return kept_rays(lens_key(self.key()), lambda: self.unproject(self.pixel_grid()))
 
     def pixel_grid(self) -> np.ndarray:
         """Pixel centres ``[H, W, 2]`` as (u, v)."""
