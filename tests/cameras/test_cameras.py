@@ -172,6 +172,16 @@ def test_division_round_trip_and_its_formula(i, k, seed):
         assert not cam.unproject(np.array([640 + dx + 1.01 * f / math.sqrt(k), 480 + dy]))[1]
 
 
+def test_division_projects_as_it_unprojects_at_the_fold_itself():
+    """k = 1/4 folds at r_d = 2, reached by tan(theta) = 1 exactly (no rounding anywhere):
+    the fold is past the domain both ways, and a hair inside it is not."""
+    cam = C.Division(100, 100, 320, 240, 640, 480, k=0.25)
+    uv, ok = cam.project(np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, 0.0, 1.0 + 1e-9]]))
+    assert ok.tolist() == [False, False, True]
+    assert cam.unproject(np.array([[520.0, 240.0], [320.0, 440.0]]))[1].tolist() == [False, False]
+    assert cam.unproject(uv[2])[1]
+
+
 @settings(**SETTINGS)
 @given(intr, st.floats(0.05, 2.5), st.integers(0, 2**31))
 def test_fov_round_trip_and_its_formula(i, omega, seed):
