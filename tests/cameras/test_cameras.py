@@ -276,6 +276,35 @@ def test_principal_point_is_the_optical_axis(cam):
     assert 0 < r[1, 1] < 1e-10
 
 
+@pytest.mark.parametrize("cam", [
+    C.Pinhole(300, 310, 320.2, 240.7, 640, 480, dist=(-0.3, 0.1, 1e-3, -1e-3, -0.02)),
+    C.Division(300, 300, 320.2, 240.7, 640, 480, k=-0.3),
+    C.KannalaBrandt(300, 300, 320.2, 240.7, 640, 480, k=(0.02, -0.005, 0.001, -1e-4)),
+    C.Fisheye(200, 320.2, 240.7, 640, 480, model="equisolid"),
+    C.FOV(300, 300, 320.2, 240.7, 640, 480, omega=0.9),
+    C.RadialPoly([330.0, -24.0, 42.0, -6.5], 320.2, 240.7, 640, 480, aspect_ratio=0.97),
+    C.Mei(300, 300, 320.2, 240.7, 640, 480, xi=1.2, dist=(-0.1, 0.02, 0, 0)),
+    C.DoubleSphere(300, 300, 320.2, 240.7, 640, 480, xi=-0.2, alpha=0.6),
+    C.EUCM(300, 300, 320.2, 240.7, 640, 480, alpha=0.6, beta=1.3),
+    C.load(FIXTURES / "calib_results.txt"),
+    C.Equirectangular(640, 320),
+], ids=lambda c: type(c).__name__)
+def test_any_leading_shape_maps_point_by_point(cam):
+    """``[..., 3]`` rays and ``[..., 2]`` pixels of any leading shape (an image's [H, W])
+    give what the same points give as one flat list."""
+    rays = random_rays(np.random.default_rng(4), 600, math.radians(100))
+    uv, ok = cam.project(rays)
+    uv_grid, ok_grid = cam.project(rays.reshape(20, 30, 3))
+    assert uv_grid.shape == (20, 30, 2) and ok.any()
+    np.testing.assert_array_equal(uv_grid.reshape(-1, 2), uv)
+    np.testing.assert_array_equal(ok_grid.ravel(), ok)
+    back, valid = cam.unproject(np.nan_to_num(uv).reshape(4, 5, 30, 2))
+    flat, flat_valid = cam.unproject(np.nan_to_num(uv))
+    assert back.shape == (4, 5, 30, 3)
+    np.testing.assert_array_equal(back.reshape(-1, 3), flat)
+    np.testing.assert_array_equal(valid.ravel(), flat_valid)
+
+
 def test_invalid_domain_is_flagged_never_wrong():
     cam = C.Pinhole(300, 300, 320, 240, 640, 480)
     uv, ok = cam.project(np.array([[0, 0, -1.0], [0.1, 0, 1], [np.nan, 0, 1]]))
