@@ -593,3 +593,20 @@ def test_the_newton_derivatives_are_the_derivatives(cam, g, dg):
     h = 1e-6 * t.max()
     numeric = (getattr(cam, g)(t + h) - getattr(cam, g)(t - h)) / (2 * h)
     np.testing.assert_allclose(getattr(cam, dg)(t), numeric, rtol=1e-6, atol=1e-9)
+
+
+def test_the_distortions_jacobian_is_its_derivative_with_every_coefficient():
+    """All twelve of OpenCV's coefficients (radial, rational, tangential, thin prism), each
+    nonzero: the Jacobian that undistortion's Newton steps use against central differences
+    (a wrong one could still converge, more slowly, so the round trips would not see it)."""
+    from usf_graph.cameras.distortion import distort
+
+    d = np.array([-0.21, 0.05, 1.3e-3, -0.9e-3, -0.011, 0.12, -0.03, 0.007,
+                  2e-3, -1.1e-3, 1.7e-3, 0.8e-3])
+    x, y = np.random.default_rng(5).uniform(-0.9, 0.9, (2, 500))
+    _, _, jac = distort(d, x, y, jacobian=True)
+    h = 1e-6
+    dx = [(a - b) / (2 * h) for a, b in zip(distort(d, x + h, y), distort(d, x - h, y))]
+    dy = [(a - b) / (2 * h) for a, b in zip(distort(d, x, y + h), distort(d, x, y - h))]
+    for got, want in zip(jac, (dx[0], dy[0], dx[1], dy[1])):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-8)
