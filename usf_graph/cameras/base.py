@@ -8,13 +8,14 @@ All math is numpy float64. Invalid outputs are NaN and flagged False in ``valid`
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from ..geometry import as_rotation_matrix
-from .kept import kept_rays, lens_key
+from .kept import kept_rays
 from .resize import moved, resized, whole_pixels
 
 FORMAT_TAG = "usf_graph_camera"  # marks usf-graph's own calibration YAML
@@ -165,7 +166,8 @@ class Camera:
         """:meth:`unproject` of every pixel centre: rays ``[H, W, 3]`` (optical frame) and
         ``valid [H, W]``, computed once per lens (:mod:`~usf_graph.cameras.kept`); a camera
         may compute it faster from its structure."""
-        return kept_rays(lens_key(self.key()), lambda: self.unproject(self.pixel_grid()))
+        return kept_rays(json.dumps(self.lens_key(), sort_keys=True),
+                         lambda: self.unproject(self.pixel_grid()))
 
     def pixel_grid(self) -> np.ndarray:
         """Pixel centres ``[H, W, 2]`` as (u, v)."""
@@ -352,12 +354,17 @@ class Camera:
             raise ValueError("the image mask is all zero: the camera would see nothing")
         return self._copy(image_mask=m)
 
-    def key(self) -> dict:
-        """Everything that determines this camera's geometry (for cache keys and files)."""
-        k = {"model": self.model, "params": _jsonable(self.params()),
-             "rotation": np.round(self.rotation, 15).tolist()}
+    def lens_key(self) -> dict:
+        """What the optical-frame rays (:meth:`pixel_rays`) depend on: the model, its
+        parameters and its field-of-view limit, not where the camera is mounted."""
+        k = {"model": self.model, "params": _jsonable(self.params())}
         if self.fov_limit is not None:
             k["fov_deg"] = round(math.degrees(2 * self.fov_limit), 12)
+        return k
+
+    def key(self) -> dict:
+        """Everything that determines this camera's geometry (for cache keys and files)."""
+        k = {**self.lens_key(), "rotation": np.round(self.rotation, 15).tolist()}
         if self.distance is not None:  # without one the position changes no ray
             k["distance"] = self.distance
             if self.position is not None:

@@ -8,7 +8,6 @@ every re-imager, frontend and leveler built on it, so it is computed once per le
 
 from __future__ import annotations
 
-import json
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -23,18 +22,11 @@ _TABLES: OrderedDict[str, tuple[np.ndarray, np.ndarray]] = OrderedDict()
 _LOCK = threading.Lock()
 
 
-def lens_key(key: dict) -> str:
-    """What of a camera's :meth:`~usf_graph.cameras.base.Camera.key` its optical-frame
-    rays depend on: the model, its parameters and its field-of-view limit (not its
-    rotation, position, scene distance or image mask)."""
-    lens = {k: key[k] for k in ("model", "params", "fov_deg") if k in key}
-    return json.dumps(lens, sort_keys=True)
-
-
 def kept_rays(key: str, build: Callable[[], tuple[np.ndarray, np.ndarray]]
               ) -> tuple[np.ndarray, np.ndarray]:
-    """``build()``'s ``(rays [H, W, 3], valid [H, W])`` for the lens ``key``, computed
-    once while it is kept; each call gets its own copies to change as it likes."""
+    """``build()``'s ``(rays [H, W, 3], valid [H, W])`` for the lens ``key`` (its
+    :meth:`~usf_graph.cameras.base.Camera.lens_key`, as JSON), computed once while it is
+    kept; each call gets its own copies to change as it likes."""
     with _LOCK:
         table = _TABLES.get(key)
         if table is not None:
