@@ -1,16 +1,16 @@
 #!/usr/bin/env bash
 # The GPU checks of one short lease, in one script (benchmarks/README.md, "On a GPU"):
 #   1. the GPU-only tests and the layers' tests (test_engine, test_wide, test_conv,
-#      test_torch_modes: autocast, inference mode, compile),
+#      test_torch_modes: autocast, inference mode, compile; test_gravity: the up's polish),
 #   2. one layer in every form (benchmarks/conv.py), the U-Net's training step and one frame of
 #      predict (benchmarks/predict_frame.py),
 #   3. a 15-minute recipe trained and scored on CUDA, timed (RECIPE=seg: make demo-seg, the
-#      default; RECIPE=det: make demo-det; RECIPE=none: no recipe).
+#      default; RECIPE=det: make demo-det; RECIPE=both: the two side by side; RECIPE=none).
 # Run from the repository root with python3 holding a CUDA PyTorch:
 #   WHEELS=dir  wheels installed first into /tmp/site (what the machine lacks:
 #               torch-scatter, torch-cluster, trimesh, embreex, pycocotools)
 #   OUT=dir     the log and the recipe's results.json (default runs/gpu_check)
-#   TESTS=-k..  pytest's selection within the three files (default: all of them)
+#   TESTS=-k..  pytest's selection within the five files (default: all of them)
 #   BENCH=0     skip step 2
 set -u
 OUT=${OUT:-runs/gpu_check}
@@ -32,21 +32,25 @@ print('torch', torch.__version__, 'pyg', torch_geometric.__version__, 'cuda', to
   || exit 1
 lap "set up"
 timeout 210 python3 -m pytest -q -p no:cacheprovider -rs tests/train/test_engine.py tests/nn/test_wide.py \
-  tests/nn/test_conv.py tests/models/test_torch_modes.py ${TESTS:-}
+  tests/nn/test_conv.py tests/models/test_torch_modes.py tests/models/test_gravity.py ${TESTS:-}
 lap "tests"
 if [ "${BENCH:-1}" != 0 ]; then
   timeout 90 python3 benchmarks/conv.py --device cuda --level 6 --reps 10 --skip-slow
   timeout 45 python3 benchmarks/seg_step.py --device cuda --batch 32 --reps 5
+  timeout 45 python3 benchmarks/det_step.py --device cuda --batch 32 --reps 5
   timeout 60 python3 benchmarks/predict_frame.py --device cuda --reps 5
   lap "layer and step"
 fi
+seg_recipe() { timeout 400 python3 -m usf_graph.cli train seg --device cuda --channel-scale 0.5 \
+  --epochs 6 --fov-epochs 2 --up-epochs 4 --up-extra 400 --root /tmp/rooms_seg --out /tmp/gpu_seg; }
+det_recipe() { timeout 400 python3 -m usf_graph.cli train det --device cuda --channel-scale 0.5 \
+  --epochs 16 --fov-epochs 3 --up-epochs 4 --up-extra 400 --root /tmp/rooms_det --out /tmp/gpu_det; }
 case $RECIPE in
-  seg) timeout 290 python3 -m usf_graph.cli train seg --device cuda --channel-scale 0.5 --epochs 6 \
-         --fov-epochs 2 --up-epochs 4 --up-extra 400 --root /tmp/rooms --out /tmp/gpu_recipe ;;
-  det) timeout 300 python3 -m usf_graph.cli train det --device cuda --channel-scale 0.5 --epochs 16 \
-         --fov-epochs 3 --up-epochs 4 --up-extra 400 --root /tmp/rooms --out /tmp/gpu_recipe ;;
+  seg) seg_recipe ;;
+  det) det_recipe ;;
+  both) seg_recipe > "$OUT/seg_recipe.log" 2>&1 & det_recipe; wait; tail -40 "$OUT/seg_recipe.log" ;;
   none) exit 0 ;;
-  *) echo "RECIPE must be seg, det or none, got $RECIPE"; exit 2 ;;
+  *) echo "RECIPE must be seg, det, both or none, got $RECIPE"; exit 2 ;;
 esac
-cp /tmp/gpu_recipe/results.json "$OUT/${RECIPE}_results.json" 2>/dev/null
+for r in seg det; do cp /tmp/gpu_$r/results.json "$OUT/${r}_results.json" 2>/dev/null; done
 lap "$RECIPE recipe"
