@@ -19,7 +19,7 @@ from usf_graph.ops import (
     spherical_nms,
 )
 from usf_graph.ops import iou as iou_module
-from usf_graph.ops.boxes import box_axes, boxes_from_axes
+from usf_graph.ops.boxes import box_axes, box_planes, boxes_from_axes
 from usf_graph.ops.iou import _caps_meet
 
 F64 = torch.float64
@@ -173,6 +173,50 @@ def test_pairwise_skips_only_pairs_that_share_no_point(seed, wide):
     near = _caps_meet(torch.as_tensor(a), torch.as_tensor(b))
     assert 0 < int(near.sum()) < near.numel() and near[:5, :5].diagonal().all()
     assert (exact[~near] == 0).all() and (exact[:5, :5].diagonal() == 0).all()
+
+
+def test_the_skipping_caps_pass_through_the_corners():
+    """Each box's cap reaches exactly its farthest corner, so two boxes are skipped as
+    soon as their centres are further apart than the two caps' radii: a looser cap would
+    still be right, but would clip pairs for nothing (so this checks the radius itself)."""
+    a, b = _random_boxes(30, 7), _random_boxes(30, 8)
+    (ca, ea, _), (cb, eb, _) = box_axes(a), box_axes(b)
+    ra = np.arccos(np.clip((box_planes(a)[1] * ca[:, None]).sum(-1), -1, 1)).max(1)
+    rb = np.arccos(np.clip((box_planes(b)[1] * cb[:, None]).sum(-1), -1, 1)).max(1)
+    for gap, meet in ((-1e-6, True), (1e-6, False)):
+        # b's centre moved to ra + rb + gap from a's centre, along a's horizontal axis
+        d = (ra + rb + gap)[:, None]
+        moved = boxes_from_axes(np.cos(d) * ca + np.sin(d) * ea, eb, b[:, 2], b[:, 3])
+        got = _caps_meet(torch.as_tensor(a), torch.as_tensor(moved)).diagonal()
+        assert got.tolist() == [meet] * 30
+
+
+@pytest.mark.parametrize("values", [True, False])
+def test_pairwise_iou_of_no_boxes_has_the_other_side(values, monkeypatch):
+    """Empty sides give empty matrices of the right shape, in eager mode and in the
+    exporters' fixed-shape mode."""
+    monkeypatch.setattr(iou_module, "check_values", lambda: values)
+    some = torch.as_tensor(_random_boxes(3, 9))
+    assert pairwise_box_iou(some[:0], some).shape == (0, 3)
+    assert pairwise_box_iou(some, some[:0]).shape == (3, 0)
+    far = some.clone()
+    far[:, 0] += math.pi  # every pair apart: nothing clipped, all zeros
+    far[:, 1] = -far[:, 1]
+    far[:, 2:4] = 0.1
+    near = some.clone()
+    near[:, 2:4] = 0.1
+    assert torch.equal(pairwise_box_iou(near, far), torch.zeros(3, 3, dtype=F64))
+
+
+def test_nms_suppresses_only_iou_above_the_threshold():
+    """As ``torchvision.ops.nms``: a box goes when its IoU with a better one is above the
+    threshold, not at it; at a threshold of 0, boxes that only touch or are apart stay."""
+    apart = np.array([P(0, 0, 20, 20, 0), P(20, 0, 20, 20, 0), P(90, 0, 20, 20, 0)])
+    scores = torch.tensor([0.9, 0.8, 0.7])
+    assert float(box_iou(apart[0], apart[1], dtype=F64)) < 1e-12  # they share an edge
+    assert spherical_nms(apart, scores, 0.0).tolist() == [0, 1, 2]
+    overlapping = np.array([P(0, 0, 20, 20, 0), P(19, 0, 20, 20, 0)])
+    assert spherical_nms(overlapping, scores[:2], 0.0).tolist() == [0]
 
 
 @settings(max_examples=10, deadline=None)
