@@ -140,6 +140,45 @@ def test_double_sphere_round_trip(i, xi, alpha, seed):
     check_round_trips(cam, rays[keep][:300])
 
 
+def _meridian(theta):
+    theta = np.asarray(theta, np.float64)
+    return np.stack([np.sin(theta), 0 * theta, np.cos(theta)], -1)
+
+
+def _domain_edge_holds(cam, edge):
+    """Rays 1e-3 rad inside ``edge`` (incidence) project and come back; 1e-5 past it, none
+    projects (the edge at 180 degrees has no past)."""
+    inside = _meridian([edge - 1e-3, edge / 2])
+    uv, ok = cam.project(inside)
+    back, ok_back = cam.unproject(uv)
+    assert ok.all() and ok_back.all() and angle(back, inside).max() < 1e-9
+    if edge < math.pi - 1e-5:
+        assert not cam.project(_meridian(edge + 1e-5))[1]
+
+
+@pytest.mark.parametrize("xi, alpha", [(-0.2, 0.6), (0.3, 0.3), (0.8, 0.7), (-0.3, 0.4),
+                                       (0.9, 0.2), (0.4, 0.5), (-0.5, 0.5)])
+def test_double_sphere_domain_is_the_papers(xi, alpha):
+    """Usenko et al. 2018, eq. 43-45 (and basalt): a ray is valid where z > -w2 |X|. The
+    round-trip test reads ``cam._w2``, so only this pins it; alpha = 0.5 has w2 = 1 (the
+    whole sphere but the back) and no disc limit in the image."""
+    w1 = alpha / (1 - alpha) if alpha <= 0.5 else (1 - alpha) / alpha
+    w2 = (w1 + xi) / math.sqrt(2 * w1 * xi + xi * xi + 1)
+    cam = C.DoubleSphere(300, 300, 500, 500, 1000, 1000, xi=xi, alpha=alpha)
+    _domain_edge_holds(cam, math.acos(-w2))
+
+
+@pytest.mark.parametrize("alpha, beta", [(0.3, 1.0), (0.8, 0.5), (0.9, 1.0), (0.5, 2.0)])
+def test_eucm_domain_ends_where_the_image_does(alpha, beta):
+    """The EUCM's domain z > -w d ends where the unprojection does: at the image disc
+    r^2 = 1 / (beta (2 alpha - 1)) for alpha > 1/2, at infinity otherwise (den = 0). Read
+    from the unprojection, not from w (lenses without a fold before that edge)."""
+    cam = C.EUCM(300, 300, 500, 500, 1000, 1000, alpha=alpha, beta=beta)
+    r = math.sqrt(1 / (beta * (2 * alpha - 1))) * (1 - 1e-12) if alpha > 0.5 else 1e9
+    far, _ = cam._unproject(np.array([500 + 300 * r, 500.0]))  # the formula, no domain check
+    _domain_edge_holds(cam, float(incidence(far)))
+
+
 @settings(**SETTINGS)
 @given(intr, st.floats(0.0, 1.0), st.floats(0.3, 2.5), st.integers(0, 2**31))
 def test_eucm_round_trip(i, alpha, beta, seed):
@@ -285,7 +324,7 @@ def test_principal_point_is_the_optical_axis(cam):
                          ids=lambda c: type(c).__name__)
 def test_any_leading_shape_maps_point_by_point(cam):
     """``[..., 3]`` rays and ``[..., 2]`` pixels of any leading shape (an image's [H, W])
-    give what the same points give as one flat list."""
+    give what the same points give as one flat list; the rays are unit vectors."""
     rays = random_rays(np.random.default_rng(4), 600, math.radians(100))
     uv, ok = cam.project(rays)
     uv_grid, ok_grid = cam.project(rays.reshape(20, 30, 3))
@@ -297,6 +336,7 @@ def test_any_leading_shape_maps_point_by_point(cam):
     assert back.shape == (4, 5, 30, 3)
     np.testing.assert_array_equal(back.reshape(-1, 3), flat)
     np.testing.assert_array_equal(valid.ravel(), flat_valid)
+    np.testing.assert_allclose(np.linalg.norm(flat[flat_valid], axis=-1), 1, atol=1e-12)
 
 
 def test_invalid_domain_is_flagged_never_wrong():
