@@ -74,6 +74,32 @@ def test_pool_and_unpool_values():
     torch.testing.assert_close(lin[:len(coarse)], coarse.pos)  # nested points are exact
 
 
+@pytest.mark.parametrize("grid", [grids.icosahedral(2), grids.healpix(4)], ids=["ico", "healpix"])
+def test_linear_unpool_blends_the_three_nearest_by_inverse_squared_distance(grid):
+    """Each fine point off the coarse grid: sum_i w_i x_i over its three nearest coarse
+    points and those tied with the third (brute force), w_i proportional to 1 / |p - c_i|^2;
+    and so it commutes with the grid's rotations (the tree's order broke the icosahedral
+    grid's ties at the third place, 0.3-0.5 off)."""
+    coarse, cl = grid.coarsen()
+    x = torch.randn(len(coarse), 2, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    up = GridUnpool(cl, "linear", grid.pos, coarse.pos)
+    got = up(x)
+    d = torch.cdist(grid.pos.double(), coarse.pos.double())
+    third = d.sort(1).values[:, 2:3]
+    w = torch.where(d <= third * (1 + 1e-6), 1 / d.clamp_min(1e-300) ** 2, 0.0)
+    want = (w / w.sum(1, keepdim=True)) @ x
+    off = d.min(1).values > 1e-9
+    assert off.sum() == len(grid) - (len(coarse) if len(grid) == 162 else 0)  # ico is nested
+    torch.testing.assert_close(got[off], want[off], rtol=0, atol=1e-12)
+    torch.testing.assert_close(got[~off], x[cl[~off]], rtol=0, atol=0)  # nested points: exact
+    axis = grid.pos[0].double() if len(grid) == 162 else torch.tensor([0.0, 0, 1], dtype=torch.float64)
+    R = rotation_from_axis_angle(axis, torch.tensor(2 * math.pi / (5 if len(grid) == 162 else 4)))
+    s, sc = symmetry_permutation(grid.pos, R), symmetry_permutation(coarse.pos, R)
+    xr = torch.empty_like(x)
+    xr[sc] = x
+    assert (up(xr)[s] - got).abs().max() < 1e-13
+
+
 def test_gaussian_pool_values_mask_and_rigid_invariance():
     fine, coarse = random_sphere(300, 1).double(), random_sphere(20, 2).double()
     area = torch.rand(300, dtype=torch.float64) + 0.5
@@ -166,6 +192,9 @@ def test_readouts_on_a_pyg_batch_of_different_graphs():
         torch.testing.assert_close(gm[i], (d.x * w[:, None]).sum(0) / w.sum())
         torch.testing.assert_close(gx[i], d.x[d.mask].max(0).values)
     assert gm[2].abs().sum() == 0 and gx[2].abs().sum() == 0  # nothing visible: 0, not NaN
+    assert gm.shape == gx.shape == (3, 4)  # one row per graph, as PyG's readouts
+    with pytest.raises(ValueError, match=r"mask must have one value per point \(90\)"):
+        global_max_pool_masked(b.x, b.mask.view(1, -1), batch=b.batch)  # a batch's mask is [sum N_i]
     # the static form: [B, N, C] with per-sample masks
     x, m = torch.randn(2, 30, 4), torch.rand(2, 30) > 0.5
     torch.testing.assert_close(global_mean_pool_area(x, None, m),
