@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from usf_graph import grids
+from usf_graph.graph import nearest_with_ties
 from usf_graph.nn import (
     geodesic_radius_graph,
     radius_for_neighbors,
@@ -131,3 +132,23 @@ def test_radius_for_neighbors_holds_about_k_points(grid):
     for bad in (0, -1, n):
         with pytest.raises(ValueError, match=rf"k must be in \(0, {n}\)"):
             radius_for_neighbors(n, bad)
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_nearest_with_ties_keeps_every_point_tied_with_the_nth(n):
+    """Against brute force: the n nearest and every point as near as the n-th, on the
+    icosahedral grids (where the midpoints' ties are exact) and on random points."""
+    rng = np.random.default_rng(0)
+    cases = [(grids.icosahedral(1).pos.numpy(), grids.icosahedral(2).pos.numpy()),
+             (grids.icosahedral(3).pos.numpy(), grids.icosahedral(4).pos.numpy()),
+             (rng.normal(size=(50, 3)), rng.normal(size=(40, 3)))]
+    for points, queries in cases:
+        d, j = nearest_with_ties(points, queries, n)
+        full = np.linalg.norm(queries[:, None] - points[None], axis=-1)
+        nth = np.sort(full, 1)[:, n - 1:n]
+        want = full <= nth * (1 + 1e-9)
+        assert want.sum(1).max() > n or points.shape[0] == 50  # the grids do tie
+        for q in range(len(queries)):
+            got = j[q][np.isfinite(d[q])]
+            assert sorted(got.tolist()) == np.flatnonzero(want[q]).tolist()
+            np.testing.assert_allclose(d[q][np.isfinite(d[q])], full[q, got], rtol=1e-12)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from .geometry import geodesic_distance, geodesic_to_chord
@@ -127,3 +128,21 @@ def knn_graph(pos: torch.Tensor, k: int, batch=None, loop: bool = True):
     ei = _by_centre(torch_cluster.knn_graph(pos.detach(), int(k), batch=batch, loop=loop),
                     pos.shape[0])
     return ei, (pos[ei[0]] - pos[ei[1]]).norm(dim=-1)
+
+
+def nearest_with_ties(points, queries, n: int, rtol: float = 1e-9):
+    """Each query's ``n`` nearest of ``points`` and every point tied with the ``n``-th
+    (within ``rtol`` relative, for float64 positions: a fine grid's near-ties differ by
+    more), so that a symmetric grid's ties are all kept rather than broken by a k-d tree's
+    order. Numpy ``[P, 3]`` and ``[Q, 3]`` in; distances ``[Q, K]`` (euclidean, sorted,
+    ``inf`` where a row has fewer) and indices ``[Q, K]`` out."""
+    from scipy.spatial import cKDTree
+
+    points, queries = np.asarray(points, np.float64), np.asarray(queries, np.float64)
+    tree, k = cKDTree(points), min(2 * n, len(points))
+    while True:
+        d, j = (a.reshape(len(queries), k) for a in tree.query(queries, k=k))
+        tied = d <= d[:, min(n, k) - 1:min(n, k)] * (1 + rtol) + 1e-12
+        if k == len(points) or not tied[:, -1].any():
+            return np.where(tied, d, np.inf), j
+        k = min(2 * k, len(points))

@@ -6,11 +6,11 @@ import hashlib
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import nn
 
 from ..frontend.cache import GeometryCache
 from ..geometry import tangent_towards
+from ..graph import nearest_with_ties
 from ..sparse import (
     buffer_as,
     csr,
@@ -340,17 +340,15 @@ class FillHidden(nn.Module):
     false edge along its border; extending the image by its nearest visible value removes
     it. The index is built once per mask (a k-d tree query) and memoized."""
 
-    def __init__(self, pos: torch.Tensor, ties: int = 6):
+    def __init__(self, pos: torch.Tensor):
         super().__init__()
-        self.pos, self.ties = pos.double().numpy(), ties
+        self.pos = pos.double().numpy()
         self._index: dict[bytes, tuple] = {}
 
     def _build(self, m: np.ndarray) -> tuple:
         vis, hid = np.flatnonzero(m), np.flatnonzero(~m)
-        k = min(self.ties, len(vis))
-        d, j = cKDTree(self.pos[vis]).query(self.pos[hid], k=k)
-        d, j = d.reshape(len(hid), k), j.reshape(len(hid), k)
-        w = (d <= d[:, :1] * (1 + 1e-9) + 1e-12).astype(np.float64)
+        d, j = nearest_with_ties(self.pos[vis], self.pos[hid], 1)
+        w = np.isfinite(d).astype(np.float64)
         return (torch.as_tensor(hid), torch.as_tensor(vis[j]),
                 torch.as_tensor(w / w.sum(1, keepdims=True)))
 

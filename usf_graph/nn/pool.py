@@ -5,10 +5,9 @@ from __future__ import annotations
 import math
 
 import torch
-from scipy.spatial import cKDTree
 from torch import nn
 
-from ..graph import euclidean_radius, geodesic_radius
+from ..graph import euclidean_radius, geodesic_radius, nearest_with_ties
 from ..sparse import (
     buffer_as,
     csr,
@@ -158,8 +157,8 @@ class GaussianPool(GeometryModule):
 class GridUnpool(GeometryModule):
     """Coarse -> fine: ``nearest`` copies the point's cluster value; ``linear`` blends the
     three nearest coarse points by inverse squared distance (needs the positions), with any
-    point tied with the third (to 1e-6 relative) taking part too, so that the blend commutes
-    with the grid's symmetries.
+    point tied with the third (:func:`~usf_graph.graph.nearest_with_ties`) taking part too,
+    so that the blend commutes with the grid's symmetries.
 
     Shapes: ``[M, C]``, ``[B, M, C]``, or a PyG batch ``[B M, C]`` with ``batch`` ->
     the same form on the fine grid (a PyG batch returns ``(y [B N, C], batch [B N])``).
@@ -180,7 +179,10 @@ class GridUnpool(GeometryModule):
             if fine_pos is None or coarse_pos is None:
                 raise ValueError("mode='linear' needs fine_pos and coarse_pos")
             self.num_coarse = len(coarse_pos)
-            d, idx = _nearest_three(torch.as_tensor(fine_pos), torch.as_tensor(coarse_pos))
+            # on a symmetric grid the third place is often a tie (72 of icosahedral:2's 162
+            # points): every tied point takes part, so the blend commutes with the symmetries
+            d, idx = nearest_with_ties(torch.as_tensor(coarse_pos), torch.as_tensor(fine_pos), 3)
+            d, idx = torch.as_tensor(d), torch.as_tensor(idx, dtype=torch.long)
             w = torch.where(torch.isfinite(d), 1.0 / d.clamp_min(1e-12) ** 2, 0.0)
             w = w / w.sum(1, keepdim=True)
             # a fine point on a coarse point takes its value exactly
@@ -201,24 +203,6 @@ class GridUnpool(GeometryModule):
 
     def extra_repr(self) -> str:
         return f"{self.num_coarse} -> {self.idx.shape[0]} points, mode='{self.mode}'"
-
-
-def _nearest_three(fine: torch.Tensor, coarse: torch.Tensor):
-    """Distances and indices ``[N, K]`` of each fine point's three nearest coarse points,
-    and of every point tied with the third (to 1e-6 relative), sorted; ``inf`` pads rows
-    with fewer. On a symmetric grid the third place is often a tie (72 of icosahedral:2's
-    162 points), and the tree's order, not the geometry, would break it."""
-    tree, fine = cKDTree(coarse.double().numpy()), fine.double().numpy()
-    k = min(6, len(coarse))
-    while True:
-        d, j = (a.reshape(len(fine), k) for a in tree.query(fine, k=k))
-        last = d[:, min(2, k - 1)]
-        tied = d <= last[:, None] * (1 + 1e-6) + 1e-12
-        if k == len(coarse) or not tied[:, -1].any():
-            break
-        k = min(2 * k, len(coarse))
-    d = torch.as_tensor(d).masked_fill(~torch.as_tensor(tied), float("inf"))
-    return d, torch.as_tensor(j, dtype=torch.long)
 
 
 def _readout_weights(x, area, mask, batch):
