@@ -71,3 +71,27 @@ def test_masked_batchnorm_matches_torch_batchnorm_with_gradients():
                     for t in (y, y_ref))
         for a, b in zip(g, g_ref):
             torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
+
+
+def test_masked_batchnorm_reset_and_refusals():
+    """``reset_parameters`` returns a trained layer to a new one's state; wrong shapes are
+    refused by name."""
+    bn = MaskedBatchNorm(3)
+    with torch.no_grad():
+        bn.weight.mul_(2)
+        bn.bias.add_(1)
+    bn(torch.randn(2, 40, 3) * 4 + 2)  # moves the running statistics
+    bn.reset_parameters()
+    for (name, got), want in zip(bn.state_dict().items(), MaskedBatchNorm(3).state_dict().values()):
+        assert torch.equal(got, want), name
+    x = torch.randn(2, 40, 3)
+    for call, why in ((lambda: bn(x[..., :2]), r"x must be \[N, 3\], \[B, N, 3\]"),
+                      (lambda: bn(x[None]), r"got \(1, 2, 40, 3\)"),
+                      (lambda: bn(x, batch=torch.zeros(40, dtype=torch.long)),
+                       r"batch must be \[sum N_i\] for x \[sum N_i, C\], got batch \(40,\)"),
+                      (lambda: bn(x[0], batch=torch.zeros(39, dtype=torch.long)), r"got batch \(39,\)"),
+                      (lambda: bn(x[0], mask=torch.ones(2, 40, dtype=torch.bool)),
+                       r"mask must have one value per point \(40\), got \(2, 40\)"),
+                      (lambda: bn(x, node_weight=torch.ones(1, 2, 40)), r"node_weight must have")):
+        with pytest.raises(ValueError, match=why):
+            call()
