@@ -10,6 +10,7 @@ from torch_geometric.loader import DataLoader
 
 from usf_graph import SphericalFrontend, cameras, grids
 from usf_graph.frontend import GeometryCache, render
+from usf_graph.frontend.interpolation import valid_entries
 from usf_graph.geometry import to_latlon
 
 
@@ -94,6 +95,27 @@ def test_two_processes_fill_one_key(tmp_path):
     assert not list(tmp_path.glob("*.tmp"))
 
 
+@pytest.mark.parametrize("sigma", [None, 0.08])
+def test_rbf_lift_is_the_gaussian_mean_of_the_pixels_within_three_sigma(sigma):
+    """Each visible point: sum_j g_j x_j / sum_j g_j over the pixels j whose rays lie
+    within 3 sigma (geodesic) of it, g_j = exp(-d_j^2 / 2 sigma^2), sigma by default half
+    the grid's spacing; brute force over every pixel ray."""
+    cam = cameras.Fisheye(30, 31.5, 31.5, 64, 64, fov_deg=180)
+    g = grids.icosahedral(3)
+    img = np.random.default_rng(0).random((64, 64))
+    fe = SphericalFrontend(cam, g, interpolation="rbf", rbf_sigma=sigma, cache=GeometryCache(None))
+    got = fe.lift(img).numpy()[:, 0]  # [N, 1]: one channel
+    s = 0.5 * g.spacing if sigma is None else sigma
+    rays, valid = cam.lens_normal_map()
+    rays, vals = rays[valid], img[valid]
+    d = np.arccos(np.clip(g.pos.numpy() @ rays.T, -1, 1))
+    w = np.where(d <= 3 * s, np.exp(-0.5 * (d / s) ** 2), 0.0)
+    seen = fe.mask.numpy()
+    assert seen.sum() > 100
+    want = w @ vals / np.maximum(w.sum(1), 1e-300)
+    np.testing.assert_allclose(got[seen], want[seen], rtol=0, atol=1e-9)
+
+
 def test_interpolations_fov_mask_and_errors():
     cam = cameras.Fisheye(40, 63.5, 63.5, 128, 128, fov_deg=180)
     g = grids.icosahedral(3)
@@ -112,6 +134,8 @@ def test_interpolations_fov_mask_and_errors():
         fe(np.zeros((100, 128)))
     with pytest.raises(ValueError, match="no channels"):
         fe(np.zeros((128, 128, 0), np.uint8))
+    with pytest.raises(ValueError, match=r"valid is \(64, 128\), the camera's image \(128, 128\)"):
+        valid_entries(cam, np.zeros((3, 4), np.int64), np.ones((3, 4)), valid=vign[::2])
     with pytest.raises(ValueError, match="unknown interpolation 'bicubic'"):
         SphericalFrontend(cam, g, interpolation="bicubic", cache=GeometryCache(None))
     for r in (-1.0, 0.0, float("nan"), 4.0):  # when built, not when the graph is first used

@@ -106,6 +106,9 @@ class SphericalFrontend:
         image_mask: optional ``[H, W]`` bool, False on pixels to ignore (vignetting,
             the robot's body); combined with the camera's own :attr:`~Camera.image_mask`.
         cache: a :class:`GeometryCache`; defaults to the process-wide one.
+        rbf_sigma: the Gaussian's width (rad) for ``rbf``: each point averages the pixels
+            whose rays lie within 3 sigma of it, weighted by exp(-d^2 / 2 sigma^2);
+            default half the grid's spacing.
 
     The interpolation table, field-of-view mask and radius graph depend only on the
     camera and the grid: they are built once and cached in memory and on disk. Lifting a
