@@ -144,6 +144,15 @@ def test_rotate_sample_turns_labels_and_up_with_the_signal():
     want = torch.empty_like(depth)
     want[sigma] = depth
     torch.testing.assert_close(dep, want, atol=1e-9, rtol=0)
+    # with a field of view: the mask turns too; hidden points are 0 and their labels ignored
+    mask = torch.rand(len(g), generator=gen) > 0.4
+    out = rotate_sample(Data(x=x.clone(), y=y.clone(), pos=g.pos, mask=mask.clone()), R,
+                        ignore_index=255)
+    want_m = torch.empty_like(mask)
+    want_m[sigma] = mask
+    assert torch.equal(out.mask, want_m) and out.x.shape == x.shape and out.y.shape == y.shape
+    torch.testing.assert_close(out.x, want_x * want_m[:, None], atol=1e-9, rtol=0)
+    assert torch.equal(out.y, torch.where(want_m, want_y, 255))
 
 
 def test_rotate_sample_labels_match_the_room_seen_turned():

@@ -97,7 +97,8 @@ def rotate_sample(data: Data, R: torch.Tensor, frontend=None,
     """``data`` with its signal turned by the rotation ``R`` (see :class:`RandomRotation`),
     and with it everything the view's frame fixes:
 
-    * ``x`` and ``mask``: re-lifted (``frontend`` and ``data.image``) or resampled;
+    * ``x`` and ``mask``: re-lifted (``frontend`` and ``data.image``) or resampled (a
+      point is then seen where every grid point it is blended from is seen);
     * per-point labels ``y [N]`` (integers): the label of the nearest of the three grid
       points the turned point falls between, ``ignore_index`` where it leaves the field of
       view; a float ``y [N, ...]`` is resampled as ``x`` is;
@@ -132,7 +133,9 @@ def rotate_sample(data: Data, R: torch.Tensor, frontend=None,
     else:
         data.x = _resampled(data.x, idx, w)
         if getattr(data, "mask", None) is not None:
-            data.mask = data.mask[idx].all(1)
+            # seen where every corner it reads (weight above rounding) is seen: a grid's
+            # symmetry reads one corner, and the mask turns exactly
+            data.mask = (data.mask[idx] | (w.abs() < 1e-9)).all(1)
             data.x = data.x * data.mask.reshape(-1, *([1] * (data.x.ndim - 1)))
     if per_point:
         if y.is_floating_point():
