@@ -8,7 +8,13 @@
 #      default; RECIPE=det: make demo-det; RECIPE=both: the two side by side; RECIPE=none).
 # Run from the repository root with python3 holding a CUDA PyTorch:
 #   WHEELS=dir  wheels installed first into /tmp/site (what the machine lacks:
-#               torch-scatter, torch-cluster, trimesh, embreex, pycocotools)
+#               torch-scatter, torch-cluster, trimesh, embreex, pycocotools, healpy with
+#               astropy, astropy-iers-data, pyerfa). The two compiled ones, for the machine's
+#               Python 3.12 and torch 2.11.0: in a Python 3.12 venv holding PyPI's
+#               torch==2.11.0 with its nvidia packages (import torch needs them), run
+#               FORCE_ONLY_CPU=1 pip wheel --no-build-isolation --no-deps
+#               torch-scatter==2.1.2 torch-cluster==1.6.3 (23 min on 2 cores, session 66);
+#               the rest: pip download --only-binary=:all: --python-version 3.12 ...
 #   OUT=dir     the log and the recipe's results.json (default runs/gpu_check)
 #   TESTS=-k..  pytest's selection within the five files (default: all of them)
 #   BENCH=0     skip step 2
