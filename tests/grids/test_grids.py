@@ -188,3 +188,30 @@ def test_voronoi_areas_are_kept_by_the_points_not_the_object(monkeypatch):
     turned = rotate(grids.fibonacci(300).pos, random_rotation(seed=1, dtype=torch.float64))
     other = grids.Grid(turned, "fibonacci", {"n": 300})  # same name, other points
     assert torch.equal(other.area, torch.as_tensor(real(other.pos.numpy()))) and len(calls) == 2
+
+
+def test_smallest_grids_refusals_spacing_and_quality_against_brute_force():
+    """The smallest grid of each kind builds; a grid normalizes its points and refuses
+    fewer than 4; ``spacing`` and ``quality()`` are the nearest-neighbour statistics they
+    say, computed here from every pairwise distance."""
+    from usf_graph.grids.base import Grid
+
+    for g, n in ((grids.icosahedral(0), 12), (grids.healpix(1), 12), (grids.fibonacci(4), 4),
+                 (grids.equiangular(2, 2), 4)):
+        assert len(g) == n, g.spec
+    for pos in (np.eye(3), np.ones((5, 2))):
+        with pytest.raises(ValueError, match=r"a grid needs \[N >= 4, 3\] points, got"):
+            Grid(pos, "points", {})
+    with pytest.raises(ValueError, match="got None"):
+        grids.fibonacci(None)
+    g = Grid(2.5 * grids.fibonacci(60).pos.numpy(), "points", {})
+    torch.testing.assert_close(g.pos.norm(dim=1), torch.ones(60, dtype=torch.float64))
+    d = geodesic_distance(g.pos[:, None], g.pos[None]).numpy()
+    np.fill_diagonal(d, np.inf)
+    d = np.sort(d, 1)
+    nn, six = d[:, 0], d[:, :6]
+    assert abs(g.spacing - nn.mean()) < 1e-12
+    q = g.quality()
+    assert abs(q["nn_dist_cv"] - nn.std() / nn.mean()) < 1e-9
+    assert abs(q["nbr6_dist_cv"] - six.std() / six.mean()) < 1e-9
+    assert abs(q["spacing_deg"] - math.degrees(nn.mean())) < 1e-9
