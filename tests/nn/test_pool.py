@@ -74,8 +74,16 @@ def test_pool_and_unpool_values():
     torch.testing.assert_close(lin[:len(coarse)], coarse.pos)  # nested points are exact
 
 
-@pytest.mark.parametrize("grid", [grids.icosahedral(2), grids.healpix(4)], ids=["ico", "healpix"])
-def test_linear_unpool_blends_the_three_nearest_by_inverse_squared_distance(grid):
+_ICO = grids.icosahedral(2)
+
+
+# (grid, whether its coarse points are among its points, a symmetry: axis and turns)
+@pytest.mark.parametrize("grid, nested, axis, turns", [
+    (_ICO, True, _ICO.pos[0].double(), 5),  # a fifth of a turn about a vertex
+    (grids.healpix(4), False, torch.tensor([0.0, 0, 1], dtype=torch.float64), 4),
+], ids=["ico", "healpix"])
+def test_linear_unpool_blends_the_three_nearest_by_inverse_squared_distance(grid, nested, axis,
+                                                                            turns):
     """Each fine point off the coarse grid: sum_i w_i x_i over its three nearest coarse
     points and those tied with the third (brute force), w_i proportional to 1 / |p - c_i|^2;
     and so it commutes with the grid's rotations (the tree's order broke the icosahedral
@@ -89,11 +97,10 @@ def test_linear_unpool_blends_the_three_nearest_by_inverse_squared_distance(grid
     w = torch.where(d <= third * (1 + 1e-9), 1 / d.clamp_min(1e-300) ** 2, 0.0)
     want = (w / w.sum(1, keepdim=True)) @ x
     off = d.min(1).values > 1e-9
-    assert off.sum() == len(grid) - (len(coarse) if len(grid) == 162 else 0)  # ico is nested
+    assert off.sum() == len(grid) - (len(coarse) if nested else 0)
     torch.testing.assert_close(got[off], want[off], rtol=0, atol=1e-12)
     torch.testing.assert_close(got[~off], x[cl[~off]], rtol=0, atol=0)  # nested points: exact
-    axis = grid.pos[0].double() if len(grid) == 162 else torch.tensor([0.0, 0, 1], dtype=torch.float64)
-    R = rotation_from_axis_angle(axis, torch.tensor(2 * math.pi / (5 if len(grid) == 162 else 4)))
+    R = rotation_from_axis_angle(axis, torch.tensor(2 * math.pi / turns))
     s, sc = symmetry_permutation(grid.pos, R), symmetry_permutation(coarse.pos, R)
     xr = torch.empty_like(x)
     xr[sc] = x
