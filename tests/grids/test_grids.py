@@ -215,3 +215,77 @@ def test_smallest_grids_refusals_spacing_and_quality_against_brute_force():
     assert abs(q["nn_dist_cv"] - nn.std() / nn.mean()) < 1e-9
     assert abs(q["nbr6_dist_cv"] - six.std() / six.mean()) < 1e-9
     assert abs(q["spacing_deg"] - math.degrees(nn.mean())) < 1e-9
+
+
+def test_equiangular_is_an_equirectangular_image_the_right_way_round():
+    """Point ``i * W + j`` is the panorama's pixel (row i, column j): text lifted from
+    the image by nearest neighbour and reshaped to ``[H, W]`` is the image, so it reads
+    left to right (a grid numbered by increasing longitude gave it mirrored)."""
+    import cv2
+
+    from usf_graph.cameras import Equirectangular
+    from usf_graph.frontend import SphericalFrontend
+
+    h, w = 24, 64
+    g, cam = grids.equiangular(h, w), Equirectangular(w, h)
+    rays, ok = cam.lens_normal_map()
+    assert ok.all()
+    np.testing.assert_allclose(g.pos.numpy(), rays.reshape(-1, 3), rtol=0, atol=1e-12)
+    image = np.zeros((h, w), np.uint8)
+    cv2.putText(image, "usf", (4, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 255, 2)
+    lifted = SphericalFrontend(cam, g, interpolation="nearest")(image)
+    assert lifted.mask.all()
+    got = lifted.x[:, 0].reshape(h, w).numpy()
+    np.testing.assert_array_equal(got, image)
+    assert image[:, : w // 3].any() and not np.array_equal(image, image[:, ::-1])
+
+
+def test_fibonacci_points_climb_the_golden_spiral():
+    """z_i = 1 - (2i + 1) / n, and each point turns by the golden angle 2 pi / phi^2
+    (137.5 degrees) about the z axis from the one before."""
+    n = 50
+    p = grids.fibonacci(n).pos.numpy()
+    np.testing.assert_allclose(p[:, 2], 1 - (2 * np.arange(n) + 1) / n, rtol=0, atol=1e-15)
+    phi = (1 + math.sqrt(5)) / 2
+    step = np.mod(np.diff(np.arctan2(p[:, 1], p[:, 0])), 2 * math.pi)
+    np.testing.assert_allclose(step, 2 * math.pi / phi ** 2, rtol=0, atol=1e-12)
+    assert math.isclose(math.degrees(2 * math.pi / phi ** 2), 137.50776405, abs_tol=1e-8)
+
+
+def test_each_kind_coarsens_to_its_own_next_grid_and_the_coarsest_refuses():
+    for fine, want in ((grids.icosahedral(2), {"level": 1}),
+                       (grids.healpix(4), {"nside": 2, "nest": True}),
+                       (grids.healpix(4, nest=False), {"nside": 2, "nest": False}),
+                       (grids.fibonacci(16), {"n": 4}),
+                       (grids.fibonacci(103), {"n": 25}),
+                       (grids.equiangular(4, 4), {"nlat": 2, "nlon": 2}),
+                       (grids.equiangular(6, 20), {"nlat": 3, "nlon": 10})):
+        coarse, cluster = fine.coarsen()
+        assert coarse.name == fine.name and coarse.params == want, fine.spec
+        assert len(cluster) == len(fine)
+    for g in (grids.healpix(1), grids.fibonacci(15), grids.equiangular(3, 8),
+              grids.equiangular(8, 3)):
+        with pytest.raises(ValueError, match="cannot be coarsened further"):
+            g.coarsen()
+
+
+@pytest.mark.parametrize("level", [0, 1, 2, 3])
+def test_icosahedral_grid_has_the_icosahedrons_symmetry(level):
+    """Turns of 72 degrees about a vertex and 120 degrees about a face's centre map every
+    level onto itself; at level 0 each vertex's neighbours lie at arctan 2 (63.4 degrees),
+    five of them, then five at 180 - arctan 2 and one opposite."""
+    from scipy.spatial.transform import Rotation
+
+    g = grids.icosahedral(level)
+    p = g.pos.numpy()
+    if level == 0:
+        d = np.sort(np.degrees(geodesic_distance(g.pos[:, None], g.pos[None]).numpy()), 1)
+        near = math.degrees(math.atan(2))
+        want = [0.0] + [near] * 5 + [180 - near] * 5 + [180.0]
+        np.testing.assert_allclose(d, np.tile(want, (12, 1)), rtol=0, atol=1e-6)
+    face = grids.icosahedral_faces(0)[0]
+    centre = p[face].sum(0)
+    for axis, angle in ((p[0], 72.0), (centre, 120.0), (p[5], 144.0)):
+        turned = Rotation.from_rotvec(np.radians(angle) * axis / np.linalg.norm(axis)).apply(p)
+        gap = np.linalg.norm(turned[:, None] - p[None], axis=-1).min(1)
+        assert gap.max() < 1e-12, (axis, angle)

@@ -28,14 +28,16 @@ def fibonacci(n: int) -> Grid:
 
 
 def equiangular(nlat: int, nlon: int) -> Grid:
-    """Cell centres of an nlat x nlon latitude/longitude grid, row-major from the north.
+    """Cell centres of an nlat x nlon latitude/longitude grid, row-major from the north
+    and, in a row, from left to right as seen from the centre (longitude decreasing).
 
-    Centres match an equirectangular image of the same size (DESIGN.md's pixel
-    convention), and the cell areas are exact.
+    Point ``i * nlon + j`` is pixel (row i, column j) of an equirectangular image of the
+    same size (DESIGN.md's pixel convention), so ``signal.reshape(nlat, nlon, -1)`` is that
+    image, the right way round. The cell areas are exact.
     """
     nlat, nlon = grid_size("equiangular nlat", nlat, 2), grid_size("equiangular nlon", nlon, 2)
     lat = math.pi / 2 - math.pi * (np.arange(nlat) + 0.5) / nlat
-    lon = 2 * math.pi * (np.arange(nlon) + 0.5) / nlon - math.pi
+    lon = math.pi - 2 * math.pi * (np.arange(nlon) + 0.5) / nlon
     pos = from_latlon(*np.meshgrid(lat, lon, indexing="ij")).reshape(-1, 3)
     edges = math.pi / 2 - math.pi * np.arange(nlat + 1) / nlat
     band = (np.sin(edges[:-1]) - np.sin(edges[1:])) * 2 * math.pi / nlon
