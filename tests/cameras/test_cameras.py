@@ -472,9 +472,22 @@ def test_a_photo_sphere_with_metadata_it_cannot_use_is_refused():
     for extra, shape, why in (({"ProjectionType": "cylindrical"}, (720, 360), "only equirectangular"),
                               ({"CroppedAreaLeftPixels": "100"}, (720, 360), "does not lie in"),
                               ({"CroppedAreaImageWidthPixels": "x"}, (720, 360), "not a number"),
-                              ({}, (700, 360), "another shape")):
+                              ({}, (700, 360), "another shape"),
+                              ({"CroppedAreaImageWidthPixels": "0"}, (720, 360), "0x360 at")):
         with pytest.raises(ValueError, match=why):
             C.Equirectangular.from_photo_sphere({**full, **extra}, *shape)
+
+
+def test_a_cropped_panoramas_axis_and_field_of_view_are_its_own():
+    """A crop (60 degrees of longitude, latitudes 0 to 60) looks along its centre pixel's
+    ray, and its field of view is twice the angle from there to its farthest corner pixel."""
+    cam = C.Equirectangular(60, 60, (0.0, math.pi / 3), (-math.pi / 6, math.pi / 6))
+    np.testing.assert_allclose(cam.optical_axis, cam.unproject(np.array([29.5, 29.5]))[0],
+                               atol=1e-12)
+    np.testing.assert_allclose(cam.optical_axis, [math.cos(math.pi / 6), 0, 0.5], atol=1e-12)
+    corners = cam.unproject(np.array([[0.0, 0.0], [59.0, 0.0], [0.0, 59.0], [59.0, 59.0]]))[0]
+    want = 2 * math.degrees(np.arccos(np.clip(corners @ cam.optical_axis, -1, 1)).max())
+    assert cam.fov_deg == pytest.approx(want, abs=1e-9)
 
 
 def test_scaramuzza_round_trip():

@@ -194,3 +194,55 @@ def test_share_in_view_exact_cases_and_a_dense_reference():
     got = share_in_view(boxes, lambda d: cam.sees(d)[1], n=128)
     assert want[0] == 1 and 0.1 < want[1] < 0.9 and 0.1 < want[2] < 0.9 and want[3] == 0
     assert np.allclose(got, want, atol=2e-3)
+
+
+def test_planes_and_corners_bound_the_same_directions_as_points_in_boxes():
+    """A direction is inside a box exactly where it is on the inner side of the box's four
+    great circles; each corner is a unit direction on the two circles that meet there."""
+    from usf_graph.ops import box_planes
+
+    rng = np.random.default_rng(5)
+    b = np.c_[rng.uniform(-np.pi, np.pi, 50), rng.uniform(-1.4, 1.4, 50),
+              rng.uniform(0.2, 2.8, (50, 2)), rng.uniform(-np.pi, np.pi, 50)]
+    p = rng.normal(size=(20_000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    planes, corners = box_planes(b)
+    side = np.einsum("pd,bkd->pbk", p, planes)
+    clear = np.abs(side).min(-1) > 1e-9  # off the borders, where rounding decides
+    assert np.array_equal((side >= 0).all(-1)[clear], points_in_boxes(p, b)[clear])
+    assert points_in_boxes(p, b).sum(0).min() > 0
+    np.testing.assert_allclose(np.linalg.norm(corners, axis=-1), 1.0, rtol=0, atol=1e-15)
+    on = np.abs(np.einsum("bkd,bjd->bkj", corners, planes)) < 1e-12  # corner k on circle j
+    meet = [(0, 2), (0, 3), (1, 3), (1, 2)]  # (+e, +n), (+e, -n), (-e, -n), (-e, +n)
+    for k, (i, j) in enumerate(meet):
+        assert on[:, k, i].all() and on[:, k, j].all() and on[:, k].sum(-1).max() == 2
+
+
+def test_a_box_of_half_the_sphere_or_more_holds_the_front_half():
+    """Past 180 degrees the tangent plane has no edge: such a field of view holds every
+    direction in front of the centre within the other field of view."""
+    for fx in (math.pi, math.radians(200)):
+        b = [0.0, 0.0, fx, 0.4, 0.0]
+        near_side = from_latlon(np.zeros(3), np.radians([89.0, -89.0, 0.0]))
+        assert points_in_boxes(near_side, b)[:, 0].all()
+        behind = from_latlon(0.0, math.radians(91.0))
+        assert not points_in_boxes(behind, b)[0, 0]
+
+
+def test_fit_keeps_the_whole_hull_of_a_lopsided_cloud():
+    """Directions filling a triangle far from their mean: the extremes seen from the
+    starting centre are not those at the answer, so the fit needs every hull vertex. The
+    box holds every direction and each side touches one."""
+    rng = np.random.default_rng(2)
+    a, b2 = rng.uniform(size=(2, 3000))
+    keep = a + b2 < 1
+    x, y = 0.9 * a[keep] ** 3 - 0.1, 0.7 * b2[keep] - 0.2  # dense at one corner, a long tail
+    d = np.stack([np.ones_like(x), x, y], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    fit = fit_box(d)
+    assert points_in_boxes(d, fit, margin=1e-9).all()
+    c, e, n = box_axes(fit)
+    u, v = d @ e / (d @ c), d @ n / (d @ c)
+    for got, half in ((u.max(), fit[2] / 2), (-u.min(), fit[2] / 2), (v.max(), fit[3] / 2),
+                      (-v.min(), fit[3] / 2)):
+        assert got == pytest.approx(math.tan(half), abs=1e-9)

@@ -133,7 +133,9 @@ def canonical_boxes(boxes):
 
 def points_in_boxes(points, boxes, margin: float = 0.0) -> np.ndarray:
     """``[P, B]`` True where direction ``points[p]`` lies in ``boxes[b]``; ``margin``
-    (radians) widens each side's half field of view (negative shrinks it)."""
+    (radians) widens each side's half field of view (negative shrinks it). A field of view
+    of 180 degrees or more holds the whole front half of the sphere across it: the
+    tangent plane has no edge there."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     if not np.isfinite(p).all():
         raise ValueError("points contain NaN or infinite values")
