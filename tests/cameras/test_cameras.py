@@ -385,10 +385,15 @@ def test_lens_normal_map_with_a_hole_and_its_outer_half_pixel():
     inside = (uv[:, 0] > 39) & (uv[:, 0] < 60) & (uv[:, 1] > 29) & (uv[:, 1] < 50)
     assert not ok[inside].any() and ok[~inside].mean() > 0.8
     # the image's outer half pixel extrapolates the edge cell instead of repeating its rays
-    edge = np.array([[-0.4, 40.0], [99.4, 40.0], [50.0, -0.45], [50.0, 79.45]])
+    # (the image spans [-0.5, W - 0.5] x [-0.5, H - 0.5], its outer corners included)
+    edge = np.array([[-0.4, 40.0], [99.4, 40.0], [50.0, -0.45], [50.0, 79.45], [-0.5, -0.5],
+                     [99.5, 79.5], [-0.5, 79.5], [99.5, -0.5]])
     r, ok = full.unproject(edge)
     assert ok.all()
     assert np.degrees(np.arccos(np.sum(r * ref.unproject(edge)[0], -1))).max() < 0.01
+    assert not full.unproject(np.array([[99.5 + 1e-9, 40.0], [50.0, 79.5 + 1e-9]]))[1].any()
+
+
 def test_lens_normal_maps_cover_the_right_solid_angle():
     half = C.Fisheye(150, 255.5, 255.5, 512, 512, model="equidistant", fov_deg=180)
     assert half.solid_angle() == pytest.approx(2 * math.pi, rel=1e-2)

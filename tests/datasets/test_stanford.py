@@ -45,6 +45,12 @@ def test_decode_every_ignore_case():
     assert decode_semantic(np.array([[_rgb(MISSING), _rgb(7)]], np.uint8), long).tolist() == [[255, 5]]
     with pytest.raises(ValueError, match="RGB uint8"):
         decode_semantic(np.zeros((2, 2), np.uint8), table)
+    # the index is R * 65536 + G * 256 + B: entries reached through G and through R
+    big = np.full(70_000, 255, np.uint8)
+    big[[3 * 256 + 2, 65536 + 5 * 256 + 7]] = [6, 9]
+    got = decode_semantic(np.array([[_rgb(3 * 256 + 2), _rgb(65536 + 5 * 256 + 7), [2, 3, 0]]],
+                                   np.uint8), big)
+    assert got.tolist() == [[6, 9, 255]]
 
 
 def _write_pano(root, area, name, W=32, H=16, rgba=False, seed=0):
@@ -93,6 +99,10 @@ def test_loader_reads_real_layout(stanford):
     d = ds[1]
     assert d.x.shape == (162, 3) and d.image.shape == (1, 8, 16, 3) and d.mask.all()
     assert torch.allclose(d.x, ds.x[1].float()) and 0 <= d.x.min() and d.x.max() <= 1
+    # RGB in [0, 1]: the stored image's values over 255, lifted (stored in half precision)
+    want_x = ds.frontend.lift(ds.image[1].numpy().astype(np.float32) / 255)
+    assert ds.x.dtype == torch.float16
+    torch.testing.assert_close(ds.x[1].float(), want_x.float(), rtol=1e-3, atol=1e-6)
     # processed once: a second instance loads the file
     again = Stanford2D3DS(root, fold=1, split="test", grid="icosahedral:2", size=8, progress=False)
     assert torch.equal(again.y, ds.y)
@@ -122,5 +132,6 @@ def test_loader_rejects_wrong_size(tmp_path):
     (tmp_path / "semantic_labels.json").write_text(json.dumps(NAMES))
     _write_pano(tmp_path, "5a", "aa", W=30, H=16)
     _write_pano(tmp_path, "5b", "bb")
-    with pytest.raises(ValueError, match="2:1"):
+    with pytest.raises(ValueError, match=r"_rgb\.png is 30x16 and its semantic image 30x16; both "
+                                         "must be the same 2:1 equirectangular size"):
         Stanford2D3DS(tmp_path, fold=1, split="test", grid="icosahedral:1", size=8, progress=False)

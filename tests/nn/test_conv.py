@@ -28,8 +28,8 @@ from usf_graph.testing import assert_equivariant, assert_motion_invariant, symme
 
 def dense_reference(x, pos, conv, node_weight=None, mask=None, euclidean=False):
     """The layer's formula from positions alone: every pair of points, its distance, the
-    basis written out here (hat or gaussian), a dense sum. Shares no code with the layer
-    beyond reading its weights."""
+    basis written out here (hat, gaussian or bessel), a dense sum. Shares no code with the
+    layer beyond reading its weights."""
     a = dense_coefficients(pos, conv, node_weight, mask, euclidean)
     W = conv.weight.view(conv.num_basis, conv.in_channels, conv.out_channels)
     y = torch.einsum("ijk,...jc,kco->...io", a, x, W)
@@ -47,15 +47,23 @@ def dense_coefficients(pos, conv, node_weight=None, mask=None, euclidean=False):
                         pos @ pos.T)
     u = (d / r)[..., None]
     k = torch.arange(K, dtype=d.dtype)
+    env = 1 - u.clamp(0, 1) ** 3 * (10 - 15 * u.clamp(0, 1) + 6 * u.clamp(0, 1) ** 2)
     if conv.kernel.basis == "hat":
         phi = torch.relu(1 - (u * K - k).abs())
     elif conv.kernel.basis == "gaussian":
         c = k / max(K - 1, 1)
-        env = 1 - u.clamp(0, 1) ** 3 * (10 - 15 * u.clamp(0, 1) + 6 * u.clamp(0, 1) ** 2)
         phi = torch.exp(-0.5 * ((u - c) * K) ** 2) * env
+    elif conv.kernel.basis == "bessel":  # sqrt(2/r) sin(n pi d / r) / d, n pi / r at d = 0
+        n = (k + 1) * math.pi / r
+        dd = d[..., None]
+        wave = torch.where(dd > 0, torch.sin(n * dd) / dd.clamp_min(1e-300), n)
+        phi = math.sqrt(2 / r) * wave * env
     else:
         raise NotImplementedError(conv.kernel.basis)
-    phi = phi * (d < r)[..., None]  # [N_i, N_j, K]
+    inside = (d < r)[..., None]
+    phi = phi * inside  # [N_i, N_j, K]
+    # signed bases could sum to 0 at a point: they are normalized by the envelope instead
+    mass = phi.sum(-1) if conv.kernel.basis != "bessel" else (env * inside)[..., 0]
     w = torch.ones(len(pos), dtype=d.dtype)
     if conv.normalize == "area" and node_weight is not None:
         w = node_weight.to(d.dtype)
@@ -63,7 +71,7 @@ def dense_coefficients(pos, conv, node_weight=None, mask=None, euclidean=False):
         w = w * mask.to(d.dtype)
     a = phi * w[None, :, None]
     if conv.normalize is not None:
-        a = a / (phi.sum(-1) * w[None]).sum(1).clamp_min(1e-12)[:, None, None]
+        a = a / (mass * w[None]).sum(1).clamp_min(1e-12)[:, None, None]
     return a
 
 
@@ -72,15 +80,19 @@ def graph(pos, r):
     return ei, ew, torch.as_tensor(voronoi_areas(pos.numpy()))
 
 
-@pytest.mark.parametrize("normalize, c_in, c_out", [("area", 6, 7), ("mean", 6, 7), (None, 6, 7),
-                                                    ("area", 2, 9), (None, 2, 9)])
-def test_every_path_equals_the_dense_reference(normalize, c_in, c_out):
+@pytest.mark.parametrize("normalize, c_in, c_out, basis", [
+    ("area", 6, 7, "hat"), ("mean", 6, 7, "hat"), (None, 6, 7, "hat"), ("area", 2, 9, "hat"),
+    (None, 2, 9, "hat"), ("area", 6, 7, "bessel"), ("mean", 2, 9, "bessel")])
+def test_every_path_equals_the_dense_reference(normalize, c_in, c_out, basis):
     # 6 -> 7 mixes channels first, 2 -> 9 aggregates first (the narrower side)
     pos = random_sphere(300, 2)
     ei, ew, area = graph(pos, 0.4)
+    area[:5] = 0.0  # areas may be 0 (a point of no extent)
     mask = torch.rand(300, generator=torch.Generator().manual_seed(0)) > 0.3
     x = torch.randn(4, 300, c_in, generator=torch.Generator().manual_seed(3))
-    conv = SphericalConv(c_in, c_out, 0.4, num_basis=3, normalize=normalize)
+    conv = SphericalConv(c_in, c_out, 0.4, num_basis=3, normalize=normalize, basis=basis)
+    with torch.no_grad():  # a bias of zeros (its initialization) would pass unadded
+        conv.bias.normal_(generator=torch.Generator().manual_seed(4))
     ref = dense_reference(x, pos, conv, area, mask)
     assert (conv(x, ei, ew, node_weight=area, mask=mask) - ref).abs().max() < 1e-12
     assert (conv(x, ei, ew, node_weight=area, mask=mask, fast=False) - ref).abs().max() < 1e-12
@@ -219,6 +231,12 @@ def test_gradcheck_of_the_default_path_in_every_input():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in conv.kernel.parameters())
     mlp = SphericalConv(2, 2, 0.8, kernel="mlp", hidden=4)
     assert torch.autograd.gradcheck(lambda x, w: mlp(x, ei, w, node_weight=area), (x, w_req))
+    # bound areas alone asking for a gradient (the distances fixed): no cached coefficients
+    conv = SphericalConv(2, 3, 0.8, num_basis=3, basis="gaussian")
+    xd = x.detach()
+    for _ in range(2):
+        assert torch.autograd.gradcheck(
+            lambda a: conv.bind(ei, ew, node_weight=a, mask=mask)(xd), (a_req,), fast_mode=True)
 
 
 def test_bound_geometry_follows_to_reset_and_in_place_edits():
@@ -566,6 +584,10 @@ def test_explain_mode_scales_each_message_by_its_edge_mask_on_every_path(normali
     set_masks(conv, m[:-1], ei[:, :-1], apply_sigmoid=False)
     with pytest.raises(ValueError, match="edge mask has .* entries"):
         conv(x)
+    clear_masks(conv)
+    conv.explain = True  # explain mode, but no explainer has set a mask
+    with pytest.raises(ValueError, match="explain mode without an edge mask: let an Explainer"):
+        conv(x)
 
 
 def test_pyg_message_hooks_see_the_messages_that_make_the_output():
@@ -907,3 +929,33 @@ def test_a_centre_seeing_only_the_kernels_rim_keeps_bounded_coefficients(basis):
     x = torch.randn(2 * M, 2, generator=torch.Generator().manual_seed(0))
     y = conv(x, ei, d, mask=mask)
     assert (y - conv.bias).abs().max() < 10 * x.abs().max() * conv.weight.abs().sum(0).max()
+
+
+def test_an_export_after_a_call_with_another_field_of_view_keeps_its_own():
+    """While exporting, a layer reuses the coefficients its last eager call kept only when
+    that call's field of view is the exported one: an eager call with another mask
+    between the recording and the export must not leave its coefficients in the file."""
+    from usf_graph import tracing
+
+    g = grids.icosahedral(2)
+    ei, ew = geodesic_radius_graph(g.pos, 0.5)
+    conv = SphericalConv(3, 4, 0.5, num_basis=3).bind(ei, ew, node_weight=g.area)
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.conv = conv
+
+        def forward(self, x, mask):
+            return self.conv(x, mask=mask)
+
+    x = torch.randn(2, len(g), 3, generator=torch.Generator().manual_seed(0))
+    field, other = g.pos[:, 0] > -0.2, g.pos[:, 2] > 0.1
+    with tracing.fixed_fields() as record:
+        want = Net()(x, field)
+    Net()(x, other)  # kept now: the other field's coefficients
+    with tracing.fixed_fields(record):
+        program = torch.export.export(Net(), (x, field))
+    torch.testing.assert_close(program.module()(x, field), want, rtol=0, atol=1e-12)
+    torch.testing.assert_close(want, dense_reference(x, g.pos, conv, g.area, field),
+                               rtol=0, atol=1e-12)
