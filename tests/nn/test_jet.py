@@ -88,8 +88,9 @@ def test_gradient_pairs_reject_bad_arguments():
     with pytest.raises(ValueError, match="pairs"):
         _pairs(g.pos, 3.5 * g.spacing, g.spacing, 4, 0)
     layer = _pairs(g.pos, 3.5 * g.spacing, g.spacing, 4, 2)
-    with pytest.raises(ValueError, match="channels"):
-        layer(torch.zeros(len(g.pos), 3, dtype=torch.float64))
+    for x in (torch.zeros(len(g.pos), 3), torch.zeros(2, len(g.pos), 3)):  # [N, C], [B, N, C]
+        with pytest.raises(ValueError, match="^x has 3 channels, the layer expects 4$"):
+            layer(x.double())
     assert repr(layer) == f"GradientPairs(4, pairs=2, num_nodes=162, spacing={g.spacing:.4g})"
 
 
@@ -216,3 +217,38 @@ def test_jets_share_a_fit_only_with_the_same_graph():
     assert e.op_val.requires_grad and e.op_val.data_ptr() != a.op_val.data_ptr()
     e.op_val.sum().backward()
     assert w.grad is not None and torch.isfinite(w.grad).all() and w.grad.abs().sum() > 0
+
+
+def test_jet_operator_is_the_weighted_least_squares_fit_it_documents():
+    """Against a fit written here, at a few points of a random signal (no polynomial, so
+    the weights matter): log-map coordinates, weights exp(-d^2 / 2 sigma^2), the six
+    terms, numpy's least squares; compared through the gradient's length and the Hessian's
+    trace and determinant, which no choice of tangent frame changes."""
+    import numpy as np
+
+    from usf_graph.nn.jet import jet_operator
+
+    g = grids.icosahedral(3)
+    ei, ew = geodesic_radius_graph(g.pos, 3.5 * g.spacing)
+    sigma = 1.5 * g.spacing
+    f = torch.randn(len(g), dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    out = (jet_operator(g.pos, ei, ew, sigma) @ f[:, None]).reshape(len(g), 5).numpy()
+    p_all, fn = g.pos.numpy(), f.numpy()
+    j, i = ei.numpy()
+    for p in (0, 17, 300, 641):
+        q = j[i == p]
+        t = p_all[q] - (p_all[q] @ p_all[p])[:, None] * p_all[p]
+        d = np.arccos(np.clip(p_all[q] @ p_all[p], -1, 1))
+        norm = np.linalg.norm(t, axis=1)
+        u = np.where(norm[:, None] > 0, t / np.where(norm > 0, norm, 1)[:, None], 0) * d[:, None]
+        a = np.cross([0.3, -0.5, 0.8], p_all[p])  # any tangent frame
+        a /= np.linalg.norm(a)
+        b = np.cross(p_all[p], a)
+        u1, u2 = u @ a, u @ b
+        M = np.stack([np.ones_like(u1), u1, u2, u1 * u1 / 2, u1 * u2, u2 * u2 / 2], 1)
+        sw = np.exp(-0.25 * (d / sigma) ** 2)  # the square root of the weights
+        c = np.linalg.lstsq(M * sw[:, None], fn[q] * sw, rcond=None)[0]
+        for got, want in ((np.hypot(*out[p, :2]), np.hypot(c[1], c[2])),
+                          (out[p, 2] + out[p, 4], c[3] + c[5]),
+                          (out[p, 2] * out[p, 4] - out[p, 3] ** 2, c[3] * c[5] - c[4] ** 2)):
+            assert abs(got - want) < 1e-8 * (1 + abs(want)), (p, got, want)
