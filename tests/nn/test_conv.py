@@ -755,6 +755,8 @@ def test_upright_conv_equals_its_dense_reference_with_gradients_on_fresh_masks()
     ei, ew, area = graph(pos, 0.45)
     gen = torch.Generator().manual_seed(7)
     conv = UprightConv(4, 5, 0.45, num_basis=3, basis="gaussian").double()
+    with torch.no_grad():  # a bias of zeros (its initialization) would pass unadded
+        conv.bias.normal_(generator=gen)
     mask = torch.rand(250, generator=gen) > 0.3
     conv.bind(ei, ew, node_weight=area, mask=mask, pos=pos)
     for call, m in enumerate([None, torch.rand(250, generator=gen) > 0.5, None]):
@@ -778,6 +780,7 @@ def test_upright_conv_equals_its_dense_reference_with_gradients_on_fresh_masks()
     iso = UprightConv(4, 5, 0.45, num_basis=3, basis="gaussian").double()
     with torch.no_grad():
         iso.weight.copy_(conv.weight)
+        iso.bias.copy_(conv.bias)
         iso.weight.view(3, -1, 5)[1:] = 0  # the isotropic part alone
     iso.bind(ei, ew, node_weight=area, mask=mask, pos=pos)
     assert (conv(one, up) - iso(one, up)).abs().max() < 1e-12
@@ -902,6 +905,11 @@ def test_upright_conv_errors_name_the_problem():
         conv(torch.randn(1, 50, 2), torch.tensor([[0.0, 0, 1]]))
     with pytest.raises(ValueError, match="pos must be"):
         conv(torch.randn(50, 2), torch.tensor([[0.0, 0, 1]]), ei, ew)
+    with pytest.raises(ValueError, match=r"x must be \[N, 2\] with edge_index, got \(1, 50, 2\)"):
+        conv(torch.randn(1, 50, 2), torch.tensor([[0.0, 0, 1]]), ei, ew, pos=pos)
+    for up in (None, torch.tensor([[0.0, 0, 1], [0.0, 0, 1]])):  # one graph, one up
+        with pytest.raises(ValueError, match=r"up must be \[1, 3\] \(one unit up per graph\)"):
+            conv(torch.randn(50, 2), up, ei, ew, pos=pos)
     conv.bind(ei, ew, node_weight=area, pos=pos.float())
     with pytest.raises(ValueError, match="up must be"):
         conv(torch.randn(2, 50, 2), torch.tensor([[0.0, 0, 1]]))
