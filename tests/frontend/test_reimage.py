@@ -117,6 +117,11 @@ def test_one_reimager_serves_many_images_of_every_type():
     got = near(labels)
     assert set(np.unique(got[near.seen])) <= set(np.unique(labels[fish.image_mask]))
     assert (got == near(labels.astype(np.int64))).mean() > 0.995  # cv2's rounding at half pixels
+    # a bool mask as torch (the exact table's path) stays a bool mask, read where seen
+    hidden = torch.as_tensor(labels > 6)
+    moved = near(hidden)
+    assert moved.dtype == torch.bool and moved.shape == (48, 96)
+    assert torch.equal(moved, torch.as_tensor(near((labels > 6).astype(np.uint8)) == 1))
 
 
 def test_reimager_refuses_what_it_cannot_use():
