@@ -181,7 +181,7 @@ class GridUnpool(GeometryModule):
             self.num_coarse = len(coarse_pos)
             # on a symmetric grid the third place is often a tie (72 of icosahedral:2's 162
             # points): every tied point takes part, so the blend commutes with the symmetries
-            d, idx = nearest_with_ties(torch.as_tensor(coarse_pos), torch.as_tensor(fine_pos), 3)
+            d, idx = nearest_with_ties(coarse_pos, fine_pos, 3)
             d, idx = torch.as_tensor(d), torch.as_tensor(idx, dtype=torch.long)
             w = torch.where(torch.isfinite(d), 1.0 / d.clamp_min(1e-12) ** 2, 0.0)
             w = w / w.sum(1, keepdim=True)
