@@ -220,6 +220,7 @@ def test_remap_fast_path_leaves_out_pixels_without_a_ray_and_masked_ones(interpo
         exact = fe.lift(torch.as_tensor(img).double())  # the table, float64
         for arr in (img, img.astype(np.float32)):
             fast = fe.lift(arr)
+            assert fast.dtype == torch.float32  # as from any image, whatever its type
             assert (fast - exact.float()).abs().max() < (0.501 if arr.dtype == np.uint8 else 1e-3)  # uint8: rounded
         if mask is not None:  # what the mask hides does not matter
             other = img.copy()
