@@ -315,6 +315,10 @@ def test_data_loader_offsets_and_to_image_and_render():
     nan[3] = float("nan")
     with pytest.raises(ValueError, match="NaN or inf at 1 grid points the camera sees"):
         fe.to_image(nan)
+    two = torch.zeros(N, 3)
+    two[[3, 9], 1] = float("inf")  # counted by point, not by channel
+    with pytest.raises(ValueError, match="NaN or inf at 2 grid points"):
+        fe.to_image(two)
     pin = SphericalFrontend(cameras.Pinhole(20, 20, 15.5, 11.5, 32, 24), g, cache=GeometryCache(None))
     hidden = torch.zeros(N)
     hidden[~pin.mask] = float("nan")  # never read: the pinhole does not see them
@@ -371,3 +375,67 @@ def test_to_labels_nearest_and_soft_against_their_definitions():
     wrong = {m: int((pin.to_labels(two, m) != truth)[torch.as_tensor(valid)].sum())
              for m in ("nearest", "soft")}
     assert wrong["soft"] < 0.5 * wrong["nearest"], wrong
+
+
+@pytest.mark.parametrize("grid", [grids.icosahedral(4), grids.healpix(8), grids.fibonacci(2000)],
+                         ids=str)
+def test_default_radius_links_each_point_to_its_nearest_ring(grid):
+    """About 1.6 spacings: each point, itself included, has 6 to 11 ends of edges, about 7 to
+    8 on average (a ring of 6 neighbours and a few of the next), on every kind of grid."""
+    fe = SphericalFrontend(cameras.Equirectangular(32, 16), grid, cache=GeometryCache(None))
+    assert fe.radius == pytest.approx(1.6 * grid.spacing)
+    degree = torch.bincount(fe.edge_index[1], minlength=len(grid))
+    assert degree.min() >= 6 and degree.max() <= 11 and 6.5 < degree.double().mean() < 8.5
+
+
+def test_render_tables_blend_the_nearest_visible_points_by_inverse_squared_chord():
+    """Against a brute-force search over the visible points: ``nearest`` gives each pixel
+    with a ray its nearest one, ``bilinear`` its three nearest weighted by 1 / d^2 (d the
+    chord), pixels without a ray nothing."""
+    fish = cameras.KannalaBrandt(9.0, 9.0, 11.5, 11.5, 24, 24, k=(0.0, 0.0, 0.0, 0.0)).with_fov(190)
+    g = grids.fibonacci(500)
+    fe = SphericalFrontend(fish, g, cache=GeometryCache(None))
+    rays, valid = fish.lens_normal_map()
+    rays, valid = rays.reshape(-1, 3), valid.ravel()
+    assert 0 < valid.sum() < len(valid)
+    vis = np.flatnonzero(fe.mask.numpy())
+    d = np.linalg.norm(rays[valid, None] - g.pos.numpy()[vis][None], axis=-1)
+    order = np.argsort(d, 1)[:, :3]
+    near = np.take_along_axis(d, order, 1)
+    w = near ** -2.0 / (near ** -2.0).sum(1, keepdims=True)
+    for mode, k in (("nearest", 1), ("bilinear", 3)):
+        crow, col, val = (t.numpy() for t in fe.render_table(mode))
+        np.testing.assert_array_equal(crow, np.arange(0, k * len(valid) + 1, k))
+        col, val = col.reshape(-1, k), val.reshape(-1, k)
+        assert (val[~valid] == 0).all()
+        np.testing.assert_array_equal(col[valid], vis[order[:, :k]])
+        np.testing.assert_allclose(val[valid], w if k == 3 else 1.0, rtol=1e-12, atol=0)
+
+
+def test_the_frontend_refuses_arguments_it_cannot_use():
+    cam, g = cameras.Equirectangular(32, 16), grids.icosahedral(2)
+    with pytest.raises(ValueError, match=r"image_mask must have shape \(16, 32\)"):
+        SphericalFrontend(cam, g, image_mask=np.ones((32, 16), bool), cache=GeometryCache(None))
+    fe = SphericalFrontend(cam, g, cache=GeometryCache(None))
+    for call in (lambda: fe.to_image(torch.zeros(len(g)), mode="linear"),
+                 lambda: fe.render_table("linear")):
+        with pytest.raises(ValueError, match="mode must be 'bilinear' or 'nearest', got 'linear'"):
+            call()
+    with pytest.raises(ValueError, match=f"values have {len(g) - 1} points, the grid has {len(g)}"):
+        fe.to_image(np.zeros(len(g) - 1))
+
+
+def test_lifting_half_precision_images_checks_them_in_torch():
+    """bfloat16 and float16 (numpy has no bfloat16): lifted on the table in their own type,
+    and NaN refused where the camera sees."""
+    cam = cameras.Equirectangular(32, 16)
+    fe = SphericalFrontend(cam, grids.icosahedral(2), cache=GeometryCache(None))
+    img = torch.rand(2, 16, 32, 3, generator=torch.Generator().manual_seed(0))
+    for dtype in (torch.bfloat16, torch.float16):
+        x = fe.lift_batch(img.to(dtype))
+        assert x.dtype == dtype
+        torch.testing.assert_close(x.double(), fe.lift_batch(img.double()), atol=2e-2, rtol=0)
+        bad = img.to(dtype).clone()
+        bad[1, 5, 7] = float("nan")
+        with pytest.raises(ValueError, match="NaN or inf in pixels the camera sees"):
+            fe.lift_batch(bad)

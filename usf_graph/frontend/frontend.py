@@ -64,8 +64,10 @@ class _Table:
             g = flat[..., idx, :]  # [..., rows, P, C]
             return (g * w.to(flat.dtype)[..., None]).sum(-2)
         lead, c = flat.shape[:-2], flat.shape[-1]
-        x = flat.movedim(-2, 0).reshape(self.n_cols, -1)
-        out = (self.csr.to(flat.dtype) @ x).reshape(self.n_rows, *lead, c)
+        # the sparse matmul has no half-precision kernels on CPU: those in float32
+        work = flat.dtype if flat.dtype in (torch.float32, torch.float64) else torch.float32
+        x = flat.movedim(-2, 0).reshape(self.n_cols, -1).to(work)
+        out = (self.csr.to(work) @ x).reshape(self.n_rows, *lead, c).to(flat.dtype)
         return (out if rows is None else out[rows]).movedim(0, -2)
 
 
@@ -233,7 +235,8 @@ class SphericalFrontend:
     def to_image(self, values, mode: str = "bilinear"):
         """Per-point values ``[N]`` or ``[N, C]`` -> the camera's image ``[H, W(, C)]``.
 
-        ``bilinear`` blends the three nearest visible grid points by inverse distance;
+        ``bilinear`` blends the three nearest visible grid points by inverse squared
+        (chordal) distance;
         ``nearest`` copies the nearest one (use it for labels). Pixels without a ray are 0.
         """
         if mode not in ("bilinear", "nearest"):
