@@ -236,8 +236,8 @@ class SphericalFrontend:
         """Per-point values ``[N]`` or ``[N, C]`` -> the camera's image ``[H, W(, C)]``.
 
         ``bilinear`` blends the three nearest visible grid points by inverse squared
-        (chordal) distance;
-        ``nearest`` copies the nearest one (use it for labels). Pixels without a ray are 0.
+        (chordal) distance; ``nearest`` copies the nearest one (use it for labels). Pixels
+        without a ray are 0.
         """
         if mode not in ("bilinear", "nearest"):
             raise ValueError(f"mode must be 'bilinear' or 'nearest', got {mode!r}")
