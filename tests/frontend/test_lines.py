@@ -12,13 +12,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.helpers import FIXTURES
-from usf_graph.cameras import Equirectangular, Pinhole
+from usf_graph.cameras import Equirectangular, KannalaBrandt, Pinhole
 from usf_graph.frontend import render as reimage
 from usf_graph.frontend.lines import (
     LINE_TOLERANCE,
     MAX_TILT,
     LineFinder,
     UpTracker,
+    _inner,
     image_up,
     line_normals,
     lines_up,
@@ -287,3 +288,83 @@ def test_up_tracker_reads_a_rigs_cameras_together():
     for ims, up in _tilting_video([c.with_position(None) for c in rig.values()], 3):
         assert np.degrees(np.arccos(min(1.0, track(ims) @ up))) < 1.5
     assert track.missed == 0
+
+
+def test_image_up_of_a_fisheye_and_of_a_camera_blind_at_its_centre():
+    """A distorted fisheye's up at its centre pixel is, by symmetry, its image's -y exactly
+    (a pixel off it is not); and a camera with no ray at its image centre has no up."""
+    fish = KannalaBrandt(30.0, 30.0, 63.5, 63.5, 128, 128, k=(0.05, 0.01, 0.0, 0.0))
+    roll = rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), math.radians(20))
+    for R in (np.eye(3), roll):
+        cam = fish.with_rotation(R @ fish.rotation)
+        assert np.allclose(image_up(cam), R[:, 2], atol=1e-12)
+    blind = KannalaBrandt(30.0, 30.0, -300.0, 63.5, 128, 128, k=(0.0, 0.0, 0.0, 0.0)).with_fov(120)
+    with pytest.raises(ValueError, match="no ray at its image centre"):
+        image_up(blind)
+
+
+def test_colour_images_are_read_as_the_mean_of_red_green_and_blue():
+    cam = Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
+    rgb, _ = _room_view(cam, tilt=False)
+    n, w = line_normals(rgb, cam)
+    n2, w2 = line_normals(np.round(rgb.astype(np.float64).mean(-1)).astype(np.uint8), cam)
+    assert len(n) > 20 and np.array_equal(n, n2) and np.array_equal(w, w2)
+    blue = np.zeros((128, 128, 4), np.uint8)  # RGBA: alpha is no colour
+    blue[:, 64:, 2] = 255
+    blue[..., 3] = 255
+    assert len(line_normals(blue, cam)[0]) >= 1
+
+
+@pytest.mark.parametrize("upsample", [1, 2, 3])
+def test_segments_are_placed_to_a_tenth_of_a_pixel_whatever_the_upsampling(upsample):
+    """A bright rectangle whose sides lie halfway between pixels (x = 40.5, y = 30.5):
+    back in the image's pixels, each side's great circle crosses the centre row or column
+    there (OpenCV's LSD is off by about 0.05 pixel), enlarged or not."""
+    cam = Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
+    img = np.zeros((128, 128), np.uint8)
+    img[31:100, 41:110] = 200
+    n, _ = line_normals(img, cam, upsample=upsample)
+    n = n @ cam.rotation  # the camera's frame: a plane n . (x - cx, y - cy, f) = 0
+    for side, (x, y, axis) in {"left": (40.5, None, 0), "top": (None, 30.5, 1)}.items():
+        pick = np.abs(n[:, axis]) > 0.9 * np.linalg.norm(n[:, :2], axis=1)
+        at = 63.5 - 64.0 * n[pick, 2] / n[pick, axis]
+        want = x if axis == 0 else y
+        assert np.abs(at - want).min() < 0.1, (side, at)
+
+
+def test_a_segment_across_an_unseen_strip_is_left_out():
+    """Its ends lie where the camera sees, its middle where it does not (a mast across the
+    view): no line is read there."""
+    cam = Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
+    img = np.zeros((128, 128), np.uint8)
+    img[60:] = 200  # one horizontal edge across the image, at y = 59.5
+    mask = np.ones((128, 128), bool)
+    mask[:, 58:70] = False
+    assert len(line_normals(img, cam)[0]) >= 1
+    assert len(line_normals(img, cam.with_image_mask(mask))[0]) == 0
+
+
+def test_where_segments_may_lie_is_two_pixels_from_anything_unseen():
+    """Against a brute-force search: a pixel is inner where every pixel of the image within
+    two rows and columns of it is seen."""
+    seen = np.random.default_rng(0).random((30, 40)) > 0.03
+    got = _inner(seen)
+    want = np.zeros_like(seen)
+    for i in range(30):
+        for j in range(40):
+            want[i, j] = seen[max(i - 2, 0):i + 3, max(j - 2, 0):j + 3].all()
+    assert 0 < want.sum() < want.size and np.array_equal(got, want)
+
+
+def test_a_direction_or_prior_of_any_length_means_its_direction():
+    rng = np.random.default_rng(5)
+    R = rotation_from_axis_angle(np.array([0.0, 0.6, 0.8]), 0.4)
+    normals = np.concatenate([_circles_through(R[:, k], 12, rng) for k in range(3)])
+    weights = rng.uniform(0.01, 0.05, len(normals))
+    ref = manhattan_axes(normals, weights, near=R[:, 2], within=10.0)
+    for scale in (0.05, 7.0):
+        got = manhattan_axes(normals, weights, near=scale * R[:, 2], within=10.0)
+        assert got is not None and np.allclose(got, ref, atol=1e-12)
+    blank = np.full((128, 128), 90, np.uint8)  # no lines: the tracker keeps its prior
+    up = UpTracker(Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128), prior=[0.0, 0.0, 5.0])(blank)
+    assert np.allclose(up, [0.0, 0.0, 1.0], atol=1e-15)

@@ -179,3 +179,56 @@ def test_render_rig_stitches_the_cameras_into_one_panorama():
         render_rig([views["cam0"]], rig, big)
     with pytest.raises(ValueError, match="blend must be one of"):
         render_rig(list(views.values()), rig, big, blend="max")
+
+
+def test_blend_weights_against_the_angles_to_each_optical_axis(rig):
+    """``feather`` weighs each camera by the angle left to its field's edge, with the axis
+    found independently (the ray of its principal point); a direction seen by none has no
+    weight and no best camera; one seen only past every field's edge (as a caller's mask
+    may say) goes wholly to the nearest axis, even at a tie."""
+    from usf_graph.frontend.rig import blend_weights
+
+    def axes(cams):  # the camera's frame turned into the rig's
+        return np.stack([c.unproject(np.array([[c.params()["cx"], c.params()["cy"]]]))[0][0]
+                         @ c.rotation.T for c in cams])
+
+    cams = [c.with_fov(200) for c in rig[0].values()]
+    pos = grids.fibonacci(400).pos.numpy()
+    seen = np.stack([c.sees(pos)[1] for c in cams])
+    seen[:, 5] = False
+    ang = np.arccos(np.clip(pos @ axes(cams).T, -1, 1)).T  # [K, M]
+    edge = np.array([[c.max_incidence] for c in cams])
+    assert np.allclose(edge, math.radians(100), atol=1e-4)
+    share = np.where(seen, np.maximum(edge - ang, 0), 0)
+    w, best = blend_weights(cams, pos, seen, "feather")
+    assert (share > 0).all(0).sum() > 20  # blended somewhere
+    ok = share.sum(0) > 0
+    assert ok.sum() == 399
+    np.testing.assert_allclose(w[:, ok], share[:, ok] / share[:, ok].sum(0), rtol=1e-9, atol=1e-12)
+    assert best[5] == -1 and (w[:, 5] == 0).all()
+    np.testing.assert_array_equal(best[ok], np.where(ang[0] <= ang[1], 0, 1)[ok])
+    wb, _ = blend_weights(cams, pos, seen, "best")
+    np.testing.assert_array_equal(wb, (np.arange(2)[:, None] == best[None]) & seen)
+    narrow = [c.with_fov(170) for c in rig[0].values()]  # edges at 85 degrees
+    past = np.array([[0.0, 1.0, 0.0], [0.01, 0.0, 1.0]])  # a tie, then nearer cam0
+    past /= np.linalg.norm(past, axis=1, keepdims=True)
+    assert (np.degrees(np.arccos(np.abs(past @ axes(narrow).T))) > 85).all()
+    w, best = blend_weights(narrow, past, np.ones((2, 2), bool), "feather")
+    np.testing.assert_array_equal(w, [[1.0, 1.0], [0.0, 0.0]])
+    assert best.tolist() == [0, 0]
+
+
+def test_rig_reimager_takes_grey_images_and_refuses_mixed_ones(rig):
+    from usf_graph.frontend import render_rig
+
+    cams, _, _ = rig
+    shots = [shoot(c).astype(np.float32) for c in cams.values()]
+    pano = cameras.Equirectangular(64, 32)
+    for blend in ("best", "feather"):
+        colour = render_rig(shots, cams, pano, blend=blend)
+        grey = render_rig([s[..., 1] for s in shots], cams, pano, blend=blend)
+        assert grey.shape == (32, 64) and np.array_equal(grey, colour[..., 1])
+    with pytest.raises(ValueError, match=r"differ in channels or type: \[\(3, 'float32'\), \(2, 'float32'\)\]"):
+        render_rig([shots[0], shots[1][..., :2]], cams, pano)
+    with pytest.raises(ValueError, match="at least one camera"):
+        RigFrontend([], grids.icosahedral(1))

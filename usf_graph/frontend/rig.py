@@ -33,15 +33,13 @@ def blend_weights(cameras: Sequence[Camera], pos: np.ndarray, seen: np.ndarray,
     ang = np.stack([angle_to(c.to_optical(pos), c.optical_axis) for c in cameras])
     ang = np.where(seen, ang, np.inf)
     best = ang.argmin(0)
-    if blend == "best":
-        w = ((np.arange(len(cameras))[:, None] == best[None]) & seen).astype(np.float64)
-    else:
+    w = ((np.arange(len(cameras))[:, None] == best[None]) & seen).astype(np.float64)
+    if blend == "feather":
         edge = np.array([c.max_incidence for c in cameras])[:, None]
-        w = np.where(seen, np.maximum(edge - ang, 0.0), 0.0)
-        tot = w.sum(0)
+        share = np.where(seen, np.maximum(edge - ang, 0.0), 0.0)
+        tot = share.sum(0)
         # a point only seen at the very edge of every camera takes the best one
-        w = np.where(tot > 0, w / np.where(tot > 0, tot, 1), (w == 0) & (ang == ang.min(0)))
-        w = np.where(seen, w, 0.0)
+        w = np.where(tot > 0, share / np.where(tot > 0, tot, 1), w)
     return w, np.where(seen.any(0), best, -1)
 
 
