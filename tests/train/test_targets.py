@@ -129,3 +129,43 @@ def test_a_finished_protocol_prints_its_targets_and_a_planar_only_run_none(capsy
     assert "| target | runs/det |" in out and "| targets held | 4 of 5 |" in out
     print_targets({"planar_unet": {"a": {"mIoU": 0.2}}}, None)  # seg --models planar_unet
     assert capsys.readouterr().out.startswith("No targets: these results hold no spherical")
+
+
+def test_every_target_holds_at_its_bound_and_misses_a_hundredth_past_it():
+    """Each verdict at its boundary, both sides: (a) = 30 for the judged model; and the
+    planar detector at 0 AP50 (no ratio to divide by, no loss) and at 0.5."""
+    def seg(**kw):
+        d = {"a": 30.0, "b": 29.0, "c": 27.0, "d": 27.0, "pa": 32.0, "pb": 12.0, **kw}
+        return _by_name(seg_targets(_seg(None, [d["a"], d["b"], d["c"], d["d"], 30.0],
+                                         [d["pa"], d["pb"], 25.0, 20.0, 20.0])))
+
+    for name, at, past in (("in distribution within 2 of the planar U-Net, or ahead", {"pa": 32.0}, {"pa": 32.01}),
+                           ("rotated within 1.0 of (a)", {"b": 29.0}, {"b": 28.99}),
+                           ("fisheye within 3 of (a)", {"c": 27.0}, {"c": 26.99}),
+                           ("pinhole within 3 of (a)", {"d": 27.0}, {"d": 26.99}),
+                           ("the planar U-Net loses at least 20 under rotation", {"pb": 12.0}, {"pb": 12.01})):
+        assert seg(**at)[name]["holds"] is True and seg(**past)[name]["holds"] is False, name
+    assert seg(b=31.0)["rotated within 1.0 of (a)"]["both_ways"] is True
+    assert seg(b=31.01)["rotated within 1.0 of (a)"]["both_ways"] is False
+
+    def det(sph, planar):
+        return _by_name(det_targets(_det(sph, planar)))
+
+    ratio = "spherical AP50 in distribution at least 0.9x the planar one"
+    loss = "planar AP50 loses at least half under rotation"
+    assert det([9.0] * 4, [10.01, 5, 9, 9])[ratio]["holds"] is False
+    for name, k, past in (("spherical rotated within 1 of (a)", 1, 7.99),
+                          ("spherical fisheye within 3 of (a)", 2, 5.99),
+                          ("spherical pinhole within 3 of (a)", 3, 5.99)):
+        row = [9.0, 8.0, 6.0, 6.0]  # each at its bound
+        assert det(row, None)[name]["holds"] is True
+        row[k] = past
+        assert det(row, None)[name]["holds"] is False, name
+    assert det([9.0] * 4, [10.0, 5.01, 9, 9])[loss]["holds"] is False
+    assert det([9.0] * 4, [10.0, 2.5, 9, 9])[loss]["text"] == "75%"
+    none = det([9.0] * 4, [0.0, 0.0, 0, 0])
+    assert none[ratio]["value"] == float("inf") and none[ratio]["holds"]
+    assert none[loss]["value"] == 0.0 and not none[loss]["holds"]
+    assert det([9.0] * 4, [0.5, 0.5, 0, 0])[ratio]["text"] == "18.00x"
+    table = format_targets({"one": det_targets(_det([9.0] * 4, None)), "two": det_targets(_det([9.0] * 4, None))})
+    assert table.splitlines()[1] == "|---|---|---|"
