@@ -1,6 +1,8 @@
 """The detectors: exact equivariance of the spherical box head, targets that decode back to
 their boxes (spherical and planar), losses that train, bad inputs."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -12,6 +14,8 @@ from usf_graph.models import PlanarDetector, SphericalDetector
 from usf_graph.models.centernet import (
     box_centres,
     expmap,
+    fields_on_cpu,
+    focal_loss,
     heatmap_targets,
     logmap,
     nearest_points,
@@ -288,6 +292,7 @@ def test_decode_drops_boxes_centred_where_the_camera_does_not_see(kind):
     kept = m.decode(out, threshold=0.5)[0]["boxes"]
     np.testing.assert_allclose(np.sort(kept[:, 0]), want, atol=1e-9)
     assert len(m.decode(out, threshold=0.5, drop_hidden=False)[0]["boxes"]) == 6
+    assert int(m.decode_image(fields_on_cpu(out), 0, threshold=0.5)[3].sum()) == 3  # its default too
     # a field of view per image: the second sees the other half
     two = {k: torch.cat([v, v]) if torch.is_tensor(v) and v.dim() > 1 else v for k, v in out.items()}
     two["seen"] = torch.stack([out["seen"], ~out["seen"]])
@@ -312,3 +317,65 @@ def test_hidden_boxes_are_dropped_before_nms():
     assert len(kept) == 1 and np.degrees(kept[0, 0]) < 90
     every = m.decode(out, threshold=0.5, drop_hidden=False)[0]["boxes"]
     assert len(every) == 1 and np.degrees(every[0, 0]) > 90  # NMS keeps the better one
+
+
+def test_heatmap_targets_against_a_loop_over_boxes_and_points():
+    """Two images, seven boxes of three classes, sigmas on both sides of the half-spacing
+    floor: the heatmaps, centre points and regression samples written out box by box."""
+    gen = torch.Generator().manual_seed(3)
+    points = grids.icosahedral(3).pos.double()
+    K, B, C, h = 7, 2, 3, 0.1
+    r = torch.rand(K, 5, generator=gen, dtype=torch.float64)
+    boxes = torch.stack([2 * math.pi * r[:, 0] - math.pi, 2.4 * (r[:, 1] - 0.5), 0.1 + 1.4 * r[:, 2],
+                         0.1 + 1.4 * r[:, 3], r[:, 4] - 0.5], 1)
+    classes = torch.tensor([0, 2, 2, 1, 0, 2, 1])
+    image = torch.tensor([0, 0, 1, 1, 0, 1, 0])
+    target, nearest, (pt, bx, w) = heatmap_targets(points, boxes, classes, image, B, C, h)
+    P = points.numpy()
+    want, g = np.zeros((B, len(P), C)), np.zeros((K, len(P)))
+    sigmas = []
+    for k, (lon, lat, fx, fy, _) in enumerate(boxes.tolist()):
+        c = np.array([math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon), math.sin(lat)])
+        sigma = max(0.1 * math.sqrt(fx * fy), h / 2)
+        sigmas.append(sigma)
+        g[k] = np.exp(-np.arccos(np.clip(P @ c, -1, 1)) ** 2 / (2 * sigma ** 2))
+        assert nearest[k] == np.argmax(P @ c)
+        g[k, np.argmax(P @ c)] = 1.0
+        want[image[k], :, classes[k]] = np.maximum(want[image[k], :, classes[k]], g[k])
+    assert min(sigmas) == h / 2 < max(sigmas)
+    np.testing.assert_allclose(target.numpy(), want, rtol=0, atol=1e-12)
+    samples = set()
+    for b in range(B):
+        mine = np.flatnonzero(image.numpy() == b)
+        top = g[mine].max(0)
+        for k in mine:
+            samples |= {(q, k) for q in np.flatnonzero((g[k] >= top) & (g[k] >= 0.05))}
+    got = {(q, k) for q, k in zip(pt.tolist(), bx.tolist())}
+    assert len(got) == len(pt) and got == samples and len(samples) > 30
+    np.testing.assert_allclose(w.numpy(), g[bx.numpy(), pt.numpy()], rtol=0, atol=1e-12)
+
+
+def test_focal_loss_against_the_formula_written_out():
+    """CenterNet's loss element by element (alpha 2, beta 4 by default), hidden points
+    left out, over the number of positives (1 when there are none)."""
+    gen = torch.Generator().manual_seed(0)
+    logits = 3 * torch.randn(2, 40, 3, generator=gen, dtype=torch.float64)
+    target = torch.rand(2, 40, 3, generator=gen, dtype=torch.float64) * 0.9
+    target[0, 3, 1] = target[1, 7, 0] = target[1, 30, 2] = 1.0
+    mask = torch.rand(2, 40, generator=gen) > 0.3
+    mask[1, 30] = False  # a hidden positive counts, as CenterNet counts every centre
+
+    def reference(logits, target, mask, a, b):
+        total, npos = 0.0, 0
+        for i, j, k in np.ndindex(*logits.shape):
+            p, y = 1 / (1 + math.exp(-float(logits[i, j, k]))), float(target[i, j, k])
+            npos += y == 1.0
+            if mask is None or mask[i, j]:
+                total += (1 - p) ** a * math.log(p) if y == 1.0 else (1 - y) ** b * p ** a * math.log(1 - p)
+        return -total / max(npos, 1)
+
+    assert float(focal_loss(logits, target, mask)) == pytest.approx(reference(logits, target, mask, 2, 4), rel=1e-12)
+    assert float(focal_loss(logits, target, None, alpha=1.0, beta=2.0)) == pytest.approx(
+        reference(logits, target, None, 1, 2), rel=1e-12)
+    none = target.clamp(max=0.9)
+    assert float(focal_loss(logits, none)) == pytest.approx(reference(logits, none, None, 2, 4), rel=1e-12)
