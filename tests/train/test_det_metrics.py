@@ -136,3 +136,36 @@ def test_usf_map_matches_each_true_box_once_and_takes_the_envelope():
     dets = [(np.concatenate([box, P([-90, 0, 20, 20, 0]), P([90, 0, 20, 20, 0])]),
              np.array([0, 0, 0]), np.array([0.9, 0.8, 0.7]))]
     assert usf_map(two, dets, 1) == pytest.approx(0.5 + 1 / 3)
+
+
+def test_ar50_takes_the_hundred_best_and_only_classes_with_truth():
+    """The one hit ranked twelfth among its class's detections in the image still counts
+    (pycocotools keeps 100 a image, not 10); a class with no true box is not averaged in."""
+    box = P([0, 0, 20, 20, 0])
+    far = P(*[[-150 + 20 * k, 0, 10, 10, 0] for k in range(11)])
+    dets = [(np.concatenate([far, box]), np.zeros(12, int), np.r_[np.linspace(0.9, 0.8, 11), 0.1])]
+    r = coco_ap([(box, np.array([0]))], dets, 3)
+    assert r["AR50"] == pytest.approx(1.0) and r["AP50"] == pytest.approx(1 / 12, abs=0.01)
+
+
+def test_a_detection_counts_against_a_crowd_box_by_its_share_inside():
+    """Against an ignored box the overlap is the share of the detection inside it (checked
+    here by sampling directions): 0.60 inside matches it; 0.46 does not, and is a false
+    positive ranked above the hit."""
+    A, crowd = P([-90, 0, 20, 20, 0]), P([0, 0, 40, 40, 0])
+    truth, ig = [(np.concatenate([A, crowd]), np.array([0, 0]))], [np.array([False, True])]
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(1_000_000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for lon, share, ap50 in ((-18.0, 0.60, 1.0), (-20.8, 0.46, 0.5)):  # PANDORA's lon runs the other way
+        part = P([lon, 0, 20, 20, 0])
+        inside = points_in_boxes(dirs, np.concatenate([part, crowd]))
+        assert abs((inside[:, 0] & inside[:, 1]).sum() / inside[:, 0].sum() - share) < 0.015
+        dets = [(np.concatenate([part, A]), np.array([0, 0]), np.array([0.9, 0.5]))]
+        assert coco_ap(truth, dets, 1, ig)["AP50"] == pytest.approx(ap50)
+
+
+def test_a_class_one_past_the_last_is_refused():
+    box = P([0, 0, 20, 20, 0])
+    with pytest.raises(ValueError, match=r"0 \.\. 1, got \[2\]"):
+        coco_ap([(box, np.array([0]))], [(box, np.array([2]), np.array([0.9]))], 2)

@@ -8,6 +8,7 @@ from usf_graph.train.seg_metrics import (
     confusion_matrix,
     median_frequency_weights,
     per_image_miou,
+    score,
     scores,
 )
 
@@ -73,3 +74,44 @@ def test_median_frequency_weights():
     assert torch.allclose(w, torch.tensor([2.0, 2 / 3, 0.0, 1.0]))
     with pytest.raises(ValueError, match="positive total"):
         median_frequency_weights([0, 0])
+    # areas as well as counts, a class seen once, and an even number of classes seen
+    assert torch.allclose(median_frequency_weights([0.2, 0.6, 0.0, 0.4]), torch.tensor([2.0, 2 / 3, 0.0, 1.0]))
+    assert torch.allclose(median_frequency_weights([1, 3, 2]), torch.tensor([2.0, 2 / 3, 1.0]))
+    assert torch.allclose(median_frequency_weights([10, 20, 0, 30, 40]),
+                          torch.tensor([2.5, 1.25, 0.0, 25 / 30, 0.625]))
+    with pytest.raises(ValueError, match=">= 0"):
+        median_frequency_weights([3, -1])
+
+
+def test_scores_of_small_areas_and_the_default_ignore_index():
+    """Areas on the sphere are fractions of 4 pi: a class whose area sums under 1 still has
+    an accuracy; 255 is left out by default even where it would be a class."""
+    conf = confusion_matrix(np.array([0, 1, 1, 0]), np.array([0, 1, 0, 0]), 2, weight=np.full(4, 0.01))
+    s = scores(conf)
+    assert s["Acc"] == {"0": pytest.approx(2 / 3), "1": pytest.approx(1.0)}
+    assert s["mAcc"] == pytest.approx(5 / 6) and s["mIoU"] == pytest.approx((2 / 3 + 1 / 2) / 2)
+    conf = confusion_matrix(np.array([3, 255, 255]), np.array([3, 255, 3]), 300)
+    assert conf.sum() == 2 and conf[3, 3] == 1 and conf[3, 255] == 1
+
+
+def test_score_on_pixels_and_area_weighted_on_the_grid():
+    """``score`` of a dataset's pixels and grid points: the pixel metrics summed over images,
+    the sphere's weighted by each point's area."""
+    from types import SimpleNamespace
+
+    from usf_graph.scenes import SEMANTIC_CLASSES
+
+    C = len(SEMANTIC_CLASSES)
+    truth = torch.tensor([[[0, 1], [1, 255]], [[2, 2], [0, 1]]])
+    pred = np.array([[[0, 1], [0, 0]], [[2, 1], [0, 1]]])
+    y = torch.tensor([[0, 1, 2], [2, 2, 255]])
+    area = torch.tensor([1.0, 3.0, 0.5], dtype=torch.float64)
+    ds = SimpleNamespace(label_image=truth, y=y, grid=SimpleNamespace(area=area))
+    points = np.array([[0, 2, 2], [1, 2, 0]])
+    res = score(pred, ds, points)
+    want = scores(confusion_matrix(pred, truth.numpy(), C), SEMANTIC_CLASSES)
+    assert res["mIoU"] == pytest.approx(want["mIoU"]) and res["mAcc"] == pytest.approx(want["mAcc"])
+    # the grid, (truth, prediction) with the point's area: image 0 (0, 0) 1, (1, 2) 3,
+    # (2, 2) 0.5; image 1 (2, 1) 1, (2, 2) 3, its third point ignored
+    assert res["sphere_mIoU"] == pytest.approx((1 + 0 + 3.5 / (4.5 + 6.5 - 3.5)) / 3)
+    assert "sphere_mIoU" not in score(pred, ds)

@@ -98,13 +98,14 @@ def score_confusions(confusions, names, sphere: np.ndarray | None = None) -> dic
 
 def median_frequency_weights(counts) -> torch.Tensor:
     """Median frequency balancing (Eigen & Fergus): ``median(f) / f_c`` for class
-    frequencies ``f``; classes never seen get weight 0 (they have no loss terms anyway)."""
-    f = torch.as_tensor(np.asarray(counts, np.float64))
+    frequencies ``f`` (counts or areas) of the classes seen, the mean of the middle two for
+    an even number of them; classes never seen get weight 0 (they have no loss terms)."""
+    f = np.asarray(counts, np.float64)
     if (f < 0).any() or f.sum() <= 0:
         raise ValueError("class counts must be >= 0 with a positive total")
     seen = f > 0
-    med = f[seen].median()
-    return torch.where(seen, med / f.clamp_min(1e-300), torch.zeros_like(f)).float()
+    w = np.where(seen, np.median(f[seen]) / np.where(seen, f, 1.0), 0.0)
+    return torch.from_numpy(w).float()
 
 
 __all__ = ["confusion_matrix", "scores", "score", "score_confusions", "per_image_miou", "median_frequency_weights"]
