@@ -79,8 +79,9 @@ def test_median_frequency_weights():
     assert torch.allclose(median_frequency_weights([1, 3, 2]), torch.tensor([2.0, 2 / 3, 1.0]))
     assert torch.allclose(median_frequency_weights([10, 20, 0, 30, 40]),
                           torch.tensor([2.5, 1.25, 0.0, 25 / 30, 0.625]))
-    with pytest.raises(ValueError, match=">= 0"):
-        median_frequency_weights([3, -1])
+    for bad in ([3, -1], [3, float("nan")], [3, float("inf")]):
+        with pytest.raises(ValueError, match="finite and >= 0"):
+            median_frequency_weights(bad)
 
 
 def test_scores_of_small_areas_and_the_default_ignore_index():

@@ -101,8 +101,8 @@ def median_frequency_weights(counts) -> torch.Tensor:
     frequencies ``f`` (counts or areas) of the classes seen, the mean of the middle two for
     an even number of them; classes never seen get weight 0 (they have no loss terms)."""
     f = np.asarray(counts, np.float64)
-    if (f < 0).any() or f.sum() <= 0:
-        raise ValueError("class counts must be >= 0 with a positive total")
+    if not np.isfinite(f).all() or (f < 0).any() or f.sum() <= 0:
+        raise ValueError("class counts must be finite and >= 0 with a positive total")
     seen = f > 0
     w = np.where(seen, np.median(f[seen]) / np.where(seen, f, 1.0), 0.0)
     return torch.from_numpy(w).float()
