@@ -43,8 +43,10 @@ def test_every_protocol_checkpoint_comes_back_as_its_model(tmp_path, i):
     assert not all(torch.equal(v, want[k]) for k, v in fresh.items())
     assert got.require(task) is got
     other = "det" if task == "seg" else "seg"
-    with pytest.raises(ValueError, match=f"holds the {task} model '{name}', not a {other} model"):
+    with pytest.raises(ValueError, match=f"holds the {task} model '{name}', not a {other} model; "
+                       f"give a checkpoint of 'usf-graph train {other}'"):
         got.require(other)
+    assert got.dataset == "rooms" and got.fold is None  # saved without its data: the rooms
     if got.planar:
         with pytest.raises(ValueError, match=f"not a spherical {task} model"):
             got.require(task, spherical=True)
@@ -90,3 +92,23 @@ def test_rooms_seed_defaults_to_the_checkpoints_and_refuses_its_training_rooms(c
         ckpt(1).rooms_seed(0)
     assert ckpt(None).rooms_seed() == 0 and ckpt(None).rooms_seed(3) == 3
     assert "training rooms of seed 4" in capsys.readouterr().out
+
+
+def test_what_a_checkpoint_was_trained_on_and_an_mnist_one_refused(tmp_path):
+    """The data a checkpoint records comes back; one saved before checkpoints recorded it
+    is PANDORA's where its detector has PANDORA's 47 classes, else the rooms'. An MNIST
+    classifier is sent to its own command."""
+    from usf_graph.scenes import PANDORA_CLASSES
+
+    det = SphericalDetector(len(PANDORA_CLASSES), input_level=3, head_level=2, min_level=1, channels=(4, 4, 4))
+    save_checkpoint(tmp_path / "p.pt", det, det.config, {})
+    assert load_protocol_model(tmp_path / "p.pt").dataset == "pandora"
+    unet = SphericalUNet(13, level=3, channels=(4, 4, 4, 4))
+    save_checkpoint(tmp_path / "s.pt", unet, {"model": "spherical_unet", **unet.config}, {},
+                    extra={"data": {"dataset": "stanford2d3ds", "fold": 2}})
+    got = load_protocol_model(tmp_path / "s.pt")
+    assert (got.dataset, got.fold, got.seed) == ("stanford2d3ds", 2, None)
+    mnist = SphericalClassifier(level=2, channels=(4, 4))
+    save_checkpoint(tmp_path / "m.pt", mnist, mnist.config, {})
+    with pytest.raises(ValueError, match="holds the spherical MNIST classifier.*'usf-graph eval mnist'"):
+        load_protocol_model(tmp_path / "m.pt")
