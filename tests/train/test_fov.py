@@ -147,3 +147,33 @@ def test_random_fields_through_a_camera_draw_its_turned_field():
     for _ in range(5):
         torch.rand((), generator=gen)
         assert torch.equal(draws(), camera_field(cam, pos, "yaw", gen))
+
+
+def test_default_ranges_measured_from_what_is_drawn(monkeypatch):
+    """Defaults: pinholes of 60 to 120 degrees each way (measured between the rays of the
+    image's outer edges, each axis drawn on its own), caps of 45 to 100 degrees (from the
+    area they cover), and frusta and caps with equal odds."""
+    import numpy as np
+
+    from usf_graph.train import fov
+
+    gen, fovs = _gen(1), []
+    for _ in range(40):
+        cam = random_pinhole(generator=gen)
+        c = (cam.width - 1) / 2
+        rays = cam.unproject(np.array([[-0.5, c], [cam.width - 0.5, c], [c, -0.5], [c, cam.height - 0.5]]))[0]
+        fovs.append([math.degrees(math.acos(rays[0] @ rays[1])), math.degrees(math.acos(rays[2] @ rays[3]))])
+    fovs = np.array(fovs)
+    assert fovs.min() > 60 - 1e-6 and fovs.max() < 120 + 1e-6 and fovs.min() < 66 and fovs.max() > 114
+    assert np.abs(fovs[:, 0] - fovs[:, 1]).mean() > 10
+    pos = grids.healpix(16).pos.double()
+    radii = [math.degrees(math.acos(1 - 2 * float(random_cap(pos, generator=gen).double().mean())))
+             for _ in range(40)]
+    assert 44 < min(radii) < 52 and 93 < max(radii) < 101
+    omega = [4 * math.pi * float(random_frustum(pos, generator=gen).double().mean()) for _ in range(40)]
+    assert 0.9 < min(omega) < 1.5 and 2.6 < max(omega) < 3.6  # 60 x 60: 1.0 sr; 120 x 120: 3.4
+    kinds, real = [], fov.random_frustum
+    monkeypatch.setattr(fov, "random_frustum", lambda *a, **k: kinds.append(1) or real(*a, **k))
+    for _ in range(400):
+        random_field_of_view(grids.icosahedral(1).pos.double(), gen)
+    assert 0.42 < len(kinds) / 400 < 0.58
