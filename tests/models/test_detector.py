@@ -379,3 +379,33 @@ def test_focal_loss_against_the_formula_written_out():
         reference(logits, target, None, 1, 2), rel=1e-12)
     none = target.clamp(max=0.9)
     assert float(focal_loss(logits, none)) == pytest.approx(reference(logits, none, None, 2, 4), rel=1e-12)
+
+
+def test_spherical_detector_loss_is_its_parts_written_out():
+    """The focal loss plus smooth-L1 terms (offset in spacings with beta 1, mean log size
+    and the two shape fields with beta 0.1), weighted by the regression samples' shares;
+    one box has them too, no box only the focal term. The grids' positions are geometry,
+    not state: a checkpoint does not hold them."""
+    torch.manual_seed(1)
+    m = SphericalDetector(**SMALL).double()
+    assert not {"head_pos", "input_pos"} & set(m.state_dict())
+    with torch.no_grad():
+        out = m(torch.randn(2, len(grids.icosahedral(3).pos), 3, dtype=torch.float64))
+
+    def sl1(e, beta):
+        return torch.where(e.abs() < beta, 0.5 * e ** 2 / beta, e.abs() - 0.5 * beta)
+
+    for k in (6, 1):
+        boxes, classes, image = BOXES[:k], torch.tensor([0, 1, 2, 0, 1, 2])[:k], torch.tensor([0, 0, 0, 1, 1, 1])[:k]
+        total, parts = m.loss(out, boxes, classes, image)
+        t = m.targets(boxes, classes, image, 2)
+        w, at = t["weight"] / t["weight"].sum(), (t["image"], t["point"])
+        want = {"heat": float(focal_loss(out["heat"], t["heat"], None)),
+                "offset": float((w * sl1((out["offset"][at] - t["offset"]).norm(dim=-1) / m.head_spacing, 1.0)).sum()),
+                "size": float((w * sl1(out["s"][at] - t["s"], 0.1)).sum()),
+                "shape": float((w * sl1((out["dev"][at] - t["dev"]).norm(dim=-1), 0.1)).sum()
+                               + (w * sl1((out["quad"][at] - t["quad"]).norm(dim=-1), 0.1)).sum())}
+        assert parts == pytest.approx(want, rel=1e-12) and min(want.values()) > 0
+        assert float(total) == pytest.approx(sum(want.values()), rel=1e-12)
+    total, parts = m.loss(out, BOXES[:0], torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long))
+    assert parts["offset"] == parts["size"] == parts["shape"] == 0.0 and float(total) == pytest.approx(parts["heat"])
