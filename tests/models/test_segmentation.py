@@ -127,7 +127,7 @@ def test_spherical_models_reject_bad_input():
         m(torch.zeros(1, n + 1, 3))
     x = torch.zeros(1, n, 3)
     x[0, 5, 1] = float("nan")
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match="x has NaN or inf; lift images with SphericalFrontend"):
         m(x)
     with pytest.raises(ValueError, match="some point visible"):
         m(torch.zeros(1, n, 3), torch.zeros(n, dtype=torch.bool))
