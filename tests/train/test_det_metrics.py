@@ -1,6 +1,8 @@
 import numpy as np
 import pytest
+import torch
 
+from tests.helpers import random_sphere
 from usf_graph.geometry import from_latlon
 from usf_graph.ops import box_iou, from_pandora, points_in_boxes
 from usf_graph.train.det_metrics import coco_ap, usf_map
@@ -154,9 +156,7 @@ def test_a_detection_counts_against_a_crowd_box_by_its_share_inside():
     positive ranked above the hit."""
     A, crowd = P([-90, 0, 20, 20, 0]), P([0, 0, 40, 40, 0])
     truth, ig = [(np.concatenate([A, crowd]), np.array([0, 0]))], [np.array([False, True])]
-    rng = np.random.default_rng(0)
-    dirs = rng.normal(size=(1_000_000, 3))
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = random_sphere(1_000_000, 0, torch.float64).numpy()
     for lon, share, ap50 in ((-18.0, 0.60, 1.0), (-20.8, 0.46, 0.5)):  # PANDORA's lon runs the other way
         part = P([lon, 0, 20, 20, 0])
         inside = points_in_boxes(dirs, np.concatenate([part, crowd]))

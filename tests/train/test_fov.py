@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -153,8 +154,6 @@ def test_default_ranges_measured_from_what_is_drawn(monkeypatch):
     """Defaults: pinholes of 60 to 120 degrees each way (measured between the rays of the
     image's outer edges, each axis drawn on its own), caps of 45 to 100 degrees (from the
     area they cover), and frusta and caps with equal odds."""
-    import numpy as np
-
     from usf_graph.train import fov
 
     gen, fovs = _gen(1), []
