@@ -8,7 +8,8 @@ import torch
 from usf_graph import grids
 from usf_graph.geometry import rotation_from_axis_angle
 from usf_graph.models import PlanarDeepLab, PlanarUNet, SphericalDeepLabV3, SphericalUNet
-from usf_graph.models.stages import ConvStage
+from usf_graph.models.stages import ConvStage, level_spacing
+from usf_graph.models.unet import SphericalBackbone
 from usf_graph.nn import UprightConv
 from usf_graph.testing import assert_equivariant, smooth_signal, symmetry_permutation
 
@@ -90,11 +91,31 @@ def test_oriented_stages_are_those_on_the_asked_levels(cls, kw):
         cls(**{**kw, "upright_convs": 3})
 
 
+@pytest.mark.parametrize("pairs,upright", [(2, False), (0, True), (2, True)])
+def test_backbone_is_built_as_its_docstring_says(pairs, upright):
+    """Stage s convolves on level input_level - s with radius radius_spacings grid
+    spacings; the first pair_stages stages (not the coarsest) add gradient pairs and,
+    upright, UpJet fields; pooling and upsampling blur by 0.5 coarse spacings."""
+    b = SphericalBackbone(3, input_level=4, out_level=4, min_level=2, channels=(4, 6, 8),
+                          radius_spacings=2.5, pairs=pairs, pair_stages=1, upright=upright,
+                          up_fields=2)
+    h = level_spacing
+    assert [c.radius for st in b.down for c in st.convs] == pytest.approx([2.5 * h(lv) for lv in (4, 3, 2)])
+    assert [c.radius for st in b.up for c in st.convs] == pytest.approx([2.5 * h(lv) for lv in (3, 4)])
+    assert [p.sigma for p in b.pools] == pytest.approx([0.5 * h(3), 0.5 * h(2)])
+    assert [p.sigma for p in b.ups] == pytest.approx([0.5 * h(2), 0.5 * h(3)])
+    assert (len(b.pairs), len(b.up_pairs)) == (int(pairs > 0), int(upright))
+    # everything on the coarsest level with pair_stages covering it: no pairs there
+    b3 = SphericalBackbone(3, input_level=3, out_level=3, min_level=2, channels=(4, 6),
+                           pairs=2, pair_stages=5)
+    assert len(b3.pairs) == 1 and b3.skip_channels == [4 + 2 * 2, 6]
+
+
 @pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalDeepLabV3, DEEPLAB)])
 def test_refined_model_computes_nearly_the_same_function(cls, kw):
     torch.manual_seed(1)
     m = cls(**kw).double().eval()  # level 3, refined to 4 (5 took 5x longer, no more checked)
-    fine = m.refined(1)
+    fine = m.refined()  # one level finer by default
     assert fine.num_points == len(grids.icosahedral(4)) and fine.config["refine"] == 1
     coarse_pos, fine_pos = grids.icosahedral(3).pos, grids.icosahedral(4).pos
     f = lambda p: torch.as_tensor(smooth_signal(p.numpy()))[None]  # noqa: E731
@@ -125,6 +146,9 @@ def test_spherical_models_reject_bad_input():
     n = m.num_points
     with pytest.raises(ValueError, match=r"icosahedral:3"):
         m(torch.zeros(1, n + 1, 3))
+    with pytest.raises(ValueError, match=r"icosahedral:4\)"):  # the grid a refined one reads
+        SphericalBackbone(3, input_level=3, out_level=3, min_level=2, channels=(4, 6),
+                          refine=1)(torch.zeros(1, n, 3))
     x = torch.zeros(1, n, 3)
     x[0, 5, 1] = float("nan")
     with pytest.raises(ValueError, match="x has NaN or inf; lift images with SphericalFrontend"):

@@ -18,7 +18,9 @@ from usf_graph.ops import box_iou
 from usf_graph.scenes import make_room
 from usf_graph.scenes.render import render
 from usf_graph.train.apply import UNSEEN, detect_image, lift_for, segment_image
-from usf_graph.train.bound import BoundDetector, BoundSegmenter
+from usf_graph.frontend import SphericalFrontend
+from usf_graph.grids import icosahedral
+from usf_graph.train.bound import BoundDetector, BoundSegmenter, CameraIO
 from usf_graph.train.export import _load_pt2, export_model, load_exported
 
 pytest.importorskip("onnxruntime")
@@ -231,6 +233,20 @@ def test_a_failed_export_leaves_no_file(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="disk full"):
         export_model(_deeplab(), _fisheye(32), tmp_path / "a.pt2", up="input", check=False)
     assert not list(tmp_path.iterdir())
+
+
+def test_a_cameras_share_weighs_what_it_lifts():
+    """CameraIO with fractional shares (a feathered blend) lifts share * the frontend's
+    lift of the image in [0, 1]; a zero share drops the point."""
+    fe = SphericalFrontend(_fisheye(24), icosahedral(2), "bilinear")
+    g = torch.Generator().manual_seed(3)
+    share = torch.rand(fe.num_points, generator=g, dtype=torch.float64)
+    share[::3] = 0.0
+    image = torch.randint(0, 256, (24, 24, 3), generator=g, dtype=torch.uint8)
+    io = CameraIO(fe, share, render=False)
+    want = share[:, None].float() * fe.lift(image.numpy().astype(np.float32) / 255)
+    torch.testing.assert_close(io.lift(image), want, atol=1e-6, rtol=1e-5)
+    assert fe.mask[1::3].any() and not io.lift(image)[::3].any()
 
 
 def test_a_rig_is_one_program_with_an_image_and_labels_per_camera(tmp_path):
