@@ -441,6 +441,20 @@ def test_field_groups_name_equal_masks_alike_and_batches_share_one_field(monkeyp
         assert sorted(set(got)) == sorted(batch)
 
 
+def test_fit_under_torchrun_refuses_a_batch_the_processes_cannot_share(monkeypatch):
+    """batch_size 4 over 3 processes would be global batches of 3 and 4 steps an epoch
+    for 10 samples where the schedule counts 3 (the last at learning rate 0)."""
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.train import engine
+
+    monkeypatch.setattr(engine, "setup_distributed", lambda: (0, 3))
+    data = TensorDataset(torch.randn(10, 2), torch.zeros(10, dtype=torch.long))
+    with pytest.raises(ValueError, match="batch_size 4 does not split evenly over 3 processes; "
+                                         "give a multiple of 3"):
+        engine.fit(torch.nn.Linear(2, 2), data, batch_size=4, progress=False)
+
+
 def test_fit_in_groups_batches_one_field_and_schedules_every_step(tmp_path):
     """Every batch of a grouped fit comes from one group; the cosine schedule counts the
     groups' batches (halfway through, the learning rate is half the initial one)."""

@@ -240,7 +240,8 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     ``config`` or plan (epochs, batch size, learning rate, seed, training set size) is an
     error, not a silent mix.
     Under ``torchrun`` the model is wrapped in DistributedDataParallel and each process
-    takes its share of every global batch of ``batch_size``. ``frozen_norms``: batch
+    takes its share of every global batch of ``batch_size`` (a multiple of the number of
+    processes, unless batches are drawn by ``groups``). ``frozen_norms``: batch
     normalizations keep their running statistics (:func:`freeze_norms`).
 
     ``groups [S]``: every batch is drawn from one group's samples
@@ -263,6 +264,10 @@ def fit(model: nn.Module, train: Dataset, val: Dataset | None = None, epochs: in
     if groups is not None and len(groups) != len(train):
         raise ValueError(f"{name}: groups has {len(groups)} entries for {len(train)} samples")
     rank, world = setup_distributed()
+    if world > 1 and groups is None and batch_size % world:
+        # a smaller global batch, and more steps than the schedule counts (its last at lr 0)
+        raise ValueError(f"{name}: batch_size {batch_size} does not split evenly over {world} "
+                         f"processes; give a multiple of {world}")
     seed_everything(seed)
     dev = model_device(model) if device is None else resolve_device(device)
     model.to(dev)
