@@ -163,7 +163,6 @@ def test_reimage_benchmark_runs():
     assert len(diffs) == 2 and all(int(d) <= 1 for d, _ in diffs)  # the two paths agree
 
 
-
 def test_cubemap_benchmark_runs():
     out = run("benchmarks/cubemap.py", "--sizes", "64", "--reps", "1")
     assert "| panorama -> cube map 64x32 |" in out and "| cube map -> panorama 64x32 |" in out

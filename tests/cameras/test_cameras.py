@@ -370,8 +370,6 @@ def test_lens_normal_map_camera_round_trip():
     assert not ok3[0]
 
 
-
-
 def test_lens_normal_map_with_a_hole_and_its_outer_half_pixel():
     ref = C.KannalaBrandt(60, 60, 50, 40, 100, 80, k=(0.03, -0.004, 0, 0), fov_deg=190)
     rays = ref.unproject(ref.pixel_grid())[0]

@@ -122,7 +122,6 @@ def test_cameras_apart_line_up_on_a_scene_at_the_stitching_distance():
     assert err < 3e-4 and seam < 3e-4 and err_inf > 0.03  # ignored, the baseline shifts up to 2.9 deg
 
 
-
 def test_choose_distance_finds_the_scene_sphere():
     """The seams agree best at the radius of the sphere the cameras see, among candidates."""
     from usf_graph.frontend import choose_distance

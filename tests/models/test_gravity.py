@@ -386,7 +386,6 @@ def test_margin_does_not_change_when_the_image_rotates():
     torch.testing.assert_close(b["up"], a["up"] @ R.T, rtol=0, atol=1e-10)
 
 
-
 def _cap(pos: torch.Tensor, axis, degrees: float) -> torch.Tensor:
     axis = torch.nn.functional.normalize(torch.as_tensor(axis, dtype=torch.float64), dim=0)
     return pos.double() @ axis > math.cos(math.radians(degrees))

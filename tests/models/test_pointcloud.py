@@ -11,8 +11,6 @@ from usf_graph.models import PointCloudNet, PointNet
 FIX = "tests/fixtures/modelnet"
 
 
-
-
 @pytest.fixture(scope="module")
 def clouds():
     d = ProceduralShapes("test", per_class=1, num_points=300, seed=1)

@@ -14,8 +14,6 @@ FIX = "tests/fixtures/modelnet"
 
 @settings(max_examples=15, deadline=None)
 @given(st.integers(0, 10_000), st.floats(0.1, 1.0))
-
-
 def test_fps_picks_the_same_points_under_motion_and_permutation(seed, ratio):
     g = torch.Generator().manual_seed(seed)
     pos = torch.randn(200, 3, generator=g, dtype=torch.float64)

@@ -12,14 +12,14 @@ import pytest
 import torch
 
 from usf_graph.cameras import KannalaBrandt, Pinhole
+from usf_graph.frontend import SphericalFrontend
 from usf_graph.geometry import from_latlon
+from usf_graph.grids import icosahedral
 from usf_graph.models import SphericalDeepLabV3, SphericalDetector, SphericalUNet
 from usf_graph.ops import box_iou
 from usf_graph.scenes import make_room
 from usf_graph.scenes.render import render
 from usf_graph.train.apply import UNSEEN, detect_image, lift_for, segment_image
-from usf_graph.frontend import SphericalFrontend
-from usf_graph.grids import icosahedral
 from usf_graph.train.bound import BoundDetector, BoundSegmenter, CameraIO
 from usf_graph.train.export import _load_pt2, export_model, load_exported
 

@@ -173,6 +173,7 @@ def test_lines_up_reads_a_pinholes_rendered_rooms_and_split_up_says_what_it_read
     up, axes = lines_up(est, ds)
     err = np.degrees(np.arccos(np.clip((up * g).sum(-1).numpy(), -1, 1)))
     assert axes.shape == (2, 3, 3) and (err < 2.5).all()
+
     def model():
         return SimpleNamespace(gravity=_LinesEstimate(torch.nn.functional.normalize(g + 0.2, dim=-1), g))
 

@@ -126,7 +126,6 @@ def _mounted(path: Path, data: dict, chain, name: str, required: bool = False) -
     return cam if pose is None else mount(cam, pose)
 
 
-
 def frame_key(path, image) -> str | None:
     """The key that picks the camera of the image file ``image`` in the calibration file
     ``path`` where its frames have intrinsics of their own (a ``transforms.json`` frame

@@ -88,6 +88,7 @@ class SphericalClassifier(GeometryModule):
         self.input_level = input_level
         self.convs, self.norms, self.pools = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
         self.pairs, self.pair_norms = nn.ModuleList(), nn.ModuleList()
+
         def blur(fine, coarse):  # anti-aliased pooling between two levels
             return GaussianPool(fine.pos, coarse.pos, pool_sigma * coarse.spacing, area=fine.area)
 

@@ -194,7 +194,6 @@ def protocol_sets(root, size: int = 128, grid: str = "icosahedral:5", num_train:
     return sets
 
 
-
 def make_detector(num_classes: int = len(DETECTION_CLASSES), upright: bool = True,
                   upright_convs: int | None = UPRIGHT_CONVS,
                   channel_scale: float = 1.0, gray: bool = False) -> SphericalDetector:
@@ -206,6 +205,7 @@ def make_detector(num_classes: int = len(DETECTION_CLASSES), upright: bool = Tru
     return SphericalDetector(num_classes=num_classes, gravity=upright, upright=upright, gray=gray,
                              upright_convs=upright_convs if upright else None,
                              **scaled_channels(SphericalDetector, channel_scale))
+
 
 def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200,
         num_test: int = 50, epochs: int = 24, planar_epochs: int | None = None,
