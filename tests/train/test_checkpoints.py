@@ -5,9 +5,13 @@ from usf_graph.models import (
     PlanarCNN,
     PlanarDetector,
     PlanarUNet,
+    PointCloudNet,
+    SignCheck,
     SphericalClassifier,
+    SphericalDeepLabV3,
     SphericalDetector,
     SphericalUNet,
+    UpNet,
 )
 from usf_graph.train.checkpoints import load_protocol_model, model_name
 from usf_graph.train.engine import save_checkpoint
@@ -112,3 +116,28 @@ def test_what_a_checkpoint_was_trained_on_and_an_mnist_one_refused(tmp_path):
     save_checkpoint(tmp_path / "m.pt", mnist, mnist.config, {})
     with pytest.raises(ValueError, match="holds the spherical MNIST classifier.*'usf-graph eval mnist'"):
         load_protocol_model(tmp_path / "m.pt")
+
+
+_NORM_STATS = ("running_mean", "running_var", "num_batches_tracked")
+
+
+@pytest.mark.parametrize("make", [
+    lambda: SphericalUNet(5, level=3, channels=(4, 6, 8), pairs=2, gravity=True, upright=True,
+                          upright_convs=2, head_depth=1),
+    lambda: SphericalDeepLabV3(5, level=3, channels=(4, 6), aspp_channels=8, rates=(2,),
+                               low_channels=4, gravity=True, upright=True, upright_convs=2),
+    lambda: SphericalDetector(12, input_level=3, head_level=2, min_level=1, channels=(4, 4, 4),
+                              gravity=True, upright=True, upright_convs=2),
+    lambda: SphericalClassifier(level=2, channels=(4, 8)),
+    lambda: UpNet(3, level=3, channels=(4, 4)),
+    lambda: SignCheck(level=3, channels=(4, 4)),
+    lambda: PointCloudNet(4, channels=(4, 8), radii=(0.3, 0.6)),
+], ids=["unet", "deeplab", "detector", "classifier", "upnet", "sign", "pointcloud"])
+def test_a_checkpoint_holds_what_training_changes_and_no_geometry(make):
+    """Every entry of a model's state is a parameter or a normalization's statistic: the
+    geometry (graphs, kernels' tables, candidate directions) is rebuilt from the config,
+    so checkpoints stay small and load into any grid refinement."""
+    model = make()
+    params = dict(model.named_parameters())
+    extra = [k for k in model.state_dict() if k not in params and k.rsplit(".", 1)[-1] not in _NORM_STATS]
+    assert not extra, extra[:5]
