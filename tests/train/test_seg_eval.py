@@ -1,11 +1,13 @@
 """Predictions of a segmenter in a test set's pixels and points, read with a given up or
 with the model's own estimate, and one test set scored."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
 
-from usf_graph.train.gravity import up_report, views_up
+from usf_graph.train.gravity import split_up, up_report, views_up
 from usf_graph.train.seg import make_model, protocol_sets
 from usf_graph.train.seg_eval import evaluate_set, predict
 
@@ -71,3 +73,18 @@ def test_evaluate_set_runs_the_estimate_once_for_prediction_and_report(sets, net
     assert r["up"] == up_report(net.gravity, ds.x, ds.mask[0], views_up(ds))
     assert evaluate_set(net, ds, progress=False, known_up=True)[0]["up"] == r["up"]
     assert 0 <= r["mIoU"] <= 1 and "sphere_mIoU" in r
+
+
+def test_a_split_whose_views_see_different_fields_is_refused(sets, net):
+    """Prediction and the up estimate run a batch with one field of view: a split of
+    several cameras' views (WoodScape's) would be read through its first view's field,
+    so it is refused, naming the function that batches by field."""
+    mixed = copy.copy(sets["c"])
+    mixed.mask = sets["c"].mask.clone()
+    mixed.mask[1, :7] = ~mixed.mask[1, :7]
+    for run in (lambda: predict(HeightBands(mixed.grid.pos), mixed, up=torch.tensor([0.0, 0.0, 1.0]),
+                                progress=False),
+                lambda: split_up(net, mixed)):
+        with pytest.raises(ValueError, match="different fields of view.*evaluate_fields"):
+            run()
+    assert split_up(net, copy.copy(sets["c"])).estimate.shape == (len(mixed), 3)

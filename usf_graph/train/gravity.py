@@ -109,10 +109,18 @@ def lines_axes(ds) -> torch.Tensor:
         torch.zeros(0, 3, 3, dtype=torch.float64)
 
 
-def _split_mask(ds) -> torch.Tensor | None:
-    """The field of view a split's views share, ``[N]`` or ``None``."""
+def split_mask(ds) -> torch.Tensor | None:
+    """The field of view a split's views share, ``[N]`` or ``None``; a split whose views
+    see different parts of the sphere (several cameras, e.g. WoodScape's) is refused:
+    score it with :func:`~usf_graph.train.real.evaluate_fields`, which batches by field."""
     mask = getattr(ds, "mask", None)
-    return mask[0] if mask is not None and mask.dim() == 2 else mask
+    if mask is None or mask.dim() == 1:
+        return mask
+    if not bool((mask == mask[0]).all()):
+        raise ValueError(f"the views of this {type(ds).__name__} split have different fields of "
+                         "view (several cameras); evaluate it with "
+                         "usf_graph.train.real.evaluate_fields, which batches by field of view")
+    return mask[0]
 
 
 def lines_up(gravity, ds) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -131,7 +139,7 @@ def _split_estimate(gravity, ds, up_lines: bool = False, batch_size: int = 16):
     [S], axes [S, 3, 3] or None)``; with ``up_lines`` and one camera, its pick among each
     image's straight-line axes (:func:`lines_axes`)."""
     axes = lines_axes(ds) if up_lines and getattr(ds, "camera", None) is not None else None
-    return (*estimate_up(gravity, ds.x, _split_mask(ds), batch_size, axes), axes)
+    return (*estimate_up(gravity, ds.x, split_mask(ds), batch_size, axes), axes)
 
 
 def check_up_choice(known_up: bool, up_lines: bool) -> None:
@@ -333,5 +341,5 @@ def pretrain_up(net, train, epochs: int, batch_size: int = 8, lr: float = 3e-3, 
     net.gravity.requires_grad_(False)
 
 
-__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "check_up_choice", "require_up_estimate", "split_up", "SplitUp", "up_summary", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
+__all__ = ["UP_WEIGHT", "UP_JITTER", "GROSS_DEGREES", "estimate_up", "lines_axes", "lines_up", "split_mask", "check_up_choice", "require_up_estimate", "split_up", "SplitUp", "up_summary", "up_errors", "up_report", "format_up_report", "known_up", "views_up", "given_up", "up_loss", "up_step", "pretrain_up", "trains_up", "UpViews", "up_views",
            "UP_CAP_DEGREES"]

@@ -15,7 +15,7 @@ from tqdm.auto import tqdm
 from ..cameras import Equirectangular
 from ..frontend import render as reimage
 from .devices import is_planar, model_device
-from .gravity import given_up, split_up, views_up
+from .gravity import given_up, split_mask, split_up, views_up
 from .seg_metrics import score
 
 #: The protocol's tests: camera (:func:`~usf_graph.scenes.lenses.protocol_cameras`),
@@ -60,8 +60,8 @@ def predict(model, ds, batch_size: int = PREDICT_BATCH, progress: bool = True, d
                 pred = np.stack([reimage(p, pano, cam, interpolation="nearest") for p in pred])
             pixels.append(pred)
         return np.concatenate(pixels), None
-    mask = ds.mask[0]
-    mask = None if mask.all() else mask.to(dev)
+    mask = split_mask(ds)
+    mask = None if mask is None or mask.all() else mask.to(dev)
     for s in tqdm(range(0, S, batch_size), desc=desc, leave=False, disable=not progress):
         x = ds.x[s:s + batch_size].to(dev).float()
         logits = model(x, mask, **given_up(up, x, s)).cpu()
