@@ -218,6 +218,71 @@ def test_edge_votes_ignore_hidden_points():
     assert not torch.allclose(ev(x, f), ev(x2, f))  # without the mask they do vote
 
 
+def _structure(jet, x):
+    """Colour structure tensors of ``x [1, N, C]``, rebuilt from the jet's gradients, and
+    their traces, for the formula tests' references."""
+    from usf_graph.models.gravity import structure_tensors
+
+    T, tr = structure_tensors(jet, x)
+    return T[0], tr[0]
+
+
+def test_edge_votes_are_the_documented_sum():
+    """V_n = scale * sum_m w_m s_nm^2 exp(-kappa e_nm) / sum_m w_m over the topk strongest
+    visible edges, with s^2 = 1 - (a_n . p_m)^2, e = a_n^T T_m a_n / (tr T_m s^2) clamped
+    at 0 and w_m = softplus of the features' linear map, written out per candidate."""
+    gen = torch.Generator().manual_seed(7)
+    g, ev = _edge_votes(level=3)
+    ev.topk = 50
+    p = g.pos.double()
+    x = torch.sin(p @ (3 * torch.randn(3, 2, generator=gen, dtype=torch.float64)) + 1)[None]
+    f = torch.randn(1, len(p), 2, generator=gen, dtype=torch.float64)
+    ev.weight = torch.nn.Linear(2, 1).double()
+    mask = p[:, 2] > -0.3
+    v = ev(x, f, mask)[0]
+    T, tr = _structure(ev.jet, x)
+    order = torch.argsort(torch.where(mask, tr, -1.0), descending=True)
+    top = order[:50]
+    assert tr[order[49]] > tr[order[50]]  # no tie decides which edges vote
+    w = torch.nn.functional.softplus(ev.weight(f[0, top]))[:, 0]
+    want = torch.zeros(len(ev.candidates), dtype=torch.float64)
+    for n, a in enumerate(ev.candidates):
+        for wm, m in zip(w, top):
+            s2 = 1 - float(a @ p[m]) ** 2
+            if s2 > 1e-12:  # a candidate on the edge point votes 0 (s^2 = 0)
+                e = max(float(a @ T[m] @ a) / (float(tr[m]) * s2), 0.0)
+                want[n] += wm * s2 * math.exp(-ev.kappa * e)
+    want = ev.scale.detach() * want / w.sum()
+    assert want.max() > 3 * want.min()  # the votes differ between candidates
+    torch.testing.assert_close(v.detach(), want, rtol=1e-4, atol=1e-6)
+
+
+def test_one_polish_step_is_the_documented_reweighted_fit():
+    """One step from u0: u = the eigenvector of the smallest eigenvalue of
+    sum_m c_m^2 exp(-kappa e_m(u0)) T_m / tr T_m over the topk strongest edges, with c_m the
+    gap of the two nonzero eigenvalues of T_m / tr T_m and e_m(u0) = u0^T T_m u0 / (tr T_m (1 -
+    (u0 . p_m)^2)), signed like u0; written out with LAPACK's eigendecompositions."""
+    gen = torch.Generator().manual_seed(8)
+    g, polish = _polish(level=3, topk=200, kappas=(20.0,), max_step=math.pi)
+    p = g.pos.double()
+    x = _meridian_stripes(p, torch.tensor([0.0, 0.6, 0.8], dtype=torch.float64), gen)
+    x = x + 0.2 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    u0 = torch.nn.functional.normalize(torch.tensor([0.3, 0.5, 0.7], dtype=torch.float64), dim=0)
+    T, tr = _structure(polish.jet, x)
+    top = torch.argsort(tr, descending=True)[:200]
+    M = torch.zeros(3, 3, dtype=torch.float64)
+    for m in top:
+        Tn = T[m] / tr[m]
+        lam = torch.linalg.eigvalsh(Tn)
+        e = float(u0 @ Tn @ u0) / (1 - float(u0 @ p[m]) ** 2)
+        M += float(lam[2] - lam[1]) ** 2 * math.exp(-20.0 * max(e, 0.0)) * Tn
+    want = torch.linalg.eigh(M)[1][:, 0]
+    want = want if float(want @ u0) > 0 else -want
+    u = polish(x, None, u0[None])[0]
+    assert _deg(u, u0) > 1  # the step moves it
+    torch.testing.assert_close(u, want, rtol=0, atol=1e-9)
+
+
 def _polish(level=4, **kw):
     from usf_graph.models.gravity import UpPolish
     from usf_graph.models.stages import level_spacing
