@@ -2,6 +2,7 @@
 runs), checked against a lift written here from the frontend's float64 table, the
 protocols' own datasets and predictions, and with bad inputs."""
 
+import inspect
 import warnings
 
 import cv2
@@ -113,6 +114,18 @@ def test_detect_image_equals_the_detector_on_the_reference_lift(views):
     assert np.array_equal(r["classes"], want["classes"])
     assert np.allclose(r["scores"], want["scores"], atol=1e-5)
     assert r["source"] == "estimated" and len(r["up"]) == 3
+    u = torch.tensor([[0.6, 0.0, 0.8]])  # a given up reaches the detector
+    given = detect_image(det, img, ds.camera, up=u[0].tolist(), interpolation="bilinear",
+                         threshold=0.0, k=10)
+    with torch.no_grad():
+        want = det.decode(det(x, mask, up=u), k=10, threshold=0.0)[0]
+    assert given["source"] == "given" and np.allclose(given["boxes"], want["boxes"], atol=1e-4)
+    assert len(given["scores"]) != len(r["scores"]) or not np.allclose(given["scores"], r["scores"], atol=1e-3)
+    # its decoding defaults are the detector's
+    ours = inspect.signature(detect_image).parameters
+    for name, p in inspect.signature(det.decode_image).parameters.items():
+        if name in ("threshold", "k", "nms", "drop_hidden"):
+            assert ours[name].default == p.default, name
 
 
 def test_bad_images_cameras_and_models_are_refused(views):
@@ -122,6 +135,8 @@ def test_bad_images_cameras_and_models_are_refused(views):
         segment_image(PlanarUNet(13, channels=(4, 4)), img, ds.camera)
     with pytest.raises(ValueError, match=r"RGB images \[H, W, 3\]"):
         segment_image(net, img[..., :2], ds.camera)
+    with pytest.raises(ValueError, match="up must be 3 numbers, None .* or 'lines', got 'north'"):
+        segment_image(net, img, ds.camera, up="north")
     gray = img.mean(-1).round().astype(np.uint8)  # a mono camera's image: read as R = G = B
     with pytest.warns(UserWarning, match="grayscale image is read as R = G = B"):
         mono = segment_image(net, gray, ds.camera)["probs"]
@@ -152,6 +167,8 @@ def test_bad_images_cameras_and_models_are_refused(views):
                  np.dstack([img, np.full(img.shape[:2], 7, np.uint8)])):
         assert np.allclose(segment_image(net, same, ds.camera)["probs"], want, atol=1e-5)
     assert rgb01(img).dtype == np.float32
+    with pytest.warns(UserWarning, match="grayscale"):  # read for a colour model by default
+        assert np.array_equal(rgb01(img[..., 0]), np.dstack([img[..., 0]] * 3) / np.float32(255))
 
 
 def test_auto_interpolation_averages_where_the_image_is_finer_than_the_grid():
@@ -214,6 +231,12 @@ def test_an_image_mask_is_left_out_and_unseen(views):
     assert (r["labels"][:, 16:] == UNSEEN).all() and (r["labels"][:, :16] != UNSEEN).any()
     whole = segment_image(net, img, ds.camera, interpolation="bilinear")  # not the masked frontend
     assert (whole["labels"][:, 16:] != UNSEEN).any()
+    # a camera with a mask of its own (its robot's body) keeps ignoring those pixels too
+    top = np.zeros(img.shape[:2], bool)
+    top[:20] = True
+    both = segment_image(net, img, ds.camera.with_image_mask(top), image_mask=left,
+                         interpolation="bilinear")["labels"]
+    assert (both[20:] == UNSEEN).all() and (both[:, 16:] == UNSEEN).all() and (both[:20, :16] != UNSEEN).any()
 
 
 def test_a_rigs_up_lines_read_every_cameras_lines_together():
