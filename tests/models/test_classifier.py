@@ -1,5 +1,6 @@
 """SphericalClassifier: exact invariance under the grid's symmetries, options, errors."""
 
+import math
 
 import numpy as np
 import pytest
@@ -46,3 +47,23 @@ def test_classifier_options_and_bad_arguments():
                        (dict(pairs=-1), "pairs"), (dict(jet_spacings=None), "gradient pairs")):
         with pytest.raises(ValueError, match=match):
             SphericalClassifier(level=3, channels=(4, 6), **bad)
+
+
+def test_classifier_is_built_as_its_docstring_says():
+    """Stage s convolves with radius radius_spacings grid spacings on level - s, down to
+    min_level (0 allowed); pooling blurs by pool_sigma coarse spacings; gradient pairs
+    follow the first pair_stages stages, never the last; pairs=0 or pair_stages=0: none."""
+    m = SphericalClassifier(level=3, channels=(4, 6, 8), pool_sigma=0.7, radius_spacings=2.5,
+                            pairs=2, pair_stages=5)
+    spacing = {lv: float(grids.icosahedral(lv).spacing) for lv in range(4)}
+    assert [c.radius for c in m.convs] == pytest.approx([2.5 * spacing[lv] for lv in (3, 2, 1)])
+    assert [p.sigma for p in m.pools] == pytest.approx([0.7 * spacing[2], 0.7 * spacing[1]])
+    assert len(m.pairs) == 2
+    bottom = SphericalClassifier(level=2, channels=(4, 6, 8, 8), min_level=0, pairs=0)
+    assert len(bottom.pools) == 2 and len(bottom.pairs) == 0
+    assert bottom(torch.randn(1, len(grids.icosahedral(2).pos), 1)).shape == (1, 10)
+    # on level 0 (12 points, 63 degrees apart) a kernel of 3 spacings is the whole sphere
+    assert bottom.convs[-1].radius == pytest.approx(math.pi)
+    coarse = SphericalClassifier(level=1, channels=(4, 6), min_level=0, pairs=2).eval()
+    assert len(coarse.pairs) == 1 and torch.isfinite(coarse(torch.randn(2, 42, 1))).all()
+    assert len(SphericalClassifier(level=2, channels=(4, 6), pairs=2, pair_stages=0).pairs) == 0

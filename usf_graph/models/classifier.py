@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -106,7 +108,7 @@ class SphericalClassifier(GeometryModule):
                 self.input_pool = blur(g, coarse)
                 g = coarse
         for s, c in enumerate(channels):
-            r = radius_spacings * g.spacing
+            r = min(radius_spacings * g.spacing, math.pi)  # the coarsest levels: the whole sphere
             ei, ew = grid_graph(g, r)
             area = g.area.float()  # one tensor for the norms, the readout and the conv
             self.register_buffer(f"area{s}", area, persistent=False)
@@ -115,7 +117,7 @@ class SphericalClassifier(GeometryModule):
             self.norms.append(MaskedBatchNorm(c))
             c_in = c
             if pairs and s < min(pair_stages, len(channels) - 1):
-                ei, ew = grid_graph(g, jet_spacings * g.spacing)
+                ei, ew = grid_graph(g, min(jet_spacings * g.spacing, math.pi))
                 self.pairs.append(GradientPairs(g.pos, ei, ew, g.spacing, c, pairs))
                 self.pair_norms.append(MaskedBatchNorm(2 * pairs))
                 c_in = c + 2 * pairs
