@@ -67,3 +67,27 @@ def test_classifier_is_built_as_its_docstring_says():
     coarse = SphericalClassifier(level=1, channels=(4, 6), min_level=0, pairs=2).eval()
     assert len(coarse.pairs) == 1 and torch.isfinite(coarse(torch.randn(2, 42, 1))).all()
     assert len(SphericalClassifier(level=2, channels=(4, 6), pairs=2, pair_stages=0).pairs) == 0
+
+
+def test_readouts_are_the_documented_integrals_and_one_sample_reads_alone():
+    """meanpow reads the area-weighted mean and (int x^4)^(1/4) of the last stage's
+    features, meanmax the mean and the max; a single sample [N, C] reads as a batch of
+    one. Pooling stops after the last stage even when min_level lies further down."""
+    torch.manual_seed(2)
+    m = SphericalClassifier(level=3, channels=(4, 6), min_level=1).double().eval()
+    assert len(m.pools) == 1
+    x = torch.randn(2, len(grids.icosahedral(3).pos), 1, dtype=torch.float64)
+    last = []
+    hook = m.norms[-1].register_forward_hook(lambda mod, i, o: last.append(torch.relu(o)))
+    with torch.no_grad():
+        f = m.features(x)
+        m.readout = "meanmax"
+        g = m.features(x)
+    hook.remove()
+    a = grids.icosahedral(2).area.double()[None, :, None]
+    y = last[0]
+    mean = (a * y).sum(1) / a.sum()
+    torch.testing.assert_close(f, torch.cat([mean, ((a * y ** 4).sum(1) / a.sum() + 1e-6) ** 0.25], -1))
+    torch.testing.assert_close(g, torch.cat([mean, y.amax(1)], -1))
+    with torch.no_grad():
+        torch.testing.assert_close(m(x[1]), m(x)[1])

@@ -53,7 +53,7 @@ class SphericalClassifier(GeometryModule):
     blurred down to ``level`` by a :class:`GaussianPool` before the first convolution.
 
     Shapes: ``x [B, N, C_in]`` (static graph on ``icosahedral(input_level)``) ->
-    ``[B, classes]``.
+    ``[B, classes]``; one sample ``[N, C_in]`` -> ``[classes]``.
     """
 
     def __init__(self, in_channels: int = 1, num_classes: int = 10, level: int = 4,
