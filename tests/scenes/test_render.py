@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -165,6 +166,27 @@ def test_rooms_follow_the_spec():
     assert {"door", "table", "chair"} <= kinds
 
 
+@pytest.mark.parametrize("index", [0, 3, 5])
+def test_floor_ceiling_and_walls_are_the_box_the_rooms_size_says(index):
+    """Rays from a viewpoint hit the floor at z = 0, the ceiling at z = H and the walls at
+    |x| = L/2 or |y| = W/2, inside the room's box, each of them many times."""
+    s = scenes.make_room(seed=2, index=index)
+    L, W, H = s.size
+    p, _ = s.viewpoint(0)
+    d = fibonacci(4000).pos.numpy()
+    inst, t, _ = s.cast(p, d)
+    hit = p + t[:, None] * d
+    sem = np.where(inst >= 0, s.semantic[np.maximum(inst, 0)], -1)
+    floor, ceiling, wall = (sem == SEMANTIC_CLASSES.index(k) for k in ("floor", "ceiling", "wall"))
+    assert floor.sum() > 100 and ceiling.sum() > 100 and wall.sum() > 100
+    np.testing.assert_allclose(hit[floor, 2], 0.0, atol=1e-9)
+    np.testing.assert_allclose(hit[ceiling, 2], H, atol=1e-9)
+    off = np.minimum(np.abs(np.abs(hit[wall, 0]) - L / 2), np.abs(np.abs(hit[wall, 1]) - W / 2))
+    np.testing.assert_allclose(off, 0.0, atol=1e-9)
+    inside = (np.abs(hit[:, 0]) <= L / 2 + 1e-9) & (np.abs(hit[:, 1]) <= W / 2 + 1e-9)
+    assert inside[floor | ceiling].all() and (hit[wall, 2] > -1e-9).all() and (hit[wall, 2] < H + 1e-9).all()
+
+
 def test_bad_inputs_get_clear_errors(scene):
     with pytest.raises(ValueError, match="Did you mean 'chair'"):
         scenes.semantic_index("chiar")
@@ -176,6 +198,22 @@ def test_bad_inputs_get_clear_errors(scene):
         scenes.render(scene, EQUI, position=inside)
     with pytest.raises(ValueError, match="outside the room"):
         scenes.render(scene, EQUI, position=(100.0, 0.0, 1.5))
+    L, W, H = scene.size
+    free = scene.viewpoint(0)[0]
+    for axis, edge in ((0, L / 2), (1, W / 2), (2, H), (2, 0.0)):  # just past each wall
+        for past in ((edge + 0.01 if edge else -0.01), -edge - 0.01):
+            p = free.copy()
+            p[axis] = past
+            with pytest.raises(ValueError, match="outside the room"):
+                scene.check_viewpoint(p)
+    near = free.copy()
+    near[0] = np.sign(free[0]) * (L / 2 - 0.01)  # just inside stays a position
+    np.testing.assert_array_equal(scene.check_viewpoint(near), near)
+    # a room its objects fill leaves no free position
+    full = room.Instance("table", 0, None, np.array([-L, -W, 0.0]), np.array([L, W, H]))
+    crowded = replace(scene, instances=[full])
+    with pytest.raises(RuntimeError, match="no free camera position"):
+        crowded.viewpoint(0)
     with pytest.raises(ValueError, match="three positive lengths"):
         scenes.make_room(size=(0, 4, 3))
     with pytest.raises(ValueError, match="too small"):
