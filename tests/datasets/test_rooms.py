@@ -41,6 +41,9 @@ def test_splits_are_different_rooms_and_reload_from_disk(root):
     assert not torch.equal(a.x, b.x)
     again = RoomsSegmentation(root, "train", **KW)
     assert torch.equal(a.x, again.x) and torch.equal(a.y, again.y)
+    # the test rooms of seed 0 are the training rooms of seed 1, as split_seed says
+    shifted = RoomsSegmentation(root, "train", seed=1, **KW)
+    assert (b.scene_seed, shifted.scene_seed) == (1, 1) and torch.equal(b.x, shifted.x)
 
 
 def test_zero_shot_lens_sees_the_same_rotated_test_views(root):
