@@ -185,6 +185,9 @@ def test_floor_ceiling_and_walls_are_the_box_the_rooms_size_says(index):
     np.testing.assert_allclose(off, 0.0, atol=1e-9)
     inside = (np.abs(hit[:, 0]) <= L / 2 + 1e-9) & (np.abs(hit[:, 1]) <= W / 2 + 1e-9)
     assert inside[floor | ceiling].all() and (hit[wall, 2] > -1e-9).all() and (hit[wall, 2] < H + 1e-9).all()
+    # from outside, looking away: every ray misses
+    inst, t, face = s.cast(np.array([2 * L, 0.0, H / 2]), np.array([[1.0, 0.0, 0.0], [0.6, 0.0, 0.8]]))
+    assert (inst == -1).all() and np.isinf(t).all() and (face == -1).all()
 
 
 def test_bad_inputs_get_clear_errors(scene):
