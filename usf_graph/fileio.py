@@ -38,6 +38,18 @@ def atomic_torch_save(obj, path) -> None:
     atomic_write(path, lambda f: torch.save(obj, f))
 
 
+def load_refusal(e: Exception) -> str:
+    """One line of why ``torch.load(..., weights_only=True)`` refused a file: the unpickler's
+    own reason, without torch's advice to load it with ``weights_only=False``, which runs
+    whatever the file holds."""
+    import re
+
+    why = re.search(r"WeightsUnpickler error:\s*(.+)", str(e))
+    if why:
+        return why.group(1).strip()
+    return (str(e).splitlines() or [type(e).__name__])[0].split(". ")[0][:200]
+
+
 def write_image(path, image, params: tuple = ()) -> None:
     """``cv2.imwrite(path, image, params)`` (BGR; ``params``: e.g. a JPEG's quality),
     atomically, and loud where OpenCV is not: a suffix it has no writer for, or a failed

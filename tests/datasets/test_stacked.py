@@ -42,6 +42,36 @@ def test_a_processed_file_lacking_a_field_is_made_again(tmp_path):
     assert load_or_rebuild(path, lambda: pytest.fail("rebuilt a good file"), ("x", "y"))["x"].sum() == 2
 
 
+SPRUNG = []
+
+
+def _spring():
+    SPRUNG.append(1)
+    return 0
+
+
+class _Trap:
+    """Unpickling this calls :func:`_spring`: code a processed file could run if loaded
+    with ``weights_only=False``."""
+
+    def __reduce__(self):
+        return _spring, ()
+
+
+def test_a_processed_file_that_would_run_code_is_never_unpickled(tmp_path):
+    path = tmp_path / "split.pt"
+    torch.save({"x": torch.zeros(2), "y": _Trap()}, path)
+
+    def process():
+        torch.save({"x": torch.ones(2), "y": torch.ones(2)}, path)
+
+    with pytest.warns(UserWarning, match=r"unreadable \(UnpicklingError: Unsupported global.*_spring") as w:
+        blob = load_or_rebuild(path, process, ("x", "y"))
+    assert not SPRUNG and blob["y"].tolist() == [1.0, 1.0]
+    # one line, without torch's advice to load it with weights_only=False
+    assert "\n" not in str(w[0].message) and "weights_only" not in str(w[0].message)
+
+
 def test_release_images_missing_or_corrupt_are_named(tmp_path):
     img = np.arange(48, dtype=np.uint8).reshape(4, 4, 3)
     cv2.imwrite(str(tmp_path / "a.png"), img)

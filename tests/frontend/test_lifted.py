@@ -55,3 +55,7 @@ def test_damaged_and_foreign_files_are_refused(tmp_path, lifted):
     (tmp_path / "cut.pt").write_bytes((tmp_path / "s.pt").read_bytes()[:300])
     with pytest.raises(ValueError, match="not a readable lifted file .*usf-graph lift --out"):
         load_lifted(tmp_path / "cut.pt")
+    torch.save({**blob, "where": tmp_path}, tmp_path / "foreign.pt")  # a pickled object
+    with pytest.raises(ValueError, match=r"UnpicklingError: Unsupported global") as e:
+        load_lifted(tmp_path / "foreign.pt")
+    assert "weights_only" not in str(e.value)  # not torch's advice to run what the file holds

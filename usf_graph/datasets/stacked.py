@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 from torch_geometric.data import Data
 
-from ..fileio import decode_image
+from ..fileio import decode_image, load_refusal
 
 
 def pre_transform_stacked(pre_transform: Callable[[Data], Data], samples: Iterable[Data],
@@ -53,8 +53,8 @@ def load_or_rebuild(path, process: Callable[[], None], required: tuple[str, ...]
         if missing:
             raise KeyError(f"missing {sorted(missing)}")
     except Exception as e:  # noqa: BLE001 - whatever is wrong with the file, it is rebuilt
-        warnings.warn(f"{path} is unreadable ({type(e).__name__}: {e}); processing it again",
-                      stacklevel=3)
+        warnings.warn(f"{path} is unreadable ({type(e).__name__}: {load_refusal(e)}); "
+                      "processing it again", stacklevel=3)
         os.remove(path)
         process()
         blob = torch.load(path, weights_only=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from ..fileio import atomic_write
+from ..fileio import atomic_write, load_refusal
 from ..grids import from_spec
 from .frontend import grid_graph
 from .image import SphericalImage
@@ -47,7 +47,7 @@ def read_lifted(path) -> dict:
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - a truncated or foreign file fails in many ways
-        raise ValueError(f"{path}: not a readable lifted file ({type(e).__name__}: {e}); "
+        raise ValueError(f"{path}: not a readable lifted file ({type(e).__name__}: {load_refusal(e)}); "
                          "write it again with `usf-graph lift --out`") from e
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
         raise ValueError(f"{path}: not a usf-graph lifted file (no format '{FORMAT}')")

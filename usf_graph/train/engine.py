@@ -10,7 +10,6 @@ import json
 import math
 import numbers
 import random
-import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm.auto import tqdm
 
-from ..fileio import atomic_torch_save, atomic_write
+from ..fileio import atomic_torch_save, atomic_write, load_refusal
 from ..nn.norm import MaskedBatchNorm
 from .devices import is_distributed, model_device, resolve_device, setup_distributed, to_device
 
@@ -95,12 +94,8 @@ def load_checkpoint(path, model: nn.Module | None = None) -> dict:
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001
-        # torch's own message suggests weights_only=False, which runs whatever the file holds
-        why = re.search(r"WeightsUnpickler error:\s*(.+)", str(e))
-        why = why.group(1).strip() if why else \
-            (str(e).splitlines() or [type(e).__name__])[0].split(". ")[0][:200]
         raise ValueError(f"{path} is not a readable usf-graph checkpoint: corrupt, truncated, or "
-                         f"not written by usf-graph ({why}). Train it again or copy it again; "
+                         f"not written by usf-graph ({load_refusal(e)}). Train it again or copy it again; "
                          "do not load a file you do not trust with weights_only=False") from e
     if not isinstance(blob, dict) or "state_dict" not in blob:
         raise ValueError(f"{path} is not a usf-graph checkpoint (no state_dict)")
