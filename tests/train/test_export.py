@@ -4,6 +4,7 @@ outputs where up is unusable, and every refusal names the fix."""
 
 import json
 import math
+import sys
 import warnings
 from pathlib import Path
 
@@ -223,6 +224,19 @@ def test_refusals_name_the_fix(tmp_path):
         from usf_graph.models import PlanarUNet
         BoundSegmenter(PlanarUNet(num_classes=4, channels=(4, 6)), cam)
     assert not list(tmp_path.iterdir())
+
+
+def test_onnx_without_its_packages_names_the_extra_to_install(tmp_path, monkeypatch):
+    """Without onnxscript an ONNX export is refused before any work, without onnxruntime
+    an ONNX file is not run; both name ``usf-graph[export]``."""
+    monkeypatch.setitem(sys.modules, "onnxscript", None)  # import then raises ImportError
+    with pytest.raises(ImportError, match=r"onnxscript: pip install 'usf-graph\[export\]'"):
+        export_model(_deeplab(), _fisheye(32), tmp_path / "a.onnx", check=False)
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    (tmp_path / "b.onnx").write_bytes(b"")
+    with pytest.raises(ImportError, match=r"needs onnxruntime: pip install 'usf-graph\[export\]'"):
+        load_exported(tmp_path / "b.onnx")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.onnx"]
 
 
 def test_a_failed_export_leaves_no_file(tmp_path, monkeypatch):
