@@ -33,6 +33,9 @@ def test_reads_the_release_layout_and_converts_boxes(root):
     assert points_in_boxes(north, d.boxes[2].double().numpy())[0, 0]
     test = Pandora(root, "test", grid="icosahedral:2", progress=False)
     assert len(test) == 2 and test[1].boxes.shape == (0, 5)
+    # released upright: every panorama's known up is +z
+    want = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=torch.float64)
+    assert torch.equal(ds.gravity, want) and ds.gravity.dtype == torch.float64
 
 
 def test_roll_sign_matches_pandoras_definition(root):
