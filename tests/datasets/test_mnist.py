@@ -55,11 +55,18 @@ def test_csv_reader_and_its_errors(tmp_path, digits):
     np.savetxt(tmp_path / "cols.csv", rows[:, :-2], fmt="%d", delimiter=",")
     with pytest.raises(ValueError, match="785 columns"):
         read_mnist_csv(tmp_path / "cols.csv")
-    bad = rows.copy()
-    bad[0, 3] = 300
-    np.savetxt(tmp_path / "range.csv", bad, fmt="%d", delimiter=",")
-    with pytest.raises(ValueError, match=r"\[0, 255\]"):
-        read_mnist_csv(tmp_path / "range.csv")
+    rows = rows.astype(np.float64)
+    for col, value in ((3, 256), (3, -1), (3, 12.5), (3, np.nan), (784, 10), (784, -1), (784, 3.5)):
+        bad = rows.copy()
+        bad[0, col] = value
+        np.savetxt(tmp_path / "range.csv", bad, fmt="%g", delimiter=",")
+        with pytest.raises(ValueError, match=r"whole numbers: pixel values in \[0, 255\] and labels in 0..9"):
+            read_mnist_csv(tmp_path / "range.csv")
+    edge = rows.copy()
+    edge[0, 3], edge[0, 784] = 255, 9  # the largest values there are
+    np.savetxt(tmp_path / "edge.csv", edge, fmt="%g", delimiter=",")
+    im, lb = read_mnist_csv(tmp_path / "edge.csv")
+    assert im[0].reshape(-1)[3] == 255 and lb[0] == 9
     (tmp_path / "text.csv").write_text("a,b,c\n")
     with pytest.raises(ValueError, match="cannot parse"):
         read_mnist_csv(tmp_path / "text.csv")

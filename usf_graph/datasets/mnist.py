@@ -81,8 +81,9 @@ def read_mnist_csv(path) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{path}: expected 785 columns (784 pixels + label), got {arr.shape[1]}")
     px, lab = arr[:, :784], arr[:, 784]
     if (px < 0).any() or (px > 255).any() or (lab < 0).any() or (lab > 9).any() \
-            or (lab != np.round(lab)).any():
-        raise ValueError(f"{path}: pixel values must be in [0, 255] and labels in 0..9")
+            or (arr != np.round(arr)).any():
+        raise ValueError(f"{path}: expected whole numbers: pixel values in [0, 255] and labels "
+                         "in 0..9")
     return px.astype(np.uint8).reshape(-1, 28, 28), lab.astype(np.int64)
 
 
