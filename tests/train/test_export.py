@@ -22,7 +22,7 @@ from usf_graph.scenes import make_room
 from usf_graph.scenes.render import render
 from usf_graph.train.apply import UNSEEN, detect_image, lift_for, segment_image
 from usf_graph.train.bound import BoundDetector, BoundSegmenter, CameraIO
-from usf_graph.train.export import _load_pt2, export_model, load_exported
+from usf_graph.train.export import _angle, _load_pt2, export_model, load_exported
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
@@ -224,6 +224,15 @@ def test_refusals_name_the_fix(tmp_path):
         from usf_graph.models import PlanarUNet
         BoundSegmenter(PlanarUNet(num_classes=4, channels=(4, 6)), cam)
     assert not list(tmp_path.iterdir())
+
+
+def test_the_checks_up_angle():
+    """The check's angle between the program's up and usf-graph's: in radians, 0 where
+    the model reads no up (the program's is NaN, usf-graph's None)."""
+    assert _angle([1.0, 0.0, 0.0], [0.0, 2.0, 0.0]) == pytest.approx(math.pi / 2)
+    assert _angle([0.0, 0.6, 0.8], [0.0, -0.6, -0.8]) == pytest.approx(math.pi)
+    assert _angle([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]) == 0.0
+    assert _angle([math.nan] * 3, None) == 0.0 and _angle([math.nan] * 3, [0.0, 0.0, 1.0]) == 0.0
 
 
 def test_onnx_without_its_packages_names_the_extra_to_install(tmp_path, monkeypatch):
