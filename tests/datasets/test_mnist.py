@@ -44,6 +44,10 @@ def test_idx_reader_rejects_corrupt_files(tmp_path, digits):
         read_idx(tmp_path / "short")
     with pytest.raises(FileNotFoundError, match="spherical_mnist/prepare.py"):
         load_digits(tmp_path / "none", "train", "idx")
+    write_idx(tmp_path / "t10k-images-idx3-ubyte", digits[0])
+    write_idx(tmp_path / "t10k-labels-idx1-ubyte", digits[1][:6])
+    with pytest.raises(ValueError, match="has 7 images but .*t10k-labels-idx1-ubyte 6 labels"):
+        load_digits(tmp_path, "test")
 
 
 def test_csv_reader_and_its_errors(tmp_path, digits):
