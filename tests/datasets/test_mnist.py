@@ -132,3 +132,21 @@ def test_pre_transform_is_applied_before_storage_and_transform_at_access(tmp_pat
     assert torch.equal(both.x, pre.x) and torch.equal(both[3].x, 4 * plain.x[3])
     with pytest.raises(ValueError, match="changed 'pos'"):
         SphericalMNIST(tmp_path / "c", "test", pre_transform=Shift(), **kw)
+
+
+def test_the_digit_camera_is_s2cnns_stereographic_projection():
+    """s2cnn's generator puts the 28 px image on [-1.5, 1.5]^2 of the plane tangent to
+    the unit sphere opposite the projection's pole: the plane point q is the ray at
+    angle 2 atan(|q| / 2) from the axis, towards q. Pixel edges (-0.5, 27.5) are the
+    square's sides, pixel centre 13.5 the axis."""
+    uv = np.array([[-0.5, -0.5], [13.5, 13.5], [27.5, 13.5], [3.0, 20.0], [27.5, -0.5]])
+    rays, valid = digit_camera().unproject(uv)
+    q = (uv - 13.5) * 3.0 / 28.0
+    theta = 2 * np.arctan(np.linalg.norm(q, axis=1) / 2)
+    assert valid.all()
+    np.testing.assert_allclose(np.arccos(np.clip(rays[:, 2], -1, 1)), theta, atol=1e-9)
+    off = [0, 2, 3, 4]  # off the axis: the ray leans towards q
+    np.testing.assert_allclose(rays[off, :2] / np.linalg.norm(rays[off, :2], axis=1)[:, None],
+                               q[off] / np.linalg.norm(q[off], axis=1)[:, None], atol=1e-9)
+    np.testing.assert_allclose(rays[1], [0.0, 0.0, 1.0], atol=1e-12)
+
