@@ -96,6 +96,18 @@ def test_rotated_sample_equals_relift_through_rotated_camera(digits):
     assert not torch.allclose(x[0], lift_digits(imgs[:1], g.pos.numpy(), None, False)[0])
 
 
+def test_more_digits_than_one_chunk_lift_each_as_alone():
+    """The unrotated path lifts 1,024 digits at a time: 1,100 lift as the per-digit path
+    (every rotation the identity, so one table) lifts each of them."""
+    rng = np.random.default_rng(5)
+    imgs = (rng.random((1100, 28, 28)) * 255).astype(np.uint8)
+    pos = grids.icosahedral(2).pos.numpy()
+    fast = lift_digits(imgs, pos, None, progress=False)
+    each = lift_digits(imgs, pos, torch.eye(3, dtype=torch.float64).expand(1100, 3, 3), progress=False)
+    assert fast.shape == (1100, len(pos), 1) and fast[1024:].abs().sum() > 0
+    torch.testing.assert_close(fast, each, rtol=0, atol=1e-6)
+
+
 def test_test_rotations_identical_across_runs(tmp_path):
     a = SphericalMNIST(tmp_path / "a", "test", grid="icosahedral:2", rotate="so3", progress=False)
     b = SphericalMNIST(tmp_path / "b", "test", grid="icosahedral:2", rotate="so3", progress=False)
