@@ -1,5 +1,6 @@
 """Spherical MNIST: the IDX and CSV readers, the embedded digits, the dataset."""
 
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -117,6 +118,12 @@ def test_test_rotations_identical_across_runs(tmp_path):
     assert not torch.equal(a.x, c.x)
     R = sample_rotations(1200, "chunk500", 0)
     assert torch.equal(R[0], R[499]) and not torch.equal(R[499], R[500])
+    # a truncated processed file is made again, with a warning, not read
+    path = Path(a.processed_paths[0])
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.warns(UserWarning, match="unreadable .*processing it again"):
+        again = SphericalMNIST(tmp_path / "a", "test", grid="icosahedral:2", rotate="so3", progress=False)
+    assert torch.equal(again.x, a.x)
 
 
 class Double:

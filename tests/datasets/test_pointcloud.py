@@ -48,6 +48,10 @@ def test_modelnet_dataset_reads_the_official_layout(tmp_path):
     assert ModelNet(tmp_path, "10", "test", num_points=64).y.tolist() == [0, 1]
     again = ModelNet(tmp_path, "10", "train", num_points=64)  # from processed/
     assert torch.equal(again.pos, train.pos)
+    torch.save({"pos": train.pos}, train.processed_paths[0])  # a stale file, lacking y: made again
+    with pytest.warns(UserWarning, match=r"missing \['classes', 'y'\].*processing it again"):
+        remade = ModelNet(tmp_path, "10", "train", num_points=64)
+    assert torch.equal(remade.pos, train.pos) and remade.y.tolist() == [0, 1, 1]
     with pytest.raises(FileNotFoundError, match="ModelNet40"):
         ModelNet(tmp_path / "empty", "40")
     from torch_geometric.transforms import FixedPoints, NormalizeScale

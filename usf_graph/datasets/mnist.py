@@ -17,7 +17,7 @@ from ..frontend.image import SphericalImage
 from ..frontend.interpolation import bilinear_entries
 from ..geometry import random_rotation
 from ..grids import from_spec
-from .stacked import pre_transform_stacked
+from .stacked import load_or_rebuild, pre_transform_stacked
 
 IDX_FILES = {"train": ("train-images-idx3-ubyte", "train-labels-idx1-ubyte"),
              "test": ("t10k-images-idx3-ubyte", "t10k-labels-idx1-ubyte")}
@@ -204,7 +204,7 @@ class SphericalMNIST(Dataset):
         self.progress = progress
         sample_rotations(1, rotate, seed)  # validates the mode early
         super().__init__(str(root), transform, pre_transform, log=False)
-        blob = torch.load(self.processed_paths[0], weights_only=True)
+        blob = load_or_rebuild(self.processed_paths[0], self.process, ("x", "y"))
         self.x, self.y = blob["x"], blob["y"]
 
     @property

@@ -11,7 +11,7 @@ import torch
 from torch_geometric.data import Data, Dataset
 
 from ..fileio import atomic_torch_save, download
-from .stacked import pre_transform_stacked
+from .stacked import load_or_rebuild, pre_transform_stacked
 
 MODELNET_URL = {"10": "http://3dvision.princeton.edu/projects/2014/3DShapeNets/ModelNet10.zip",
                 "40": "http://modelnet.cs.princeton.edu/ModelNet40.zip"}
@@ -113,7 +113,7 @@ class ModelNet(_CloudSet):
             raise ValueError(f"split must be 'train' or 'test', got {split!r}")
         self.name, self.split, self.num_points, self.seed = name, split, num_points, seed
         super().__init__(str(root), transform, pre_transform, log=False)
-        blob = torch.load(self.processed_paths[0], weights_only=True)
+        blob = load_or_rebuild(self.processed_paths[0], self.process, ("pos", "y", "classes"))
         self.pos, self.y, self.classes = blob["pos"], blob["y"], blob["classes"].split(",")
 
     @property
