@@ -126,7 +126,7 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
 
     root = _woodscape(tmp_path / "ws")
     ds = WoodScape(root, "val", grid="icosahedral:3", scale=0.5, progress=False)
-    r = evaluate_fields(_Constant(ds, 1), ds, known_up=True, batch_size=2, progress=False,
+    r = evaluate_fields(_Constant(ds, 1), ds, batch_size=2, progress=False,  # known up: the default
                         names=CLASSES)
     truth, cams = [], {}
     for i, name in enumerate(ds.names):
@@ -146,6 +146,10 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
     seen = y != 255
     road = (area * ((y == 1) & seen)).sum() / (area * seen).sum()
     assert r["sphere_mIoU"] == pytest.approx(road / len(set(y[seen].tolist()) | {1}), rel=1e-9)
+    from usf_graph.models import PlanarUNet
+
+    with pytest.raises(ValueError, match="evaluate_fields scores spherical models; a planar one has no grid"):
+        evaluate_fields(PlanarUNet(10, channels=(4, 4)), ds, progress=False)
 
 
 def test_woodscape_command_trains_on_four_cameras_and_eval_scores_it_again(tmp_path, capsys):
