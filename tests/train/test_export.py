@@ -226,6 +226,37 @@ def test_refusals_name_the_fix(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def test_the_check_refuses_a_program_that_disagrees(tmp_path, monkeypatch):
+    """check_exported against stand-in programs: one that gives usf-graph's labels passes
+    with its numbers; one that relabels 2.5% of the seen pixels, or labels one unseen
+    pixel, is refused as a silent wrong answer."""
+    from usf_graph.train import export as ex
+
+    model, cam = _deeplab(), _fisheye(32)
+    want = segment_image(model, _room_image(cam, 0), cam, up=[0.0, 0.0, 1.0],
+                         interpolation="bilinear")["labels"]
+    seen = np.flatnonzero(want != UNSEEN)
+
+    def program(labels):
+        monkeypatch.setattr(ex, "load_exported", lambda path, threads=None: (
+            lambda images, up=None: (labels, np.array([0.0, 0.0, 1.0], np.float32))))
+
+    program(want.copy())
+    out = ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
+    assert out["agree"] == 1.0 and out["unseen_match"] and out["pixels_seen"] == len(seen)
+    assert 0 <= out["load_s"] < 60 and 0 <= out["frame_s"] < 60 and out["up_angle_deg"] == 0
+    relabelled = want.copy()
+    relabelled.flat[seen[::40]] = (relabelled.flat[seen[::40]] + 1) % 5
+    program(relabelled)
+    with pytest.raises(RuntimeError, match=r"disagrees .*: 97\.[45]\d% of the pixels agree, unseen pixels match"):
+        ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
+    one_unseen = want.copy()
+    one_unseen.flat[np.flatnonzero(want == UNSEEN)[0]] = 0
+    program(one_unseen)
+    with pytest.raises(RuntimeError, match="100.00% of the pixels agree, unseen pixels differ"):
+        ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
+
+
 def test_the_checks_up_angle():
     """The check's angle between the program's up and usf-graph's: in radians, 0 where
     the model reads no up (the program's is NaN, usf-graph's None)."""
