@@ -146,6 +146,9 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
     seen = y != 255
     road = (area * ((y == 1) & seen)).sum() / (area * seen).sum()
     assert r["sphere_mIoU"] == pytest.approx(road / len(set(y[seen].tolist()) | {1}), rel=1e-9)
+    soft = evaluate_fields(_Constant(ds, 1), ds, batch_size=2, progress=False, names=CLASSES,
+                           render="soft")  # each point's class probabilities blended
+    assert soft["IoU"] == r["IoU"] and soft["cameras"] == r["cameras"]
     from usf_graph.models import PlanarUNet
 
     with pytest.raises(ValueError, match="evaluate_fields scores spherical models; a planar one has no grid"):
