@@ -22,7 +22,7 @@ from usf_graph.scenes import make_room
 from usf_graph.scenes.render import render
 from usf_graph.train.apply import UNSEEN, detect_image, lift_for, segment_image
 from usf_graph.train.bound import BoundDetector, BoundSegmenter, CameraIO
-from usf_graph.train.export import _angle, _load_pt2, export_model, load_exported
+from usf_graph.train.export import _angle, _load_pt2, _matched, export_model, load_exported
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
@@ -255,6 +255,22 @@ def test_the_check_refuses_a_program_that_disagrees(tmp_path, monkeypatch):
     program(one_unseen)
     with pytest.raises(RuntimeError, match="100.00% of the pixels agree, unseen pixels differ"):
         ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
+
+
+def test_detections_are_matched_one_to_one_by_class_overlap_and_score():
+    """Each reference detection, best first, takes the free exported one of its class that
+    overlaps it most; a match needs IoU >= 0.95 and scores within 1e-3. The exported
+    boxes here are the reference's, nudged and in another order, plus one of another
+    class and one whose score is off."""
+    want = {"boxes": np.array([[0.0, 0.0, 0.4, 0.3, 0.0], [0.3, 0.1, 0.4, 0.3, 0.0],
+                               [1.5, -0.2, 0.2, 0.2, 0.0], [-1.0, 0.4, 0.3, 0.3, 0.0]]),
+            "classes": np.array([2, 2, 1, 0]), "scores": np.array([0.9, 0.8, 0.7, 0.6])}
+    got = {"boxes": want["boxes"][[1, 0, 2, 3]] + [0.002, 0.0, 0.0, 0.0, 0.0],
+           "classes": np.array([2, 2, 3, 0]), "scores": np.array([0.8, 0.9005, 0.7, 0.62])}
+    r = _matched(got, want)
+    assert (r["detections"], r["detections_exported"], r["matched"]) == (4, 4, 2)
+    assert r["unmatched"] == 4  # two of want's and two of got's
+    assert r["score_diff"] == pytest.approx(0.0005) and 0.95 <= r["iou_min"] < 1
 
 
 def test_the_checks_up_angle():
