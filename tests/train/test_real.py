@@ -125,6 +125,10 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
     from usf_graph.train.real import evaluate_fields
 
     root = _woodscape(tmp_path / "ws")
+    mvr = root / "semantic_annotations" / "gtLabels" / "00005_MVR.png"
+    label = cv2.imread(str(mvr), 0)
+    label[-30:] = 6  # less road than the left camera's mirror image: the cameras score apart
+    cv2.imwrite(str(mvr), label)
     ds = WoodScape(root, "val", grid="icosahedral:3", scale=0.5, progress=False)
     r = evaluate_fields(_Constant(ds, 1), ds, batch_size=2, progress=False,  # known up: the default
                         names=CLASSES)
@@ -142,6 +146,7 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
     assert r["mIoU"] == pytest.approx((t == 1).mean() / len(present), abs=1e-12)
     assert r["mAcc"] == pytest.approx(1 / len(set(t.tolist())), abs=1e-12)
     assert r["cameras"] == pytest.approx(cams, abs=1e-12) and list(r["cameras"]) == ["MVL", "MVR"]
+    assert abs(cams["MVL"] - cams["MVR"]) > 0.01
     y, area = ds.y.numpy(), ds.grid.area.numpy()
     seen = y != 255
     road = (area * ((y == 1) & seen)).sum() / (area * seen).sum()
