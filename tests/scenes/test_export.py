@@ -33,6 +33,12 @@ def test_files_are_in_the_real_formats(tmp_path):
     names = {c["id"]: c["name"] for c in doc["categories"]}
     assert [names[i] for i in ids] == [scenes.DETECTION_CLASSES[c] for c in view.box_class]
     assert len(doc["categories"]) == 47 and names[46] == "window"
+    # COCO's bookkeeping: ids 1..K, every box its image's, none a crowd, no "-0.0"
+    anns = doc["annotations"]
+    assert [a["id"] for a in anns] == list(range(1, len(anns) + 1)) and len(anns) > 2
+    assert doc["images"] == [{"id": 1, "file_name": "v_rgb.png", "width": cam.width, "height": cam.height}]
+    assert all(a["image_id"] == 1 and a["iscrowd"] == 0 for a in anns)
+    assert "-0.0," not in json.dumps(doc) and "-0.0]" not in json.dumps(doc)
 
 
 def test_missing_depth_is_65535_and_fisheye_boxes_are_refused():
