@@ -4,7 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from usf_graph import cameras, scenes
+from usf_graph import cameras, grids, scenes
+from usf_graph.frontend import SphericalFrontend
 from usf_graph.ops import from_pandora
 from usf_graph.scenes.export import (
     depth_png,
@@ -12,6 +13,7 @@ from usf_graph.scenes.export import (
     export_stanford,
     pandora_json,
     save_view,
+    stanford_semantic,
 )
 
 
@@ -39,6 +41,11 @@ def test_files_are_in_the_real_formats(tmp_path):
     assert doc["images"] == [{"id": 1, "file_name": "v_rgb.png", "width": cam.width, "height": cam.height}]
     assert all(a["image_id"] == 1 and a["iscrowd"] == 0 for a in anns)
     assert "-0.0," not in json.dumps(doc) and "-0.0]" not in json.dumps(doc)
+
+
+def test_stanford_semantic_pixels_index_the_label_list_and_missing_ones_are_0x0d0d0d():
+    got = stanford_semantic(np.array([[255, 0, 12]], np.uint8))
+    assert got.tolist() == [[[13, 13, 13], [0, 0, 1], [0, 0, 13]]] and got.dtype == np.uint8
 
 
 def test_missing_depth_is_65535_and_fisheye_boxes_are_refused():
@@ -78,6 +85,9 @@ def test_rooms_as_stanford_and_pandora_releases_read_back_through_the_real_loade
             np.testing.assert_allclose(d.boxes.numpy(), views[i].boxes, atol=1e-6)
             want = [scenes.PANDORA_CLASSES.index(scenes.DETECTION_CLASSES[c]) for c in views[i].box_class]
             assert d.box_class.tolist() == want
+            # the JPEG holds the view's colours, in RGB order once read back
+            rgb = SphericalFrontend(cam, grids.icosahedral(2), "area").lift(views[i].rgb / 255.0)
+            assert float((d.x.double() - rgb).abs().mean()) < 0.02
     with pytest.raises(ValueError, match="equirectangular"):
         export_stanford(views[:1], cameras.Fisheye(100, 99.5, 99.5, 200, 200), tmp_path / "x")
     with pytest.raises(ValueError, match="test_every"):
