@@ -121,7 +121,7 @@ def test_set_sign_check_passes_the_estimate_through_it_at_test_time_only():
 
 def test_refined_keeps_the_weights_and_repr_names_the_settings():
     check = _check(min_field=0.3)
-    fine = check.refined(1)
+    fine = check.refined()  # one level finer by default
     assert all(torch.equal(a, b) for a, b in zip(check.state_dict().values(), fine.state_dict().values()))
     assert repr(fine) == "SignCheck(level=3, channels=[4, 4, 4], min_field=0.3, refine=1)"
     assert math.isclose(float(fine.area.sum()), 4 * math.pi, rel_tol=1e-9)
