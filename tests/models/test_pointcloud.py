@@ -26,6 +26,8 @@ def test_logits_invariant_to_rigid_motions_in_float64(clouds, segmentation):
         out = net(moved(clouds, seed))
         assert (out - ref).abs().max() < 1e-9, seed
     assert ref.std() > 1e-3  # not a constant output
+    # and, by default, to the cloud's scale (radii in RMS radii); one pooling between stages
+    assert (net(2.5 * clouds) - ref).abs().max() < 1e-9 and len(net.pools) == 2
     perm = torch.randperm(clouds.shape[1])
     out = net(clouds[:, perm])
     assert torch.allclose(out, ref[:, perm] if segmentation else ref, atol=1e-10, rtol=0)
