@@ -3,6 +3,7 @@ fixture in PANDORA's format."""
 
 import functools
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -185,6 +186,12 @@ def test_detection_sets_batch_boxes_and_fields_of_view(tmp_path):
     assert got["AP50"] == pytest.approx(1.0) and got["AP50_every_box"] < 0.99
     whole = DetectionSet.spherical(sets["a"])
     assert whole.seen is None and not whole.ignored(0).any() and len(whole.ignored(0)) == int(whole.box_ptr[1])
+    assert DetectionSet.planar(sets["a"], 64, 32).seen is None  # a panorama cuts no box
+    mixed = SimpleNamespace(**{k: getattr(sets["c"], k) for k in ("x", "boxes", "box_class", "box_ptr")},
+                            mask=sets["c"].mask.clone())
+    mixed.mask[1, :5] = ~mixed.mask[1, :5]
+    with pytest.raises(ValueError, match="different fields of view; a batch shares one mask"):
+        DetectionSet.spherical(mixed)
 
 
 def test_random_fields_of_view_cut_batches_and_their_boxes(tmp_path):
