@@ -46,3 +46,21 @@ def test_segmentation_labels_move_with_points(clouds):
     assert out.shape == (len(pos), 2)
     perm = torch.randperm(len(pos))
     assert torch.allclose(net(moved(pos, 3)[perm]), out[perm], atol=1e-10, rtol=0)
+
+
+def test_segmentation_interpolates_from_the_three_nearest_centres_by_inverse_square_distance():
+    """Features reach the fine points from the 3 nearest coarse ones of the same cloud,
+    weighted by 1 / d^2: against a brute-force search."""
+    from usf_graph.models.pointcloud import _interpolate
+
+    g = torch.Generator().manual_seed(4)
+    pos, pos_f = torch.rand(20, 3, generator=g, dtype=torch.float64), torch.rand(30, 3, generator=g, dtype=torch.float64)
+    batch, batch_f = torch.arange(20) // 10, torch.arange(30) // 15
+    x = torch.randn(20, 4, generator=g, dtype=torch.float64)
+    got = _interpolate(x, pos, batch, pos_f, batch_f)
+    for i in range(30):
+        same = torch.nonzero(batch == batch_f[i])[:, 0]
+        d2 = ((pos[same] - pos_f[i]) ** 2).sum(-1)
+        near = same[d2.argsort()[:3]]
+        w = 1 / ((pos[near] - pos_f[i]) ** 2).sum(-1)
+        torch.testing.assert_close(got[i], (w[:, None] * x[near]).sum(0) / w.sum())
