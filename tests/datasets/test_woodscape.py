@@ -34,7 +34,7 @@ def _calibration(axis_yaw_deg: float) -> dict:
 def _write(root, name, calib):
     """The image's colour encodes each pixel's ray in the vehicle frame ((z + 1) / 2 in red,
     (x + 1) / 2 in green, (y + 1) / 2 in blue); its labels are road (1) below -15 degrees, vehicles (6) above,
-    and 12 (past the classes: void) in a corner."""
+    and 12 and 10 (past the classes: void) in a band 75-87 degrees off the axis."""
     (root / "calibration_data" / "calibration").mkdir(parents=True, exist_ok=True)
     (root / "calibration_data" / "calibration" / f"{name}.json").write_text(json.dumps(calib))
     cam = cameras.load(root / "calibration_data" / "calibration" / f"{name}.json")
@@ -44,7 +44,9 @@ def _write(root, name, calib):
     rgb[..., 1] = np.round((rays[..., 0] + 1) / 2 * 255)
     rgb[..., 2] = np.round((rays[..., 1] + 1) / 2 * 255)
     label = np.where(rays[..., 2] < -np.sin(np.radians(15)), 1, 6).astype(np.uint8)
-    label[:4, :4] = 12
+    off_axis = rays @ rays[H // 2, W // 2]  # the cosine of the angle to (about) its axis
+    band = (off_axis > 0.05) & (off_axis < 0.25)  # outside the test's "inner" points
+    label[band] = np.where(np.arange(W) < W // 2, 12, 10)[None].repeat(H, 0)[band]
     for folder, img in (("rgb_images", rgb[..., ::-1]), ("semantic_annotations/gtLabels", label)):
         (root / folder).mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(root / folder / f"{name}.png"), img)
@@ -83,7 +85,7 @@ def test_each_image_lifts_through_its_own_camera_into_the_vehicle_frame(release,
         low, high = inner & (pos[:, 2] < -0.4), inner & (pos[:, 2] > -0.1)
         assert low.sum() > 10 and high.sum() > 10
         assert (d.y[low] == 1).all() and (d.y[high] == 6).all()
-        assert set(d.y[seen].tolist()) <= {0, 1, 6}  # 12 is past the classes: void
+        assert set(d.y[seen].tolist()) == {0, 1, 6}  # 10 and 12 are past the classes: void
     assert not torch.equal(ds.mask[0], ds.mask[1])
     assert torch.equal(ds.gravity[0], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     val = WoodScape(release, "val", grid="icosahedral:3", scale=scale, progress=False)
@@ -92,7 +94,8 @@ def test_each_image_lifts_through_its_own_camera_into_the_vehicle_frame(release,
 
 
 def test_the_processed_split_is_reused_and_a_corrupt_one_rebuilt(release):
-    WoodScape(release, "val", grid="icosahedral:2", progress=False)
+    first = WoodScape(release, "val", grid="icosahedral:2", progress=False)
+    assert (first.frontend(0).camera.width, first.frontend(0).camera.height) == (W // 2, H // 2)
     path = next((release / "processed").glob("woodscape_val_*.pt"))
     stamp = os.stat(path).st_mtime_ns
     again = WoodScape(release, "val", grid="icosahedral:2", progress=False)
@@ -109,6 +112,11 @@ def test_missing_and_broken_data_name_the_fix(tmp_path, release):
     (release / "train.txt").unlink()
     with pytest.raises(FileNotFoundError, match="train.txt not found.*OmniDet"):
         WoodScape(release, "train", grid="icosahedral:2", progress=False)
+    labels = release / "semantic_annotations" / "gtLabels" / "00003_MVL.png"
+    cv2.imwrite(str(labels), np.zeros((H // 2, W // 2), np.uint8))
+    with pytest.raises(ValueError, match=r"^00003_MVL: its calibration is 128x96, its label image "
+                                         r"is 64x48, the image is 128x96; they must match"):
+        WoodScape(release, "val", grid="icosahedral:2", progress=False)
     (release / "rgb_images" / "00003_MVL.png").write_bytes(b"\x89PNG broken")
     with pytest.raises(ValueError, match="00003_MVL.png is not a readable PNG"):
         WoodScape(release, "val", grid="icosahedral:2", progress=False)
@@ -117,3 +125,6 @@ def test_missing_and_broken_data_name_the_fix(tmp_path, release):
         WoodScape(release, "val", grid="icosahedral:2", progress=False)
     with pytest.raises(ValueError, match="split must be"):
         WoodScape(release, "test", progress=False)
+    for scale in (0, -0.5, 1.5):
+        with pytest.raises(ValueError, match=r"scale must be in \(0, 1\]"):
+            WoodScape(release, "val", grid="icosahedral:2", scale=scale, progress=False)

@@ -8,6 +8,7 @@ import torch
 from usf_graph import grids
 from usf_graph.geometry import rotation_from_axis_angle
 from usf_graph.models import PlanarDeepLab, PlanarUNet, SphericalDeepLabV3, SphericalUNet
+from usf_graph.models.planar_seg import conv_block
 from usf_graph.models.stages import ConvStage, level_spacing
 from usf_graph.models.unet import SphericalBackbone
 from usf_graph.nn import UprightConv
@@ -139,6 +140,52 @@ def test_planar_models_shapes_and_errors():
         PlanarUNet(5, channels=(4, 8, 8))(torch.rand(1, 3, 30, 64))
     with pytest.raises(ValueError, match="out_stride"):
         PlanarUNet(5, channels=(4, 8), out_stride=4)
+
+
+def test_planar_defaults_fit_stanford_2d3ds():
+    from usf_graph.scenes import SEMANTIC_CLASSES
+
+    assert len(SEMANTIC_CLASSES) == 13
+    assert PlanarUNet().head[-1].out_channels == PlanarDeepLab().head.out_channels == 13
+
+
+def test_planar_models_commute_with_shifts_by_their_pooling_stride():
+    """Away from the borders (zero padding), shifting the image by 8 pixels (a multiple of
+    the 4x pooling) shifts the logits by 8: the bilinear upsampling scales by exactly 2 or 4
+    with pixel centres aligned (``align_corners=True`` stretches by 15/7 and breaks this)."""
+    torch.manual_seed(0)
+    deeplab = PlanarDeepLab(3, channels=(4, 8, 8), aspp_channels=4, rates=(2,))
+    deeplab.aspp.pool[0].weight.data.zero_()  # the image pooling reads the borders too
+    for m in (PlanarUNet(3, channels=(4, 8, 8)), PlanarUNet(3, channels=(4, 8, 8), out_stride=2),
+              deeplab):
+        m = m.double().eval()
+        s = m.config.get("out_stride", 1)
+        x = torch.rand(1, 3, 16, 128, dtype=torch.float64)
+        a, b = m(x), m(torch.roll(x, 8, -1))
+        inner = slice(48 // s, 80 // s)  # the receptive field (< 40 pixels) misses the borders
+        shifted = torch.roll(a, 8 // s, -1)
+        torch.testing.assert_close(b[..., inner], shifted[..., inner], rtol=0, atol=1e-12)
+        assert (b - shifted).abs().max() > 1e-5  # the borders do differ: zero padding, no wrap
+
+
+def test_planar_receptive_fields_are_those_of_their_convolutions():
+    """One level: three 3x3 convolutions (two, then the head's), so a logit reads the input
+    within 3 pixels, no farther; an ASPP branch at rate r reads r pixels away."""
+    torch.manual_seed(0)
+
+    def reach(net, c_in, size=31):
+        x = torch.rand(1, c_in, size, size, dtype=torch.float64, requires_grad=True)
+        net(x)[0, :, size // 2, size // 2].sum().backward()
+        r, c = torch.nonzero(x.grad.abs().sum((0, 1)) > 0).T - size // 2
+        return int(torch.cat([r, c]).abs().max())
+
+    assert reach(PlanarUNet(3, channels=(4,)).double().eval(), 3) == 3
+    for rate in (1, 3):
+        conv = conv_block(2, 2, *([rate] if rate > 1 else []))[0].double()  # the default: 1
+        assert reach(conv, 2) == rate
+    deeplab = PlanarDeepLab(3, channels=(4,), aspp_channels=4, rates=(5,)).double().eval()
+    deeplab.aspp.pool[0].weight.data.zero_()  # the image pooling reads everything: not it
+    assert reach(deeplab, 3) == 2 + 5 + 1  # two convs, the ASPP's rate, the decoder
 
 
 def test_spherical_models_reject_bad_input():

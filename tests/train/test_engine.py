@@ -313,6 +313,31 @@ def test_to_device_moves_every_tensor_of_a_batch_and_nothing_else():
     assert model_device(torch.nn.Identity()).type == "cpu"
 
 
+def test_is_planar_tells_the_image_models_from_the_spherical_ones():
+    from types import SimpleNamespace
+
+    from usf_graph.models import (
+        PlanarDeepLab,
+        PlanarDetector,
+        PlanarUNet,
+        SphericalDeepLabV3,
+        SphericalDetector,
+        SphericalUNet,
+    )
+    from usf_graph.train.devices import is_planar
+
+    image = torch.rand(1, 3, 32, 64)
+    for planar in (PlanarUNet(3, channels=(4, 8)), PlanarDeepLab(3, channels=(4, 8), aspp_channels=4),
+                   PlanarDetector(3, height=32, width=64, channels=(4, 8))):
+        assert is_planar(planar) and is_planar(SimpleNamespace(module=planar))  # DDP's wrapper
+        planar(image)  # what is_planar promises: it takes [B, C, H, W]
+    for spherical in (SphericalUNet(3, level=2, min_level=1, channels=(4, 4)),
+                      SphericalDeepLabV3(3, level=2, channels=(4, 4), aspp_channels=4, rates=(2,),
+                                         low_channels=4),
+                      SphericalDetector(3, input_level=2, head_level=2, min_level=1, channels=(4, 4))):
+        assert not is_planar(spherical) and not is_planar(SimpleNamespace(module=spherical))
+
+
 DEVICES = ("cpu", "cuda")  # the GPU test's pair (a CPU run of the test itself: ("cpu", "cpu"))
 
 

@@ -156,7 +156,7 @@ class WoodScape(UprightAsReleased, Dataset):
         root, get_it = Path(self.root), GET_IT.format(root=self.root)
         label = read_release_image(root / "semantic_annotations" / "gtLabels" / f"{name}.png",
                                    cv2.IMREAD_GRAYSCALE, get_it)
-        shapes = {"its calibration": full, "its labels": (label.shape[1], label.shape[0])}
+        shapes = {"its calibration": full, "its label image": (label.shape[1], label.shape[0])}
         if rgb:
             rgb = read_release_image(root / "rgb_images" / f"{name}.png", cv2.IMREAD_COLOR,
                                      get_it)[..., ::-1]
