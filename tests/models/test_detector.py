@@ -210,6 +210,22 @@ def test_planar_targets_decode_back_to_their_boxes():
     np.testing.assert_allclose(det["boxes"][order], boxes[ref].numpy(), atol=1e-9)
 
 
+def test_planar_peaks_are_8_neighbour_maxima_wrapping_in_longitude():
+    m = PlanarDetector(num_classes=1, height=8, width=12, channels=(4, 8))
+    H, W = 4, 6  # its output map
+    rows = [set(row.tolist()) for row in m.ring]
+    for r in range(H):
+        for c in range(W):
+            want = {rr * W + (c + dc) % W for rr in (r - 1, r, r + 1) if 0 <= rr < H
+                    for dc in (-1, 0, 1)}
+            assert rows[r * W + c] == want, (r, c)
+    # across the seam: the first column's value loses to a higher one in the last column
+    prob = torch.zeros(H * W, 1)
+    prob[1 * W + 0], prob[2 * W + W - 1], prob[3 * W + 2] = 0.8, 0.9, 0.7
+    point, _, score = peaks(prob, m.ring, 3, 0.5)
+    assert point[score > 0].tolist() == [2 * W + W - 1, 3 * W + 2]
+
+
 @pytest.mark.parametrize("kind", ["spherical", "planar"])
 def test_detectors_learn_a_batch(kind):
     torch.manual_seed(0)
