@@ -265,6 +265,37 @@ def test_detector_losses_refuse_boxes_that_do_not_fit_the_batch(kind):
             m.loss(out, b, torch.tensor(classes), torch.tensor(image))
 
 
+@pytest.mark.parametrize("kind", ["spherical", "planar"])
+def test_heatmaps_start_at_centernets_prior_after_every_reset(kind):
+    if kind == "spherical":
+        m = SphericalDetector(**SMALL)
+        bias = lambda: m.head.bias  # noqa: E731
+    else:
+        m = PlanarDetector(num_classes=3, height=32, width=64, channels=(4, 8))
+        bias = lambda: m.body.head[-1].bias  # noqa: E731
+    for _ in range(2):
+        np.testing.assert_allclose(torch.sigmoid(bias()[:3]).detach(), 0.01, rtol=0.01)
+        assert bias()[3:].abs().max() < 1  # the boxes' biases: as initialized
+        with torch.no_grad():
+            bias().fill_(3.0)
+        m.reset_parameters()
+
+
+def test_planar_detector_checks_its_sizes_and_spaces_its_targets_by_its_pixels():
+    with pytest.raises(ValueError, match="height and width must be divisible by 4, got 30x64"):
+        PlanarDetector(num_classes=3, height=30, width=64, channels=(4, 8, 8))
+    with pytest.raises(ValueError, match="height and width must be divisible by 4, got 32x66"):
+        PlanarDetector(num_classes=3, height=32, width=66, channels=(4, 8, 8))
+    m = PlanarDetector(num_classes=3, height=32, width=64, channels=(4, 8, 8))
+    for bad in ((1, 3, 32, 32), (1, 1, 32, 64), (3, 32, 64)):
+        with pytest.raises(ValueError, match=r"expected x \[B, 3, 32, 64\]"):
+            m(torch.rand(bad))
+    # the heatmaps' Gaussians are sized in output pixels: one is pi / 16 of latitude here
+    grid = m.points.reshape(16, 32, 3)
+    np.testing.assert_allclose(m.spacing, torch.acos(grid[:-1, 0] @ grid[1:, 0].T).diagonal(), rtol=1e-6)
+    assert m.spacing == pytest.approx(math.pi / 16)
+
+
 def test_detector_errors_and_masks():
     m = SphericalDetector(**SMALL)
     n = len(grids.icosahedral(3).pos)

@@ -124,6 +124,29 @@ def test_upnet_errors_and_where_it_starts():
         net.eval()(x)
 
 
+def test_upnet_is_built_as_its_docstring_says():
+    """Pooled ``coarsen`` levels down, the jet there reaching ``jet_spacings`` spacings, one
+    stage per entry of ``channels`` on successively coarser levels with kernel radius
+    ``radius_spacings`` spacings, blurs of half a coarse spacing between them."""
+    from usf_graph.geometry import geodesic_distance
+    from usf_graph.models import UpNet
+    from usf_graph.models.stages import level_spacing as h
+
+    net = UpNet(3, 4, channels=(4, 4, 4), radius_spacings=2.5, jet_spacings=3.0)
+    assert [c.radius for st in net.stages for c in st.convs] == pytest.approx([2.5 * h(lv) for lv in (3, 2, 1)])
+    assert net.pre.sigma == pytest.approx(0.5 * h(3))
+    assert [p.sigma for p in net.pools] == pytest.approx([0.5 * h(2), 0.5 * h(1)])
+    assert net.jet.spacing == pytest.approx(h(3))
+    # the jet's fit reaches 3 spacings: a spike moves the derivatives of its points only
+    pos = grids.icosahedral(3).pos
+    spike = torch.zeros(1, len(pos), 1, dtype=torch.float64)
+    spike[0, 7] = 1.0
+    moved = net.jet.double()(spike)[0, :, 1:].abs().amax(-1) > 1e-4
+    d = geodesic_distance(pos, pos[7:8].expand_as(pos))
+    assert d[moved].max() <= 3.0 * h(3) and d[moved].max() > 2.0 * h(3)
+    assert net.head.pos.shape == (len(grids.icosahedral(1)), 3)
+
+
 def test_upnet_polishes_its_estimate_in_evaluation_only():
     from usf_graph.models import UpNet
 
