@@ -185,18 +185,25 @@ def test_offset_potential_gives_the_log_map():
     assert len(near) >= 4 and err.max() < 0.02 * h
 
 
+def _planar_box_fields(m, boxes, image, point, box, num_images=1):
+    """Box fields ``[num_images, M, 5]`` that, at output pixel ``point[i]`` of image
+    ``image[box[i]]``, decode to ``boxes[box[i]]`` (zero elsewhere)."""
+    W = m.out_camera.width
+    uv = m._pixels(box_centres(boxes))[box]
+    off = torch.stack([uv[:, 0] - point % W, uv[:, 1] - point // W], -1)
+    off[:, 0] = torch.remainder(off[:, 0] + W / 2, W) - W / 2
+    f = torch.zeros(num_images, len(m.points), 5, dtype=torch.float64)
+    f[image[box], point] = torch.cat([off, boxes[box, 2:4].log(), boxes[box, 4:]], -1)
+    return f
+
+
 def _planar_perfect_fields(m, boxes, classes):
     """The planar detector's fields that decode to ``boxes`` (as a perfect one's)."""
-    heat_t, near, _ = heatmap_targets(m.points, boxes, classes, torch.zeros(len(boxes), dtype=torch.long),
-                                      1, m.num_classes, m.spacing)
-    W = m.out_camera.width
-    uv = m._pixels(box_centres(boxes))
-    off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
-    off[:, 0] = torch.remainder(off[:, 0] + W / 2, W) - W / 2
+    image = torch.zeros(len(boxes), dtype=torch.long)
+    heat_t, near, _ = heatmap_targets(m.points, boxes, classes, image, 1, m.num_classes, m.spacing)
     heat = torch.full((1, len(m.points), m.num_classes), -20.0, dtype=torch.float64)
     heat[0, near, classes] = 20.0
-    box = torch.zeros(1, len(m.points), 5, dtype=torch.float64)
-    box[0, near] = torch.cat([off, boxes[:, 2:4].log(), boxes[:, 4:]], -1)
+    box = _planar_box_fields(m, boxes, image, near, torch.arange(len(boxes)))
     return {"heat": heat, "box": box, "mask": None}
 
 
@@ -224,6 +231,49 @@ def test_planar_peaks_are_8_neighbour_maxima_wrapping_in_longitude():
     prob[1 * W + 0], prob[2 * W + W - 1], prob[3 * W + 2] = 0.8, 0.9, 0.7
     point, _, score = peaks(prob, m.ring, 3, 0.5)
     assert point[score > 0].tolist() == [2 * W + W - 1, 3 * W + 2]
+
+
+def test_planar_loss_trains_the_fields_that_decode_to_the_boxes():
+    """At every regression sample the loss's box target is what decodes to that sample's box:
+    fields built so (and checked by decoding them) cost nothing, a pixel off costs."""
+    m = PlanarDetector(num_classes=3, height=64, width=128, channels=(4, 8)).double()
+    boxes = BOXES.clone()
+    boxes[:, 4] = torch.tensor([0.0, 0.0, 0.3, -0.4, 0.5, 0.0])  # rolls within [-pi/2, pi/2)
+    classes, image = torch.tensor([0, 1, 2, 0, 1, 2]), torch.tensor([0, 0, 0, 1, 1, 1])
+    for k in (6, 1):  # one box alone too
+        boxes, classes, image = boxes[:k], classes[:k], image[:k]
+        _, _, (point, box, _) = heatmap_targets(m.points, boxes, classes, image, 2, 3, m.spacing)
+        assert len(point) > 2 * len(boxes)  # dense regression: several samples per box
+        out = {"heat": torch.zeros(2, len(m.points), 3, dtype=torch.float64),
+               "box": _planar_box_fields(m, boxes, image, point, box, 2), "mask": None}
+        for b in (0, 1):
+            mine = image[box] == b
+            np.testing.assert_allclose(m.boxes_at(out, b, point[mine]), boxes[box[mine]], atol=1e-9)
+        assert m.loss(out, boxes, classes, image)[1]["box"] < 1e-9
+        out["box"][..., 1] += 1.0
+        assert m.loss(out, boxes, classes, image)[1]["box"] == pytest.approx(1.0)
+
+
+def test_planar_loss_without_boxes_and_with_a_mask():
+    m = PlanarDetector(num_classes=3, height=32, width=64, channels=(4, 8)).double()
+    mask = torch.zeros(32, 64, dtype=torch.bool)
+    mask[:, :20] = True
+    mask[30, 40] = True  # one pixel: its output pixel (15, 20) is seen in part
+    out = m(torch.rand(2, 3, 32, 64, dtype=torch.float64), mask)
+    assert torch.equal(out["seen"], mask.flatten())
+    seen = torch.zeros(16, 32, dtype=torch.bool)
+    seen[:, :10], seen[15, 20] = True, True
+    assert torch.equal(out["mask"], seen.flatten())
+    none = (torch.zeros(0, 5, dtype=torch.float64), torch.zeros(0, dtype=torch.long),
+            torch.zeros(0, dtype=torch.long))
+    loss, stats = m.loss(out, *none)
+    assert stats["box"] == 0 and loss.item() == pytest.approx(stats["heat"])
+    loss.backward()  # the box fields are in the graph (DDP needs every parameter used)
+    assert m.body.head[-1].weight.grad[3:].abs().sum() == 0
+    # the heatmaps where the camera does not see are not scored
+    hidden = {**out, "heat": out["heat"].detach().masked_fill(~out["mask"][None, :, None], 9.0)}
+    torch.testing.assert_close(m.loss(hidden, *none)[0], loss.detach())
+    assert m.loss({**hidden, "mask": None}, *none)[0] > loss + 1
 
 
 @pytest.mark.parametrize("kind", ["spherical", "planar"])
