@@ -535,6 +535,22 @@ def test_level_prior_turns_an_up_along_the_optical_axis_across_it():
     assert ((level @ axis).abs() < math.sin(math.radians(10))).all()  # the candidates' spacing
 
 
+def test_level_prior_adds_its_scores_to_the_edge_votes():
+    from usf_graph.models.gravity import level_scores
+
+    net = _level_net()
+    assert net.votes is not None
+    pos = net.view_pos
+    mask = _cap(pos, [1.0, 0.2, 0.1], 60)
+    x = torch.randn(2, len(pos), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        off = net(x, mask)["logits"]
+        net.level_prior = 3.0
+        on = net(x, mask)["logits"]
+    want = level_scores(net.head.candidates, pos, net.view_area, mask, 3.0)
+    torch.testing.assert_close(on - off, want.expand_as(on), rtol=0, atol=1e-9)
+
+
 def test_level_prior_keeps_the_estimate_equivariant():
     from usf_graph.testing import symmetry_permutation
 

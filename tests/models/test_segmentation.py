@@ -118,6 +118,7 @@ def test_refined_model_computes_nearly_the_same_function(cls, kw):
     m = cls(**kw).double().eval()  # level 3, refined to 4 (5 took 5x longer, no more checked)
     fine = m.refined()  # one level finer by default
     assert fine.num_points == len(grids.icosahedral(4)) and fine.config["refine"] == 1
+    assert (m.input_grid, fine.input_grid) == ("icosahedral:3", "icosahedral:4")
     coarse_pos, fine_pos = grids.icosahedral(3).pos, grids.icosahedral(4).pos
     f = lambda p: torch.as_tensor(smooth_signal(p.numpy()))[None]  # noqa: E731
     with torch.no_grad():
