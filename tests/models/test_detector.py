@@ -251,7 +251,8 @@ def test_planar_loss_trains_the_fields_that_decode_to_the_boxes():
             np.testing.assert_allclose(m.boxes_at(out, b, point[mine]), boxes[box[mine]], atol=1e-9)
         assert m.loss(out, boxes, classes, image)[1]["box"] < 1e-9
         out["box"][..., 1] += 1.0
-        assert m.loss(out, boxes, classes, image)[1]["box"] == pytest.approx(1.0)
+        loss, stats = m.loss(out, boxes, classes, image)
+        assert stats["box"] == pytest.approx(1.0) and loss.item() == pytest.approx(stats["heat"] + 1.0)
 
 
 def test_planar_loss_without_boxes_and_with_a_mask():

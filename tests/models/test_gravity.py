@@ -147,6 +147,43 @@ def test_upnet_is_built_as_its_docstring_says():
     assert net.head.pos.shape == (len(grids.icosahedral(1)), 3)
 
 
+def test_the_up_estimate_runs_only_where_it_is_read():
+    """Given an up, a model skips its estimate in evaluation unless asked for it; in
+    training a trainable one runs (its loss reads it), a frozen one does not."""
+    from usf_graph.models import SphericalDetector, SphericalUNet
+
+    seg = SphericalUNet(num_classes=3, level=3, min_level=2, channels=(4, 4), gravity=True)
+    det = SphericalDetector(num_classes=3, input_level=3, head_level=2, min_level=1,
+                            channels=(4, 4, 4), pairs=2, gradient_fields=2, gravity=True)
+    x = torch.rand(2, len(grids.icosahedral(3)), 3)
+    up = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    runs = []
+    for model in (seg, det):
+        model.gravity.register_forward_hook(lambda *_: runs.append(1))
+
+    def ran(model, **kw):
+        runs.clear()
+        with torch.no_grad():
+            model(x, **kw)
+        return len(runs)
+
+    for model in (seg, det):
+        model.eval()
+        assert ran(model, up=up) == 0 and ran(model) == 1
+        model.train()
+        assert ran(model, up=up) == 1
+        model.gravity.requires_grad_(False)
+        assert ran(model, up=up) == 0
+        model.gravity.requires_grad_(True)
+    seg.eval()
+    with torch.no_grad():
+        _, grav = seg(x, up=up, return_gravity=True)  # asked for: it runs
+    assert grav is not None and grav["up"].shape == (2, 3)
+    det.eval()
+    with torch.no_grad():
+        assert "gravity" not in det(x, up=up) and "gravity" in det(x)
+
+
 def test_upnet_polishes_its_estimate_in_evaluation_only():
     from usf_graph.models import UpNet
 
