@@ -72,3 +72,26 @@ def test_a_saved_sign_check_loads_with_its_weights(tmp_path):
     save_checkpoint(tmp_path / "other.pt", check, {"model": "spherical_unet"}, {})
     with pytest.raises(ValueError, match="is not a sign check"):
         load_sign_check(tmp_path / "other.pt")
+
+
+def test_jittered_turns_each_up_by_a_uniform_angle_about_an_orthogonal_axis():
+    import math
+
+    from usf_graph.train.sign import jittered
+
+    gen = torch.Generator().manual_seed(0)
+    g = nn.functional.normalize(torch.randn(4000, 3, generator=gen, dtype=torch.float64), dim=-1)
+    j = jittered(g, 8.0, gen)
+    torch.testing.assert_close(j.norm(dim=-1), torch.ones(4000, dtype=torch.float64))
+    angle = torch.rad2deg(torch.acos((g * j).sum(-1).clamp(max=1)))
+    assert angle.max() <= 8.0 + 1e-9 and angle.max() > 7.9 and angle.min() < 0.1
+    assert abs(float(angle.mean()) - 4.0) < 0.15  # uniform in [0, 8]: mean 4, sd 2.3 / sqrt(4000)
+    # the axes: orthogonal to g and spread evenly around it
+    axis = nn.functional.normalize(torch.linalg.cross(g, j), dim=-1)
+    assert (axis * g).sum(-1).abs().max() < 1e-9
+    side = nn.functional.normalize(j - (j * g).sum(-1, keepdim=True) * g, dim=-1)
+    e1 = nn.functional.normalize(torch.linalg.cross(g, torch.tensor([[0.0, 0.0, 1.0]]).double().expand_as(g)), dim=-1)
+    turn = torch.atan2((torch.linalg.cross(e1, side) * g).sum(-1), (e1 * side).sum(-1))
+    counts = torch.histc(turn, bins=4, min=-math.pi, max=math.pi)
+    assert (counts > 850).all() and (counts < 1150).all(), counts
+    assert torch.equal(jittered(g, 0.0, gen), g)
