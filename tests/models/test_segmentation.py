@@ -112,6 +112,19 @@ def test_backbone_is_built_as_its_docstring_says(pairs, upright):
     assert len(b3.pairs) == 1 and b3.skip_channels == [4 + 2 * 2, 6]
 
 
+def test_deeplab_is_built_as_its_docstring_says():
+    """ASPP on aspp_level: atrous branches of radius rates spacings; Gaussian upsampling by
+    half an aspp spacing; the decoder's kernel radius_spacings spacings of the output level."""
+    m = SphericalDeepLabV3(num_classes=3, level=4, channels=(4, 6, 8), aspp_channels=4,
+                           rates=(2, 5), low_channels=4, radius_spacings=2.5)
+    h = level_spacing
+    assert m.config["aspp_level"] == 2 and len(m.backbone.grids[2].pos) == 162
+    assert [c.radius for st in m.atrous for c in st.convs] == pytest.approx([2 * h(2), 5 * h(2)])
+    assert m.up.sigma == pytest.approx(0.5 * h(2))
+    assert [c.radius for c in m.decoder.convs] == pytest.approx([2.5 * h(4)])
+    assert m.fuse.lin.in_features == 4 * 4  # point, two atrous, image pooling
+
+
 @pytest.mark.parametrize("cls,kw", [(SphericalUNet, UNET), (SphericalDeepLabV3, DEEPLAB)])
 def test_refined_model_computes_nearly_the_same_function(cls, kw):
     torch.manual_seed(1)
