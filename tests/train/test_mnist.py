@@ -102,3 +102,13 @@ def test_mnist_and_protocol_checkpoints_are_told_apart(tmp_path, capsys):
     assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(),
                                                  planar.state_dict().values()))
     assert load_classifier(tmp_path / "classifier.pt")[1]["grid"] == "icosahedral:3"
+
+
+def test_format_table_gives_percentages_and_the_drop_under_rotation():
+    from usf_graph.train.mnist import format_table
+
+    res = {"spherical": {"NR": 0.9512, "R": 0.9433}, "planar": {"NR": 0.98, "R": 0.2125}}
+    assert format_table(res).splitlines() == [
+        "| model | NR/NR | NR/R | drop |", "|---|---|---|---|",
+        "| spherical | 95.12 | 94.33 | 0.79 |", "| planar | 98.00 | 21.25 | 76.75 |"]
+    assert len(format_table({"spherical": res["spherical"]}).splitlines()) == 3
