@@ -87,3 +87,13 @@ def test_predict_prints_what_made_the_checkpoint(tmp_path, capsys):
         assert f"{tmp_path / name}: usf-graph {usf_graph.__version__}" in out
         other_code = f"note: {tmp_path / name} was made at commit cccccccccc"
         assert (other_code in out) == (name == "other.pt" and git_state() is not None)
+
+
+@pytest.mark.parametrize("argv", [[], [""]])  # an embedding host; `python -c`
+def test_provenance_without_a_command_line_says_so(monkeypatch, argv):
+    monkeypatch.setattr(sys, "argv", argv)
+    p = provenance()
+    assert p["command"] == ""
+    assert describe({**p, "git": None}) == f"usf-graph {usf_graph.__version__}, {p['time']}: ?"
+    made = {"usf_graph": "0.1", "git": {"commit": "0123456789abcdef", "dirty": True}, "time": "T"}
+    assert describe(made) == "usf-graph 0.1 (commit 0123456789, with uncommitted changes), T: ?"

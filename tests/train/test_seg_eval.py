@@ -142,3 +142,34 @@ def test_a_planar_model_reads_other_lenses_as_a_panorama_and_its_labels_come_bac
     uv, _ = pano.project(rays[ok])
     u, v = np.round(uv[:, 0]).astype(int) % (2 * H), np.round(uv[:, 1]).astype(int).clip(0, H - 1)
     assert np.array_equal(pix[:, ok], labels[:, v, u])
+
+
+class FixedLogits(torch.nn.Module):
+    """The same random logits ``[N, 13]`` for every view; it records the masks it is given."""
+
+    def __init__(self, n):
+        super().__init__()
+        self.register_buffer("logits", 3 * torch.randn(n, 13, generator=torch.Generator().manual_seed(0)))
+        self.masks = []
+
+    def forward(self, x, mask=None, up=None):
+        self.masks.append(mask)
+        return self.logits.expand(len(x), -1, -1).to(x.dtype)
+
+
+def test_predict_hands_the_field_of_view_on_and_renders_soft_from_probabilities(sets):
+    fisheye, pano = sets["c"], sets["b"]
+    model = FixedLogits(len(fisheye.grid.pos))
+    predict(model, fisheye, batch_size=2, progress=False)
+    assert len(model.masks) == 2 and all(torch.equal(m, fisheye.mask[0]) for m in model.masks)
+    model.masks.clear()
+    predict(model, pano, progress=False)
+    assert model.masks == [None]  # a panorama sees everything: no mask to apply
+    pix, _ = predict(model, fisheye, render="soft", progress=False)
+    want = fisheye.frontend.to_labels(model.logits.softmax(-1), "soft").numpy()
+    assert np.array_equal(pix[0], want) and np.array_equal(pix[2], want)
+    nearest = predict(model, fisheye, progress=False)[0]
+    assert np.array_equal(nearest[1], fisheye.frontend.to_labels(model.logits, "nearest").numpy())
+    assert not np.array_equal(nearest[1], want)  # the two renderings differ here
+    # blending the raw logits instead of the probabilities gives other labels
+    assert not np.array_equal(fisheye.frontend.to_labels(model.logits, "soft").numpy(), want)
