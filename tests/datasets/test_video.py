@@ -75,6 +75,7 @@ def test_a_dual_fisheye_video_lifts_onto_one_sphere(tmp_path, world):
     ds = VideoFrames(tmp_path / "data", tmp_path / "dual.avi", FIXTURES / "kalibr_rig.yaml",
                      grid="icosahedral:3", split=True, fov_deg=190, progress=False)
     assert len(ds) == 2 and ds[0].mask.all() and "rig=[cam0, cam1]" in repr(ds)
+    assert [c.key() for c in ds.cameras.values()] == [c.key() for c in rig.values()]  # fov_deg too
     fe = RigFrontend(rig, ds.grid)
     for d, rgb in zip(ds, decode_video(tmp_path / "dual.avi")[0]):
         want = fe.lift(np.split(rgb.astype(np.float32) / 255, 2, axis=1))
