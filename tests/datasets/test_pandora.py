@@ -79,14 +79,27 @@ def test_bad_annotations_are_named(root):
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="5 finite numbers"):
         read_annotations(path)
-    for bad in ([0, 95, 20, 20, 0], [0, 0, 0, 20, 0], [0, 0, 20, 180, 0], [0, 0, -5, 20, 0]):
+    for bad in ([0, 95, 20, 20, 0], [0, 90.5, 20, 20, 0], [0, -90.5, 20, 20, 0], [0, 0, 0, 20, 0],
+                [0, 0, 180, 20, 0], [0, 0, -5, 20, 0], [0, 0, 20, 0, 0], [0, 0, 20, 180, 0]):
         doc["annotations"][0]["bbox"] = bad
         path.write_text(json.dumps(doc))
         with pytest.raises(ValueError, match=r"annotation 1 of train.json .* fields of view in \(0, 180\)"):
             read_annotations(path)
-    doc["annotations"][0]["bbox"] = [10, 90, 20, 20, 0]  # a box on the pole: lat 90 is valid
-    path.write_text(json.dumps(doc))
-    assert read_annotations(path)
+    # boxes on the poles (lat 90 and -90) are valid, and any field of view short of 0 and 180
+    for good in ([10, 90, 20, 20, 0], [10, -90, 20, 20, 0], [0, 0, 0.5, 179.5, 0], [0, 0, 179.5, 0.5, 0]):
+        doc["annotations"][0]["bbox"] = good
+        path.write_text(json.dumps(doc))
+        assert len(read_annotations(path)) == len(doc["images"])
+    for cat, ok in ((0, False), (1, True), (47, True), (48, False), (2.0, False)):
+        doc["annotations"][0]["category_id"] = cat
+        path.write_text(json.dumps(doc))
+        if ok:
+            boxes, classes = read_annotations(path)[doc["images"][0]["file_name"]]
+            assert classes[0] == cat - 1  # PANDORA's 1..47 are our 0..46
+        else:
+            with pytest.raises(ValueError, match=f"has category_id {cat}; PANDORA's are 1..47"):
+                read_annotations(path)
+    doc["annotations"][0]["category_id"] = 1
     doc["annotations"][0]["image_id"] = 99
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match="annotation 1 of train.json refers to image 99, which is not listed"):

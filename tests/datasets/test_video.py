@@ -48,6 +48,11 @@ def test_one_cameras_frames_are_lifted_once_with_their_time(tmp_path, world):
     half = VideoFrames(tmp_path / "data", tmp_path / "walk.avi", pano, grid="icosahedral:3", every=3,
                        progress=False)
     assert half.frame.tolist() == [0, 3] and torch.equal(half.x[1], ds.x[3])
+    cut = VideoFrames(tmp_path / "data", tmp_path / "walk.avi", pano, grid="icosahedral:3", every=3,
+                      fov_deg=120, progress=False)
+    assert cut.cameras["camera"].key() == pano.with_fov(120).key()
+    assert torch.equal(cut[0].mask, SphericalFrontend(pano.with_fov(120), ds.grid).mask)
+    assert 0 < cut[0].mask.sum() < 0.5 * len(cut[0].mask)
     files[0].write_bytes(b"not a tensor file")  # a corrupt processed file is made again
     with pytest.warns(UserWarning, match="unreadable"):
         fixed = VideoFrames(tmp_path / "data", tmp_path / "walk.avi", pano, grid="icosahedral:3", progress=False)
