@@ -56,6 +56,28 @@ def test_lifted_pixels_are_the_image(root):
     torch.testing.assert_close(ds[0].x, fe.lift(img), atol=2e-3, rtol=0)
 
 
+def test_panoramas_of_other_sizes_lift_through_their_own_camera_and_others_are_refused(root):
+    import cv2
+
+    from usf_graph import SphericalFrontend, cameras
+
+    ds = Pandora(root, "train", grid="icosahedral:3", progress=False)
+    path = root / "images" / "0001.jpg"
+    big = cv2.resize(cv2.imread(str(path)), (128, 64), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(path), big)
+    shutil.rmtree(root / "processed")
+    mixed = Pandora(root, "train", grid="icosahedral:3", progress=False)
+    img = cv2.imread(str(path))[..., ::-1].astype(np.float32) / 255
+    fe = SphericalFrontend(cameras.Equirectangular(128, 64), mixed.grid, interpolation="area")
+    torch.testing.assert_close(mixed[0].x, fe.lift(img), atol=2e-3, rtol=0)
+    torch.testing.assert_close(mixed[1].x, ds[1].x)  # the others as before
+    cv2.imwrite(str(path), big[:, :96])
+    shutil.rmtree(root / "processed")
+    with pytest.raises(ValueError, match=r"0001.jpg is 96 x 64; PANDORA panoramas are equirectangular, "
+                                         r"twice as wide as high"):
+        Pandora(root, "train", grid="icosahedral:3", progress=False)
+
+
 def test_missing_data_says_how_to_get_it(tmp_path, root):
     with pytest.raises(FileNotFoundError, match=r"annotations/train.json not found\. .*SphericalObjectDetection"):
         Pandora(tmp_path, "train", progress=False)
