@@ -105,3 +105,30 @@ def test_the_imus_orientation_is_read_on_its_own_clock(tmp_path, bag):
     np.testing.assert_allclose(same.gravity.numpy()[1:], want[:3], atol=1e-12)  # its own file
     with pytest.raises(ValueError, match="imu_up must be 'accel' or 'orientation'"):
         RosBagFrames(tmp_path / "d", imu_bag, camera=chain, imu="/imu", imu_up="gyro")
+
+
+def test_png_frames_with_alpha_lift_their_colour(tmp_path):
+    """A compressed topic's PNGs may carry alpha: the colour is lifted, the alpha dropped
+    (the camera's mask says what it sees)."""
+    import cv2
+
+    from tests.test_bags import ROS2
+
+    cam = cameras.load(FIXTURES / "ros_equidistant.yaml")
+    T = ROS2.types
+    msgs, want = [], []
+    for i in range(2):
+        rgb = np.resize(frame(i), (cam.height, cam.width, 3)).astype(np.uint8)
+        alpha = np.full(rgb.shape[:2] + (1,), 40 + 100 * i, np.uint8)
+        png = cv2.imencode(".png", np.concatenate([rgb[..., ::-1], alpha], -1))[1].reshape(-1)
+        h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=5 + i, nanosec=0),
+                                     frame_id="cam")
+        msgs.append(("/cam/image_raw/compressed", T["sensor_msgs/msg/CompressedImage"](
+            header=h, format="png", data=png), 1 + i))
+        want.append(rgb)
+    ds = RosBagFrames(tmp_path / "data", write_bag(tmp_path / "rgba", False, msgs), camera=cam,
+                      grid="icosahedral:3", progress=False)
+    fe = SphericalFrontend(cam, ds.grid)
+    for d, rgb in zip(ds, want):
+        assert d.x.shape == (642, 3)
+        torch.testing.assert_close(d.x, fe.lift(rgb.astype(np.float32) / 255).to(torch.float16).float())
