@@ -94,3 +94,19 @@ def test_the_scenes_command_renders_rooms_of_either_kind(tmp_path):
         rgb = cv2.imread(str(out / "room000_equirectangular_rgb.png"))[..., ::-1]
         want = scenes.render(scenes.make_room(4, 0, materials=materials), cam).rgb
         assert np.array_equal(rgb, want)
+
+
+def test_by_kind_tints_spread_evenly_about_their_material_and_stay_in_range():
+    """Drawn uniformly within the spread: over 300 objects of a kind every channel reaches
+    both sides of the material's tint (short of 1, where it is clipped)."""
+    from types import SimpleNamespace
+
+    from usf_graph.scenes.materials import appearance
+
+    for key, (_, tint, spread, _, _) in BY_KIND.items():
+        objects = [SimpleNamespace(kind=key, semantic=0)] * 300
+        got = appearance(objects, np.random.default_rng(1), "by_kind", seed=(3, 4))["tint"]
+        assert got.min() >= 0.05 and got.max() <= 1.0
+        low, high = np.asarray(tint) - spread, np.minimum(np.asarray(tint) + spread, 1.0)
+        assert np.all(got.min(0) < low + 0.1 * spread) and np.all(got.max(0) > high - 0.1 * spread), key
+        assert np.all(got.min(0) >= low - 1e-12)
