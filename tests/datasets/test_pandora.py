@@ -116,7 +116,7 @@ def test_bad_annotations_are_named(root):
         doc["annotations"][0]["category_id"] = cat
         path.write_text(json.dumps(doc))
         if ok:
-            boxes, classes = read_annotations(path)[doc["images"][0]["file_name"]]
+            _, classes = read_annotations(path)[doc["images"][0]["file_name"]]
             assert classes[0] == cat - 1  # PANDORA's 1..47 are our 0..46
         else:
             with pytest.raises(ValueError, match=f"has category_id {cat}; PANDORA's are 1..47"):
