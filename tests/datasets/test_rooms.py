@@ -193,11 +193,16 @@ def test_render_workers_reads_its_variable_and_names_a_bad_value(monkeypatch):
             render_workers(100)
 
 
-def test_rooms_by_kind_are_stored_apart_and_the_protocols_files_keep_their_names(tmp_path):
+def test_rooms_by_kind_and_rooms_of_another_version_are_stored_apart(tmp_path, monkeypatch):
+    from usf_graph.datasets import rooms
     from usf_graph.datasets.rooms import _cache_stem
 
     assert _cache_stem("p", n=3) == _cache_stem("p", materials="random", n=3)
     assert _cache_stem("p", materials="by_kind", n=3) != _cache_stem("p", n=3)
+    now = _cache_stem("p", n=3)
+    monkeypatch.setattr(rooms, "ROOMS_VERSION", 1)  # the rooms without beds, before session 71
+    assert _cache_stem("p", n=3) != now
+    monkeypatch.undo()
     kw = dict(num_scenes=2, grid="icosahedral:2", progress=False,
               camera=cameras.Equirectangular(32, 16))
     rand = RoomsSegmentation(tmp_path, "test", **kw)

@@ -26,7 +26,7 @@ from ..geometry import random_rotation
 from ..grids import Grid, from_spec
 from ..scenes import IGNORE, make_room, render
 from ..scenes.materials import check_materials
-from ..scenes.room import embree_started
+from ..scenes.room import ROOMS_VERSION, embree_started
 from .stacked import add_boxes, load_or_rebuild, pack_boxes, pre_transform_stacked
 
 ROTATIONS = ("none", "so3")
@@ -150,13 +150,14 @@ def render_views(job: _ViewJob, n: int, desc: str, progress: bool):
 
 def _cache_stem(prefix: str, materials: str = "random", **key) -> str:
     """A processed file's name, less its extension, that changes with everything the
-    rendering depends on (the rooms' ``materials``, checked by the datasets, only where they
-    are not the default, so the files stored before they existed keep their names)."""
+    rendering depends on: the rooms' version (:data:`~usf_graph.scenes.room.ROOMS_VERSION`)
+    and ``materials``, named only where not the default."""
     import hashlib
     import json
 
     if materials != "random":
         key["materials"] = materials
+    key["rooms"] = ROOMS_VERSION
     return f"{prefix}_{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]}"
 
 

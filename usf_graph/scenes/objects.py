@@ -1,8 +1,9 @@
 """Object meshes for the procedural rooms, built from trimesh boxes and cylinders.
 
-Every builder takes a ``numpy.random.Generator`` and returns :class:`Part` lists in the
-object's own frame: the footprint centred on the origin, z up from the floor (or from the
-mounting point for wall items), the object's back towards +y (the wall it stands against).
+Every builder takes a ``numpy.random.Generator`` and returns a list of ``trimesh.Trimesh``
+parts in the object's own frame: the footprint centred on the origin (in y too, but for a
+bed's headboard and a cabinet's handle), z up from the floor, the object's back towards +y
+(the wall it stands against; a wall item's parts all touch the wall at y = 0).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import trimesh
 @dataclass
 class Template:
     """One kind of object: its Stanford class, its PANDORA detection name (or None), and
-    its builder ``rng -> (meshes, height)``."""
+    its builder ``rng -> [trimesh.Trimesh, ...]``."""
 
     kind: str
     semantic: str

@@ -23,6 +23,9 @@ from .materials import appearance, check_materials
 from .objects import AGAINST_WALL, FLOOR, ON_TABLE, ON_WALL, box, cylinder
 
 WALL_RANGE, HEIGHT_RANGE = (3.0, 9.0), (2.5, 3.5)
+#: Changes whenever :func:`make_room` builds other rooms than before, so that datasets
+#: rendered and stored before are not read as today's (2, session 71: beds are placed).
+ROOMS_VERSION = 2
 CAMERA_HEIGHT = (1.2, 1.7)
 _FLOOR_MIX = ("table", "table", "chair", "chair", "chair", "sofa", "bed", "bookcase",
               "bookcase", "cabinet", "cabinet", "floor_lamp", "floor_clutter", "floor_clutter")
@@ -268,14 +271,17 @@ def _furniture(lay, L, W, n):
         t = FLOOR[kind]
         for _attempt in range(40):
             parts = t.build(rng)
-            ext = _extents(parts)
+            lo, hi = _bounds(parts)
+            ext = hi - lo
             if kind in AGAINST_WALL:
                 wall = int(rng.integers(4))
                 length = (L, W)[_WALLS[wall][1]]
                 if ext[0] > length - 0.2:
                     continue
                 s = rng.uniform(-length / 2 + ext[0] / 2, length / 2 - ext[0] / 2)
-                T = _wall_pose(lay.size, wall, s, ext[1] / 2)
+                # the back (max y), not half the depth: a bed's headboard and a cabinet's
+                # handle make their footprints off-centre in y (beds went into the wall)
+                T = _wall_pose(lay.size, wall, s, hi[1])
             else:
                 xy = rng.uniform(-1, 1, 2) * (np.array([L, W]) / 2 - 0.3)
                 T = _pose(rng.uniform(-math.pi, math.pi), np.r_[xy, 0.0])
