@@ -1,5 +1,6 @@
 """The training engine: checkpoints and a two-process DDP step."""
 
+import json
 import os
 import re
 import shutil
@@ -67,7 +68,12 @@ def test_two_process_ddp_step_equals_one_process(tmp_path):
     torch.randn(8, 162, 1)
     start = NoNorm().state_dict()  # the worker's initial parameters
     for case in CASES:
-        one = step(case)
+        seen = []
+        one = step(case, seen)
+        assert sum(seen) == 8
+        for rank in (0, 1):  # in one group of two, each process a half of every batch
+            got = json.loads((tmp_path / f"{case}_{rank}.json").read_text())
+            assert got["world"] == 2 and sum(got["seen"]) == 4 and len(got["seen"]) == len(seen), got
         two = torch.load(tmp_path / f"{case}.pt", weights_only=True)
         assert one.keys() == two.keys()
         moved = 0.0
@@ -285,11 +291,27 @@ def test_resolve_device_gives_what_the_machine_has_and_names_what_it_lacks(monke
     # a machine with two GPUs, in the second process of a torchrun
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.delenv("LOCAL_RANK", raising=False)  # no torchrun: the first GPU
+    assert resolve_device("cuda") == torch.device("cuda", 0) == resolve_device("auto")
     monkeypatch.setenv("LOCAL_RANK", "1")
     assert resolve_device("cuda") == torch.device("cuda", 1) == resolve_device("auto")
     assert resolve_device("cuda:0") == torch.device("cuda", 0)
     with pytest.raises(ValueError, match="has 2 GPU"):
         resolve_device("cuda:2")
+
+
+@pytest.mark.parametrize("world", [None, "1"])
+def test_one_process_joins_no_group(monkeypatch, world):
+    """No torchrun, or torchrun with one process: no process group to join (gloo would
+    want a rendezvous address for nothing)."""
+    from usf_graph.train.devices import is_distributed, setup_distributed
+
+    monkeypatch.delenv("MASTER_ADDR", raising=False)
+    if world is None:
+        monkeypatch.delenv("WORLD_SIZE", raising=False)
+    else:
+        monkeypatch.setenv("WORLD_SIZE", world)
+    assert setup_distributed() == (0, 1) and not is_distributed()
 
 
 def test_to_device_moves_every_tensor_of_a_batch_and_nothing_else():
@@ -442,6 +464,14 @@ def test_group_batches_take_every_sample_once_and_never_mix_groups(groups, batch
         list(dict.fromkeys(groups)).index(groups[i]), i))
 
 
+@pytest.mark.parametrize("bad", [0, -1, 2.5, 2.0])
+def test_group_batches_want_a_whole_batch_size(bad):
+    from usf_graph.train import group_batches
+
+    with pytest.raises(ValueError, match=f"batch_size must be a whole number of at least 1, got {bad}"):
+        group_batches([0, 0, 1], bad)
+
+
 def test_field_groups_name_equal_masks_alike_and_batches_share_one_field(monkeypatch):
     from usf_graph.train import engine, field_groups
 
@@ -462,8 +492,16 @@ def test_field_groups_name_equal_masks_alike_and_batches_share_one_field(monkeyp
     whole = engine.group_batches([0, 1, 0, 0, 1], 2, 0, 0)
     for k, batch in enumerate(whole):
         got = shares[0][k] + shares[1][k]
-        assert len(shares[0][k]) >= 1 and len(shares[1][k]) >= 1
+        assert len(shares[0][k]) == len(shares[1][k]) == 1  # a sample each, none twice over
         assert sorted(set(got)) == sorted(batch)
+    # without groups, torch's DistributedSampler: each process a disjoint part of the
+    # samples, in batches of its share of the global batch
+    parts = []
+    for rank in (0, 1):
+        monkeypatch.setattr(engine.dist, "get_rank", lambda r=rank: r)
+        parts.append(list(engine._batches(list(range(10)), 4, True, 0, 0, collate_fn=list)))
+    assert [len(b) for b in parts[0]] == [len(b) for b in parts[1]] == [2, 2, 1]
+    assert sorted(i for p in parts for b in p for i in b) == list(range(10))
 
 
 def test_fit_under_torchrun_refuses_a_batch_the_processes_cannot_share(monkeypatch):
