@@ -7,6 +7,7 @@ import shutil
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -273,6 +274,60 @@ def test_resume_goes_on_as_an_uninterrupted_run_would(tmp_path):
     assert all(torch.equal(through[k], v) for k, v in run(tmp_path / "cut", resume=True).items())
     with pytest.raises(ValueError, match="was written with plan .* resume with the same options"):
         run(tmp_path / "cut", resume=True, lr=1e-3)
+
+
+def test_evaluate_weights_every_sample_once():
+    """Batches of 4, 4 and 2: the means are over the ten samples, not over the batches."""
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.train.engine import evaluate
+
+    torch.manual_seed(0)
+    model, x = torch.nn.Linear(3, 4), torch.randn(10, 3)
+    with torch.no_grad():
+        best = model(x).argmax(1)
+    y = torch.where(torch.arange(10) < 3, best, (best + 1) % 4)  # three right
+    got = evaluate(model, TensorDataset(x, y), batch_size=4, progress=False)
+    assert set(got) == {"loss", "acc"} and got["acc"] == pytest.approx(0.3, abs=1e-12)
+    with torch.no_grad():
+        assert got["loss"] == pytest.approx(torch.nn.functional.cross_entropy(model(x), y).item(), rel=1e-6)
+
+
+def test_fit_draws_every_sample_once_an_epoch_in_a_new_order():
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.train.engine import fit
+
+    model, order = torch.nn.Linear(1, 2), []
+
+    def step(m, batch):
+        x, y = batch
+        order.extend(int(v) for v in x[:, 0])
+        return torch.nn.functional.cross_entropy(m(x), y), {}, len(y)
+
+    data = TensorDataset(torch.arange(12.0)[:, None], torch.zeros(12, dtype=torch.long))
+    fit(model, data, epochs=2, batch_size=4, progress=False, step=step)
+    first, second = order[:12], order[12:]
+    assert sorted(first) == sorted(second) == list(range(12))
+    assert first != list(range(12)) and second != first  # shuffled, anew each epoch
+
+
+class _Payload:
+    """A pickle that runs code when loaded: it touches ``mark``."""
+
+    def __init__(self, mark):
+        self.mark = mark
+
+    def __reduce__(self):
+        return (Path.touch, (self.mark,))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_unrun(tmp_path):
+    mark = tmp_path / "ran"
+    torch.save({"state_dict": {}, "config": {}, "x": _Payload(mark)}, tmp_path / "evil.pt")
+    with pytest.raises(ValueError, match="is not a readable usf-graph checkpoint.*do not load a file"):
+        load_checkpoint(tmp_path / "evil.pt")
+    assert not mark.exists()
 
 
 def test_resolve_device_gives_what_the_machine_has_and_names_what_it_lacks(monkeypatch):
