@@ -109,6 +109,9 @@ def test_a_diverging_run_stops_with_a_clear_error_and_keeps_the_last_epoch(tmp_p
             step=step)
     blob = load_checkpoint(tmp_path / "last.pt")
     assert blob["epoch"] == 1 and all(torch.isfinite(v).all() for v in blob["state_dict"].values())
+    calls.clear()  # without a log folder there is no last.pt to point to
+    with pytest.raises(FloatingPointError, match=r"check the inputs for NaN$"):
+        fit(model, data, epochs=3, batch_size=2, lr=0.01, progress=False, step=step)
 
 
 def test_tensorboard_gets_every_epochs_row_and_is_closed(tmp_path, monkeypatch):
@@ -310,6 +313,24 @@ def test_fit_draws_every_sample_once_an_epoch_in_a_new_order():
     first, second = order[:12], order[12:]
     assert sorted(first) == sorted(second) == list(range(12))
     assert first != list(range(12)) and second != first  # shuffled, anew each epoch
+
+
+def test_fit_reports_each_epoch_with_its_validation():
+    from torch.utils.data import TensorDataset
+
+    from usf_graph.train.engine import evaluate, fit
+
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 4)
+    train = TensorDataset(torch.randn(12, 3), torch.randint(0, 4, (12,)))
+    val = TensorDataset(torch.randn(10, 3), torch.randint(0, 4, (10,)))
+    history = fit(model, train, val, epochs=2, batch_size=4, lr=0.01, progress=False)["history"]
+    assert [row["epoch"] for row in history] == [1, 2]
+    assert set(history[0]) == {"epoch", "train_loss", "train_acc", "lr", "val_loss", "val_acc"}
+    assert abs(history[-1]["lr"]) < 1e-12 < history[0]["lr"]  # the cosine's end
+    final = evaluate(model, val, progress=False)
+    assert history[-1]["val_loss"] == pytest.approx(final["loss"], rel=1e-6)
+    assert history[-1]["val_acc"] == final["acc"]
 
 
 class _Payload:
