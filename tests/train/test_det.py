@@ -267,9 +267,9 @@ class _Planted(__import__("usf_graph.models", fromlist=["PlanarDetector"]).Plana
     """A planar detector whose box fields hold, at each true box's nearest output point,
     exactly what its loss trains them towards (and its size ``scale`` times), whatever the image."""
 
-    def __init__(self, boxes, image, scale=1.0):
+    def __init__(self, boxes, image, scale=1.0, aspect=1.0):
         super().__init__(num_classes=3, height=16, width=32, channels=(4, 8))
-        self.boxes, self.image, self.scale = boxes, image, scale
+        self.boxes, self.image, self.scale, self.aspect = boxes, image, scale, aspect
 
     def forward(self, x, mask=None):
         import torch
@@ -281,7 +281,8 @@ class _Planted(__import__("usf_graph.models", fromlist=["PlanarDetector"]).Plana
         near = (box_centres(self.boxes) @ self.points.T).argmax(1)
         uv = self._pixels(box_centres(self.boxes))
         off = torch.stack([uv[:, 0] - near % W, uv[:, 1] - near // W], -1)
-        t = torch.cat([off, (self.boxes[:, 2:4] * self.scale).log(), self.boxes[:, 4:5]], -1)
+        stretch = torch.tensor([self.aspect, 1 / self.aspect], dtype=self.boxes.dtype)
+        t = torch.cat([off, (self.boxes[:, 2:4] * self.scale * stretch).log(), self.boxes[:, 4:5]], -1)
         box = out["box"].detach().double().clone()
         box[self.image, near] = t
         return {**out, "box": box}
@@ -316,6 +317,15 @@ def test_box_quality_decodes_each_true_box_at_its_own_centre_point():
     big[:, 2:4] *= 1.2
     np.testing.assert_allclose(q["iou_true_centre"], (box_area(boxes) / box_area(big)).numpy(), atol=1e-6)
     assert (q["iou"] < q["iou_true_centre"] + 1e-6).all()
+    # 1.3 times wider and 1.3 times lower (none of the boxes is taller than wide): the
+    # aspect is log 1.3 off, the size not at all
+    q = box_quality(_Planted(boxes, image, aspect=1.3), data, progress=False)
+    np.testing.assert_allclose(q["log_aspect_err"], math.log(1.3), atol=1e-6)
+    np.testing.assert_allclose(q["log_size_err"], 0.0, atol=1e-6)
+    # a set without a true box: nothing to measure
+    empty = DetectionSet(data.x, boxes[:0], torch.tensor([], dtype=torch.long), torch.tensor([0, 0, 0]))
+    assert all(v.shape == (0,) for v in box_quality(_Planted(boxes[:0], image[:0]), empty,
+                                                      progress=False).values())
 
 
 @pytest.mark.parametrize("task", ["det", "seg"])
