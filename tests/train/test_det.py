@@ -338,3 +338,21 @@ def test_a_bad_channel_scale_stops_a_protocol_before_it_renders(tmp_path, task):
         with pytest.raises(ValueError, match=said):
             module.run(root=tmp_path / "rooms", out=tmp_path / "out", progress=False, **kw)
     assert not (tmp_path / "rooms").exists() and not (tmp_path / "out").exists()
+
+
+def test_score_names_each_iou_threshold_by_its_value():
+    """One true box and one detection that overlaps it by an IoU of 0.12: found at USF's
+    IoU 0.10, missed at 0.50 and by COCO's thresholds (0.50 and up)."""
+    import math
+
+    from usf_graph.ops import box_iou
+
+    true = torch.tensor([[0.0, 0.0, math.radians(30), math.radians(30), 0.0]], dtype=torch.float64)
+    found = true.clone()
+    found[0, 0] = math.radians(23.2)
+    assert 0.105 < float(box_iou(found, true)) < 0.15
+    data = DetectionSet(torch.zeros(1, 16, 32, 3, dtype=torch.uint8), true, torch.tensor([1]),
+                        torch.tensor([0, 1]))
+    got = score([{"boxes": found.numpy(), "classes": np.array([1]), "scores": np.array([0.9])}], data, 3)
+    assert got["usf_mAP@10"] == 1.0 and got["usf_mAP@50"] == 0.0
+    assert got["AP50"] == got["AP50_every_box"] == got["AP"] == 0.0
