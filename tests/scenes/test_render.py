@@ -171,10 +171,9 @@ def test_every_kind_of_furniture_is_placed_and_what_stands_against_a_wall_touche
     wall, so every try was refused (and cabinets stood 1.7 cm off theirs)."""
     from usf_graph.scenes.objects import AGAINST_WALL, FLOOR
 
-    seen = set()
+    seen, half = set(), np.array([3.0, 2.5])  # the rooms' half length and width
     for i in range(40):
         s = scenes.make_room(0, i, size=(6, 5, 3))
-        half = np.array([3.0, 2.5])
         for o in s.instances:
             seen.add(o.kind)
             if o.kind in AGAINST_WALL:  # 2 mm off the nearest wall, not through it

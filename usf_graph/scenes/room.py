@@ -190,7 +190,8 @@ _WALLS = ((-math.pi / 2, 0), (0.0, 1), (math.pi / 2, 0), (math.pi, 1))
 
 
 def _wall_pose(size, wall, s, depth):
-    """Pose of an object whose back touches ``wall`` at position ``s`` along it."""
+    """Pose of an object whose back touches ``wall`` at position ``s`` along it (2 mm off):
+    ``depth`` is the back's y in the object's frame (0 for wall items)."""
     ang, _ = _WALLS[wall]
     out = np.array([math.cos(ang), math.sin(ang)])
     half = np.array(size[:2]) / 2
