@@ -333,6 +333,23 @@ def test_fit_reports_each_epoch_with_its_validation():
     assert history[-1]["val_acc"] == final["acc"]
 
 
+def test_seed_everything_seeds_every_generator_and_asks_for_deterministic_kernels():
+    import random
+
+    from usf_graph.train.engine import seed_everything
+
+    def draws():
+        return random.random(), float(np.random.rand()), float(torch.rand(1))
+
+    torch.use_deterministic_algorithms(False)
+    seed_everything(3)
+    first = draws()
+    assert torch.are_deterministic_algorithms_enabled()
+    assert torch.is_deterministic_algorithms_warn_only_enabled()  # warns where it cannot
+    seed_everything(3, deterministic=False)
+    assert draws() == first
+
+
 class _Payload:
     """A pickle that runs code when loaded: it touches ``mark``."""
 
