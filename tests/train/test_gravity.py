@@ -155,7 +155,7 @@ def test_lines_up_reads_a_pinholes_rendered_rooms_and_split_up_says_what_it_read
     from usf_graph.cameras import Equirectangular, Pinhole
     from usf_graph.geometry import rotation_from_axis_angle
     from usf_graph.scenes import make_room, render
-    from usf_graph.train.gravity import lines_up, split_up
+    from usf_graph.train.gravity import lines_axes, lines_up, split_up
 
     cam = Pinhole(64.0, 64.0, 63.5, 63.5, 128, 128)
     images, ups = [], []
@@ -176,6 +176,11 @@ def test_lines_up_reads_a_pinholes_rendered_rooms_and_split_up_says_what_it_read
 
     def model():
         return SimpleNamespace(gravity=_LinesEstimate(torch.nn.functional.normalize(g + 0.2, dim=-1), g))
+
+    # an image without lines has NaN axes, and an empty split none
+    blank = SimpleNamespace(camera=cam, image=torch.full((1, 128, 128, 3), 128, dtype=torch.uint8))
+    assert lines_axes(blank).shape == (1, 3, 3) and lines_axes(blank).isnan().all()
+    assert lines_axes(SimpleNamespace(camera=cam, image=blank.image[:0])).shape == (0, 3, 3)
 
     u = split_up(model(), ds, up_lines=True)
     assert torch.equal(u.up, up) and torch.equal(u.estimate, up) and torch.equal(u.axes, axes)
@@ -216,3 +221,91 @@ def test_an_up_batch_of_several_fields_of_view_is_refused():
         up_step(net, Batch.from_data_list(views[:2]))
     loss, _, n = up_step(net, Batch.from_data_list(views[::2]))  # one camera: trained
     assert n == 2 and torch.isfinite(loss)
+
+
+def test_known_up_is_the_batchs_gravity_or_plus_z_jittered_by_up_jitter():
+    from types import SimpleNamespace
+
+    from usf_graph.train.gravity import UP_JITTER, known_up
+
+    torch.manual_seed(0)
+    x = torch.zeros(20000, 1, dtype=torch.float64)
+    g, noisy = known_up(SimpleNamespace(), x)  # no up: gravity-aligned views
+    assert g.dtype == torch.float64 and torch.equal(g, torch.tensor([0.0, 0.0, 1.0]).double().expand(20000, 3))
+    d = noisy - g
+    assert d.mean(0).abs().max() < 0.002 and ((d.std(0) / UP_JITTER - 1).abs() < 0.03).all()
+    east = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    g2, _ = known_up(SimpleNamespace(up=east.reshape(-1)), x[:2])  # PyG concatenates [B * 3]
+    assert torch.equal(g2, east.double())
+    # a split's gravity from the first view on when no start is given
+    assert torch.equal(given_up(torch.arange(12.0).view(4, 3), x[:2])["up"],
+                       torch.arange(6.0).view(2, 3).double())
+
+
+def test_split_mask_is_the_one_field_the_views_share():
+    from types import SimpleNamespace
+
+    from usf_graph.train.gravity import split_mask
+
+    part = torch.arange(6) < 4
+    assert split_mask(SimpleNamespace()) is None and split_mask(SimpleNamespace(mask=None)) is None
+    assert split_mask(SimpleNamespace(mask=part)) is part  # one [N] mask for the split
+    assert torch.equal(split_mask(SimpleNamespace(mask=part.expand(3, 6))), part)
+    with pytest.raises(ValueError, match="different fields of view.*evaluate_fields"):
+        split_mask(SimpleNamespace(mask=torch.stack([part, ~part])))
+
+
+def test_up_summary_rounds_the_median_to_hundredths_and_counts_line_views():
+    from usf_graph.train.gravity import up_summary
+
+    deg = torch.tensor([12.3456, 1.0, 30.0])
+    up = torch.stack([torch.sin(torch.deg2rad(deg)), torch.zeros(3), torch.cos(torch.deg2rad(deg))], -1)
+    axes = torch.stack([torch.eye(3), torch.full((3, 3), float("nan")), torch.eye(3)])
+    r = up_summary(up, torch.full((3,), 9.0), torch.tensor([0.0, 0.0, 1.0]).expand(3, 3), axes)
+    assert r == {"views": 3, "median_err_deg": 12.35, "gross": 0, "unsure": 0, "gross_unsure": 0,
+                 "lines": 2}
+
+
+class _RecordingUpNet(UpNet):
+    """An :class:`UpNet` that records the masks it reads."""
+
+    def forward(self, x, mask=None):
+        self.masks = getattr(self, "masks", []) + [mask]
+        return super().forward(x, mask)
+
+
+def test_up_step_reads_the_batchs_field_of_view_or_a_random_cap_inside_it():
+    from torch_geometric.data import Batch
+
+    from usf_graph.train.gravity import UP_WEIGHT, up_step
+
+    g = icosahedral(2)
+    front = g.pos[:, 0] > -0.5
+    views = [Data(x=torch.rand(len(g.pos), 3), pos=g.pos.float(), mask=front) for _ in range(2)]
+    torch.manual_seed(0)
+    net = _RecordingUpNet(3, 2, channels=(4, 4))
+    loss, stats, n = up_step(net, Batch.from_data_list(views))
+    assert torch.equal(net.masks[-1], front)  # the camera's field, not the whole sphere
+    # the loss is UP_WEIGHT times the head's, and the stats its mean error in degrees
+    out = net.eval()(torch.stack([v.x for v in views]), front)
+    z = torch.tensor([[0.0, 0.0, 1.0]]).expand(2, 3)
+    loss_eval, stats_eval, _ = up_step(net, Batch.from_data_list(views))
+    net.train()
+    assert torch.allclose(loss_eval, UP_WEIGHT * net.head.loss(out, z), rtol=1e-5)
+    want = torch.rad2deg(torch.arccos(out["up"][:, 2].clamp(-1, 1))).mean()
+    assert stats_eval["up_err_deg"] == pytest.approx(float(want), rel=1e-4)
+    # through caps: a cap of 40-100 degrees inside the field of view, different per batch
+    caps = []
+    for _ in range(4):
+        up_step(net, Batch.from_data_list(views), caps=1.0)
+        caps.append(net.masks[-1])
+    for m in caps:
+        assert m is not None and bool((m <= front).all()) and 0 < int(m.sum()) < int(front.sum())
+    assert len({tuple(m.tolist()) for m in caps}) > 1
+    # a cap that misses the field of view keeps the field
+    spot = g.pos[:, 2] > 0.99
+    one = [Data(x=torch.rand(len(g.pos), 3), pos=g.pos.float(), mask=spot) for _ in range(2)]
+    torch.manual_seed(1)
+    up_step(net, Batch.from_data_list(one), caps=1.0, cap_degrees=(1.0, 1.0))
+    assert torch.equal(net.masks[-1], spot)
+    assert len(UpViews()) == 0

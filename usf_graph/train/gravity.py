@@ -202,8 +202,9 @@ def split_up(model, ds, known_up: bool = False, up_lines: bool = False,
     with its estimate run once (:func:`estimate_up`, ``batch_size`` views at a time, as the
     model's prediction batches them so the numbers are the model's own): the views'
     gravity with ``known_up`` (:func:`views_up`), else the estimate, which with
-    ``up_lines`` picks among each image's straight-line axes where the camera is a pinhole
-    (:func:`lines_axes`; other cameras keep the plain estimate, and ``axes`` is ``None``).
+    ``up_lines`` picks among each image's straight-line axes where the split has one
+    camera, of any lens (:func:`lines_axes`; a split without one, a rig's, keeps the plain
+    estimate, and ``axes`` is ``None``).
     A planar model reads no up."""
     check_up_choice(known_up, up_lines)
     if is_planar(model):
