@@ -315,6 +315,23 @@ def test_fit_draws_every_sample_once_an_epoch_in_a_new_order():
     assert first != list(range(12)) and second != first  # shuffled, anew each epoch
 
 
+def test_fit_batches_a_list_of_graphs_as_pyg_does():
+    from torch_geometric.data import Batch, Data
+
+    from usf_graph.train.engine import fit
+
+    model, seen = torch.nn.Linear(1, 2), []
+
+    def step(m, batch):
+        assert isinstance(batch, Batch)
+        seen.append(batch.num_graphs)
+        return m(batch.x).sum(), {}, batch.num_graphs
+
+    graphs = [Data(x=torch.rand(n, 1)) for n in (2, 3, 4)]  # of different sizes
+    fit(model, graphs, epochs=1, batch_size=2, progress=False, step=step)
+    assert sorted(seen) == [1, 2]
+
+
 def test_fit_reports_each_epoch_with_its_validation():
     from torch.utils.data import TensorDataset
 

@@ -59,6 +59,9 @@ def test_pretrain_up_reads_the_extra_views():
     holder.gravity = UpNet(3, 3)
     pretrain_up(holder, views[:1], epochs=1, batch_size=2, progress=False, extra=views[1:])
     assert not any(p.requires_grad for p in holder.gravity.parameters())
+    holder.gravity = _RecordingUpNet(3, 3)  # no caps unless asked: whole views
+    pretrain_up(holder, views, epochs=2, batch_size=1, progress=False)
+    assert holder.gravity.masks == [None] * 4
     bad = Data(x=torch.full((len(g.pos), 3), float("nan")), pos=g.pos.float(), mask=views[0].mask)
     holder.gravity = UpNet(3, 3)
     with pytest.raises((ValueError, FloatingPointError), match="NaN|non-finite"):
@@ -309,3 +312,13 @@ def test_up_step_reads_the_batchs_field_of_view_or_a_random_cap_inside_it():
     up_step(net, Batch.from_data_list(one), caps=1.0, cap_degrees=(1.0, 1.0))
     assert torch.equal(net.masks[-1], spot)
     assert len(UpViews()) == 0
+
+
+def test_up_views_renders_the_extra_panoramas_or_none(tmp_path):
+    from usf_graph.datasets import RoomsGravity
+    from usf_graph.train.gravity import up_views
+
+    assert up_views(tmp_path, 0) is None
+    v = up_views(tmp_path, 2, grid="icosahedral:2", progress=False)
+    assert isinstance(v, RoomsGravity) and len(v) == 2 and v.grid.spec == "icosahedral:2"
+    assert torch.equal(v[1].up, torch.tensor([[0.0, 0.0, 1.0]]))

@@ -151,11 +151,14 @@ def _batches(dataset: Dataset, batch_size: int, shuffle: bool, seed: int, epoch:
 
 
 def _loader(dataset, batch_size: int, collate_fn, **kw) -> DataLoader:
-    """A DataLoader; PyG datasets (without a ``collate_fn`` of their own) get PyG's, whose
-    batches are :class:`torch_geometric.data.Batch` objects."""
+    """A DataLoader; PyG datasets and lists of ``Data`` (without a ``collate_fn`` of their
+    own) get PyG's, whose batches are :class:`torch_geometric.data.Batch` objects."""
     from torch_geometric.data import Dataset as PyGDataset
+    from torch_geometric.data.data import BaseData
 
-    if collate_fn is None and isinstance(dataset, PyGDataset):
+    graphs = isinstance(dataset, PyGDataset) or (
+        isinstance(dataset, (list, tuple)) and len(dataset) and isinstance(dataset[0], BaseData))
+    if collate_fn is None and graphs:
         from torch_geometric.loader import DataLoader as PyGLoader
 
         return PyGLoader(dataset, batch_size=batch_size, **kw)
