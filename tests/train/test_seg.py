@@ -184,7 +184,8 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
     ds = sets["c"]
     assert torch.equal(x, ds.x.float()) and torch.equal(y, ds.y)
     assert torch.equal(mask, ds.mask[0]) and 0 < mask.float().mean() < 0.7
-    assert image.shape == (2, 3, 32, 32) and torch.equal(label, ds.label_image.long())
+    assert torch.equal(image, ds.image.permute(0, 3, 1, 2).float() / 255)  # [0, 1]
+    assert torch.equal(label, ds.label_image.long())
     mixed = batch.clone()  # two cameras in one batch: refused, not read as the first's
     mixed.mask = batch.mask.clone()
     mixed.mask[-1] = ~mixed.mask[-1]
@@ -225,6 +226,28 @@ def test_pyg_batches_feed_both_model_kinds(tmp_path):
         hook.remove()
     with pytest.raises(ValueError, match="gravity=True"):
         m(x, mask, up=noisy)
+    # a planar model reads the images and scores their labelled pixels
+    from usf_graph.models import PlanarUNet
+
+    p = PlanarUNet(13, channels=(8, 8, 8, 8))
+    loss_p, stats_p, _ = segmentation_step(p, batch)
+    with torch.no_grad():
+        logits_p = p(image)
+    keep = label != IGNORE
+    torch.testing.assert_close(loss_p, segmentation_loss(logits_p, label))
+    assert stats_p["acc"] == pytest.approx(
+        (logits_p.argmax(1)[keep] == label[keep]).double().mean().item())
+    # samples without images (a real dataset's points only): spherical models train, planar not
+    bare = batch.clone()
+    del bare.image
+    assert segmentation_step(m, bare)[0].item() == pytest.approx(loss.item())
+    with pytest.raises(ValueError, match="planar model trains on images"):
+        segmentation_step(p, bare)
+    # a batch with no labelled point (a field of view over ignored labels): 0, not NaN
+    unlabelled = batch.clone()
+    unlabelled.y = torch.full_like(batch.y, IGNORE)
+    loss_u, stats_u, _ = segmentation_step(m, unlabelled)
+    assert loss_u.item() == 0.0 and stats_u["acc"] == 0.0
 
 
 def test_random_fields_of_view_cut_batches_and_ignore_their_labels_outside(tmp_path):
