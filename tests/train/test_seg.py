@@ -361,3 +361,34 @@ def test_a_plan_the_models_cannot_train_is_refused_before_any_rendering(tmp_path
     assert main(["train", "seg", "--root", str(tmp_path / "rooms"), "--level", "1"]) == 2
     assert "level 1: the spherical models need icosahedral:3" in capsys.readouterr().err
     assert not (tmp_path / "rooms").exists() and not (tmp_path / "out").exists()
+
+
+def test_make_model_builds_the_protocols_models():
+    """The protocol's recipe: icosahedral:5, an up estimate, oriented fields instead of
+    gradient pairs, oriented kernels on every coarser level of the DeepLab only."""
+    deeplab, unet = make_model("spherical_deeplab"), make_model("spherical_unet", level=4)
+    for net, level, convs in ((deeplab, 5, 4), (unet, 4, None)):
+        c = net.config
+        assert (c["level"], c["gravity"], c["upright"], c["gray"]) == (level, True, True, False)
+        assert (c["pairs"], c["up_fields"], c["upright_convs"]) == (0, 4, convs)
+    plain = make_model("spherical_deeplab", level=3, upright=False).config
+    assert not plain["upright"] and plain["upright_convs"] is None and plain["pairs"] > 0
+    assert make_model("planar_unet", gray=True).gray and make_model("spherical_unet", level=3, gray=True).config["gray"]
+
+
+def test_balanced_weights_are_median_frequency_weights_to_a_power():
+    from types import SimpleNamespace
+
+    from usf_graph.train.seg import balanced_weights
+
+    # class counts 3, 2, 4, 1; the ignored label and one past the classes are not counted
+    y = torch.tensor([[0, 0, 0, 1, 1, IGNORE], [2, 2, 2, 2, 3, 4]])
+    full = torch.tensor([2.5 / 3, 2.5 / 2, 2.5 / 4, 2.5 / 1])  # median 2.5 over each count
+    train = SimpleNamespace(y=y)
+    torch.testing.assert_close(balanced_weights(train, 1.0, num_classes=4), full)
+    torch.testing.assert_close(balanced_weights(train, num_classes=4), full ** 0.5)  # the default
+    assert balanced_weights(train, 0.0, num_classes=4) is None
+    # with six classes label 4 counts (once) and class 5 is never seen: it weighs 0, and
+    # the median is over the classes seen (counts 3, 2, 4, 1, 1: median 2)
+    torch.testing.assert_close(balanced_weights(train, 1.0, num_classes=6),
+                               torch.tensor([2 / 3, 1.0, 0.5, 2.0, 2.0, 0.0]))
