@@ -1,5 +1,7 @@
 """Handing known gravity to a batch, and the up estimate's training views (train.gravity)."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -47,6 +49,7 @@ def test_up_views_join_datasets_with_only_what_the_up_step_reads():
     assert torch.equal(v[1].up, east) and torch.equal(v[4].up, torch.tensor([[0.0, 0.0, 1.0]]))
     batch = next(iter(DataLoader(v, batch_size=5)))
     assert torch.equal(batch.up, torch.cat([east, east] + [torch.tensor([[0.0, 0.0, 1.0]])] * 3))
+    assert len(UpViews()) == 0
 
 
 def test_pretrain_up_reads_the_extra_views():
@@ -153,8 +156,6 @@ def test_lines_up_reads_a_pinholes_rendered_rooms_and_split_up_says_what_it_read
     """End to end: a room through a level and a tilted pinhole, each image's line axes, and
     a head that favours the true up picks an axis within 2.5 degrees of it. (Through other
     lenses: tests/frontend/test_lines.py.)"""
-    from types import SimpleNamespace
-
     from usf_graph.cameras import Equirectangular, Pinhole
     from usf_graph.geometry import rotation_from_axis_angle
     from usf_graph.scenes import make_room, render
@@ -227,8 +228,6 @@ def test_an_up_batch_of_several_fields_of_view_is_refused():
 
 
 def test_known_up_is_the_batchs_gravity_or_plus_z_jittered_by_up_jitter():
-    from types import SimpleNamespace
-
     from usf_graph.train.gravity import UP_JITTER, known_up
 
     torch.manual_seed(0)
@@ -246,8 +245,6 @@ def test_known_up_is_the_batchs_gravity_or_plus_z_jittered_by_up_jitter():
 
 
 def test_split_mask_is_the_one_field_the_views_share():
-    from types import SimpleNamespace
-
     from usf_graph.train.gravity import split_mask
 
     part = torch.arange(6) < 4
@@ -287,7 +284,7 @@ def test_up_step_reads_the_batchs_field_of_view_or_a_random_cap_inside_it():
     views = [Data(x=torch.rand(len(g.pos), 3), pos=g.pos.float(), mask=front) for _ in range(2)]
     torch.manual_seed(0)
     net = _RecordingUpNet(3, 2, channels=(4, 4))
-    loss, stats, n = up_step(net, Batch.from_data_list(views))
+    up_step(net, Batch.from_data_list(views))
     assert torch.equal(net.masks[-1], front)  # the camera's field, not the whole sphere
     # the loss is UP_WEIGHT times the head's, and the stats its mean error in degrees
     out = net.eval()(torch.stack([v.x for v in views]), front)
@@ -307,11 +304,11 @@ def test_up_step_reads_the_batchs_field_of_view_or_a_random_cap_inside_it():
     assert len({tuple(m.tolist()) for m in caps}) > 1
     # a cap that misses the field of view keeps the field
     spot = g.pos[:, 2] > 0.99
+    assert spot.any()
     one = [Data(x=torch.rand(len(g.pos), 3), pos=g.pos.float(), mask=spot) for _ in range(2)]
     torch.manual_seed(1)
     up_step(net, Batch.from_data_list(one), caps=1.0, cap_degrees=(1.0, 1.0))
     assert torch.equal(net.masks[-1], spot)
-    assert len(UpViews()) == 0
 
 
 def test_up_views_renders_the_extra_panoramas_or_none(tmp_path):

@@ -157,7 +157,7 @@ def _loader(dataset, batch_size: int, collate_fn, **kw) -> DataLoader:
     from torch_geometric.data.data import BaseData
 
     graphs = isinstance(dataset, PyGDataset) or (
-        isinstance(dataset, (list, tuple)) and len(dataset) and isinstance(dataset[0], BaseData))
+        isinstance(dataset, (list, tuple)) and bool(dataset) and isinstance(dataset[0], BaseData))
     if collate_fn is None and graphs:
         from torch_geometric.loader import DataLoader as PyGLoader
 
