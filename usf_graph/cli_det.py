@@ -212,6 +212,12 @@ def rooms_kind(results: dict) -> str:
     return rooms + (", seen in gray (--gray)" if results.get("gray") else "")
 
 
+def run_seconds(results: dict) -> str:
+    """A protocol's time as its printed table gives it: after ``--resume`` only this
+    invocation's, the stages it loaded not counted."""
+    return f"{results['seconds']} s" + (" since --resume" if results.get("resumed") else "")
+
+
 def print_targets(results: dict, out: str | None) -> None:
     """The issue's targets of a finished rooms protocol (``usf-graph targets`` reads them
     again from the run's folder)."""
@@ -285,7 +291,7 @@ def cmd_train_det(args) -> int:
         print(json.dumps(res["spherical"], indent=1))
         return 0
     print(f"\nDetection on procedural {rooms_kind(res)}, trained on upright panoramas ({res['samples']['train']} "
-          f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
+          f"views; {res['samples']['test']} test views each; {run_seconds(res)})\n")
     for metric in ("AP50", "AP50_every_box", "AP", "usf_mAP@10"):
         print(f"{metric}:\n{format_table(res, metric)}\n")
     print_targets(res, args.out)

@@ -13,6 +13,7 @@ from .cli_det import (
     rooms_kind,
     rooms_only_options,
     run_kwargs,
+    run_seconds,
     up_kwargs,
 )
 from .cli_inputs import camera_test
@@ -62,7 +63,7 @@ def cmd_train_seg(args) -> int:
                 print(format_woodscape(m, res[m]))
         return 0
     print(f"\nSegmentation on procedural {rooms_kind(res)}, trained on upright panoramas ({res['samples']['train']} "
-          f"views; {res['samples']['test']} test views each; {res['seconds']} s)\n")
+          f"views; {res['samples']['test']} test views each; {run_seconds(res)})\n")
     for metric in ("mIoU", "mAcc"):
         print(f"{metric} (camera pixels):\n{format_table(res, metric)}\n")
     print_targets(res, args.out)

@@ -73,11 +73,12 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys, monkeypatch):
                 epochs=1, batch_size=2, progress=False, up_train=4, up_epochs=1, up_extra=2,
                 fov_epochs=1, channel_scale=0.5, resume=True)
     assert again["spherical"] == res["spherical"] and again["planar"] == res["planar"]
+    assert not res["resumed"] and again["resumed"]  # its seconds: this invocation's only
     # the shell's command hands its options to run and prints these results' tables and
     # targets (run itself stands in: the shell has no --up-train, and it ran just above)
     calls = []
     monkeypatch.setattr("usf_graph.train.det.run",
-                        functools.wraps(run)(lambda **kw: calls.append(kw) or res))
+                        functools.wraps(run)(lambda **kw: calls.append(kw) or again))
     capsys.readouterr()
     assert main(["train", "det", "--root", str(tmp_path / "rooms"), "--out", str(tmp_path / "out"),
                  "--size", "32", "--num-train", "3", "--num-test", "2", "--epochs", "1",
@@ -89,6 +90,7 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys, monkeypatch):
     assert {k: calls[0][k] for k in given} == given
     out = capsys.readouterr().out
     assert "Detection on procedural rooms, trained on upright panoramas (3 views; 2 test" in out
+    assert f"test views each; {again['seconds']} s since --resume)" in out
     for metric in ("AP50", "AP50_every_box", "AP", "usf_mAP@10"):
         assert f"{metric}:\n{format_table(res, metric)}" in out
     assert "The issue's targets (bold: misses):" in out and f"figure: {res['figure']}" in out

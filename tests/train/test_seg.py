@@ -88,6 +88,9 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys):
         assert again[name] == saved[name]
     out = capsys.readouterr().out
     assert "Segmentation on procedural rooms, trained on upright panoramas (3 views; 2 test" in out
+    # its clock counts this invocation only, and says so
+    assert not saved["resumed"] and again["resumed"]
+    assert f"test views each; {again['seconds']} s since --resume)" in out
     assert f"mIoU (camera pixels):\n{format_table(res, 'mIoU')}" in out
     assert f"mAcc (camera pixels):\n{format_table(res, 'mAcc')}" in out
     assert "The issue's targets (bold: misses):" in out and "pinhole" in out

@@ -342,7 +342,8 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
                "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign,
                "fov_epochs": fov_epochs, "fov_share": fov_share, "channel_scale": channel_scale,
-               "materials": materials, "gray": gray}
+               "materials": materials, "gray": gray,
+               "resumed": resume}  # its seconds are then this invocation's only
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
     extra = up_views(root, up_extra, f"icosahedral:{level}", progress, materials) \
