@@ -81,7 +81,7 @@ def _task_command(task: str, verb: str):
 
 
 def cmd_train(args) -> int:
-    from .cli_det import given, given_or_default, refuse_options
+    from .cli_det import given, given_or_default, refuse_options, run_seconds
     from .train import teardown_distributed
     from .train.mnist import format_table, run
 
@@ -101,7 +101,7 @@ def cmd_train(args) -> int:
         return 0
     print("\nSpherical MNIST, trained without rotations; R = Haar-random SO(3) per test sample")
     print(f"({res['samples']['train']} train / {res['samples']['test']} test digits, "
-          f"{res['grid']}, {res['seconds']} s)\n")
+          f"{res['grid']}, {run_seconds(res)})\n")
     print(format_table(res))
     if "figure" in res:
         print(f"\nfigure: {res['figure']}")

@@ -57,7 +57,7 @@ def cmd_train_seg(args) -> int:
         return 0
     if args.dataset == "woodscape":
         print(f"\nWoodScape val ({res['samples']['test']} images; trained on "
-              f"{res['samples']['train']} from {res['fields_of_view']} fields of view; {res['seconds']} s)")
+              f"{res['samples']['train']} from {res['fields_of_view']} fields of view; {run_seconds(res)})")
         for m in ("spherical_unet", "spherical_deeplab"):
             if m in res:
                 print(format_woodscape(m, res[m]))

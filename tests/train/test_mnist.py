@@ -71,8 +71,11 @@ def test_train_mnist_runs_and_its_checkpoints_score_as_it_reported(mnist_root, t
     assert "(so3, seed 4)" in capsys.readouterr().out
     # resuming the finished run trains nothing more and reports the same numbers
     before = torch.load(out / "spherical.pt", weights_only=True)["state_dict"]
+    capsys.readouterr()
     assert main([*argv, "--resume"]) == 0
     again = json.loads((out / "results.json").read_text())
+    assert not res["resumed"] and again["resumed"]  # its time: this invocation's only
+    assert f"{again['seconds']} s since --resume)" in capsys.readouterr().out
     assert {k: again[k] for k in ("spherical", "planar")} == \
         {k: res[k] for k in ("spherical", "planar")}
     after = torch.load(out / "spherical.pt", weights_only=True)["state_dict"]

@@ -265,8 +265,7 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
                "ignored_boxes": {},  # per test: cut by the camera's border (DetectionSet.ignored)
                "upright": upright, "fov_epochs": fov_epochs, "fov_share": fov_share,
                "up_sign": up_sign, "channel_scale": channel_scale, "materials": materials,
-               "drop_hidden": True, "gray": gray,  # the decoding rule (c) and (d) were scored with
-               "resumed": resume}  # its seconds are then this invocation's only
+               "drop_hidden": True, "gray": gray}  # the decoding rule (c) and (d) were scored with
     spherical = make_detector(C, upright, upright_convs, channel_scale, gray).to(dev)
     if upright:
         results["samples"]["up_train"] = up_train
@@ -316,7 +315,8 @@ def run(root="data/rooms", out="runs/det", size: int = 128, num_train: int = 200
     from ..viz import plot_detections
 
     return write_results(out, results, t0, "det_results.png",
-                         lambda p: plot_detections(sets, preds["spherical"], p, ignored=ignored))
+                         lambda p: plot_detections(sets, preds["spherical"], p, ignored=ignored),
+                         resumed=resume)
 
 
 def format_table(results: dict, metric: str = "AP50") -> str:

@@ -372,16 +372,19 @@ def _log(log_dir: Path, history: list[dict], writer) -> None:
 
 
 def write_results(out, results: dict, t0: float, figure: str | None = None,
-                  plot: Callable[[Path], object] | None = None) -> dict:
-    """Finish a task's run: add its wall time and provenance, write ``results.json`` under
-    ``out`` (atomically), then draw ``figure`` with ``plot(path)`` when given. A failed plot
-    is reported and must not lose the results, which are already written."""
+                  plot: Callable[[Path], object] | None = None, resumed: bool = False) -> dict:
+    """Finish a task's run: add its wall time (``seconds`` since ``t0``; with ``resumed``,
+    recorded as ``"resumed"``, that time is only this invocation's, without the stages it
+    loaded) and provenance, write ``results.json`` under ``out`` (atomically), then draw
+    ``figure`` with ``plot(path)`` when given. A failed plot is reported and must not lose
+    the results, which are already written."""
     import time
 
     from .provenance import provenance
 
     out = Path(out)
     results["seconds"] = round(time.time() - t0, 1)
+    results["resumed"] = resumed
     results["provenance"] = provenance()
     text = json.dumps(results, indent=1)
     atomic_write(out / "results.json", lambda f: f.write(text), mode="w")

@@ -143,7 +143,7 @@ def run(root="data/mnist", out="runs/mnist", level: int = 4, epochs: int = 12,
     from ..viz import plot_mnist_results
 
     return write_results(out, results, t0, "mnist_results.png",
-                         lambda p: plot_mnist_results(results, model, test_r, p))
+                         lambda p: plot_mnist_results(results, model, test_r, p), resumed=resume)
 
 
 def format_table(results: dict) -> str:

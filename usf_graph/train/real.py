@@ -77,7 +77,7 @@ def run_stanford(root="data/stanford2d3ds", out="runs/seg_stanford", folds=(1,),
         results[name]["mean"] = {m: float(np.mean([r[m] for r in per]))
                                  for m in ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU")
                                  if all(m in r for r in per)}
-    return write_results(out, results, t0)
+    return write_results(out, results, t0, resumed=resume)
 
 
 @torch.no_grad()
@@ -170,7 +170,7 @@ def run_woodscape(root="data/woodscape", out="runs/seg_woodscape",
                         extra={"data": {"dataset": "woodscape", "scale": scale}})
     if rank != 0:
         return {}
-    return write_results(out, results, t0)
+    return write_results(out, results, t0, resumed=resume)
 
 
 def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
@@ -205,4 +205,4 @@ def run_pandora(root="data/pandora", out="runs/det_pandora", epochs: int = 24,
            "spherical": det.score(det.predict(net, test, progress=progress), test, C)}
     save_checkpoint(out / "spherical.pt", net, net.config, res["spherical"],
                     extra={"data": {"dataset": "pandora"}})
-    return write_results(out, res, t0)
+    return write_results(out, res, t0, resumed=resume)

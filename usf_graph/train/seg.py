@@ -342,8 +342,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
                "epochs": epochs, "up_epochs": up_epochs, "balance": balance, "upright": upright,
                "up_extra": up_extra, "up_caps": up_caps, "up_sign": up_sign,
                "fov_epochs": fov_epochs, "fov_share": fov_share, "channel_scale": channel_scale,
-               "materials": materials, "gray": gray,
-               "resumed": resume}  # its seconds are then this invocation's only
+               "materials": materials, "gray": gray}
     preds, shared = {}, {}
     trains_estimate = up_epochs and any(MODELS[n] is not PlanarUNet for n in models)  # else no extras
     extra = up_views(root, up_extra, f"icosahedral:{level}", progress, materials) \
@@ -368,7 +367,7 @@ def run(root="data/rooms", out="runs/seg", size: int = 96, level: int = 5,
     from ..viz import plot_segmentation
 
     return write_results(out, results, t0, "seg_results.png",
-                         lambda p: plot_segmentation(sets, preds, p))
+                         lambda p: plot_segmentation(sets, preds, p), resumed=resume)
 
 
 def format_table(results: dict, metric: str = "mIoU") -> str:
