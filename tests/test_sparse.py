@@ -159,3 +159,23 @@ def test_padded_operators_share_one_layout_and_follow_edits():
         c.register_buffer(name, t, persistent=False)
     c.op_val.mul_(2.0)  # new values: a layout of its own
     assert (padded_product(*padded_operator(c, "op", torch.float64), x) - 2 * dense @ x).abs().max() < 1e-12
+
+
+def test_two_equal_entries_are_summed_into_one():
+    """The smallest matrix with a repeated entry: two entries, one place."""
+    A = csr(torch.tensor([1, 1]), torch.tensor([2, 2]), torch.tensor([2.0, 3.0]), (3, 4))
+    assert A.values().tolist() == [5.0] and A.col_indices().tolist() == [2]
+    assert A.crow_indices().tolist() == [0, 0, 1, 1]
+
+
+def test_padded_tables_stay_out_of_the_state_dict():
+    """The padded layout is rebuilt from the CSR buffers on first use; kept in the state
+    dict it would make checkpoints written after a forward pass refuse to load into a
+    fresh model (unexpected keys)."""
+    _, crow, col, val = _random_csr(4, 6, 5, 0.5)
+    m = torch.nn.Module()
+    for name, t in (("op_crow", crow), ("op_col", col), ("op_val", val)):
+        m.register_buffer(name, t)
+    before = set(m.state_dict())
+    padded_operator(m, "op", torch.float32)
+    assert set(m.state_dict()) == before == {"op_crow", "op_col", "op_val"}
