@@ -208,3 +208,14 @@ def test_rotation_angle_of_batches_in_numpy_and_torch():
     Rt = G.rotation_from_axis_angle(axes, torch.as_tensor(angles))
     assert torch.is_tensor(Rt)
     np.testing.assert_allclose(Rt.numpy(), R, atol=1e-15)
+
+
+def test_rotate_takes_torch_when_either_input_is_torch():
+    """Points and rotation of mixed kinds give a tensor in the points' dtype, R p."""
+    R = G.rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), math.pi / 2)
+    p = np.array([[1.0, 0.0, 0.0]])
+    for pts, rot in ((p, torch.as_tensor(R)), (torch.as_tensor(p, dtype=torch.float32), R)):
+        out = G.rotate(pts, rot)
+        assert torch.is_tensor(out) and out.dtype == torch.as_tensor(pts).dtype
+        torch.testing.assert_close(out, torch.tensor([[0.0, 1.0, 0.0]], dtype=out.dtype),
+                                   atol=1e-7, rtol=0)
