@@ -152,3 +152,31 @@ def test_nearest_with_ties_keeps_every_point_tied_with_the_nth(n):
             got = j[q][np.isfinite(d[q])]
             assert sorted(got.tolist()) == np.flatnonzero(want[q]).tolist()
             np.testing.assert_allclose(d[q][np.isfinite(d[q])], full[q, got], rtol=1e-12)
+
+
+def test_face_centres_keep_all_three_tied_vertices():
+    """An icosahedron's face centre is as near to three vertices: more ties than the first
+    search (2 n candidates) holds, so the search must widen rather than stop."""
+    from itertools import combinations
+
+    pts = grids.icosahedral(0).pos.double().numpy()
+    dist = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    edge = dist[dist > 0].min()
+    faces = [f for f in combinations(range(12), 3)
+             if all(np.isclose(dist[a, b], edge) for a, b in combinations(f, 2))]
+    assert len(faces) == 20
+    centres = np.stack([pts[list(f)].sum(0) for f in faces])
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+    d, j = nearest_with_ties(pts, centres, 1)
+    for q, f in enumerate(faces):
+        assert sorted(j[q][np.isfinite(d[q])].tolist()) == list(f)
+
+
+def test_radius_searches_keep_self_loops_by_default():
+    """Called on one point set, both searches include each point itself (distance 0)."""
+    from usf_graph.graph import euclidean_radius, geodesic_radius
+
+    pos = grids.icosahedral(1).pos.double()
+    for ei, w in (geodesic_radius(pos, None, 0.3), euclidean_radius(pos, pos, 0.3)):
+        loops = ei[0] == ei[1]
+        assert int(loops.sum()) == len(pos) and float(w[loops].abs().max()) < 1e-12
