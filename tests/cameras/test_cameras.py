@@ -660,3 +660,21 @@ def test_the_distortions_jacobian_is_its_derivative_with_every_coefficient():
     dy = [(a - b) / (2 * h) for a, b in zip(distort(d, x, y + h), distort(d, x, y - h))]
     for got, want in zip(jac, (dx[0], dy[0], dx[1], dy[1])):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-8)
+
+
+def test_the_sensor_spans_half_a_pixel_past_the_outer_centres():
+    """Pixel centres sit at integers, so a W x H sensor covers [-0.5, W - 0.5] x [-0.5,
+    H - 0.5], borders included; samples there read the border pixel, and a panorama's u
+    wraps."""
+    cam = C.Pinhole(50, 50, 15.5, 11.5, 32, 24)
+    edge = np.array([[-0.5, -0.5], [31.5, 23.5], [-0.5, 23.5], [31.5, -0.5]])
+    assert cam.in_image(edge).all()
+    assert not cam.in_image(edge + [[-1e-9, 0], [0, 1e-9], [0, 1e-9], [1e-9, 0]]).any()
+    u, v = cam.sample_positions(np.array([-0.4, 31.4, 7.25]), np.array([-0.4, 23.4, 3.5]))
+    np.testing.assert_array_equal(u, [0.0, 31.0, 7.25])
+    np.testing.assert_array_equal(v, [0.0, 23.0, 3.5])
+    pano = C.Equirectangular(64, 32)
+    u, v = pano.sample_positions(np.array([-0.25, 64.5]), np.array([31.4, 0.0]))
+    np.testing.assert_allclose(u, [63.75, 0.5])
+    np.testing.assert_array_equal(v, [31.0, 0.0])
+    assert pano.in_image(np.array([[-40.0, 0.0], [100.0, 31.5]])).all()
