@@ -678,3 +678,18 @@ def test_the_sensor_spans_half_a_pixel_past_the_outer_centres():
     np.testing.assert_allclose(u, [63.75, 0.5])
     np.testing.assert_array_equal(v, [31.0, 0.0])
     assert pano.in_image(np.array([[-40.0, 0.0], [100.0, 31.5]])).all()
+
+
+def test_sees_reads_the_image_mask_at_each_points_own_pixel():
+    """An asymmetric mask on a non-square sensor: a point is seen where the mask is set at
+    the pixel it projects to (column from u, row from v), the last row included."""
+    cam = C.Pinhole(50, 50, 15.5, 11.5, 32, 24)
+    mask = np.zeros((24, 32), bool)
+    mask[:5, :10] = True  # the top-left corner
+    mask[23, 30] = True  # one pixel of the last row
+    masked = cam.with_image_mask(mask)
+    uv = np.array([[3.0, 2.0], [3.0, 20.0], [20.0, 2.0], [30.0, 23.0], [30.0, 22.0]])
+    rays, ok = cam.unproject(uv)
+    assert ok.all()
+    _, seen = masked.sees(rays @ cam.rotation.T)
+    assert seen.tolist() == [True, False, False, True, False]
