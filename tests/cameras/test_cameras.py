@@ -569,6 +569,13 @@ def test_an_image_mask_replaces_the_current_one_or_combines_with_it():
     assert np.array_equal(cam.with_image_mask(top, combine=True).image_mask, left & (top > 0))
     with pytest.raises(ValueError, match="all zero"):
         cam.with_image_mask(~left, combine=True)
+    rgb = np.zeros((4, 6, 3), np.uint8)  # a mask read from a colour PNG: any channel set
+    rgb[0, 0, 2], rgb[3, 5, 0] = 1, 255
+    want = np.zeros((4, 6), bool)
+    want[0, 0] = want[3, 5] = True
+    assert np.array_equal(cam.with_image_mask(rgb).image_mask, want)
+    with pytest.raises(ValueError, match="image mask has shape"):
+        cam.with_image_mask(np.ones((4, 6, 3, 1), bool))
 
 
 # The radial part r(1 + k1 r^2 + k2 r^4) of this calibration is barely monotone (its
