@@ -105,8 +105,36 @@ def test_exif_orientation_reads_the_tag_pillow_wrote(tmp_path):
     Image.fromarray(pixels).save(tmp_path / "plain.png")
     (tmp_path / "empty.jpg").write_bytes(b"")
     (tmp_path / "text.jpg").write_text("not an image")
-    for name in ("plain.png", "empty.jpg", "text.jpg"):
+    for k in (0, 9):  # outside the eight the standard defines
+        _tagged_jpeg(tmp_path / f"{k}.jpg", pixels, k)
+    for name in ("plain.png", "empty.jpg", "text.jpg", "0.jpg", "9.jpg"):
         assert exif_orientation(tmp_path / name) is None
+
+
+def test_atomic_write_makes_the_folders_and_leaves_nothing_when_writing_fails(tmp_path):
+    from usf_graph.fileio import atomic_write
+
+    path = tmp_path / "a" / "b" / "out.bin"
+    atomic_write(path, lambda f: f.write(b"new"))
+    assert path.read_bytes() == b"new"
+
+    def fail(f):
+        f.write(b"half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        atomic_write(path, fail)
+    assert path.read_bytes() == b"new" and sorted(p.name for p in path.parent.iterdir()) == ["out.bin"]
+
+
+def test_load_refusal_keeps_the_reason_and_drops_the_advice():
+    from usf_graph.fileio import load_refusal
+
+    unpickler = RuntimeError("Weights only load failed. ... WeightsUnpickler error: Unsupported "
+                             "global: GLOBAL os.system  \nCheck the documentation")
+    assert load_refusal(unpickler) == "Unsupported global: GLOBAL os.system"
+    assert load_refusal(ValueError("bad header. Re-run with more")) == "bad header"
+    assert load_refusal(EOFError()) == "EOFError"
 
 
 def test_an_image_is_read_as_stored_whatever_viewers_turn_and_the_user_is_told(tmp_path, capsys):
