@@ -82,6 +82,13 @@ def test_read_photo_sphere_reads_what_pillow_wrote(tmp_path, as_elements):
     path = tmp_path / "sphere.jpg"
     Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(path, xmp=_photo_sphere_xmp(fields, as_elements))
     assert read_photo_sphere(path) == fields
+    data = path.read_bytes()  # SOI, JFIF (APP0), XMP (APP1), ...
+    assert data[2:4] == b"\xff\xe0"
+    jfif_end = 4 + int.from_bytes(data[4:6], "big")
+    comment = b"\xff\xfe" + (2 + 13).to_bytes(2, "big") + b"from a camera"
+    noted = tmp_path / "noted.jpg"  # a comment segment between JFIF and the XMP
+    noted.write_bytes(data[:jfif_end] + comment + data[jfif_end:])
+    assert read_photo_sphere(noted) == fields
     Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(tmp_path / "plain.jpg")
     Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(tmp_path / "bad.jpg", xmp=b"<x:xmpmeta")
     cv2.imwrite(str(tmp_path / "p.png"), np.zeros((8, 16, 3), np.uint8))
