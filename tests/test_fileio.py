@@ -179,3 +179,11 @@ def test_write_image_writes_what_opencv_reads_and_refuses_what_it_cannot(tmp_pat
     assert main(["render", str(tmp_path / "pano.png"), "--camera", "equirectangular", "--to",
                  "equirectangular:32x16", "--out", str(tmp_path / "out.xyz")]) == 2
     assert "use an image suffix OpenCV knows" in capsys.readouterr().err
+
+
+def test_mark_360_photo_keeps_the_exif_segment(tmp_path):
+    """Exif is an APP1 segment as XMP is; only the XMP one is replaced."""
+    path = tmp_path / "turned.jpg"
+    _tagged_jpeg(path, np.zeros((8, 16, 3), np.uint8), 6)
+    mark_360_photo(path)
+    assert exif_orientation(path) == 6 and path.read_bytes().count(XMP_ID) == 1
