@@ -9,7 +9,15 @@ import pytest
 from PIL import Image
 
 from usf_graph.cli import main
-from usf_graph.fileio import XMP_ID, exif_orientation, mark_360_photo, write_image
+from usf_graph.fileio import (
+    XMP_ID,
+    atomic_write,
+    exif_orientation,
+    load_refusal,
+    mark_360_photo,
+    read_photo_sphere,
+    write_image,
+)
 
 GPANO = "{http://ns.google.com/photos/1.0/panorama/}"
 
@@ -75,8 +83,6 @@ def _photo_sphere_xmp(fields: dict, as_elements: bool) -> bytes:
 
 @pytest.mark.parametrize("as_elements", [False, True], ids=["attributes", "elements"])
 def test_read_photo_sphere_reads_what_pillow_wrote(tmp_path, as_elements):
-    from usf_graph.fileio import read_photo_sphere
-
     fields = {"ProjectionType": "equirectangular", "FullPanoWidthPixels": "720",
               "CroppedAreaTopPixels": "60"}
     path = tmp_path / "sphere.jpg"
@@ -119,8 +125,6 @@ def test_exif_orientation_reads_the_tag_pillow_wrote(tmp_path):
 
 
 def test_atomic_write_makes_the_folders_and_leaves_nothing_when_writing_fails(tmp_path):
-    from usf_graph.fileio import atomic_write
-
     path = tmp_path / "a" / "b" / "out.bin"
     atomic_write(path, lambda f: f.write(b"new"))
     assert path.read_bytes() == b"new"
@@ -135,8 +139,6 @@ def test_atomic_write_makes_the_folders_and_leaves_nothing_when_writing_fails(tm
 
 
 def test_load_refusal_keeps_the_reason_and_drops_the_advice():
-    from usf_graph.fileio import load_refusal
-
     unpickler = RuntimeError("Weights only load failed. ... WeightsUnpickler error: Unsupported "
                              "global: GLOBAL os.system  \nCheck the documentation")
     assert load_refusal(unpickler) == "Unsupported global: GLOBAL os.system"

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from usf_graph import grids
-from usf_graph.graph import nearest_with_ties
+from usf_graph.graph import euclidean_radius, geodesic_radius, nearest_with_ties
 from usf_graph.nn import (
     geodesic_radius_graph,
     radius_for_neighbors,
@@ -174,8 +174,6 @@ def test_face_centres_keep_all_three_tied_vertices():
 
 def test_radius_searches_keep_self_loops_by_default():
     """Called on one point set, both searches include each point itself (distance 0)."""
-    from usf_graph.graph import euclidean_radius, geodesic_radius
-
     pos = grids.icosahedral(1).pos.double()
     for ei, w in (geodesic_radius(pos, None, 0.3), euclidean_radius(pos, pos, 0.3)):
         loops = ei[0] == ei[1]

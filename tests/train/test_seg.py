@@ -2,6 +2,7 @@
 checkpoints read back by ``eval seg``, and the Stanford 2D-3D-S command on fixtures."""
 
 import json
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -16,6 +17,7 @@ from usf_graph.train.gravity import UP_JITTER, UP_WEIGHT, pretrain_up, trains_up
 from usf_graph.train.seg import (
     MODELS,
     ThroughRandomFields,
+    balanced_weights,
     format_table,
     make_model,
     protocol_sets,
@@ -380,10 +382,6 @@ def test_make_model_builds_the_protocols_models():
 
 
 def test_balanced_weights_are_median_frequency_weights_to_a_power():
-    from types import SimpleNamespace
-
-    from usf_graph.train.seg import balanced_weights
-
     # class counts 3, 2, 4, 1; the ignored label and one past the classes are not counted
     y = torch.tensor([[0, 0, 0, 1, 1, IGNORE], [2, 2, 2, 2, 3, 4]])
     full = torch.tensor([2.5 / 3, 2.5 / 2, 2.5 / 4, 2.5 / 1])  # median 2.5 over each count
