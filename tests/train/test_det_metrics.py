@@ -169,3 +169,17 @@ def test_a_class_one_past_the_last_is_refused():
     box = P([0, 0, 20, 20, 0])
     with pytest.raises(ValueError, match=r"0 \.\. 1, got \[2\]"):
         coco_ap([(box, np.array([0]))], [(box, np.array([2]), np.array([0.9]))], 2)
+
+
+def test_no_true_box_anywhere_reports_minus_one():
+    """pycocotools' -1 for "nothing to score", for AR50 too (not a NaN mean of no classes)."""
+    r = coco_ap([(np.zeros((0, 5)), np.zeros(0, int))], [(P([0, 0, 20, 20, 0]), [0], [0.9])], 2)
+    assert r["AP"] == -1.0 and r["AR50"] == -1.0
+
+
+def test_usf_map_threshold_is_inclusive():
+    truth, near = GT[0][0][:1], P([6.3, 0, 20, 20, 0])
+    iou = float(box_iou(near, truth[0]))
+    dets = [(near, np.array([0]), np.array([0.9]))]
+    assert usf_map([(truth, np.array([0]))], dets, 1, iou_threshold=iou) == pytest.approx(1.0)
+    assert usf_map([(truth, np.array([0]))], dets, 1, iou_threshold=np.nextafter(iou, 1)) == 0.0
