@@ -129,3 +129,10 @@ def test_bad_annotations_are_named(root):
     path.write_text("{not json")
     with pytest.raises(ValueError, match="not a PANDORA annotation file"):
         read_annotations(path)
+
+
+def test_lifting_shows_a_progress_bar_unless_told_not_to(root, capsys):
+    Pandora(root, "test", grid="icosahedral:1")
+    assert "lifting PANDORA test" in capsys.readouterr().err
+    Pandora(root, "train", grid="icosahedral:1", progress=False)
+    assert capsys.readouterr().err == ""
