@@ -1,13 +1,15 @@
 """The geometry cache on its own: a file is trusted only when it holds its own key and finite
 values, a cache that cannot write still serves, and ``clear`` empties memory and disk."""
 
+import inspect
 import warnings
 
 import numpy as np
 import pytest
 import torch
 
-from usf_graph.frontend import GeometryCache
+from usf_graph.frontend import GeometryCache, default_cache
+from usf_graph.frontend.cache import default_cache_dir
 
 
 def _builder(value):
@@ -21,7 +23,9 @@ def _builder(value):
 def _rebuilt(cache, kind, key, build):
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
+        line = inspect.currentframe().f_lineno + 1
         out = cache.get(kind, key, build)
+    assert all((x.filename, x.lineno) == (__file__, line) for x in w)  # the caller's line
     return out, [str(x.message) for x in w]
 
 
@@ -66,3 +70,77 @@ def test_clear_empties_memory_and_with_disk_the_files(tmp_path, disk):
     assert len(list(tmp_path.glob("*.npz"))) == (0 if disk else 1)
     cache.get("t", {"n": 1}, build)
     assert build.calls == 1 + disk  # memory is gone either way; the file served if kept
+
+
+@pytest.mark.parametrize("value", ["off", "OFF ", "none", "0", ""])
+def test_the_environment_turns_the_disk_cache_off(monkeypatch, value):
+    monkeypatch.setenv("USF_GRAPH_CACHE", value)
+    assert default_cache_dir() is None and GeometryCache().directory is None
+
+
+def test_the_cache_folder_comes_from_the_environment_or_the_home(monkeypatch, tmp_path):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("USF_GRAPH_CACHE", "~/geometry")
+    assert default_cache_dir() == tmp_path / "geometry"
+    monkeypatch.delenv("USF_GRAPH_CACHE")
+    assert default_cache_dir() == tmp_path / ".cache" / "usf_graph"
+
+
+def test_memory_only_cache_counts_builds_and_hits_and_evicts_the_least_recent():
+    cache = GeometryCache(None)
+    assert cache.path("t", {"n": 0}) is None and (cache.builds, cache.hits) == (0, 0)
+    builds = [_builder([float(n)]) for n in range(34)]
+    for n in range(32):
+        cache.get("t", {"n": n}, builds[n])
+    assert (cache.builds, cache.hits) == (32, 0)
+    cache.get("t", {"n": 0}, builds[0])  # a hit makes key 0 the most recent
+    assert (cache.builds, cache.hits) == (32, 1)
+    cache.get("t", {"n": 32}, builds[32])  # 33 entries: key 1, the least recent, goes
+    cache.get("t", {"n": 0}, builds[0])
+    cache.get("t", {"n": 1}, builds[1])
+    assert builds[0].calls == 1 and builds[1].calls == 2 and cache.builds == 34
+
+
+def test_keys_are_order_free_and_files_named_by_32_hex_digits(tmp_path):
+    cache = GeometryCache(tmp_path)
+    assert cache.digest("t", {"a": 1, "b": 2}) == cache.digest("t", {"b": 2, "a": 1})
+    assert cache.digest("t", {"a": 1}) != cache.digest("u", {"a": 1})
+    name = cache.path("t", {"a": 1}).name
+    assert name == f"t-{cache.digest('t', {'a': 1})[:32]}.npz"
+    build = _builder([1.0])
+    cache.get("t", {"a": 1}, build)
+    fresh = GeometryCache(tmp_path)
+    assert fresh.get("t", {"a": 1}, build)["w"].tolist() == [1.0] and (fresh.builds, fresh.hits) == (0, 1)
+
+
+def test_clear_keeps_the_files_by_default(tmp_path):
+    cache = GeometryCache(tmp_path)
+    cache.get("t", {"n": 1}, _builder([1.0]))
+    cache.clear()
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+
+
+UNPICKLED = []
+
+
+def _trip():
+    UNPICKLED.append(1)
+
+
+class _Tripwire:
+    def __reduce__(self):
+        return _trip, ()
+
+
+def test_a_file_holding_pickled_objects_is_not_unpickled(tmp_path):
+    cache = GeometryCache(tmp_path)
+    path, key = cache.path("t", {"n": 1}), cache.digest("t", {"n": 1})
+    np.savez(path, __key__=np.array(key), w=np.array([_Tripwire()], dtype=object))
+    build = _builder([1.0])
+    out, said = _rebuilt(GeometryCache(tmp_path), "t", {"n": 1}, build)
+    assert out["w"].tolist() == [1.0] and build.calls == 1 and "corrupt or stale" in said[0]
+    assert UNPICKLED == []  # a cache file never runs code
+
+
+def test_the_process_wide_cache_is_one_cache():
+    assert isinstance(default_cache(), GeometryCache) and default_cache() is default_cache()
