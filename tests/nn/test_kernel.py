@@ -78,6 +78,7 @@ def test_bad_arguments_are_refused_and_repr_says_the_basis():
     assert repr(DistanceKernel(4, 0.25, "bessel")) == "DistanceKernel(num_basis=4, cutoff=0.25, basis='bessel')"
     k = DistanceKernel(3, 0.3, "mlp")
     assert k.learnable and not k.positive and DistanceKernel(3, 0.3).positive
+    assert [m.out_features for m in k.mlp if hasattr(m, "out_features")] == [16, 3]  # hidden 16
     before = [p.clone() for p in k.parameters()]
     torch.manual_seed(1)
     k.reset_parameters()
