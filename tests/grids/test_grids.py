@@ -289,3 +289,25 @@ def test_icosahedral_grid_has_the_icosahedrons_symmetry(level):
         turned = Rotation.from_rotvec(np.radians(angle) * axis / np.linalg.norm(axis)).apply(p)
         gap = np.linalg.norm(turned[:, None] - p[None], axis=-1).min(1)
         assert gap.max() < 1e-12, (axis, angle)
+
+
+def test_the_kept_areas_are_the_last_16_point_sets(monkeypatch):
+    from usf_graph.grids import base
+
+    monkeypatch.setattr(base, "_AREAS", type(base._AREAS)())
+    sets = [grids.fibonacci(20 + k) for k in range(17)]
+    for g in sets:
+        torch.testing.assert_close(g.area, torch.as_tensor(base.voronoi_areas(g.pos.numpy())))
+    assert len(base._AREAS) == 16
+    grids.fibonacci(21).area  # noqa: B018 - a hit makes set 1 the most recent: set 2 goes next
+    grids.fibonacci(50).area  # noqa: B018
+    kept = {len(v) for v in base._AREAS.values()}
+    assert 20 not in kept and 21 in kept and 22 not in kept and 50 in kept
+
+
+def test_grid_sizes_include_both_bounds():
+    from usf_graph.grids.base import grid_size
+
+    assert grid_size("level", 10, 0, 10) == 10 and grid_size("level", 0, 0, 10) == 0
+    with pytest.raises(ValueError, match=r"level must be an integer in \[0, 10\], got 11"):
+        grid_size("level", 11, 0, 10)
