@@ -164,3 +164,16 @@ def test_a_cars_four_cameras_stitch_into_one_panorama(tmp_path, capsys):
     assert main(["camera", listed]) == 2
     assert "names several files (a rig of posed cameras): list them with --all" in \
         capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fov_deg, theta_max", [(120.0, 60.0), (None, None)])
+def test_a_claimed_field_of_view_bounds_what_projects(fov_deg, theta_max):
+    """Rays up to half of ``fov_deg`` project and those past it do not; without a claim the
+    limit is where ``rho`` stops increasing (300 t - 50 t^3: at t = sqrt(2) rad)."""
+    cam = RadialPoly([300.0, 0.0, -50.0], 640, 480, 1280, 966, fov_deg=fov_deg)
+    limit = math.radians(theta_max) if theta_max else math.sqrt(2.0)
+    assert cam.theta_max == pytest.approx(limit, abs=math.pi / 20000)  # its search step
+    t = limit * np.array([0.5, 0.999, 1.001, 1.5])
+    rays = np.stack([np.sin(t) * 0.6, np.sin(t) * 0.8, np.cos(t)], -1)
+    uv, ok = cam.project(rays)
+    assert ok.tolist() == [True, True, False, False] and np.isnan(uv[2:]).all()
