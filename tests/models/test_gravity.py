@@ -682,3 +682,29 @@ def test_jacobi_eigh3_is_torchs_eigendecomposition(seed, repeated, scale):
     assert ((val - ref).abs() / big[..., 0]).max() < 1e-13
     assert ((A @ vec - vec * val[:, None, :]).abs() / big).max() < 1e-13
     assert (vec.transpose(1, 2) @ vec - torch.eye(3, dtype=torch.float64)).abs().max() < 1e-13
+
+
+def test_head_scores_are_the_documented_convolution_at_the_candidates():
+    """s_n = v^T ReLU(U_n + b), U_n the area-weighted mean over the visible points of
+    sum_k phi_k(theta_nm) W_k f_m, phi_k Gaussian bumps centred at k pi / (K - 1) with
+    that spacing as their width; written out point by point here."""
+    torch.manual_seed(0)
+    coarse = grids.icosahedral(1)
+    head = GravityHead(coarse, channels=3, hidden=4, num_basis=5, candidate_level=0).double()
+    f = torch.randn(2, len(coarse), 3, dtype=torch.float64)
+    mask = torch.rand(len(coarse)) < 0.6
+    got = head(f, mask)["logits"]
+    K, H = 5, 4
+    w = coarse.area.double() * mask.double()
+    W = head.field.weight.view(K, H, 3)
+    c = head.field.bias.view(K, H)
+    for b in range(2):
+        for n, a in enumerate(grids.icosahedral(0).pos.double()):
+            U = torch.zeros(H, dtype=torch.float64)
+            for m, p in enumerate(coarse.pos.double()):
+                theta = torch.arccos(torch.clamp(a @ p, -1, 1))
+                for k in range(K):
+                    phi = torch.exp(-0.5 * ((theta - k * math.pi / (K - 1)) / (math.pi / (K - 1))) ** 2)
+                    U += w[m] / w.sum() * phi * (W[k] @ f[b, m] + c[k])
+            want = head.score(torch.relu(U + head.bias))[0]
+            torch.testing.assert_close(got[b, n], want, rtol=1e-10, atol=1e-12)

@@ -75,7 +75,8 @@ class GravityHead(GeometryModule):
         \qquad s_n = v^\top \mathrm{ReLU}(U_n + b),
 
     with :math:`\theta_{nm}` the geodesic distance from :math:`a_n` to :math:`p_m`,
-    ``num_basis`` Gaussian bumps :math:`\varphi_k` over :math:`[0, \pi]`, and :math:`w` the
+    ``num_basis`` Gaussian bumps :math:`\varphi_k` over :math:`[0, \pi]` (centres :math:`k\pi / (K - 1)`,
+    that spacing their width), and :math:`w` the
     grid's areas inside the field of view. This is a distance-kernel convolution with a
     whole-sphere support evaluated at the candidates: it asks, for each candidate, "does
     the scene look upright if this is up?" (ceiling-like content near it, floor-like
