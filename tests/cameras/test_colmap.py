@@ -309,3 +309,25 @@ def test_the_cli_lifts_a_colmap_rigs_images_onto_one_sphere(tmp_path):
     assert set(best[mask]) == {0, 1, 2}
     want = np.broadcast_to(60 * (best[mask, None] + 1.0), (int(mask.sum()), 3))
     np.testing.assert_allclose(lifted.x[mask].numpy(), want, atol=1e-4)
+
+
+def test_opencvs_model_with_zero_thin_prism_terms_is_written_as_full_opencv():
+    from usf_graph.cameras.colmap import colmap_entry
+
+    d = [0.1, -0.02, 0.001, 0.002, 0.003, 0.01, -0.004, 0.0005]
+    cam = C.Pinhole(500.0, 510.0, 319.5, 239.5, 640, 480, dist=d + [0.0] * 4)  # s1..s4 zero
+    assert colmap_entry(cam) == ("FULL_OPENCV", [500.0, 510.0, 320.0, 240.0] + d)
+
+
+def test_a_list_of_many_cameras_names_the_first_eight_ids(tmp_path):
+    rows = "".join(f"{i} PINHOLE 64 48 50 50 32 24\n" for i in range(1, 11))
+    (tmp_path / "cameras.txt").write_text(rows)
+    with pytest.raises(ValueError, match=r"10 COLMAP cameras \(ids 1, 2, 3, 4, 5, 6, 7, 8, \.\.\. \(10 in all\)\)"):
+        C.load(tmp_path)
+
+
+def test_a_ray_table_model_that_gives_no_pixel_a_ray_is_refused(tmp_path):
+    (tmp_path / "cameras.txt").write_text("1 THIN_PRISM_FISHEYE 8 6 0 0 4 3 0 0 0 0 0 0 0 0\n")
+    with pytest.raises(ValueError, match=r"\[camera 1\]: pycolmap gives no pixel of this THIN_PRISM_FISHEYE "
+                                         r"camera a ray; check its parameters \[0\.0, 0\.0, 4\.0"):
+        C.load(tmp_path)
