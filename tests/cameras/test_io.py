@@ -185,9 +185,11 @@ def test_broken_files_name_the_file_and_the_key(tmp_path, name, old, new, match)
     assert str(bad) in str(e.value) and "np.float64" not in str(e.value)
 
 
-def test_key_for_a_single_camera_file_is_an_error():
-    with pytest.raises(ValueError, match=r"key='cam1' \(--key\).*OpenCV file with one camera"):
-        C.load(FIX / "opencv_pinhole.yaml", key="cam1")
+@pytest.mark.parametrize("name, kind", [("opencv_pinhole.yaml", "an OpenCV"), ("usf_sensor_mei.yaml", "a USF sensor"),
+                                        ("ros_plumb_bob.yaml", "a ROS camera_info")])
+def test_key_for_a_single_camera_file_is_an_error(name, kind):
+    with pytest.raises(ValueError, match=rf"key='cam1' \(--key\).*this is {kind} file with one camera"):
+        C.load(FIX / name, key="cam1")
 
 
 def test_opencv_filestorage_yaml_and_xml():
@@ -342,3 +344,12 @@ def test_vins_fusions_camodocal_files_project_as_opencv_does():
         got, valid = cam.project(pts)
         assert valid.all(), name
         np.testing.assert_allclose(got, want, atol=1e-6, rtol=0, err_msg=name)
+
+
+def test_rig_topics_need_every_camera_to_name_its_topic(tmp_path):
+    text = (FIX / "kalibr_rig.yaml").read_text()
+    assert C.rig_topics(FIX / "kalibr_rig.yaml") == ["/front/image_raw", "/back/image_raw"]
+    for topic in ('""', "7"):  # empty, or not a name
+        bad = tmp_path / f"chain_{len(topic)}.yaml"
+        bad.write_text(text.replace("rostopic: /back/image_raw", f"rostopic: {topic}"))
+        assert C.rig_topics(bad) is None
