@@ -56,3 +56,28 @@ def test_an_in_memory_dataset_of_spherical_images_loads_safely(tmp_path):
     assert type(ds[1]) is SphericalImage and len(ds) == 2
     assert torch.equal(ds[1].x, imgs[1].x) and torch.equal(ds[1].mask, imgs[1].mask)
     assert torch.equal(ds[0].edge_dist, imgs[0].edge_dist)
+
+
+def test_unit_range_takes_floats_in_zero_one_and_refuses_the_rest():
+    a = np.array([[0.0, 0.25, 1.0, np.nan]], np.float64)
+    out = unit_range(a)
+    assert out.dtype == np.float32 and np.array_equal(out, a.astype(np.float32), equal_nan=True)
+    assert unit_range(np.array([0, 255], np.uint8)).tolist() == [0.0, 1.0]
+    for bad, said in ((np.array([-0.5, 1.0]), r"\[-0.5, 1\]"), (np.array([0.0, 2.0]), r"\[0, 2\]")):
+        with pytest.raises(ValueError, match=rf"values in \[0, 1\], got {said}; divide by 255"):
+            unit_range(bad)
+    with pytest.raises(ValueError, match="image dtype int32 is not supported"):
+        unit_range(np.zeros(3, np.int32))
+
+
+def test_a_spherical_images_latitude_and_longitude_are_its_points():
+    import torch
+
+    from usf_graph import SphericalImage
+    from usf_graph.geometry import from_latlon
+
+    rng = np.random.default_rng(3)
+    lat, lon = rng.uniform(-1.5, 1.5, 20), rng.uniform(-3.1, 3.1, 20)
+    img = SphericalImage(x=torch.zeros(20, 1), pos=torch.as_tensor(from_latlon(lat, lon)))
+    np.testing.assert_allclose(img.lat.numpy(), lat, atol=1e-12)
+    np.testing.assert_allclose(img.lon.numpy(), lon, atol=1e-12)
