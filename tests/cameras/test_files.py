@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.helpers import CodeOnLoad
 from usf_graph.cameras.files import Src, read_document
 
 SRC = Src(Path("calib.yaml"), "cam0")
@@ -36,24 +37,13 @@ def test_arrays_must_hold_numbers_and_transforms_take_12_or_16():
         SRC.rigid(np.eye(3).ravel().tolist(), "T_cam_imu")
 
 
-UNPICKLED = []
-
-
-def _trip():
-    UNPICKLED.append(1)
-
-
-class _Tripwire:
-    def __reduce__(self):
-        return _trip, ()
-
-
 def test_an_npz_holding_pickled_objects_is_refused_without_running_them(tmp_path):
     path = tmp_path / "kd.npz"
-    np.savez(path, K=np.eye(3), D=np.array([_Tripwire()], dtype=object))
+    mark = tmp_path / "ran"
+    np.savez(path, K=np.eye(3), D=np.array([CodeOnLoad(mark)], dtype=object))
     with pytest.raises(ValueError, match=f"cannot read {path}"):
         read_document(path, None)
-    assert UNPICKLED == []
+    assert not mark.exists()
 
 
 @pytest.mark.parametrize("name, text", [

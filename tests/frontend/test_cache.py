@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import CodeOnLoad
 from usf_graph.frontend import GeometryCache, default_cache
 from usf_graph.frontend.cache import default_cache_dir
 
@@ -120,26 +121,15 @@ def test_clear_keeps_the_files_by_default(tmp_path):
     assert len(list(tmp_path.glob("*.npz"))) == 1
 
 
-UNPICKLED = []
-
-
-def _trip():
-    UNPICKLED.append(1)
-
-
-class _Tripwire:
-    def __reduce__(self):
-        return _trip, ()
-
-
 def test_a_file_holding_pickled_objects_is_not_unpickled(tmp_path):
     cache = GeometryCache(tmp_path)
     path, key = cache.path("t", {"n": 1}), cache.digest("t", {"n": 1})
-    np.savez(path, __key__=np.array(key), w=np.array([_Tripwire()], dtype=object))
+    mark = tmp_path / "ran"
+    np.savez(path, __key__=np.array(key), w=np.array([CodeOnLoad(mark)], dtype=object))
     build = _builder([1.0])
     out, said = _rebuilt(GeometryCache(tmp_path), "t", {"n": 1}, build)
     assert out["w"].tolist() == [1.0] and build.calls == 1 and "corrupt or stale" in said[0]
-    assert UNPICKLED == []  # a cache file never runs code
+    assert not mark.exists()  # a cache file never runs code
 
 
 def test_the_process_wide_cache_is_one_cache():

@@ -7,7 +7,6 @@ import shutil
 import socket
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.helpers import CodeOnLoad
 from usf_graph.models import SphericalClassifier
 from usf_graph.train.engine import load_checkpoint, save_checkpoint
 
@@ -367,19 +367,9 @@ def test_seed_everything_seeds_every_generator_and_asks_for_deterministic_kernel
     assert draws() == first
 
 
-class _Payload:
-    """A pickle that runs code when loaded: it touches ``mark``."""
-
-    def __init__(self, mark):
-        self.mark = mark
-
-    def __reduce__(self):
-        return (Path.touch, (self.mark,))
-
-
 def test_a_checkpoint_that_would_run_code_is_refused_unrun(tmp_path):
     mark = tmp_path / "ran"
-    torch.save({"state_dict": {}, "config": {}, "x": _Payload(mark)}, tmp_path / "evil.pt")
+    torch.save({"state_dict": {}, "config": {}, "x": CodeOnLoad(mark)}, tmp_path / "evil.pt")
     with pytest.raises(ValueError, match="is not a readable usf-graph checkpoint.*do not load a file"):
         load_checkpoint(tmp_path / "evil.pt")
     assert not mark.exists()
