@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from tests.fixtures.make_colmap_fixture import CAMERAS, H, W
 from tests.helpers import FIXTURES
 from usf_graph import cameras as C
-from usf_graph.cameras.colmap import CLOSED_FORM, HALF_PIXEL
+from usf_graph.cameras.colmap import CLOSED_FORM, HALF_PIXEL, colmap_entry, save_text
 from usf_graph.cli import main
 
 FOLDERS = {"text": FIXTURES / "colmap", "binary": FIXTURES / "colmap_bin"}
@@ -168,8 +168,6 @@ WRITABLE = {
 
 
 def test_cameras_written_for_colmap_project_as_pycolmap_reads_them(tmp_path):
-    from usf_graph.cameras.colmap import save_text
-
     save_text(WRITABLE, tmp_path / "cameras.txt")
     for name in ("images.txt", "points3D.txt"):  # pycolmap reads a whole sparse model
         (tmp_path / name).write_text("")
@@ -191,8 +189,6 @@ def test_cameras_written_for_colmap_project_as_pycolmap_reads_them(tmp_path):
 
 
 def test_cameras_colmap_cannot_hold_are_refused_and_nothing_is_written(tmp_path, capsys):
-    from usf_graph.cameras.colmap import save_text
-
     out = tmp_path / "cameras.txt"
     for bad in (C.DoubleSphere(300, 300, 320, 240, 640, 480, xi=-0.2, alpha=0.6),
                 C.Mei(500, 500, 320, 240, 640, 480, xi=1.2, dist=(0.1, 0, 0, 0)),
@@ -214,8 +210,6 @@ def test_colmap_parameters_survive_a_write_and_a_read_to_the_bit(tmp_path_factor
     """Any calibration written (text) and read back, as text or after pycolmap rewrote it
     as binary, has the same parameters to the last bit; the principal point to the
     rounding of the half pixel added and taken away."""
-    from usf_graph.cameras.colmap import colmap_entry, save_text
-
     K = dict(fx=f[0], fy=f[1], cx=c[0], cy=c[1], width=640, height=480)
     cam = {"OPENCV": lambda: C.Pinhole(**K, dist=d[:4]),
            "FULL_OPENCV": lambda: C.Pinhole(**K, dist=d[:4] + [0.0] * 3 + [0.01]),
@@ -312,8 +306,6 @@ def test_the_cli_lifts_a_colmap_rigs_images_onto_one_sphere(tmp_path):
 
 
 def test_opencvs_model_with_zero_thin_prism_terms_is_written_as_full_opencv():
-    from usf_graph.cameras.colmap import colmap_entry
-
     d = [0.1, -0.02, 0.001, 0.002, 0.003, 0.01, -0.004, 0.0005]
     cam = C.Pinhole(500.0, 510.0, 319.5, 239.5, 640, 480, dist=d + [0.0] * 4)  # s1..s4 zero
     assert colmap_entry(cam) == ("FULL_OPENCV", [500.0, 510.0, 320.0, 240.0] + d)

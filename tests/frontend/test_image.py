@@ -3,10 +3,12 @@ SphericalImages save and load as PyG's own data."""
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from usf_graph import SphericalImage
 from usf_graph.frontend.image import to_uint8, unit_range
 
 
@@ -35,10 +37,9 @@ def test_an_in_memory_dataset_of_spherical_images_loads_safely(tmp_path):
     unsafe unpickling (PyG warns when it does)."""
     import warnings
 
-    import torch
     from torch_geometric.data import InMemoryDataset
 
-    from usf_graph import SphericalFrontend, SphericalImage, cameras, grids
+    from usf_graph import SphericalFrontend, cameras, grids
 
     fe = SphericalFrontend(cameras.Equirectangular(32, 16), grids.icosahedral(1))
     rng = np.random.default_rng(0)
@@ -71,9 +72,6 @@ def test_unit_range_takes_floats_in_zero_one_and_refuses_the_rest():
 
 
 def test_a_spherical_images_latitude_and_longitude_are_its_points():
-    import torch
-
-    from usf_graph import SphericalImage
     from usf_graph.geometry import from_latlon
 
     rng = np.random.default_rng(3)

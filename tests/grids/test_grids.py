@@ -6,6 +6,8 @@ import torch
 
 from usf_graph import grids
 from usf_graph.geometry import geodesic_distance, random_rotation, rotate
+from usf_graph.grids import base
+from usf_graph.grids.base import Grid, grid_size
 
 
 @pytest.mark.parametrize("g, n", [(lambda: grids.icosahedral(3), 642),
@@ -174,8 +176,6 @@ def test_locality_order_lets_the_convolution_tile():
 def test_voronoi_areas_are_kept_by_the_points_not_the_object(monkeypatch):
     """A new grid object with the same points reuses their areas; other points (a turned
     grid) get their own, and editing a grid's areas leaves the kept ones alone."""
-    from usf_graph.grids import base
-
     calls = []
     real = base.voronoi_areas
     monkeypatch.setattr(base, "voronoi_areas", lambda p: calls.append(len(p)) or real(p))
@@ -194,8 +194,6 @@ def test_smallest_grids_refusals_spacing_and_quality_against_brute_force():
     """The smallest grid of each kind builds; a grid normalizes its points and refuses
     fewer than 4; ``spacing`` and ``quality()`` are the nearest-neighbour statistics they
     say, computed here from every pairwise distance."""
-    from usf_graph.grids.base import Grid
-
     for g, n in ((grids.icosahedral(0), 12), (grids.healpix(1), 12), (grids.fibonacci(4), 4),
                  (grids.equiangular(2, 2), 4)):
         assert len(g) == n, g.spec
@@ -292,8 +290,6 @@ def test_icosahedral_grid_has_the_icosahedrons_symmetry(level):
 
 
 def test_the_kept_areas_are_the_last_16_point_sets(monkeypatch):
-    from usf_graph.grids import base
-
     monkeypatch.setattr(base, "_AREAS", type(base._AREAS)())
     sets = [grids.fibonacci(20 + k) for k in range(17)]
     for g in sets:
@@ -306,8 +302,6 @@ def test_the_kept_areas_are_the_last_16_point_sets(monkeypatch):
 
 
 def test_grid_sizes_include_both_bounds():
-    from usf_graph.grids.base import grid_size
-
     assert grid_size("level", 10, 0, 10) == 10 and grid_size("level", 0, 0, 10) == 0
     with pytest.raises(ValueError, match=r"level must be an integer in \[0, 10\], got 11"):
         grid_size("level", 11, 0, 10)
