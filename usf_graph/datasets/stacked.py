@@ -80,7 +80,7 @@ def pack_boxes(boxes, classes) -> dict:
 
     boxes = [np.reshape(b, (-1, 5)) for b in boxes]  # a single box may come as 5 numbers
     counts = [len(b) for b in boxes]
-    return {"boxes": torch.as_tensor(np.concatenate(boxes)).reshape(-1, 5),
+    return {"boxes": torch.as_tensor(np.concatenate(boxes)),
             "box_class": torch.as_tensor(np.concatenate([np.reshape(c, -1) for c in classes])).long(),
             "box_ptr": torch.as_tensor(np.r_[0, np.cumsum(counts)]).long()}
 
