@@ -220,6 +220,27 @@ def test_cube_maps_save_resize_and_refuse(tmp_path):
         Cubemap(7.5)
 
 
+@pytest.mark.parametrize("camera", [Cubemap(8, "horizon"), Cubemap(8, "dice"), Cubemap(8, "c3x2"),
+                                    EquiAngularCubemap(40, 30)], ids=["horizon", "dice", "c3x2", "eac"])
+def test_points_off_the_layout_have_no_ray(camera):
+    """Past any edge of the image, by less than a face, a point lies on no face: the
+    nearest face's cell is not stretched to reach it."""
+    w, h = camera.width, camera.height
+    off = np.array([[w + 1.0, 1.0], [1.0, h + 1.0], [w + 1.0, h + 1.0], [-2.0, 1.0], [1.0, -2.0]])
+    rays, ok = camera.unproject(off)
+    assert not ok.any() and np.isnan(rays).all()
+
+
+def test_smallest_cube_maps_and_the_widest_padding():
+    """A face of 2 pixels and an EAC image of 6 are allowed; padding must leave most of a
+    face both across (a third of the width) and down (half the height)."""
+    assert Cubemap(2).width == 12 and EquiAngularCubemap(6, 6, padding=0).face_shape == (2, 3)
+    for w, h in ((30, 40), (40, 20)):  # the narrower face across, then down: 10 pixels
+        EquiAngularCubemap(w, h, padding=2.4)
+        with pytest.raises(ValueError, match="padding must be"):
+            EquiAngularCubemap(w, h, padding=2.6)
+
+
 @pytest.mark.parametrize("camera", [Cubemap(8, "horizon"), Cubemap(8, "dice"), EquiAngularCubemap(40, 30),
                                     Equirectangular(32, 16),
                                     Equirectangular(32, 16, lat_range=(-1.0, 0.5), lon_range=(-2.0, 2.0)),
