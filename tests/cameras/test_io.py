@@ -152,6 +152,7 @@ BROKEN = [
     ("kalibr_camchain.yaml", "[0.999997256477, 0.002312067192", "[2.999997256477, 0.002312067192",
      r"\[cam1\]: 'T_cn_cnm1' is not a rigid transform"),
     ("usf_sensor_mei.yaml", "model_type: 1", "model_type: 7", r"unknown model_type 7; supported: 0"),
+    ("usf_sensor_mei.yaml", "  model_type: 1\n", "", "missing key 'model_type' in 'intrinsic'"),
     ("usf_sensor_mei.yaml", "    gamma1: 409.006\n", "", "missing key 'gamma1' in 'projection_parameters'"),
     ("usf_sensor_mei.yaml", "gamma1: 409.006", "gamma1: -330.0", r"fx must be a positive finite number, got -330.0\."),
     ("usf_sensor_mei.yaml", "usf_sensor_mask.png", "nothing.png", "cannot read the image mask"),
@@ -190,6 +191,38 @@ def test_broken_files_name_the_file_and_the_key(tmp_path, name, old, new, match)
 def test_key_for_a_single_camera_file_is_an_error(name, kind):
     with pytest.raises(ValueError, match=rf"key='cam1' \(--key\).*this is {kind} file with one camera"):
         C.load(FIX / name, key="cam1")
+
+
+def test_distortion_padded_missing_or_unknown(tmp_path):
+    """Zero coefficients past a model's count (OpenCV pads to 5 or 8) are read and a
+    non-zero one is refused; no coefficients at all, or a USF sensor file without
+    distortion_parameters, mean no distortion; a stray model_type does not make a K/D/DIM
+    file a USF sensor one; an unknown model names the supported ones."""
+    p = tmp_path / "c.yaml"
+
+    def load(text):
+        p.write_text(text)
+        return C.load(p)
+
+    ros, four = (FIX / "ros_equidistant.yaml").read_text(), "cols: 4\n  data: [0.021, -0.0042, 0.0007, -0.0001]"
+    assert four in ros
+    assert load(ros.replace(four, "cols: 5\n  data: [0.021, -0.0042, 0.0007, -0.0001, 0]")).key() == \
+        C.load(FIX / "ros_equidistant.yaml").key()
+    with pytest.raises(ValueError, match=r"'distortion_coefficients' has 5 coefficients but this model "
+                                         r"uses 4; the extra ones are not zero: \[0.5\]"):
+        load(ros.replace(four, "cols: 5\n  data: [0.021, -0.0042, 0.0007, -0.0001, 0.5]"))
+    assert np.array_equal(load(ros.replace(four, "cols: 0\n  data: []")).k, np.zeros(4))
+    with pytest.raises(ValueError, match="'distortion_coefficients' must have 4 coefficients, got 1"):
+        load(ros.replace(four, "cols: 1\n  data: [0.021]"))
+    usf = (FIX / "usf_sensor_mei.yaml").read_text().replace("mask: usf_sensor_mask.png\n", "")
+    mei = load(usf[:usf.index("  distortion_parameters")] + usf[usf.index("  projection_parameters"):])
+    assert isinstance(mei, C.Mei) and mei.xi == 1.7993 and not np.any(mei.dist)
+    kdd = "K: [300, 0, 320, 0, 300, 240, 0, 0, 1]\nD: [0.1, 0, 0, 0]\nDIM: [640, 480]\n"
+    cam = load(kdd + "model_type: fisheye\n")
+    assert isinstance(cam, C.KannalaBrandt) and cam.k[0] == 0.1
+    with pytest.raises(ValueError, match="unknown distortion_model 'magic'; supported: plumb_bob, "
+                                         "rational_polynomial, pinhole, radtan, equidistant, fisheye"):
+        load(kdd + "distortion_model: magic\n")
 
 
 def test_opencv_filestorage_yaml_and_xml():
@@ -278,7 +311,8 @@ def test_bad_files_raise_clear_errors(tmp_path):
         C.load(p)
     p.write_text("image_width: 640\nimage_height: 480\ncamera_matrix: {rows: 3, cols: 3, "
                  "data: [1,0,0,0,1,0,0,0,1]}\ndistortion_coefficients: {data: []}\n")
-    with pytest.raises(ValueError, match="missing key 'distortion_model'"):
+    with pytest.raises(ValueError, match="missing key 'distortion_model'; ROS camera_info needs one of "
+                                         "plumb_bob, rational_polynomial, equidistant"):
         C.load(p)
     p.write_text(p.read_text() + "distortion_model: magic\n")
     with pytest.raises(ValueError, match="unknown ROS distortion_model 'magic'"):
