@@ -167,6 +167,8 @@ BROKEN = [
      "'Camera.width' must be whole positive numbers of pixels"),
     ("nerfstudio_transforms.json", '"w": 876', '"w": 876.4', "'w' must be whole positive numbers"),
     ("calib_results.txt", "960 1280", "960 1280.5", "'height width' must be whole positive numbers"),
+    ("calib_results.txt", "479.508480 639.418160", "479.508480 639.418160 1.0",
+     "malformed OCamCalib calib_results.txt .*expected 'row col' centre"),
     ("basalt_calib.json", "                848,", "                848.5,",
      r"\[cam1\]: 'resolution' must be whole positive numbers of pixels, got \[848.5, 800"),
 ]
@@ -223,6 +225,23 @@ def test_distortion_padded_missing_or_unknown(tmp_path):
     with pytest.raises(ValueError, match="unknown distortion_model 'magic'; supported: plumb_bob, "
                                          "rational_polynomial, pinhole, radtan, equidistant, fisheye"):
         load(kdd + "distortion_model: magic\n")
+
+
+def test_own_files_with_bad_parameters_or_placement(tmp_path):
+    """usf-graph's own YAML: a model's refusal of its parameters and a bad position or
+    distance are errors that name the file."""
+    p = tmp_path / "cam.yaml"
+    C.save(C.Pinhole(300, 300, 320, 240, 640, 480).with_position([0.1, 0, 0]), p)
+    text = p.read_text()
+    assert "fx: 300.0" in text and "- 0.1\n- 0.0\n- 0.0\n" in text
+    for old, new, match in (("fx: 300.0", "fx: -300.0", r"bad parameters for Pinhole \(fx must be"),
+                            ("fx: 300.0", "f_x: 300.0", "bad parameters for Pinhole .*f_x"),
+                            ("- 0.1\n- 0.0\n- 0.0\n", "- 0.1\n- 0.0\n", "position must be 3 numbers"),
+                            ("usf_graph_camera: 1\n", "usf_graph_camera: 1\ndistance: -2\n", "distance")):
+        p.write_text(text.replace(old, new))
+        with pytest.raises(ValueError, match=match) as e:
+            C.load(p)
+        assert str(p) in str(e.value)
 
 
 def test_opencv_filestorage_yaml_and_xml():
