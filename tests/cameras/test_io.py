@@ -5,6 +5,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from tests.helpers import FIXTURES
 from usf_graph import cameras as C
@@ -48,6 +49,44 @@ def test_kalibr_extrinsics_mount_each_camera_in_the_rig():
     np.testing.assert_allclose(rig["cam1"].rotation @ [1.0, 0, 0], [0, 1, 0], atol=1e-15)
     with pytest.raises(ValueError, match=r"\[cam2\].*T_cn_cnm1"):
         C.load_rig(chain)
+
+
+def test_kalibr_omni_without_distortion_and_a_chain_with_an_imu_section(tmp_path):
+    """omni-none is Mei without distortion; a mapping that is not a camera (an IMU's
+    section) is not one of the chain's cameras."""
+    text = (FIX / "kalibr_camchain.yaml").read_text()
+    radtan = "distortion_coeffs: [-0.0302, 0.0125, 0.0004, -0.0003]\n  distortion_model: radtan"
+    assert radtan in text
+    (tmp_path / "omni.yaml").write_text(text.replace(radtan, "distortion_coeffs: []\n  distortion_model: none"))
+    mei = C.load(tmp_path / "omni.yaml", key="cam2")
+    assert isinstance(mei, C.Mei) and mei.xi == 0.8 and not np.any(mei.dist)
+    (tmp_path / "imu.yaml").write_text((FIX / "kalibr_rig.yaml").read_text() +
+                                       "imu0:\n  rostopic: /imu0\n  update_rate: 200.0\n")
+    assert list(C.load_rig(tmp_path / "imu.yaml")) == ["cam0", "cam1"]
+
+
+def test_kalibr_rig_from_the_imu_extrinsics_alone(tmp_path):
+    """Without T_cn_cnm1, each camera is mounted from both cameras' T_cam_imu: the rig is
+    the one the same chain written with T_cn_cnm1 (cam1 <- cam0) gives."""
+    rng = np.random.default_rng(3)
+
+    def rigid():
+        q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = q * np.sign(np.linalg.det(q)), rng.normal(size=3) * 0.1
+        return T
+
+    T0, T1 = rigid(), rigid()  # cam <- IMU
+    cam = yaml.safe_load((FIX / "kalibr_rig.yaml").read_text())["cam0"]
+    (tmp_path / "imu.yaml").write_text(yaml.safe_dump(
+        {"cam0": {**cam, "T_cam_imu": T0.tolist()}, "cam1": {**cam, "T_cam_imu": T1.tolist()}}))
+    (tmp_path / "chain.yaml").write_text(yaml.safe_dump(
+        {"cam0": cam, "cam1": {**cam, "T_cn_cnm1": (T1 @ np.linalg.inv(T0)).tolist()}}))
+    imu, chain = C.load_rig(tmp_path / "imu.yaml"), C.load_rig(tmp_path / "chain.yaml")
+    assert not np.allclose(imu["cam1"].rotation, imu["cam0"].rotation, atol=0.1)
+    for k in ("cam0", "cam1"):
+        np.testing.assert_allclose(imu[k].rotation, chain[k].rotation, atol=1e-12)
+        np.testing.assert_allclose(imu[k].position, chain[k].position, atol=1e-12)
 
 
 def test_opencv_calibration_sample_fisheye_model_flag():
@@ -151,6 +190,10 @@ BROKEN = [
      r"\[cam1\]: Kalibr distortion_model 'equidistant' takes 4 distortion_coeffs, got 5"),
     ("kalibr_camchain.yaml", "[0.999997256477, 0.002312067192", "[2.999997256477, 0.002312067192",
      r"\[cam1\]: 'T_cn_cnm1' is not a rigid transform"),
+    ("kalibr_camchain.yaml", "camera_model: pinhole", "camera_model: fov",
+     "unknown Kalibr camera_model 'fov'; supported: pinhole, omni, ds, eucm"),
+    ("kalibr_camchain.yaml", "distortion_model: radtan", "distortion_model: fov",
+     "Kalibr pinhole-fov is not supported; supported: pinhole-radtan"),
     ("usf_sensor_mei.yaml", "model_type: 1", "model_type: 7", r"unknown model_type 7; supported: 0"),
     ("usf_sensor_mei.yaml", "  model_type: 1\n", "", "missing key 'model_type' in 'intrinsic'"),
     ("usf_sensor_mei.yaml", "    gamma1: 409.006\n", "", "missing key 'gamma1' in 'projection_parameters'"),
