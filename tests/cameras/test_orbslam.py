@@ -12,7 +12,7 @@ STEREO = FIXTURES / "orbslam3_stereo_kb8.yaml"  # File.version 1.0, KannalaBrand
 MONO = FIXTURES / "orbslam3_mono_pinhole.yaml"  # the older Camera.* layout, PinHole
 
 
-def test_both_layouts_read_with_their_parameters():
+def test_both_layouts_read_with_their_parameters(tmp_path):
     left, right = C.load(STEREO), C.load(STEREO, key="Camera2")
     assert isinstance(left, C.KannalaBrandt) and (left.width, left.height) == (512, 512)
     assert (left.fx, left.cy) == (190.97847715128717, 256.8974428996504)
@@ -23,6 +23,13 @@ def test_both_layouts_read_with_their_parameters():
     np.testing.assert_array_equal(mono.dist[:5], [0.262383, -0.953104, -0.005358, 0.002628, 1.163314])
     with pytest.raises(ValueError, match=r"no camera 'Camera2' in the ORB-SLAM3 settings"):
         C.load(MONO, key="Camera2")
+    # a PinHole without distortion lines has none (each coefficient defaults to 0)
+    text = MONO.read_text()
+    lines = [ln for ln in text.splitlines(True) if ln.startswith(("Camera.k", "Camera.p"))]
+    assert len(lines) == 5
+    (tmp_path / "bare.yaml").write_text("".join(ln for ln in text.splitlines(True) if ln not in lines))
+    bare = C.load(tmp_path / "bare.yaml")
+    assert isinstance(bare, C.Pinhole) and bare.fx == 517.306408 and not np.any(bare.dist)
 
 
 def test_the_stereo_pair_is_mounted_by_T_c1_c2():
