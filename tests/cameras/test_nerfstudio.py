@@ -70,14 +70,19 @@ def test_frames_with_their_own_intrinsics_are_picked_by_file_path(tmp_path):
     frames = [{"file_path": "./images/a.jpg", "fl_x": 500.0, "fl_y": 500.0},
               {"file_path": "./images/b.jpg", "fl_x": 450.0, "fl_y": 455.0, "k1": -0.1}]
     path = write(tmp_path / "transforms.json", top, frames)
-    with pytest.raises(ValueError, match=r"cameras of their own \(intrinsics or masks; 2 frames.*choose one by its file_path"):
+    with pytest.raises(ValueError, match=r"cameras of their own \(intrinsics or masks; 2 frames, "
+                                         r"e.g. './images/a.jpg'\); choose one by its file_path"):
         C.load(path)
     b = C.load(path, key="images/b.jpg")  # with or without ./
     assert (b.fx, b.fy, b.cx, b.cy) == (450.0, 455.0, 320.0 - HALF_PIXEL, 240.0 - HALF_PIXEL)
     assert b.dist[0] == -0.1 and C.load(path, key="./images/a.jpg").fy == 500.0
     assert sorted(C.load_all(path)) == ["./images/a.jpg", "./images/b.jpg"]
-    with pytest.raises(ValueError, match="no frame with file_path 'c.jpg'"):
+    with pytest.raises(ValueError, match=r"no frame with file_path 'c.jpg' \(e.g. './images/a.jpg'\)"):
         C.load(path, key="c.jpg")
+    # frames without intrinsics, at the top or in a frame: not a transforms.json
+    (tmp_path / "poses.json").write_text(json.dumps({"frames": [{"file_path": "a.jpg", "w": W}]}))
+    with pytest.raises(ValueError, match=r"unrecognized calibration format \(top-level keys: \['frames'\]\)"):
+        C.load(tmp_path / "poses.json")
 
 
 def test_bad_transforms_get_errors_that_name_the_fix(tmp_path):
