@@ -40,13 +40,31 @@ def _written_mp4(path, frames: int = 3, faststart: bool = False):
         out.mux(s.encode(None))
 
 
-def _spherical(path) -> list:
-    """What FFmpeg (through PyAV) reads of each frame's spherical side data: the projection
-    (0: equirectangular), or None where a frame has none; and the frames' pixels."""
+def _two_track_mp4(path, faststart: bool = False):
+    """An MPEG-4 video with two video tracks of three flat 64x64 frames each, written
+    interleaved (so each track's media lies in several chunks) by FFmpeg through PyAV."""
+    av = pytest.importorskip("av")
+    with av.open(str(path), "w", options={"movflags": "faststart"} if faststart else {}) as out:
+        streams = [out.add_stream("mpeg4", rate=10) for _ in range(2)]
+        for s in streams:
+            s.width, s.height, s.pix_fmt = 64, 64, "yuv420p"
+        for k in range(3):
+            for j, s in enumerate(streams):
+                img = np.full((64, 64, 3), 60 * j + 20 * k, np.uint8)
+                out.mux(s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")))
+        for s in streams:
+            out.mux(s.encode(None))
+    return path
+
+
+def _spherical(path, track: int = 0) -> list:
+    """What FFmpeg (through PyAV) reads of each frame of video ``track``'s spherical side
+    data: the projection (0: equirectangular), or None where a frame has none; and the
+    frames' pixels."""
     av = pytest.importorskip("av")
     found, pixels = [], []
     with av.open(str(path)) as c:
-        for f in c.decode(video=0):
+        for f in c.decode(video=track):
             sd = [d for d in f.side_data if d.type.name == "SPHERICAL"]
             found.append(int.from_bytes(bytes(sd[0])[:4], "little") if sd else None)
             pixels.append(f.to_ndarray(format="rgb24"))
@@ -123,6 +141,25 @@ def test_mark_spherical_moves_64_bit_chunk_offsets(tmp_path):
     marked, after = _spherical(path)
     assert marked == [0] * 3 and len(after) == 3
     assert all(np.array_equal(a, b) for a, b in zip(before, after))
+
+
+def test_mark_spherical_moves_every_chunk_of_every_track(tmp_path):
+    """Two interleaved video tracks, moov box first: each track's media lies in several
+    chunks, and marking moves every chunk offset of both; each track decodes to its own
+    frames, marked."""
+    from usf_graph.videos import mark_spherical
+
+    path = _two_track_mp4(tmp_path / "two.mp4", faststart=True)
+    data = path.read_bytes()
+    stco = data.index(b"stco")
+    assert data.index(b"moov") < data.index(b"mdat") and int.from_bytes(data[stco + 8:stco + 12], "big") > 1
+    before = [_spherical(path, t)[1] for t in (0, 1)]
+    mark_spherical(path)
+    for t in (0, 1):
+        marked, after = _spherical(path, t)
+        assert marked == [0] * 3 and len(after) == 3
+        assert all(np.array_equal(a, b) for a, b in zip(before[t], after))
+    assert not np.array_equal(before[0][0], before[1][0])
 
 
 def test_mark_spherical_refuses_what_it_cannot_mark_and_keeps_the_file(tmp_path):
@@ -314,18 +351,7 @@ def test_a_second_video_track_is_said_not_dropped(tmp_path):
 
     from usf_graph.videos import frames, video_track_count
 
-    av = pytest.importorskip("av")
-    path = tmp_path / "two.mp4"
-    with av.open(str(path), "w") as out:
-        streams = [out.add_stream("mpeg4", rate=10) for _ in range(2)]
-        for s in streams:
-            s.width, s.height, s.pix_fmt = 64, 64, "yuv420p"
-        for k in range(3):
-            for j, s in enumerate(streams):
-                img = np.full((64, 64, 3), 60 * j + 20 * k, np.uint8)
-                out.mux(s.encode(av.VideoFrame.from_ndarray(img, format="rgb24")))
-        for s in streams:
-            out.mux(s.encode(None))
+    path = _two_track_mp4(tmp_path / "two.mp4")
     assert video_track_count(path) == 2
     with pytest.warns(UserWarning, match=r"holds 2 video tracks.*-map 0:v:1") as caught:
         got = list(frames(path))
