@@ -162,8 +162,29 @@ def test_mark_spherical_moves_every_chunk_of_every_track(tmp_path):
     assert not np.array_equal(before[0][0], before[1][0])
 
 
+def test_mark_spherical_keeps_a_64_bit_moov_size_and_reads_past_a_last_empty_box(tmp_path):
+    """A moov box with a 64-bit size (size 1, then 8 bytes) stays one when it grows; an
+    8-byte box (an empty ``free``) that ends the file is a box. FFmpeg decodes the same
+    frames, marked."""
+    from usf_graph.videos import _moov, mark_spherical
+
+    path = tmp_path / "large.mp4"
+    _written_mp4(path)  # OpenCV's: the moov box last, so no media data moves
+    before = _spherical(path)[1]
+    start, size, _, moov = _moov(path)
+    data = path.read_bytes()
+    large = b"\0\0\0\x01moov" + (size + 8).to_bytes(8, "big") + moov[8:]
+    path.write_bytes(data[:start] + large + data[start + size:] + b"\0\0\0\x08free")
+    mark_spherical(path)
+    start, size, head, moov = _moov(path)
+    assert head == 16 and moov[:8] == b"\0\0\0\x01moov" and int.from_bytes(moov[8:16], "big") == size
+    assert path.read_bytes().endswith(b"\0\0\0\x08free")
+    marked, after = _spherical(path)
+    assert marked == [0] * 3 and all(np.array_equal(a, b) for a, b in zip(before, after))
+
+
 def test_mark_spherical_refuses_what_it_cannot_mark_and_keeps_the_file(tmp_path):
-    from usf_graph.videos import mark_spherical
+    from usf_graph.videos import mark_spherical, video_track_count
 
     path = tmp_path / "pano.mp4"
     _written_mp4(path)
@@ -180,6 +201,18 @@ def test_mark_spherical_refuses_what_it_cannot_mark_and_keeps_the_file(tmp_path)
     junk.write_bytes(b"\0\0\0\x10free01234567")  # one box, no moov
     with pytest.raises(ValueError, match="0 moov boxes"):
         mark_spherical(junk)
+    # moov first: the media data would move, and a 32-bit chunk offset past 4 GiB
+    first = tmp_path / "first.mp4"
+    _written_mp4(first, faststart=True)
+    data = first.read_bytes()
+    stco = data.index(b"stco")
+    assert int.from_bytes(data[stco + 8:stco + 12], "big") == 1  # one chunk
+    far = data[:stco + 12] + (2**32 - 4).to_bytes(4, "big") + data[stco + 16:]
+    first.write_bytes(far)
+    with pytest.raises(ValueError, match="would move past 4 GiB"):
+        mark_spherical(first)
+    assert first.read_bytes() == far
+    assert video_track_count(tmp_path / "x.avi") == 0  # no MP4: no tracks read
 
 
 def _with_v2_boxes(path, stereo_mode: int, projection: bytes) -> None:
@@ -256,6 +289,10 @@ def test_spherical_metadata_reads_v1_and_v2_as_ffmpeg_does(tmp_path):
         else:
             with pytest.raises(ValueError, match="stereo" if mode else "projection cubemap.*cubemap:c3x2"):
                 check_panorama_video(v2)
+    # modes and projections the RFC does not name are said as they are
+    v2.write_bytes(plain.read_bytes())
+    _with_v2_boxes(v2, 7, b"abcd")
+    assert spherical_metadata(v2) == {"projection": "unknown", "stereo": "mode 7", "version": 2}
 
 
 def test_eye_image_is_the_half_its_layout_names():
