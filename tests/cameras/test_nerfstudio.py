@@ -28,6 +28,8 @@ CASES = {
                 "PINHOLE", [600.0, 600.0, 320.0, 240.0]),
     "instant_ngp": ({"camera_angle_x": 1.2}, "PINHOLE",  # no model, no centre: a pinhole, centred
                     [0.5 * W / math.tan(0.6)] * 2 + [W / 2, H / 2]),
+    "instant_ngp_narrow": ({"camera_angle_x": 0.9, "camera_angle_y": 0.7}, "PINHOLE",  # under a radian
+                           [0.5 * W / math.tan(0.45), 0.5 * H / math.tan(0.35), W / 2, H / 2]),
     "fisheye": ({k: _FISHEYE[k] for k in ("camera_model", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4")},
                 "OPENCV_FISHEYE", [_FISHEYE[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4")]),
 }
@@ -92,6 +94,7 @@ def test_bad_transforms_get_errors_that_name_the_fix(tmp_path):
                         ({**good, "camera_model": "OPENCV_FISHEYE", "p1": 0.1}, "no tangential terms"),
                         ({"camera_model": "OPENCV"}, "give fl_x \\(pixels\\) or camera_angle_x"),
                         ({"camera_angle_x": 3.5}, "between 0 and pi"),
+                        ({"camera_angle_x": 0.0}, "between 0 and pi radians, got 0.0"),
                         ({**good, "fl_x": float("nan")}, "'fl_x' must be finite")):
         with pytest.raises(ValueError, match=why):
             C.load(write(tmp_path / "transforms.json", fields))
