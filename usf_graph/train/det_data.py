@@ -93,7 +93,7 @@ class DetectionSet(Dataset):
 
     def collate(self, idx: list[int]):
         """Indices -> ``(x, mask, boxes [K, 5], classes [K], image [K])``."""
-        idx = torch.as_tensor(idx)
+        idx = torch.as_tensor(idx, dtype=torch.long)  # an empty list too
         x = self.x[idx]
         x = x.permute(0, 3, 1, 2).float() / 255 if x.dtype == torch.uint8 else x.float()
         a, b = self.box_ptr[idx], self.box_ptr[idx + 1]
