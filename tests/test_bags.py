@@ -256,6 +256,14 @@ def test_a_rig_bag_gives_frames_matched_by_stamp(tmp_path):
         next(bags.rig_frames(bag, ["/front", "/front"]))
     with pytest.raises(ValueError, match=r"no frame of /back has an image of every other camera \(/front\) within 0.001 ms"):
         next(bags.rig_frames(bag, ["/back", "/front"], max_skew_ns=1000))
+    # a frame's index is the first topic's message index, though /back has one more before
+    msgs = [("/back", image_msg(ROS2, frame(9), 9, 0), 0)]
+    for i in range(3):
+        msgs += [("/front", image_msg(ROS2, frame(i), 10, i * 10**8), 2 * i + 1),
+                 ("/back", image_msg(ROS2, frame(10 + i), 10, i * 10**8 + 10**6), 2 * i + 2)]
+    early = list(bags.rig_frames(write_bag(tmp_path / "early", False, msgs), ["/front", "/back"]))
+    assert [f.index for f in early] == [0, 1, 2]
+    assert all(np.array_equal(f.images[1], frame(10 + f.index)) for f in early)
 
 
 def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys):
