@@ -423,8 +423,9 @@ def test_the_accelerometer_gives_up_about_each_stamp(tmp_path):
     want = np.mean([m[1].linear_acceleration.x for m in msgs[30:51]])
     assert u[0] == pytest.approx(want / np.linalg.norm(acc.readings[30:51].mean(0)), rel=1e-12)
     # past the last reading but within the window: the nearest
-    np.testing.assert_allclose(acc.up(7 * 10**9 + 495 * 10**6 + 9 * 10**7),
-                               acc.readings[99] / np.linalg.norm(acc.readings[99]))
+    for late in (9 * 10**7, 10**8):  # the window's whole width away still counts
+        np.testing.assert_allclose(acc.up(7 * 10**9 + 495 * 10**6 + late),
+                                   acc.readings[99] / np.linalg.norm(acc.readings[99]))
     with pytest.raises(ValueError, match=r"no IMU reading within 100 ms of the frame at 8000000000 ns"):
         acc.up(8 * 10**9)
     with pytest.raises(ValueError, match=r"reads 0.05 m/s\^2 about 9000000000 ns, too little to tell up"):
