@@ -158,6 +158,8 @@ def test_what_cannot_be_read_says_why(tmp_path):
     zero = write_bag(tmp_path / "zero", False, messages(ROS2, False, 1, calib, k_zero=True))
     with pytest.raises(ValueError, match=r"\[/cam/camera_info\]: the camera_info is uncalibrated"):
         bags.camera(zero, "/cam/image_raw")
+    one, none = (write_bag(tmp_path / f"b{b}", False, messages(ROS2, False, 1, calib, binning=b)) for b in (1, 0))
+    assert bags.camera(one, "/cam/image_raw").key() == bags.camera(none, "/cam/image_raw").key()  # 1: not binned
     binned = write_bag(tmp_path / "binned", False, messages(ROS2, False, 1, calib, binning=2))
     with pytest.raises(ValueError, match=r"binned or cropped camera_info \(binning 2x2"):
         bags.camera(binned, "/cam/image_raw")
