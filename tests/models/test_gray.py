@@ -1,6 +1,8 @@
 """Models for mono cameras (``gray=True``): they read their input's luma and nothing else,
 the up estimate included, and the setting survives the config round trip."""
 
+import cv2
+import numpy as np
 import pytest
 import torch
 
@@ -93,6 +95,16 @@ def test_the_up_estimate_reads_the_luma_when_called_alone(cls, kw):
     assert gray.gravity.gray and not colour.gravity.gray
     for k in ("up", "logits"):
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=1e-12)
+
+
+def test_grayscale_is_opencvs_luma():
+    """:func:`grayscale` is ``cv2.cvtColor(..., COLOR_RGB2GRAY)`` on any channel axis."""
+    rgb = np.random.default_rng(0).random((5, 7, 3), dtype=np.float32)
+    want = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    got = grayscale(torch.as_tensor(rgb))
+    np.testing.assert_allclose(got.numpy(), np.repeat(want[..., None], 3, -1), rtol=0, atol=1e-6)
+    first = grayscale(torch.as_tensor(rgb).permute(2, 0, 1), dim=0)
+    np.testing.assert_allclose(first.numpy(), np.repeat(want[None], 3, 0), rtol=0, atol=1e-6)
 
 
 def test_gray_needs_rgb_inputs():

@@ -42,6 +42,15 @@ def test_score_is_the_area_weighted_mean_output_over_the_visible_points():
     np.testing.assert_allclose(whole, (out * a).sum(-1) / a.sum(), rtol=0, atol=1e-12)
 
 
+def test_the_checks_own_up_estimate_is_frozen():
+    """The U-Net is handed its candidate up and never asks its own estimate, so training the
+    check leaves that estimate alone; everything else trains."""
+    names = [n for n, p in _check().named_parameters() if p.requires_grad]
+    frozen = [n for n, p in _check().named_parameters() if not p.requires_grad]
+    assert frozen and all(n.startswith("net.gravity.") for n in frozen)
+    assert names and not any(n.startswith("net.gravity.") for n in names)
+
+
 def test_forward_flips_exactly_where_down_scores_higher():
     check = _check()
     x, up = _views(8, 2)
