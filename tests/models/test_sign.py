@@ -77,6 +77,7 @@ def test_narrow_fields_of_view_are_not_asked():
         torch.testing.assert_close(check(x, wide, up), torch.where(flip[:, None], -up, up))
     assert _check(min_field=0.0).asked(narrow)
     assert not _check(min_field=1.0).asked(narrow)  # both ends of [0, 1] are shares
+    assert _check(min_field=1.0).asked(torch.ones(len(pos), dtype=torch.bool))  # at least the share
     for bad in (-0.1, 1.5):
         with pytest.raises(ValueError, match="min_field is a share of the sphere"):
             SignCheck(level=3, channels=(4, 4, 4), min_field=bad)
