@@ -156,6 +156,9 @@ def test_pools_and_unpool_on_a_pyg_batch_equal_each_graph_alone():
             yi, mi = pool(d.x, d.mask)
             assert torch.equal(m[batch == i], mi)
             assert (y[batch == i] - yi).abs().max() < 1e-14
+        # one sample in the static form with a shared mask [N] gives that mask back as [M]
+        y1, m1 = pool(datas[0].x[None], datas[0].mask)
+        assert torch.equal(m1, m[batch == 0]) and (y1[0] - y[batch == 0]).abs().max() < 1e-14
         # the static form with per-sample masks [B, N] gives the same
         ys, ms = pool(b.x.view(2, len(g), -1), b.mask.view(2, len(g)))
         assert (ys.reshape(-1, 3) - y).abs().max() < 1e-14 and torch.equal(ms.reshape(-1), m)
@@ -178,6 +181,9 @@ def test_grid_layers_name_both_numbers_on_a_wrong_size():
                                                              torch.ones(100)]).long())
     with pytest.raises(ValueError, match="mask must have one value per point"):
         pool(torch.randn(2, len(g), 3), torch.ones(7, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"with batch, GridPool takes x \[sum N_i, C\] and batch \[sum N_i\]; "
+                                         rf"got x \(1, {len(g)}, 3\)"):
+        pool(torch.randn(1, len(g), 3), batch=torch.zeros(len(g), dtype=torch.long))
     with pytest.raises(ValueError, match=f"grid of {len(coarse)}"):
         GridUnpool(cl)(torch.randn(len(g), 3))
 
