@@ -40,6 +40,38 @@ def test_an_export_without_recorded_fields_says_how_to_record_them():
     assert torch.equal(program.module()(*args), torch.zeros(3))
 
 
+def test_what_a_trace_or_a_transform_cannot_read_is_refused_or_skipped():
+    """Value checks run eagerly only; under a torch.func transform a field of view cannot be
+    read, and while exporting tables are built by an eager call first."""
+    seen = {}
+
+    def f(x, key):
+        seen[key] = (tracing.check_values(), tracing.transforming())
+        return x.sum()
+
+    x, mask = torch.ones(3), torch.tensor([True, False, True])
+    f(x, "eager")
+    torch.func.grad(f)(x, "grad")
+    torch.func.vmap(f, in_dims=(0, None))(x[None], "vmap")
+    assert seen == {"eager": (True, False), "grad": (False, True), "vmap": (False, True)}
+    with pytest.raises(RuntimeError, match="cannot be read under a torch.func transform"):
+        torch.func.grad(lambda t: t.sum() * float(tracing.field_of(mask).all()))(x)
+
+    class Builds(torch.nn.Module):
+        def forward(self, t):
+            seen["export"] = tracing.check_values()
+            tracing.require_eager("its padded tables")
+            return t
+
+    tracing.require_eager("anything")  # eagerly: nothing to refuse
+    with pytest.raises(RuntimeError, match="its padded tables are built by an eager call first"):
+        torch.export.export(Builds(), (x,))
+    assert seen["export"] is False
+    with tracing.fixed_fields() as rec:
+        tracing.note_field(None)  # no mask: nothing recorded
+    assert rec == {}
+
+
 @pytest.mark.parametrize("cls, kw", SPHERICAL, ids=[c.__name__ for c, _ in SPHERICAL])
 def test_plain_forms_give_the_fast_forms_outputs_and_gradients(cls, kw):
     """Every spherical model, float64, a new field of view on every call, its up estimate
