@@ -1,3 +1,6 @@
+import hashlib
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -120,6 +123,8 @@ def test_bad_arguments(root):
         RoomsSegmentation(root, rotate="z", **KW)
     with pytest.raises(ValueError, match="split must be"):
         RoomsSegmentation(root, split="val", **KW)
+    with pytest.raises(ValueError, match="num_scenes must be at least 1, got 0"):
+        RoomsSegmentation(root, **{**KW, "num_scenes": 0})
 
 
 def test_gravity_views_are_a_train_splits_views_without_labels_or_boxes(root):
@@ -198,6 +203,9 @@ def test_rooms_by_kind_and_rooms_of_another_version_are_stored_apart(tmp_path, m
     from usf_graph.datasets.rooms import _cache_stem
 
     assert _cache_stem("p", n=3) == _cache_stem("p", materials="random", n=3)
+    # the default names no materials, so splits stored before they existed still load
+    plain = json.dumps({"n": 3, "rooms": rooms.ROOMS_VERSION}, sort_keys=True).encode()
+    assert _cache_stem("p", n=3) == "p_" + hashlib.sha256(plain).hexdigest()[:12]
     assert _cache_stem("p", materials="by_kind", n=3) != _cache_stem("p", n=3)
     now = _cache_stem("p", n=3)
     monkeypatch.setattr(rooms, "ROOMS_VERSION", 1)  # the rooms without beds, before session 71
