@@ -23,6 +23,7 @@ from usf_graph.train.apply import (
     detect_image,
     lift_for,
     rgb01,
+    rgb_channels,
     segment_image,
 )
 from usf_graph.train.seg import protocol_sets
@@ -143,6 +144,8 @@ def test_bad_images_cameras_and_models_are_refused(views):
     assert np.array_equal(mono, segment_image(net, np.dstack([gray] * 3), ds.camera)["probs"])
     with pytest.warns(UserWarning, match="grayscale"):
         assert np.array_equal(segment_image(net, gray[..., None], ds.camera)["probs"], mono)
+    with pytest.warns(UserWarning, match="grayscale"):  # read alone, it assumes a colour model too
+        assert np.array_equal(rgb_channels(gray), np.dstack([gray] * 3))
     torch.manual_seed(0)  # a model for mono cameras takes it silently, and colour as its luma
     mono_net = SphericalUNet(13, level=3, channels=(8, 8, 8, 8), gravity=True, gray=True).eval()
     with warnings.catch_warnings():
