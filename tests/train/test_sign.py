@@ -5,6 +5,7 @@ import torch
 from torch import nn
 
 from usf_graph.grids import icosahedral
+from usf_graph.nn import MaskedBatchNorm
 from usf_graph.train.sign import load_sign_check, pretrain_sign
 
 
@@ -46,6 +47,38 @@ def test_pretrain_sign_learns_which_way_is_up():
     with torch.no_grad():
         kept, turned = check(x, None, g), check(x, None, -g)
     assert torch.equal(kept, g) and torch.equal(turned, g), float(before)
+
+
+def test_pretrain_sign_runs_its_two_phases_as_documented(monkeypatch):
+    """First whole views at ``lr[0]`` with the normalizations training, then cut views at
+    ``lr[1]`` with them frozen; each phase's cosine schedule spans its own steps."""
+    made = []
+
+    class Adam(torch.optim.Adam):
+        def __init__(self, params, lr):
+            made.append({"lr": lr})
+            super().__init__(params, lr=lr)
+
+    class Cosine(torch.optim.lr_scheduler.CosineAnnealingLR):
+        def __init__(self, opt, T_max):
+            made[-1]["T_max"] = T_max
+            super().__init__(opt, T_max)
+
+    monkeypatch.setattr(torch.optim, "Adam", Adam)
+    monkeypatch.setattr(torch.optim.lr_scheduler, "CosineAnnealingLR", Cosine)
+    check, calls = _sign_check(), []
+    norm, score = next(m for m in check.modules() if isinstance(m, MaskedBatchNorm)), check.score
+
+    def spy(x, mask, up):
+        calls.append((len(made), mask is None or bool(mask.all()), norm.training))
+        return score(x, mask, up)
+
+    monkeypatch.setattr(check, "score", spy)
+    pretrain_sign(check, _SignViews(10, 0), epochs=2, cut_epochs=1, share=1.0, batch_size=4,
+                  lr=(0.01, 0.002), progress=False)
+    assert made == [{"lr": 0.01, "T_max": 6}, {"lr": 0.002, "T_max": 3}]  # 3 batches an epoch
+    assert [c[1:] for c in calls if c[0] == 1] == [(True, True)] * 12  # 2 scores a batch
+    assert [c[1:] for c in calls if c[0] == 2] == [(False, False)] * 6
 
 
 def test_pretrain_sign_refuses_other_grids_and_nan_views():
