@@ -119,7 +119,7 @@ def _load_opencv(src: Src, data: dict, ros: bool) -> Camera:
     if model is None:
         if ros:
             src.need(data, "distortion_model",
-                     hint="ROS camera_info needs one of plumb_bob, rational_polynomial, equidistant")
+                     hint=f"ROS camera_info needs one of {', '.join(_PINHOLE_DIST[:2] + ('equidistant',))}")
         model = "fisheye" if data.get("fisheye_model") else "pinhole"
     model = str(model).lower()
     if model in _FISHEYE_DIST:
