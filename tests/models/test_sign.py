@@ -45,8 +45,9 @@ def test_score_is_the_area_weighted_mean_output_over_the_visible_points():
 def test_the_checks_own_up_estimate_is_frozen():
     """The U-Net is handed its candidate up and never asks its own estimate, so training the
     check leaves that estimate alone; everything else trains."""
-    names = [n for n, p in _check().named_parameters() if p.requires_grad]
-    frozen = [n for n, p in _check().named_parameters() if not p.requires_grad]
+    params = list(_check().named_parameters())
+    names = [n for n, p in params if p.requires_grad]
+    frozen = [n for n, p in params if not p.requires_grad]
     assert frozen and all(n.startswith("net.gravity.") for n in frozen)
     assert names and not any(n.startswith("net.gravity.") for n in names)
 
