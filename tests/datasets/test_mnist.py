@@ -47,7 +47,7 @@ def test_idx_reader_rejects_corrupt_files(tmp_path, digits):
         load_digits(tmp_path / "none", "train", "idx")
     write_idx(tmp_path / "t10k-images-idx3-ubyte", digits[0])
     write_idx(tmp_path / "t10k-labels-idx1-ubyte", digits[1][:6])
-    with pytest.raises(ValueError, match="has 7 images but .*t10k-labels-idx1-ubyte 6 labels"):
+    with pytest.raises(ValueError, match=r"t10k-images-idx3-ubyte has 7 images but .*t10k-labels-idx1-ubyte 6 labels"):
         load_digits(tmp_path, "test")
 
 
