@@ -87,7 +87,7 @@ def load(path, key: str | None = None, fov_deg: float | None = None, image_mask=
     if key is not None and fmt is not None:
         raise ValueError(f"{path}: key={key!r} (--key) picks a camera in a Kalibr camchain, a "
                          "Basalt calibration, ORB-SLAM3 stereo settings or a COLMAP camera "
-                         f"list, but this is {'an' if fmt[0] in 'AEIO' else 'a'} {fmt} file "
+                         f"list, but this is {'an' if fmt[0] in 'AEIO' else 'a'} {fmt} file "  # "a USF": as spoken
                          "with one camera; leave the key out")
     return with_fov_and_mask(cam, fov_deg, image_mask)
 

@@ -75,9 +75,9 @@ class GravityHead(GeometryModule):
         \qquad s_n = v^\top \mathrm{ReLU}(U_n + b),
 
     with :math:`\theta_{nm}` the geodesic distance from :math:`a_n` to :math:`p_m`,
-    ``num_basis`` Gaussian bumps :math:`\varphi_k` over :math:`[0, \pi]` (centres :math:`k\pi / (K - 1)`,
-    that spacing their width), and :math:`w` the
-    grid's areas inside the field of view. This is a distance-kernel convolution with a
+    ``num_basis`` Gaussian bumps :math:`\varphi_k` over :math:`[0, \pi]` (centred at
+    :math:`k\pi / (K - 1)`, as wide as that spacing), and :math:`w` the grid's areas
+    inside the field of view. This is a distance-kernel convolution with a
     whole-sphere support evaluated at the candidates: it asks, for each candidate, "does
     the scene look upright if this is up?" (ceiling-like content near it, floor-like
     content opposite, furniture below the horizon), which needs no single point to know
