@@ -138,6 +138,7 @@ def test_rooms_are_kept_read_only_and_rebuilt_once_let_go():
     assert scenes.make_room(6, 2, size=(5.0, 4.0, 3.0)) is a  # the same arguments, any spelling
     assert scenes.make_room(6, 2, size=(5, 4, 3.1)) is not a
     assert scenes.make_room(6, 2, size=(5, 4, 3), materials="by_kind") is not a
+    assert scenes.make_room(index=3) is scenes.make_room(0, 3, None, None, "random")  # the defaults
     with pytest.raises(AttributeError, match="cannot assign"):
         a.light = np.zeros(3)
     for arr in (a.light, a.face_instance, a.instances[0].lo, a.appearance["tint"]):
