@@ -230,8 +230,10 @@ def image_msg(ts, rgb, sec, nanosec):
     T = ts.types
     h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
                                  frame_id="cam")
+    mono = rgb.ndim == 2  # a mono camera's frame
     return T["sensor_msgs/msg/Image"](header=h, height=rgb.shape[0], width=rgb.shape[1],
-                                      encoding="rgb8", is_bigendian=0, step=3 * rgb.shape[1],
+                                      encoding="mono8" if mono else "rgb8", is_bigendian=0,
+                                      step=(1 if mono else 3) * rgb.shape[1],
                                       data=np.ascontiguousarray(rgb).reshape(-1))
 
 

@@ -107,6 +107,25 @@ def test_the_imus_orientation_is_read_on_its_own_clock(tmp_path, bag):
         RosBagFrames(tmp_path / "d", imu_bag, camera=chain, imu="/imu", imu_up="gyro")
 
 
+def test_a_mono_camera_with_a_camera_object_and_its_imu_rotation(tmp_path, bag):
+    """Mono frames lift to one channel; with a Camera (no calibration file) the IMU's
+    rotation is given, and the IMU's clock is the frames' own."""
+    path, cam, tilt = bag
+    msgs = [("/imu", imu_msg(ROS2, 9.81 * tilt, 50 + k // 10, (k % 10) * 10**8), k) for k in range(40)]
+    grays = [np.resize(frame(i)[..., 1], (cam.height, cam.width)).astype(np.uint8) for i in range(2)]
+    msgs += [("/mono", image_msg(ROS2, g, 50 + i, 0), 50 + i) for i, g in enumerate(grays)]
+    R = cameras.DEFAULT_ROTATION
+    ds = RosBagFrames(tmp_path / "d", write_bag(tmp_path / "mono", False, msgs), camera=cam,
+                      grid="icosahedral:3", imu="/imu", imu_to_sphere=R, progress=False)
+    assert ds.imu_time_shift_ns == 0 and ds.topic == "/mono"
+    np.testing.assert_allclose(ds.gravity.numpy(), np.tile(R @ tilt / np.linalg.norm(tilt), (2, 1)),
+                               atol=1e-12)
+    fe = SphericalFrontend(cam, ds.grid)
+    for d, g in zip(ds, grays):
+        assert d.x.shape == (642, 1)
+        torch.testing.assert_close(d.x, fe.lift(g.astype(np.float32) / 255).to(torch.float16).float())
+
+
 def test_png_frames_with_alpha_lift_their_colour(tmp_path):
     """A compressed topic's PNGs may carry alpha: the colour is lifted, the alpha dropped
     (the camera's mask says what it sees)."""
