@@ -1,6 +1,8 @@
 """VideoFrames: a video's frames lifted once (one camera, or a 360 camera's side-by-side
 fisheyes onto one sphere), their index and time, the processed file."""
 
+import warnings
+
 import cv2
 import numpy as np
 import pytest
@@ -68,6 +70,12 @@ def test_a_video_without_a_frame_rate_has_no_times(tmp_path, world, monkeypatch)
     with pytest.warns(UserWarning, match="no frame rate"):
         ds = VideoFrames(tmp_path / "data", tmp_path / "walk.avi", pano, grid="icosahedral:2", progress=False)
     assert ds.stamp_ns.tolist() == [-1, -1] and ds.frame.tolist() == [0, 1]
+    monkeypatch.undo()
+    write_video(tmp_path / "lapse.avi", frames[:2], fps=0.5)  # a time-lapse: under a frame a second
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = VideoFrames(tmp_path / "data", tmp_path / "lapse.avi", pano, grid="icosahedral:2", progress=False)
+    assert ds.stamp_ns.tolist() == [0, 2 * 10**9]
 
 
 def test_a_dual_fisheye_video_lifts_onto_one_sphere(tmp_path, world):
