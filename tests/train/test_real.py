@@ -97,6 +97,18 @@ def _woodscape(root):
     return root
 
 
+class _Fixed(torch.nn.Module):
+    """The same per-point logits ``[N, C]`` for every image."""
+
+    def __init__(self, logits):
+        super().__init__()
+        self.logits, self.w = logits, torch.nn.Parameter(torch.zeros(()))
+        self.config = {"num_classes": logits.shape[1]}
+
+    def forward(self, x, mask, up=None):
+        return self.logits.expand(len(x), -1, -1)
+
+
 class _Constant(torch.nn.Module):
     """Predicts class ``c`` everywhere, and checks that every batch shares one field of
     view, the one each of its samples was lifted with."""
@@ -123,6 +135,7 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
     from usf_graph.datasets.woodscape import CLASSES
     from usf_graph.frontend.interpolation import valid_pixels
     from usf_graph.train.real import evaluate_fields
+    from usf_graph.train.seg_metrics import confusion_matrix, scores
 
     root = _woodscape(tmp_path / "ws")
     mvr = root / "semantic_annotations" / "gtLabels" / "00005_MVR.png"
@@ -154,6 +167,15 @@ def test_woodscape_scores_each_image_on_its_own_pixels(tmp_path):
     soft = evaluate_fields(_Constant(ds, 1), ds, batch_size=2, progress=False, names=CLASSES,
                            render="soft")  # each point's class probabilities blended
     assert soft["IoU"] == r["IoU"] and soft["cameras"] == r["cameras"]
+    # logits of very different scales: blending them, not the probabilities, labels otherwise
+    logits = torch.full((len(ds.grid), 10), -30.0)
+    logits[:, 1] = 0.0
+    logits[:, 6] = torch.randn(len(ds.grid), generator=torch.Generator().manual_seed(0)) * 8
+    got = evaluate_fields(_Fixed(logits), ds, batch_size=2, progress=False, render="soft")
+    confs = [confusion_matrix(ds.frontend(i).to_labels(logits.softmax(-1), "soft").numpy(),
+                              ds.label_image(i), 10) for i in range(len(ds))]
+    want = scores(sum(confs), [str(c) for c in range(10)])
+    assert got["IoU"] == pytest.approx(want["IoU"], abs=1e-12) and got["IoU"]["6"] > 0
     from usf_graph.models import PlanarUNet
 
     with pytest.raises(ValueError, match="evaluate_fields scores spherical models; a planar one has no grid"):
