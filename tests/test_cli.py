@@ -217,6 +217,10 @@ def test_render_into_and_out_of_cube_maps(tmp_path, capsys):
         assert main(["render", str(tmp_path / image), "--camera", spec, "--to", "equirectangular",
                      "--out", str(tmp_path / "x.png")]) == 2
         assert why in capsys.readouterr().err
+    for argv, why in ((["cubemap:32", "--key", "cam0"], "a cube map has none"),
+                      (["equirectangular:64x32", "--key", "cam0"], "a panorama has none"),
+                      (["equirectangular"], "give the panorama's size: equirectangular:WIDTHxHEIGHT")):
+        assert main(["camera", *argv]) == 2 and why in capsys.readouterr().err  # no image to size it
 
 
 def test_render_and_camera_save_commands(tmp_path, capsys):
