@@ -363,6 +363,11 @@ def test_render_turns_a_bags_frames_into_a_video(tmp_path, capsys):
     assert len(got) == 3 and fps == 4
     for g, shot in zip(got, shots):
         assert np.abs(g.astype(float) - r(shot)).mean() < 3  # Motion JPEG
+    assert main(["render", str(bag), "--every", "3", "--to", "equirectangular:128x64",
+                 "--out", str(tmp_path / "one.avi")]) == 0  # one frame: no rate to read
+    assert "gives no frame rate: writing 30 fps" in capsys.readouterr().out
+    got, fps = decode_video(tmp_path / "one.avi")
+    assert len(got) == 1 and fps == 30
     # a rig's bag: the camchain's topics, matched by stamp, stitched
     chain = FIXTURES / "kalibr_rig.yaml"
     rig = {n: c.with_fov(190) for n, c in cameras.load_rig(chain).items()}
