@@ -898,6 +898,11 @@ def test_predict_cli_on_a_camera_file_seg_and_det(tmp_path, capsys):
     want = segment_image(seg.eval(), rgb, ds.camera, interpolation="bilinear")["labels"]
     assert got.dtype == np.uint8 and np.array_equal(got, want)
     assert len(np.unique(want)) > 2 and (tmp_path / "out" / "view_seg.png").stat().st_size > 0
+    seen = want[want != UNSEEN]  # the line names the five largest shares of the seen pixels
+    shares = np.sort(np.bincount(seen) / seen.size)[::-1][:5]
+    line = next(s for s in out.splitlines() if s.startswith("view: "))
+    printed = [float(v) for v in re.findall(r" (\d+\.\d)%", line)]
+    assert printed == pytest.approx(100 * shares[shares > 0], abs=0.051)
     assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(tmp_path / "view.png"), *common,
                  "--up", "0", "0", "2"]) == 0
     assert "up: (+0.000, +0.000, +1.000), given" in capsys.readouterr().out
@@ -1002,6 +1007,16 @@ def _fisheye_views(tmp_path):
 
     return protocol_sets(tmp_path / "rooms", size=32, level=3, num_train=0, num_test=1,
                          tests=("c",), progress=False)["c"]
+
+
+def test_a_rigs_pictures_of_other_sizes_are_stacked_at_the_first_ones_scale():
+    from usf_graph.cli_predict import _stacked
+
+    a, b = np.zeros((10, 20, 3), np.uint8), np.full((20, 40, 3), 200, np.uint8)
+    v = _stacked([a, b], axis=0)  # one above the other: b at a's width
+    assert v.shape == (20, 20, 3) and (v[:10] == 0).all() and (v[10:] == 200).all()
+    h = _stacked([a, b], axis=1)  # side by side: b at a's height
+    assert h.shape == (10, 40, 3) and (h[:, :20] == 0).all() and (h[:, 20:] == 200).all()
 
 
 def test_predict_cli_on_a_rig(tmp_path, capsys):
