@@ -15,6 +15,7 @@ from usf_graph import bags, cameras
 pytest.importorskip("rosbags")
 pytest.importorskip("rosbags.image")
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
+from rosbags.rosbag2 import StoragePlugin  # noqa: E402
 from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
@@ -67,8 +68,6 @@ def messages(ts, ros1: bool, n, calib=None, encoding="rgb8", k_zero=False, binni
 
 def write_bag(path: Path, ros1: bool, msgs, mcap: bool = False) -> Path:
     """A bag of ``msgs`` written by rosbags: ROS 1, or ROS 2 in SQLite (or ``mcap``)."""
-    from rosbags.rosbag2 import StoragePlugin
-
     ts = ROS1 if ros1 else ROS2
     store = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
     with (Writer1(path) if ros1 else Writer2(path, version=9, storage_plugin=store)) as w:
@@ -392,7 +391,14 @@ def test_render_turns_a_bags_frames_into_a_video(tmp_path, capsys):
     assert main(["render", str(bag), "--camera", str(chain), "--max-skew", "0.5", "--to",
                  "equirectangular:64x32", "--out", str(tmp_path / "x.avi")]) == 2  # 1 ms apart
     assert "(/back/image_raw) within 0.5 ms" in capsys.readouterr().err
+    quiet = tmp_path / "quiet"  # its camera_info, and an image topic without a message
+    with Writer2(quiet, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        info = next(m for t, m, _ in messages(ROS2, False, 1, calib) if t == "/cam/camera_info")
+        w.write(w.add_connection("/cam/camera_info", info.__msgtype__, typestore=ROS2), 10**9,
+                ROS2.serialize_cdr(info, info.__msgtype__))
+        w.add_connection("/cam/image_raw", "sensor_msgs/msg/Image", typestore=ROS2)
     for argv, why in (([str(bag), str(bag)], "give one ROS bag"),
+                      ([str(quiet)], "gave no frame to re-image (with --every 1); check the topic with"),
                       ([str(tmp_path / "x.png"), "--topic", "/a"], "no bag was given"),
                       ([str(tmp_path / "x.png")], "give the camera's calibration")):
         assert main(["render", *argv, "--to", "equirectangular:64x32", "--out", str(tmp_path / "x.avi")]) == 2
