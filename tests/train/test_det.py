@@ -147,10 +147,11 @@ def test_protocol_runs_and_scores_every_test(tmp_path, capsys, monkeypatch):
     said = {ln[:3]: ln for ln in out.splitlines() if " up estimate: " in ln}
     assert said["(d)"].endswith(f"picked among straight-line axes on {n} views")
     assert said["(c)"].endswith(f"picked among straight-line axes on {n_c} views")
-    for name, flags, why in (("spherical", ["--known-up"], "exclude each other"),
-                             ("planar", [], "--up-lines needs a spherical model")):
-        assert main(["eval", "det", str(tmp_path / "out" / f"{name}.pt"), "--test", "d",
-                     "--up-lines", *flags]) == 2
+    for name, flags, why in (("spherical", ["--test", "d", "--up-lines", "--known-up"], "exclude each other"),
+                             ("planar", ["--test", "d", "--up-lines"], "--up-lines needs a spherical model"),
+                             ("spherical", ["--render", "soft"], "--render is segmentation's"),
+                             ("spherical", ["--test", "e"], "detection has tests a, b, c, d, not 'e'")):
+        assert main(["eval", "det", str(tmp_path / "out" / f"{name}.pt"), *flags]) == 2
         assert why in capsys.readouterr().err
 
 
