@@ -1168,6 +1168,17 @@ def test_train_mnist_refuses_the_options_of_train_det_and_seg(capsys):
         assert f"{named}: {what} of 'train det|seg', not of 'train mnist'" in capsys.readouterr().err
 
 
+def test_eval_and_train_read_each_stanford_fold(capsys):
+    p = build_parser()
+    assert [p.parse_args(["eval", "seg", "m.pt", "--fold", f]).fold for f in "123"] == [1, 2, 3]
+    assert [p.parse_args(["train", "seg", "--fold", f]).fold for f in ("1", "2", "3", "all")] == \
+        ["1", "2", "3", "all"]  # training may take the three in turn
+    for cmd in (["eval", "seg", "m.pt"], ["train", "seg"]):
+        with pytest.raises(SystemExit):
+            p.parse_args([*cmd, "--fold", "4"])
+        assert re.search(r"--fold: invalid choice: '?4'?", capsys.readouterr().err)
+
+
 def test_eval_mnist_refuses_the_options_of_eval_det_and_seg(tmp_path, capsys):
     for argv, named in ((["--test", "a"], "--test"), (["--known-up", "--fold", "2"], "--fold, --known-up"),
                         (["--gray"], "--gray")):
