@@ -199,7 +199,11 @@ def test_woodscape_command_trains_on_four_cameras_and_eval_scores_it_again(tmp_p
     assert (ckpt.dataset, ckpt.scale, ckpt.model.config["num_classes"]) == ("woodscape", 0.5, 10)
     # eval reads the vehicle frame's up with --known-up, as training scored it
     assert main(["eval", "seg", str(out / "spherical_unet.pt"), "--root", str(root), "--known-up"]) == 0
-    assert f"spherical_unet: mIoU {100 * r['mIoU']:.2f}," in capsys.readouterr().out
+    said = capsys.readouterr().out
+    for m in ("mIoU", "mAcc", "sphere_mIoU", "per_image_mIoU"):  # each score, in percent
+        assert f" {m} {100 * r[m]:.2f}" in said and f"spherical_unet: mIoU {100 * r['mIoU']:.2f}," in said
+    assert ("spherical_unet per camera: mIoU " + ", ".join(f"{c} {100 * v:.2f}" for c, v in
+                                                          r["cameras"].items())) in said
     for argv, match in ((["train", "seg", "--dataset", "woodscape", "--models", "planar_unet"],
                          "spherical models .* not \\['planar_unet'\\]"),
                         (["train", "seg", "--scale", "0.5"], "--scale resizes WoodScape"),
