@@ -40,6 +40,8 @@ def test_stanford_command_on_fixtures(tmp_path, capsys):
     line = next(ln for ln in capsys.readouterr().out.splitlines() if "mIoU" in ln)
     assert line.startswith("fold 1 test: ") or line.startswith("fold 1 test ")
     assert f"mIoU {100 * r['mIoU']:.2f}," in line and f"mAcc {100 * r['mAcc']:.2f}" in line
+    stored = sorted(p.name for p in (root / "processed").glob("stanford_*.pt"))
+    assert stored == ["stanford_f1_test_icosahedral5_16.pt", "stanford_f1_train_icosahedral5_16.pt"]
     assert load_protocol_model(ckpt).dataset == "stanford2d3ds" and load_protocol_model(ckpt).fold == 1
     assert load_protocol_model(ckpt).model.gray and load_protocol_model(ckpt).model.gravity.gray
     assert main(["eval", "seg", ckpt, "--root", str(root), "--gray"]) == 0  # gray already: the same
