@@ -16,6 +16,7 @@ from usf_graph.geometry import random_rotation
 from usf_graph.grids import icosahedral
 from usf_graph.models import PlanarUNet, SphericalDetector, SphericalUNet
 from usf_graph.models.gravity import UNSURE_MARGIN
+from usf_graph.ops.iou import box_iou
 from usf_graph.train.apply import (
     UNSEEN,
     choose_interpolation,
@@ -100,6 +101,15 @@ def test_a_given_up_is_read_instead_of_the_estimate(views):
         segment_image(SphericalUNet(13, level=3, channels=(8, 8, 8, 8)), img, ds.camera, up=[0, 0, 1])
 
 
+def _assert_same_boxes(a, b):
+    """Boxes alike: centres and sizes to 1e-4 rad, and as regions (IoU). The roll of a
+    near-square box is ill-conditioned (an untrained head's: lifts 2e-7 apart turned it
+    4e-4, IoU 0.9997) and moves the region by next to nothing."""
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape and np.allclose(a[:, :4], b[:, :4], atol=1e-4)
+    assert box_iou(torch.as_tensor(a), torch.as_tensor(b)).min() > 0.999
+
+
 def test_detect_image_equals_the_detector_on_the_reference_lift(views):
     ds = views["c"]
     torch.manual_seed(1)
@@ -111,7 +121,7 @@ def test_detect_image_equals_the_detector_on_the_reference_lift(views):
     with torch.no_grad():
         want = det.decode(det(x, mask), k=10, threshold=0.0)[0]
     assert len(r["boxes"]) == len(want["boxes"]) > 0
-    assert np.allclose(r["boxes"], want["boxes"], atol=1e-4)
+    _assert_same_boxes(r["boxes"], want["boxes"])
     assert np.array_equal(r["classes"], want["classes"])
     assert np.allclose(r["scores"], want["scores"], atol=1e-5)
     assert r["source"] == "estimated" and len(r["up"]) == 3
@@ -120,7 +130,8 @@ def test_detect_image_equals_the_detector_on_the_reference_lift(views):
                          threshold=0.0, k=10)
     with torch.no_grad():
         want = det.decode(det(x, mask, up=u), k=10, threshold=0.0)[0]
-    assert given["source"] == "given" and np.allclose(given["boxes"], want["boxes"], atol=1e-4)
+    assert given["source"] == "given"
+    _assert_same_boxes(given["boxes"], want["boxes"])
     assert len(given["scores"]) != len(r["scores"]) or not np.allclose(given["scores"], r["scores"], atol=1e-3)
     # its decoding defaults are the detector's
     ours = inspect.signature(detect_image).parameters
