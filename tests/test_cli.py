@@ -688,6 +688,13 @@ def test_camera_cli_prints_field_of_view_and_plots(tmp_path, capsys):
     assert cameras.load(tmp_path / "s.yaml").key() == cam.resized(320, 240).key()
     assert main(["camera", path, "--resize", "320"]) == 2
     assert "bad --resize '320': write WIDTHxHEIGHT" in capsys.readouterr().err
+    # one camera to COLMAP is camera 1; an unposed camera has no optical centre, a rig's has
+    assert main(["camera", path, "--save-colmap", str(tmp_path / "cameras.txt")]) == 0
+    out = capsys.readouterr().out
+    assert "(COLMAP's camera list, 1 camera;" in out and "optical centre" not in out
+    assert list(cameras.load_all(tmp_path / "cameras.txt")) == [1]
+    assert main(["camera", "tests/fixtures/kalibr_rig.yaml", "--key", "cam1"]) == 0
+    assert "optical centre (-0.1000, +0.0000, +0.0000) in the rig's" in capsys.readouterr().out
 
 
 def test_camera_cli_reports_bad_files(tmp_path, capsys):

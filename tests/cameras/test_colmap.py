@@ -198,7 +198,8 @@ def test_cameras_colmap_cannot_hold_are_refused_and_nothing_is_written(tmp_path,
             save_text({1: WRITABLE[1], 2: bad}, out)
         assert not out.exists()
     assert main(["camera", str(FIXTURES / "kalibr_rig.yaml"), "--all", "--save-colmap", str(out)]) == 0
-    assert "not in COLMAP's list" in capsys.readouterr().out
+    out_text = capsys.readouterr().out
+    assert "(COLMAP's camera list, 2 cameras;" in out_text and "not in COLMAP's list" in out_text
     assert list(C.load_all(out)) == [1, 2] and isinstance(C.load(out, key=2), C.KannalaBrandt)
 
 
