@@ -513,13 +513,16 @@ def test_render_level_straightens_a_tilted_panorama(tmp_path, capsys):
 def test_cache_command_shows_and_clears(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("USF_GRAPH_CACHE", str(tmp_path / "c"))
     (tmp_path / "c").mkdir()
-    (tmp_path / "c" / "lift-abc.npz").write_bytes(b"x" * 1000)
+    (tmp_path / "c" / "lift-abc.npz").write_bytes(b"x" * 1_500_000)
+    (tmp_path / "c" / "lift-abd.npz").write_bytes(b"x" * 20_000)
     (tmp_path / "c" / "graph-def.npz").write_bytes(b"x" * 3000)
     assert main(["cache"]) == 0
     out = capsys.readouterr().out
-    assert str(tmp_path / "c") in out and "lift" in out and "total        2 files" in out
+    assert str(tmp_path / "c") in out
+    assert "  lift         2 files       1.52 MB\n" in out and "  graph        1 files       0.00 MB\n" in out
+    assert "  total        3 files       1.52 MB\n" in out
     assert main(["cache", "--clear"]) == 0
-    assert "removed 2 files" in capsys.readouterr().out and not list((tmp_path / "c").iterdir())
+    assert "removed 3 files" in capsys.readouterr().out and not list((tmp_path / "c").iterdir())
     monkeypatch.setenv("USF_GRAPH_CACHE", "off")
     assert main(["cache"]) == 0 and "off" in capsys.readouterr().out
 
@@ -620,7 +623,13 @@ def test_info_reports_versions_and_working_extensions(capsys):
 
 
 def test_info_describes_a_checkpoint(tmp_path, capsys):
-    from usf_graph.models import PlanarCNN, SphericalClassifier, SphericalDetector
+    from usf_graph.models import (
+        PlanarCNN,
+        PlanarDetector,
+        PlanarUNet,
+        SphericalClassifier,
+        SphericalDetector,
+    )
     from usf_graph.train import save_checkpoint
 
     seg = tiny_seg_checkpoint(tmp_path / "seg.pt")
@@ -641,6 +650,14 @@ def test_info_describes_a_checkpoint(tmp_path, capsys):
     save_checkpoint(tmp_path / "mnist.pt", mnist, mnist.config, {"NR": 0.9512, "R": 0.9433})
     cnn = PlanarCNN()
     save_checkpoint(tmp_path / "cnn.pt", cnn, cnn.config, {"NR": 0.98})
+    unet = PlanarUNet(channels=(4, 4), gray=True)
+    save_checkpoint(tmp_path / "unet.pt", unet, {"model": "planar_unet", "size": 48, **unet.config}, {})
+    pdet = PlanarDetector(height=32, width=96, channels=(4, 4))
+    save_checkpoint(tmp_path / "pdet.pt", pdet, {"model": "planar_detector", **pdet.config}, {})
+    for name, seen in (("unet", "96x48 panoramas; gray"), ("pdet", "96x32 panoramas")):
+        assert main(["info", str(tmp_path / f"{name}.pt")]) == 0
+        rows = dict(re.split(r"\s{2,}", ln, maxsplit=1) for ln in capsys.readouterr().out.splitlines())
+        assert rows["input"] == seen, rows
     for name, model, test, score in (("det", "spherical_detector", "(c)", "AP50 25.00"),
                                      ("mnist", "spherical_classifier", "(R)", "accuracy 94.33"),
                                      ("cnn", "planar_cnn", "(NR)", "accuracy 98.00")):
@@ -651,6 +668,33 @@ def test_info_describes_a_checkpoint(tmp_path, capsys):
     (tmp_path / "bad.pt").write_bytes(b"junk")
     assert main(["info", str(tmp_path / "bad.pt")]) == 2
     assert "is not a readable usf-graph checkpoint" in capsys.readouterr().err
+
+
+def test_info_exits_with_1_on_a_broken_installation(capsys, monkeypatch):
+    """A required package that does not import, or extensions that do not run, is a broken
+    installation: named, and exit status 1 (an optional one missing is not)."""
+    import builtins
+
+    import torch_cluster
+
+    real = builtins.__import__
+
+    def no_healpy(name, *args, **kwargs):
+        if name == "healpy":
+            raise ImportError("No module named 'healpy'")
+        return real(name, *args, **kwargs)
+
+    with monkeypatch.context() as m:
+        m.setattr(builtins, "__import__", no_healpy)
+        assert main(["info"]) == 1
+    assert "healpy               NOT AVAILABLE (ImportError: No module named 'healpy')" in capsys.readouterr().out
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("undefined symbol: _ZN3c10")
+
+    monkeypatch.setattr(torch_cluster, "radius_graph", broken)
+    assert main(["info"]) == 1
+    assert "compiled extensions  FAILED: undefined symbol: _ZN3c10" in capsys.readouterr().out
 
 
 def test_info_says_how_to_get_the_optional_export_packages(capsys, monkeypatch):

@@ -178,7 +178,9 @@ def _add_info(sub, fmt, full: bool = True) -> None:
                                     "checkpoint holds",
                        description="Print versions, check the compiled extensions, show the "
                                    "cache; with a checkpoint, what it holds: the model, its "
-                                   "input, its training data, its saved scores and what made it.")
+                                   "input, its training data, its saved scores and what made it. "
+                                   "Exits with 1 when a required package does not import or "
+                                   "the compiled extensions do not run.")
     if not full:
         return
     i.add_argument("checkpoint", nargs="?", default=None,

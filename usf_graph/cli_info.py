@@ -58,14 +58,15 @@ def cmd_info(args) -> int:
 
     rows = [("usf-graph", __version__), ("python", platform.python_version()),
             ("torch", torch.__version__), ("numpy", numpy.__version__)]
+    ok = True  # every required package imports and the compiled extensions run
     for mod in (*REQUIRED, *OPTIONAL):
         try:
             rows.append((mod, getattr(__import__(mod), "__version__", "ok")))
         except Exception as e:  # noqa: BLE001 - report, do not crash
+            ok = ok and mod in OPTIONAL
             rows.append((mod, "not installed (optional, for usf-graph export: pip install "
                               "'usf-graph[export]')" if mod in OPTIONAL and isinstance(e, ImportError)
                          else f"NOT AVAILABLE ({type(e).__name__}: {e})"))
-    ok = True
     try:
         import torch_cluster
         import torch_scatter
