@@ -124,10 +124,12 @@ def test_the_bag_command_lists_what_predict_reads(tmp_path, capsys):
 
     msgs = messages(ROS2, False, 2, FIXTURES / "ros_equidistant.yaml")
     msgs += [("/imu0", imu_msg(ROS2, (0.0, 0.0, 9.81), 100, 0), 3),
-             ("/left/image_raw", image_msg(ROS2, frame(0), 100, 0), 4)]
+             ("/left/image_raw", image_msg(ROS2, frame(0), 100, 0), 4),
+             ("/note", ROS2.types["std_msgs/msg/String"](data="hi"), 5)]
     bag = write_bag(tmp_path / "run", False, msgs)
     assert main(["bag", str(bag)]) == 0
     lines = capsys.readouterr().out.splitlines()
+    assert lines[-1] == "other topics: /cam/camera_info (CameraInfo), /note (String)"
     assert lines[1].split() == ["/cam/image_raw", "Image", "2", "/cam/camera_info"]
     assert lines[2].split() == ["/cam/image_raw/compressed", "CompressedImage", "2", "/cam/camera_info"]
     assert lines[3].split()[:4] == ["/left/image_raw", "Image", "1", "-"]  # no /left/camera_info
@@ -328,6 +330,8 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
         a = cv2.imread(str(tmp_path / "s" / f"small_{name}_000000_labels.png"), cv2.IMREAD_UNCHANGED)
         b = cv2.imread(str(tmp_path / "s" / f"half_{k}_labels.png"), cv2.IMREAD_UNCHANGED)
         assert a.shape == (200, 200) and np.array_equal(a, b)
+    assert main(["predict", "seg", ckpt, str(bag), *common, "--max-skew", "0.9"]) == 2  # 1 ms apart
+    assert "(/back/image_raw) within 0.9 ms" in capsys.readouterr().err
     assert main(["predict", "seg", ckpt, str(bag), *common, "--topic", "/front/image_raw"]) == 2
     assert "has 2 cameras (cam0, cam1) but 1 topics" in capsys.readouterr().err
     assert main(["predict", "seg", ckpt, str(bag), "--camera", str(FIXTURES / "basalt_calib.json"),
@@ -621,6 +625,15 @@ def test_predict_reads_the_imu_at_the_shifted_stamp(tmp_path, capsys):
                      "--out", str(tmp_path / f"out_{shift}")]) == 0
         up = cameras.imu_rotation(chain) @ (acc / np.linalg.norm(acc))
         assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in capsys.readouterr().out
+    # the window, in ms about the stamp: 100 by default (readings 5-15, one tilted), or 120 (4-16)
+    chain = tmp_path / "chain_0.0.yaml"  # no shift
+    for window, (lo, hi) in ((None, (5, 15)), ("120", (4, 16))):
+        assert main(["predict", "seg", str(tmp_path / "seg.pt"), str(bag), "--camera", str(chain),
+                     "--imu", "/imu0", *(["--imu-window", window] if window else []),
+                     "--out", str(tmp_path / "w")]) == 0
+        acc = np.mean([level if k < 15 else tilted for k in range(lo, hi + 1)], 0)
+        up = cameras.imu_rotation(chain) @ (acc / np.linalg.norm(acc))
+        assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in capsys.readouterr().out
 
 
 def ramp(h=48, w=64):
@@ -718,3 +731,16 @@ def test_predict_reads_up_from_the_imu_orientation(tmp_path, capsys):
     assert main(["predict", "seg", ckpt, str(bag), "--camera", str(chain),
                  "--imu-up", "orientation"]) == 2
     assert "--imu-up says how to read --imu's messages" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["predict", "seg", "m.pt", "x.bag"], ["render", "x.bag", "--to", "equirectangular:64x32", "--out", "x.mp4"]])
+def test_the_bag_options_default_to_the_readers_own(command):
+    """``--max-skew`` and ``--imu-window`` (ms) default to what ``rig_frames`` and the IMU
+    readers take (ns) when called from Python."""
+    from usf_graph.cli import build_parser
+    from usf_graph.train.engine import defaults
+
+    args = build_parser().parse_args(command)
+    assert round(args.max_skew * 1e6) == defaults(bags.rig_frames)["max_skew_ns"]
+    assert round(args.imu_window * 1e6) == defaults(bags.Accelerometer.up)["window_ns"]
+    assert args.imu_up == "accel"
