@@ -546,6 +546,18 @@ def test_every_command_and_option_has_help(capsys):
     for word in ("icosahedral:L", "healpix:NSIDE", "bilinear", "Kalibr", "equirectangular",
                  "(default: icosahedral:6)", "--image-mask", "--fov"):
         assert word in text, word
+    assert "(default: None)" not in text and "(default: False)" not in text
+
+
+def test_help_shows_a_default_unless_empty_or_already_said():
+    from usf_graph.cli import _Help
+
+    p = argparse.ArgumentParser(formatter_class=_Help)
+    for flag, default, words in (("--a", 5, "rooms"), ("--b", None, "rooms"), ("--c", False, "on"),
+                                 ("--d", 7, "rooms (default: seven)")):
+        p.add_argument(flag, default=default, help=words)
+    text = " ".join(p.format_help().split())
+    assert "--a A rooms (default: 5)" in text and "--b B rooms --c C on --d D rooms (default: seven)" in text
 
 
 def test_a_command_builds_only_its_own_options_and_help_imports_no_torch():
@@ -843,11 +855,50 @@ def test_train_refuses_sizes_and_counts_below_one(option, capsys):
     (["predict", "det", "x.pt", "y.png", "--camera", "equirectangular", "--min-score", "2"],
      "--min-score: must be at least 0.0 and at most 1.0, got 2"),
     (["predict", "seg", "x.pt", "y.mp4", "--camera", "equirectangular", "--video", "o.mp4",
-      "--video-fps", "0"], "--video-fps: must be above 0.0, got 0")])
+      "--video-fps", "0"], "--video-fps: must be above 0.0, got 0"),
+    (["render", "x.bag", "--to", "equirectangular", "--out", "x.mp4", "--fps", "0"],
+     "--fps: must be above 0.0, got 0")])
 def test_numbers_out_of_range_stop_at_the_command_line(argv, said, capsys):
     with pytest.raises(SystemExit):
         main(argv)
     assert said in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, missing", [
+    ([], "COMMAND"), (["lift", "x.png"], "--camera"), (["render", "x.png", "--out", "y.png"], "--to"),
+    (["render", "x.png", "--to", "equirectangular"], "--out"), (["scenes"], "--out")])
+def test_required_options_are_named_when_missing(argv, missing, capsys):
+    with pytest.raises(SystemExit):
+        main(argv)
+    assert f"the following arguments are required: {missing}" in capsys.readouterr().err
+
+
+def test_scenes_default_to_seed_0_and_say_what_each_room_holds(tmp_path, capsys):
+    from usf_graph.scenes import make_room, render
+    from usf_graph.scenes.lenses import protocol_cameras
+
+    assert main(["scenes", "--out", str(tmp_path), "--num", "1", "--size", "16"]) == 0
+    room = make_room(0, 0)
+    boxes = render(room, protocol_cameras(16)["equirectangular"]).boxes
+    assert (f"room 0: {room.size[0]:.1f} x {room.size[1]:.1f} x {room.size[2]:.1f} m, "
+            f"{len(room.instances)} instances, {len(boxes)} boxes in the panorama") in capsys.readouterr().out
+
+
+def test_train_and_eval_mnist_take_the_protocols_folders_by_default(monkeypatch, capsys):
+    from usf_graph.train import mnist
+
+    calls = []
+    monkeypatch.setattr(mnist, "run", functools.wraps(mnist.run)(lambda **kw: calls.append(kw) or {}))
+    assert main(["train", "mnist"]) == 0  # {}: a torchrun rank other than 0, which prints nothing
+    assert calls[0]["root"] == "data/mnist" and calls[0]["out"] == "runs/mnist"
+
+    def score(path, **kw):
+        calls.append(kw)
+        return {"provenance": None, "model": "spherical", "rotate": "so3", "seed": 0, "acc": 0.5, "loss": 1.0}
+
+    monkeypatch.setattr(mnist, "score", functools.wraps(mnist.score)(score))
+    assert main(["eval", "mnist", "m.pt"]) == 0
+    assert calls[1]["root"] == "data/mnist" and "accuracy 50.00%, loss 1.0000" in capsys.readouterr().out
 
 
 def _make_n(*targets, **variables) -> str:

@@ -92,9 +92,10 @@ def cmd_train(args) -> int:
                   "gray")  # MNIST's digits are gray already
     other += ["--dataset"] * (args.dataset != "rooms") + ["--fold"] * (args.fold != "1")
     refuse_options(other, "train det|seg", "train mnist")
-    res = run(root=args.root or "data/mnist", out=args.out or "runs/mnist", planar=not args.no_planar,
-              **given_or_default(args, run, ("epochs", "batch_size", "level", "input_level",
-                                             "min_level", "source", "pairs", "pair_stages")),
+    res = run(planar=not args.no_planar,
+              **given_or_default(args, run, ("root", "out", "epochs", "batch_size", "level",
+                                             "input_level", "min_level", "source", "pairs",
+                                             "pair_stages")),
               seed=args.seed, resume=args.resume, device=args.device)
     teardown_distributed()
     if not res:  # a torchrun rank other than 0
@@ -122,8 +123,8 @@ def cmd_eval(args) -> int:
     from .train.mnist import score
     from .train.provenance import announce
 
-    m = score(args.checkpoint, args.root or "data/mnist", seed=args.seed, device=args.device,
-              **given_or_default(args, score, ("rotate", "source")))
+    m = score(args.checkpoint, seed=args.seed, device=args.device,
+              **given_or_default(args, score, ("root", "rotate", "source")))
     announce(args.checkpoint, m["provenance"])
     print(f"{args.checkpoint}: the {m['model']} classifier, test ({m['rotate']}, seed "
           f"{m['seed']}) accuracy {100 * m['acc']:.2f}%, loss {m['loss']:.4f}")
