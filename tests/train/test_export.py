@@ -22,7 +22,7 @@ from usf_graph.scenes import make_room
 from usf_graph.scenes.render import render
 from usf_graph.train.apply import UNSEEN, detect_image, lift_for, segment_image
 from usf_graph.train.bound import BoundDetector, BoundSegmenter, CameraIO
-from usf_graph.train.export import _angle, _load_pt2, _matched, export_model, load_exported
+from usf_graph.train.export import _angle, _load_pt2, _matched, _same_labels, export_model, load_exported
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
@@ -271,6 +271,23 @@ def test_detections_are_matched_one_to_one_by_class_overlap_and_score():
     assert (r["detections"], r["detections_exported"], r["matched"]) == (4, 4, 2)
     assert r["unmatched"] == 4  # two of want's and two of got's
     assert r["score_diff"] == pytest.approx(0.0005) and 0.95 <= r["iou_min"] < 1
+    # more reference detections than exported ones: the rest unmatched, none reused
+    few = {k: v[:1] for k, v in got.items()}
+    r = _matched(few, want)
+    assert (r["matched"], r["unmatched"], r["detections_exported"]) == (1, 3, 1)
+    none = _matched({k: v[:0] for k, v in got.items()}, want)
+    assert (none["matched"], none["unmatched"], none["iou_min"]) == (0, 4, 1.0)
+
+
+def test_labels_agree_by_seen_pixels_and_a_view_of_nothing_agrees():
+    want = np.array([[UNSEEN, 1, 2, 3]], np.uint8)
+    got = np.array([[UNSEEN, 1, 0, 3]], np.uint8)
+    assert _same_labels(got, want, rig=False) == {"pixels_seen": 3, "agree": 2 / 3, "unseen_match": True}
+    r = _same_labels([got, np.full_like(want, UNSEEN)], [want, np.full_like(want, UNSEEN)], rig=True)
+    assert r == {"pixels_seen": 3, "agree": 2 / 3, "unseen_match": True}
+    blind = np.full_like(want, UNSEEN)
+    assert _same_labels(blind, blind, rig=False) == {"pixels_seen": 0, "agree": 1.0, "unseen_match": True}
+    assert not _same_labels(got, blind, rig=False)["unseen_match"]
 
 
 def test_the_checks_up_angle():
