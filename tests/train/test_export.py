@@ -22,7 +22,14 @@ from usf_graph.scenes import make_room
 from usf_graph.scenes.render import render
 from usf_graph.train.apply import UNSEEN, detect_image, lift_for, segment_image
 from usf_graph.train.bound import BoundDetector, BoundSegmenter, CameraIO
-from usf_graph.train.export import _angle, _load_pt2, _matched, _same_labels, export_model, load_exported
+from usf_graph.train.export import (
+    _angle,
+    _load_pt2,
+    _matched,
+    _same_labels,
+    export_model,
+    load_exported,
+)
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
