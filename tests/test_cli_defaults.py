@@ -31,3 +31,12 @@ def test_help_names_each_protocols_default():
     assert per_task("channel_scale") == "det/seg 1"
     with pytest.raises(LookupError, match="no function fit"):
         source_defaults("seg", "fit")
+
+
+def test_keyword_only_defaults_and_constants_are_read(tmp_path, monkeypatch):
+    import usf_graph.cli_defaults as cd
+
+    (tmp_path / "demo.py").write_text("EPOCHS = 6\nNAME = 'x'.upper()\n\n"
+                                      "def run(a, b=2, *, c, d=EPOCHS, e=NAME, f=(1, 'two')):\n    pass\n")
+    monkeypatch.setattr(cd, "_TRAIN", tmp_path)
+    assert cd.source_defaults.__wrapped__("demo") == {"b": 2, "d": 6, "f": (1, "two")}
