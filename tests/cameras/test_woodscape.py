@@ -126,6 +126,14 @@ def test_bad_calibrations_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match="not increasing over the claimed fov_deg=200"):
         RadialPoly([300.0, 0, -200.0], 640, 480, 1280, 966, fov_deg=200)
     assert load(lambda d: d.pop("extrinsic")).position is None  # the intrinsics alone
+    for w in (1280.5, 0):
+        with pytest.raises(ValueError, match="image size must be whole positive numbers"):
+            load(lambda d, w=w: d["intrinsic"].update(width=w))
+    # poly_order 4 and aspect_ratio 1 where the file leaves them out; as written where given
+    plain = load(lambda d: [d["intrinsic"].pop(k) for k in ("poly_order", "aspect_ratio")])
+    assert list(plain.k) == [doc["intrinsic"][f"k{i}"] for i in range(1, 5)] and plain.aspect_ratio == 1.0
+    given = load(lambda d: d["intrinsic"].update(poly_order=3, aspect_ratio=1.02))
+    assert list(given.k) == [doc["intrinsic"][f"k{i}"] for i in range(1, 4)] and given.aspect_ratio == 1.02
 
 
 def test_a_cars_four_cameras_stitch_into_one_panorama(tmp_path, capsys):

@@ -34,6 +34,13 @@ def test_half_casts_keep_geometry_and_cast_everything_else():
     assert m.pos.dtype == m.area.dtype == m.running_mean.dtype == torch.float64
     m.float()
     assert m.pos.dtype == torch.float32
+    # the casts reach the module's children, geometry or not
+    m.child, m.geo = torch.nn.Linear(2, 2), GeometryModule()
+    m.geo.register_buffer("pos", torch.zeros(4, dtype=torch.float32), persistent=False)
+    m.half()
+    assert m.child.weight.dtype == torch.float16 and m.geo.pos.dtype == torch.float32
+    m.double()
+    assert m.child.weight.dtype == m.geo.pos.dtype == torch.float64
 
 
 def test_half_precision_layer_follows_its_float64_reference():
