@@ -409,6 +409,11 @@ def test_render_turns_a_bags_frames_into_a_video(tmp_path, capsys):
         assert why in capsys.readouterr().err
 
 
+def given_up(up) -> str:
+    """How ``predict`` says it read ``up`` (from the IMU: given, not estimated)."""
+    return "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given"
+
+
 def imu_msg(ts, acc, sec, nanosec, quat=(0.0, 0.0, 0.0, 1.0), no_orientation=False):
     """An Imu message; ``quat`` (x, y, z, w) its orientation, ``no_orientation`` marks it
     unknown (``orientation_covariance[0] = -1``)."""
@@ -513,7 +518,7 @@ def test_predict_with_imu_up_matches_the_same_up_given(tmp_path, capsys):
     up = cameras.imu_rotation(chain) @ tilt / np.linalg.norm(tilt)
     assert up[2] > 0.97  # the camera is nearly level
     out = capsys.readouterr().out
-    assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in out
+    assert given_up(up) in out
     assert main(["predict", "seg", ckpt, str(tmp_path / "f0.png"), "--camera", str(chain),
                  "--up", *map(str, up), "--out", str(tmp_path / "p")]) == 0
     a = cv2.imread(str(tmp_path / "b" / "run_000000_labels.png"), cv2.IMREAD_UNCHANGED)
@@ -624,7 +629,7 @@ def test_predict_reads_the_imu_at_the_shifted_stamp(tmp_path, capsys):
                      str(chain), "--imu", "/imu0", "--imu-window", "30",
                      "--out", str(tmp_path / f"out_{shift}")]) == 0
         up = cameras.imu_rotation(chain) @ (acc / np.linalg.norm(acc))
-        assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in capsys.readouterr().out
+        assert given_up(up) in capsys.readouterr().out
     # the window, in ms about the stamp: 100 by default (readings 5-15, one tilted), or 120 (4-16)
     chain = tmp_path / "chain_0.0.yaml"  # no shift
     for window, (lo, hi) in ((None, (5, 15)), ("120", (4, 16))):
@@ -633,7 +638,7 @@ def test_predict_reads_the_imu_at_the_shifted_stamp(tmp_path, capsys):
                      "--out", str(tmp_path / "w")]) == 0
         acc = np.mean([level if k < 15 else tilted for k in range(lo, hi + 1)], 0)
         up = cameras.imu_rotation(chain) @ (acc / np.linalg.norm(acc))
-        assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in capsys.readouterr().out
+        assert given_up(up) in capsys.readouterr().out
 
 
 def ramp(h=48, w=64):
@@ -727,7 +732,7 @@ def test_predict_reads_up_from_the_imu_orientation(tmp_path, capsys):
     assert main(["predict", "seg", ckpt, str(bag), "--camera", str(chain), "--imu", "/imu0",
                  "--imu-up", "orientation", "--out", str(tmp_path / "o")]) == 0
     up = cameras.imu_rotation(chain) @ Q.inv().apply([0.0, 0.0, 1.0])
-    assert "up: (" + ", ".join(f"{v:+.3f}" for v in up) + "), given" in capsys.readouterr().out
+    assert given_up(up) in capsys.readouterr().out
     assert main(["predict", "seg", ckpt, str(bag), "--camera", str(chain),
                  "--imu-up", "orientation"]) == 2
     assert "--imu-up says how to read --imu's messages" in capsys.readouterr().err

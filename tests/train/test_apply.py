@@ -16,7 +16,7 @@ from usf_graph.geometry import random_rotation
 from usf_graph.grids import icosahedral
 from usf_graph.models import PlanarUNet, SphericalDetector, SphericalUNet
 from usf_graph.models.gravity import UNSURE_MARGIN
-from usf_graph.ops.iou import box_iou
+from usf_graph.ops import box_iou
 from usf_graph.train.apply import (
     UNSEEN,
     choose_interpolation,
