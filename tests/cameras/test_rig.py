@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from tests.helpers import FIXTURES
 from usf_graph import cameras as C
 from usf_graph.cameras import DEFAULT_ROTATION as D
+from usf_graph.cameras.rig import rig_centre
 
 R_SCENE = 3.0  # the scene points' distance from the rig's first camera (metres)
 
@@ -210,6 +211,13 @@ def test_stitch_at_centres_the_rig_and_says_what_is_missing():
         C.stitch_at({"a": rig["cam0"], "b": rig["cam1"].with_position(None)}, 2.0)
     with pytest.raises(ValueError, match="centre must be 'mean' or 3 numbers"):
         C.stitch_at(rig, 2.0, centre="middle")
+    for centre in ([0.0, 0.0], [0.0, float("nan"), 0.0]):  # too few numbers; not finite
+        with pytest.raises(ValueError, match="centre must be 3 finite numbers"):
+            C.stitch_at(rig, 2.0, centre=centre)
+    far = rig_centre(rig)[1]  # a sphere through the farthest camera is not beyond it
+    with pytest.raises(ValueError, match="does not reach past the rig"):
+        C.stitch_at(rig, far)
+    assert C.stitch_at(rig, far * (1 + 1e-12))["cam0"].distance == far * (1 + 1e-12)
 
 
 def test_turning_a_camera_apart_turns_what_it_sees():
