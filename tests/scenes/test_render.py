@@ -210,6 +210,10 @@ def test_floor_ceiling_and_walls_are_the_box_the_rooms_size_says(index):
 def test_bad_inputs_get_clear_errors(scene):
     with pytest.raises(ValueError, match="Did you mean 'chair'"):
         scenes.semantic_index("chiar")
+    with pytest.raises(ValueError, match=r"Did you mean 'door' or 'bookcase' or 'floor'\? The"):
+        scenes.semantic_index("booer")  # 'board' is close too: the three closest are named
+    with pytest.raises(ValueError, match=r"class 'xyz'\. The classes are: beam, board, "):
+        scenes.semantic_index("xyz")  # nothing close: no guess
     with pytest.raises(ValueError, match="unknown detection class 'bookcase'"):
         scenes.detection_index("bookcase")
     table = next(o for o in scene.instances if o.kind == "table")
@@ -240,10 +244,10 @@ def test_bad_inputs_get_clear_errors(scene):
         scenes.make_room(size=(1, 4, 3))
 
 
-def test_colourize_marks_ignored_pixels_black():
-    lab = np.array([[0, 12, IGNORE]], np.uint8)
+def test_colourize_marks_ignored_pixels_and_labels_past_the_classes_black():
+    lab = np.array([[0, 12, 13, IGNORE]], np.uint8)
     rgb = scenes.colourize(lab)
-    assert (rgb[0, 2] == 0).all() and np.array_equal(rgb[0, 0], scenes.PALETTE[0])
+    assert np.array_equal(rgb[0], [scenes.PALETTE[0], scenes.PALETTE[12], [0, 0, 0], [0, 0, 0]])
     assert len(scenes.PALETTE) == len(SEMANTIC_CLASSES) == 13
     assert normalize(np.ones(3)).shape == (3,)
 
