@@ -128,8 +128,9 @@ def test_spec_round_trip_and_errors():
               grids.fibonacci(100), grids.equiangular(8, 16)):  # a grid's own spec reads back
         back = grids.from_spec(g.spec)
         assert back.params == g.params and torch.equal(back.pos, g.pos), g.spec
-    assert grids.from_spec("healpix:4").params == grids.from_spec("healpix:4,nest").params \
-        == {"nside": 4, "nest": True}
+    nested = [grids.from_spec(f"healpix:4{o}").params for o in ("", ",nest", ",nested", ",NEST", ",true")]
+    assert nested == [{"nside": 4, "nest": True}] * 5
+    assert grids.from_spec("healpix:4,false").params == {"nside": 4, "nest": False}
     for bad in ("healpix:4,rnig", "healpix:4,ring,2", "healpix:"):  # a typo picks no ordering
         with pytest.raises(ValueError, match=f"bad grid spec '{bad}'"):
             grids.from_spec(bad)
