@@ -264,6 +264,79 @@ def test_the_check_refuses_a_program_that_disagrees(tmp_path, monkeypatch):
         ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
 
 
+def test_the_checks_verdicts_on_up_labels_and_detections(tmp_path, monkeypatch):
+    """check_exported's verdicts, usf-graph and the program both stand-ins: the program's
+    up estimate may differ by up to 0.01 degrees, or by more where usf-graph's is unsure
+    (its margin under TIE_MARGIN: then compared given the program's up); 99% of the seen
+    pixels must agree; at most one detection, or 2%, may go unmatched, and the error says
+    when usf-graph's own scores tie."""
+    from usf_graph.train import export as ex
+
+    cam, path, calls = _fisheye(32), tmp_path / "p.onnx", []
+    labels = np.arange(200) % 5
+    labels[100:] = UNSEEN  # 100 seen pixels
+    ref_up = np.array([0.0, 0.0, 1.0])
+
+    def tilted(deg):
+        return np.array([math.sin(math.radians(deg)), 0.0, math.cos(math.radians(deg))])
+
+    def usf(margin, boxes=None):
+        def reference(model, feed, camera, up=None, interpolation=None, **decoding):
+            calls.append(up)
+            u = ref_up if up is None else np.asarray(up, np.float64)
+            return {"labels": labels, "up": u, "margin": margin, **(boxes or {})}
+        monkeypatch.setattr(ex, "segment_image" if boxes is None else "detect_image", reference)
+
+    def program(answer, up):
+        monkeypatch.setattr(ex, "load_exported", lambda p, threads=None: lambda im, u=None: (answer, up))
+
+    def check(up=None, decoding=None):
+        calls.clear()
+        return ex.check_exported(path, object(), cam, up, "bilinear", decoding=decoding)
+
+    usf(margin=0.5)
+    for deg in (0.0, 0.008):  # the estimates agree
+        program(labels, tilted(deg))
+        out = check()
+        assert out["up_angle_deg"] == pytest.approx(deg, abs=1e-9) and not out["up_tie"]
+        assert calls == [None] and out["agree"] == 1.0
+    for margin in (0.5, ex.TIE_MARGIN):  # usf-graph is sure of its estimate: refused
+        usf(margin)
+        program(labels, tilted(0.012))
+        with pytest.raises(RuntimeError, match=r"reads up 0\.012 degrees away .* sure of it"):
+            check()
+    usf(margin=0.5 * ex.TIE_MARGIN)  # unsure: compared again, given the program's up
+    out = check()
+    assert out["up_tie"] and len(calls) == 2 and np.allclose(calls[1], tilted(0.012))
+    usf(margin=0.5)
+    for wrong, ok in ((1, True), (2, False)):  # 99 of 100 seen pixels agree: the least passed
+        relabelled = labels.copy()
+        relabelled[:wrong] = (relabelled[:wrong] + 1) % 5
+        program(relabelled, ref_up)
+        if ok:
+            assert check("input")["agree"] == 0.99
+        else:
+            with pytest.raises(RuntimeError, match=r"98\.00% of the pixels agree"):
+                check("input")
+
+    def boxes(n, spread=1.0):
+        lon = np.linspace(-3.0, 3.0, n)  # apart: none overlaps another
+        return {"boxes": np.stack([lon, 0 * lon, 0 * lon + 0.2, 0 * lon + 0.2, 0 * lon], 1),
+                "classes": np.zeros(n, np.int64), "scores": np.linspace(spread, 0.0, n)}
+
+    for n, lost, spread, ok in ((10, 1, 1.0, True), (10, 2, 1.0, False), (100, 2, 1.0, True),
+                                (100, 3, 1.0, False), (10, 2, 1e-3, False), (10, 2, 5e-4, False)):
+        want = boxes(n, spread)
+        usf(0.5, want)
+        program({k: v[lost:] for k, v in want.items()}, ref_up)
+        if ok:
+            assert check("input", {"k": n})["unmatched"] == lost
+            continue
+        with pytest.raises(RuntimeError, match=f"{lost} of {n} detections have no match") as err:
+            check("input", {"k": n})
+        assert ("is the model trained?" in str(err.value)) == (spread < 1e-3)
+
+
 def test_detections_are_matched_one_to_one_by_class_overlap_and_score():
     """Each reference detection, best first, takes the free exported one of its class that
     overlaps it most; a match needs IoU >= 0.95 and scores within 1e-3. The exported
