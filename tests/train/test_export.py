@@ -74,10 +74,12 @@ def _room_image(camera, seed):
 
 def test_onnx_with_an_imu_up_gives_usf_graphs_labels(tmp_path):
     model, cam = _deeplab(), _fisheye()
-    info = export_model(model, cam, tmp_path / "seg.onnx", up="input")
+    path = tmp_path / "deploy" / "cam0" / "seg.onnx"  # its folders made
+    info = export_model(model, cam, path, up="input")
     assert info["format"] == "ONNX" and info["check"]["agree"] >= 0.99
-    assert not list(tmp_path.glob(".*part*"))  # written atomically
-    run = load_exported(tmp_path / "seg.onnx")
+    assert info["path"] == str(path) and info["bytes"] == path.stat().st_size
+    assert not list(path.parent.glob(".*part*"))  # written atomically
+    run = load_exported(path)
     meta = run.metadata  # the file says what it is
     assert json.loads(meta["classes"]) == [f"class {k}" for k in range(5)] and meta["unseen"] == "255"
     assert meta["up"] == "input" and json.loads(meta["inputs"]) == ["image", "up"]
