@@ -14,6 +14,7 @@ from usf_graph.ops import (
     box_axes,
     box_corners,
     box_edges,
+    boxes_from_axes,
     canonical_boxes,
     fit_box,
     from_pandora,
@@ -83,6 +84,17 @@ def test_points_in_box_edges_are_great_circles():
     outward = (edge - 1e-7 * c) / np.linalg.norm(edge - 1e-7 * c, axis=-1, keepdims=True)
     assert points_in_boxes(inward, b).all()
     assert not points_in_boxes(outward, b).any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(lon=st.floats(-math.pi, math.pi), lat=st.floats(-1.5, 1.5),
+       roll=st.floats(-1.5, 1.5), along=st.floats(-3.0, 3.0), scale=st.floats(0.1, 10.0))
+def test_a_box_from_its_axes_takes_the_horizontal_axis_projected_to_its_tangent_plane(
+        lon, lat, roll, along, scale):
+    b = np.array([lon, lat, 0.5, 0.3, roll])
+    c, e, _ = box_axes(b)
+    back = boxes_from_axes(c, scale * e + along * c, 0.5, 0.3)  # any length, off the plane
+    assert _same_box(back, b, 1e-9) and -math.pi / 2 <= back[4] < math.pi / 2
 
 
 @settings(max_examples=40, deadline=None)

@@ -81,16 +81,16 @@ def box_planes(boxes):
 
 
 def boxes_from_axes(c, e, fov_x, fov_y):
-    """The boxes with centre ``c [..., 3]``, horizontal axis ``e`` (projected onto the
-    tangent plane at ``c``) and fields of view (radians); roll in [-pi/2, pi/2). Numpy in,
-    float64 numpy out; tensors in, tensors of their dtype out (traceable)."""
+    """The boxes with centre ``c [..., 3]``, horizontal axis ``e`` (of any length; only its
+    part in the tangent plane at ``c`` counts) and fields of view (radians); roll in
+    [-pi/2, pi/2). Numpy in, float64 numpy out; tensors in, tensors of their dtype out
+    (traceable)."""
     xp = torch if torch.is_tensor(c) else np
     if xp is np:
         c, e = np.asarray(c, np.float64), np.asarray(e, np.float64)
     c = normalize(c)
-    e = normalize(e - (e * c).sum(-1, keepdims=True) * c)
     lat, lon = to_latlon(c)
-    e0, n0 = _local_frame(lon, lat)
+    e0, n0 = _local_frame(lon, lat)  # tangent at c: e's normal part drops out of the roll
     roll = xp.arctan2((e * n0).sum(-1), (e * e0).sum(-1))
     roll = xp.remainder(roll + np.pi / 2, np.pi) - np.pi / 2  # a half turn maps a box onto itself
     if xp is torch:
