@@ -235,6 +235,14 @@ def test_refusals_name_the_fix(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def _stand_in_program(monkeypatch, answer, up):
+    """check_exported's exported file replaced by a program that answers ``answer`` and
+    ``up`` to every call."""
+    from usf_graph.train import export as ex
+
+    monkeypatch.setattr(ex, "load_exported", lambda path, threads=None: lambda images, u=None: (answer, up))
+
+
 def test_the_check_refuses_a_program_that_disagrees(tmp_path, monkeypatch):
     """check_exported against stand-in programs: one that gives usf-graph's labels passes
     with its numbers; one that relabels 2.5% of the seen pixels, or labels one unseen
@@ -246,22 +254,19 @@ def test_the_check_refuses_a_program_that_disagrees(tmp_path, monkeypatch):
                          interpolation="bilinear")["labels"]
     seen = np.flatnonzero(want != UNSEEN)
 
-    def program(labels):
-        monkeypatch.setattr(ex, "load_exported", lambda path, threads=None: (
-            lambda images, up=None: (labels, np.array([0.0, 0.0, 1.0], np.float32))))
-
-    program(want.copy())
+    up = np.array([0.0, 0.0, 1.0], np.float32)
+    _stand_in_program(monkeypatch, want.copy(), up)
     out = ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
     assert out["agree"] == 1.0 and out["unseen_match"] and out["pixels_seen"] == len(seen)
     assert 0 <= out["load_s"] < 60 and 0 <= out["frame_s"] < 60 and out["up_angle_deg"] == 0
     relabelled = want.copy()
     relabelled.flat[seen[::40]] = (relabelled.flat[seen[::40]] + 1) % 5
-    program(relabelled)
+    _stand_in_program(monkeypatch, relabelled, up)
     with pytest.raises(RuntimeError, match=r"disagrees .*: 97\.[45]\d% of the pixels agree, unseen pixels match"):
         ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
     one_unseen = want.copy()
     one_unseen.flat[np.flatnonzero(want == UNSEEN)[0]] = 0
-    program(one_unseen)
+    _stand_in_program(monkeypatch, one_unseen, up)
     with pytest.raises(RuntimeError, match="100.00% of the pixels agree, unseen pixels differ"):
         ex.check_exported(tmp_path / "p.onnx", model, cam, "input", "bilinear")
 
@@ -289,22 +294,19 @@ def test_the_checks_verdicts_on_up_labels_and_detections(tmp_path, monkeypatch):
             return {"labels": labels, "up": u, "margin": margin, **(boxes or {})}
         monkeypatch.setattr(ex, "segment_image" if boxes is None else "detect_image", reference)
 
-    def program(answer, up):
-        monkeypatch.setattr(ex, "load_exported", lambda p, threads=None: lambda im, u=None: (answer, up))
-
     def check(up=None, decoding=None):
         calls.clear()
         return ex.check_exported(path, object(), cam, up, "bilinear", decoding=decoding)
 
     usf(margin=0.5)
     for deg in (0.0, 0.008):  # the estimates agree
-        program(labels, tilted(deg))
+        _stand_in_program(monkeypatch, labels, tilted(deg))
         out = check()
         assert out["up_angle_deg"] == pytest.approx(deg, abs=1e-9) and not out["up_tie"]
         assert calls == [None] and out["agree"] == 1.0
     for margin in (0.5, ex.TIE_MARGIN):  # usf-graph is sure of its estimate: refused
         usf(margin)
-        program(labels, tilted(0.012))
+        _stand_in_program(monkeypatch, labels, tilted(0.012))
         with pytest.raises(RuntimeError, match=r"reads up 0\.012 degrees away .* sure of it"):
             check()
     usf(margin=0.5 * ex.TIE_MARGIN)  # unsure: compared again, given the program's up
@@ -314,7 +316,7 @@ def test_the_checks_verdicts_on_up_labels_and_detections(tmp_path, monkeypatch):
     for wrong, ok in ((1, True), (2, False)):  # 99 of 100 seen pixels agree: the least passed
         relabelled = labels.copy()
         relabelled[:wrong] = (relabelled[:wrong] + 1) % 5
-        program(relabelled, ref_up)
+        _stand_in_program(monkeypatch, relabelled, ref_up)
         if ok:
             assert check("input")["agree"] == 0.99
         else:
@@ -330,7 +332,7 @@ def test_the_checks_verdicts_on_up_labels_and_detections(tmp_path, monkeypatch):
                                 (100, 3, 1.0, False), (10, 2, 1e-3, False), (10, 2, 5e-4, False)):
         want = boxes(n, spread)
         usf(0.5, want)
-        program({k: v[lost:] for k, v in want.items()}, ref_up)
+        _stand_in_program(monkeypatch, {k: v[lost:] for k, v in want.items()}, ref_up)
         if ok:
             assert check("input", {"k": n})["unmatched"] == lost
             continue
