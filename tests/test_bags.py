@@ -330,7 +330,8 @@ def test_predict_on_a_kalibr_rig_bag_reads_the_camchain_topics(tmp_path, capsys)
         a = cv2.imread(str(tmp_path / "s" / f"small_{name}_000000_labels.png"), cv2.IMREAD_UNCHANGED)
         b = cv2.imread(str(tmp_path / "s" / f"half_{k}_labels.png"), cv2.IMREAD_UNCHANGED)
         assert a.shape == (200, 200) and np.array_equal(a, b)
-    assert main(["predict", "seg", ckpt, str(bag), *common, "--max-skew", "0.9"]) == 2  # 1 ms apart
+    assert main(["predict", "seg", ckpt, str(bag), *common, "--max-skew", "0.9",
+                 "--out", str(tmp_path / "skew")]) == 2  # 1 ms apart: nothing written anywhere
     assert "(/back/image_raw) within 0.9 ms" in capsys.readouterr().err
     assert main(["predict", "seg", ckpt, str(bag), *common, "--topic", "/front/image_raw"]) == 2
     assert "has 2 cameras (cam0, cam1) but 1 topics" in capsys.readouterr().err
